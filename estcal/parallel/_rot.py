@@ -89,7 +89,7 @@ def make_T(P: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Homogeneous transforms (..., 4, 4) from positions (..., 3) and rotations (..., 3, 3)."""
     P = np.asarray(P, dtype=float)
     R = np.asarray(R, dtype=float)
-    T = np.zeros(R.shape[:-2] + (4, 4))
+    T = np.zeros(np.broadcast_shapes(R.shape[:-2], P.shape[:-1]) + (4, 4))
     T[..., :3, :3] = R
     T[..., :3, 3] = P
     T[..., 3, 3] = 1.0

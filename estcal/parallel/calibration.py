@@ -1,0 +1,636 @@
+r"""Classical (unconstrained) calibration of a Gough platform, identifiability, CLI entry points.
+
+Two residual models over the 42 (Model 42) or 36 (Model 36) parameters:
+
+* **Inverse kinematics** (``residual="ik"``): for each measured platform pose
+  ``T_i`` and leg readings ``ρ_i`` (6), ``r_ik = ρ_ik − (‖P_i + R_i b_k − a_k‖ − Δρ_k)``;
+  Jacobian ``∂r/∂θ = −∂ρ/∂θ`` (analytic, :meth:`GoughPlatform.leg_jacobians`).
+* **Forward kinematics** (``residual="fk"``): the pose predicted from the
+  measured readings by the numerical FK, compared with the measured pose,
+  ``e_i = (p_meas − p_fk, log(R_meas R_fkᵀ))`` (estcal pose-error
+  convention). By the implicit function theorem on ``ρ(x, θ) = ρ_meas``,
+  ``∂x_fk/∂θ = −J_x⁻¹ J_θ``, so ``∂e_p/∂θ = (J_x⁻¹ J_θ)_p`` and
+  ``∂e_r/∂θ = J_r⁻¹(e_r) (J_x⁻¹ J_θ)_r`` with the right Jacobian of SO(3).
+
+Estimation is weighted nonlinear least squares. Residual standard deviations
+are ``sigma_rho`` for IK (optionally inflated by the propagated pose noise,
+``σ²_ik = σ_ρ² + J_x,k Σ_pose J_x,kᵀ``), and ``sigma_p``/``sigma_r`` for FK.
+Covariance of the estimate: ``Σ_θ = s² (Jᵀ W J)⁻¹`` with ``s² = χ²/(m − p)``
+when no absolute noise level is given (``scale_covariance=True``), else 1.
+
+Identifiability uses a column-pivoted QR of the (weighted) stacked Jacobian
+with threshold ``τ = c · ε · max|R_jj|`` (``c = max(m, p)`` by default):
+columns with zero norm have *no effect*; columns whose pivot falls below τ
+are *regrouped* into the identifiable ones (coefficients ``R11⁻¹ R12``).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from ._rot import euler_zyx_to_matrix, make_T, matrix_to_euler_zyx, so3_exp, so3_log
+from .daney import generate_random_poses
+from .gough import N_LEGS, GoughPlatform, load_gough, split_pose
+
+__all__ = [
+    "GoughData",
+    "GoughProblem",
+    "GoughCalibrationResult",
+    "simulate_gough_data",
+    "load_gough_data",
+    "identifiability_qr",
+    "identifiable_gough",
+    "calibrate_gough",
+    "ESTIMATORS",
+]
+
+
+# ---------------------------------------------------------------- data
+@dataclass
+class GoughData:
+    """Measured platform poses (base frame) and leg readings.
+
+    Attributes
+    ----------
+    T : (N, 4, 4) measured ``T_base_platform``.
+    rho : (N, 6) leg-sensor readings [m].
+    sigma_rho, sigma_p, sigma_r : noise standard deviations (m, m, rad) if known.
+    """
+
+    T: np.ndarray
+    rho: np.ndarray
+    sigma_rho: float | None = None
+    sigma_p: float | None = None
+    sigma_r: float | None = None
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        self.T = np.asarray(self.T, float).reshape(-1, 4, 4)
+        self.rho = np.asarray(self.rho, float).reshape(-1, N_LEGS)
+        if len(self.T) != len(self.rho):
+            raise ValueError(f"{self.source}: {len(self.T)} poses but {len(self.rho)} rows of leg readings")
+        bad = ~np.isfinite(self.T).all(axis=(1, 2)) | ~np.isfinite(self.rho).all(axis=1)
+        if bad.any():
+            raise ValueError(f"{self.source}: non-finite values in rows {np.flatnonzero(bad)[:10].tolist()}")
+
+    def __len__(self) -> int:
+        return len(self.T)
+
+    def subset(self, idx) -> "GoughData":
+        return GoughData(self.T[idx], self.rho[idx], self.sigma_rho, self.sigma_p, self.sigma_r, self.source)
+
+    def to_dict(self) -> dict:
+        """JSON form: position [m], ZYX Euler angles [rad], readings [m]."""
+        P, R = split_pose(self.T)
+        return {"n_poses": len(self), "position": P.tolist(), "euler_zyx": matrix_to_euler_zyx(R).tolist(),
+                "rho": self.rho.tolist(), "sigma_rho": self.sigma_rho, "sigma_p": self.sigma_p,
+                "sigma_r": self.sigma_r}
+
+    def save_csv(self, path: str | Path) -> None:
+        """CSV with header ``x,y,z,psi,theta,phi,rho1..rho6`` (m, ZYX Euler rad, m)."""
+        P, R = split_pose(self.T)
+        arr = np.c_[P, matrix_to_euler_zyx(R), self.rho]
+        hdr = "x,y,z,psi,theta,phi," + ",".join(f"rho{k}" for k in range(1, 7))
+        np.savetxt(path, arr, delimiter=",", header=hdr, comments="", fmt="%.12g")
+
+
+def load_gough_data(path: str | Path) -> GoughData:
+    """Read measurements from CSV, NPZ or JSON.
+
+    * CSV: header row with columns ``x,y,z`` (m), orientation as ``psi,theta,phi``
+      (ZYX Euler, rad) or ``qw,qx,qy,qz``, and ``rho1..rho6`` (m).
+    * NPZ: arrays ``T`` (N,4,4) and ``rho`` (N,6) (optional scalars ``sigma_*``).
+    * JSON: the output of :meth:`GoughData.to_dict`.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"Gough measurement file not found: {p}")
+    suf = p.suffix.lower()
+    if suf == ".npz":
+        z = np.load(p)
+        kw = {k: float(z[k]) for k in ("sigma_rho", "sigma_p", "sigma_r") if k in z.files}
+        for key in ("T", "rho"):
+            if key not in z.files:
+                raise ValueError(f"{p}: NPZ needs arrays 'T' and 'rho' (found {z.files})")
+        return GoughData(z["T"], z["rho"], source=str(p), **kw)
+    if suf == ".json":
+        d = json.loads(p.read_text())
+        T = make_T(np.asarray(d["position"], float), euler_zyx_to_matrix(np.asarray(d["euler_zyx"], float)))
+        return GoughData(T, d["rho"], d.get("sigma_rho"), d.get("sigma_p"), d.get("sigma_r"), str(p))
+    with p.open() as fh:
+        header = fh.readline().strip().lstrip("#").strip()
+    cols = [c.strip() for c in header.split(",")]
+    arr = np.atleast_2d(np.loadtxt(p, delimiter=",", skiprows=1))
+    if arr.shape[1] != len(cols):
+        raise ValueError(f"{p}: header has {len(cols)} columns but rows have {arr.shape[1]}")
+    ix = {c: i for i, c in enumerate(cols)}
+
+    def col(names):
+        missing = [n for n in names if n not in ix]
+        if missing:
+            raise ValueError(f"{p}: missing column(s) {missing}; header is {cols}")
+        return arr[:, [ix[n] for n in names]]
+
+    P = col(["x", "y", "z"])
+    if "psi" in ix:
+        R = euler_zyx_to_matrix(col(["psi", "theta", "phi"]))
+    elif "qw" in ix:
+        q = col(["qw", "qx", "qy", "qz"])
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        w, x, y, z = q.T
+        R = np.stack([
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    else:
+        raise ValueError(f"{p}: orientation columns psi,theta,phi or qw,qx,qy,qz required; header is {cols}")
+    rho = col([f"rho{k}" for k in range(1, 7)])
+    return GoughData(make_T(P, R), rho, source=str(p))
+
+
+def simulate_gough_data(
+    robot: GoughPlatform,
+    n_poses: int,
+    rng: np.random.Generator | int = 0,
+    sigma_rho: float = 0.0,
+    sigma_p: float = 0.0,
+    sigma_r: float = 0.0,
+    T: np.ndarray | None = None,
+) -> GoughData:
+    """Synthetic measurements: random workspace poses (or ``T``), exact readings
+    from ``robot`` (the *true* robot), Gaussian noise on readings (σ_ρ), on
+    position components (σ_p) and as a world-frame rotation vector (σ_r)."""
+    rng = np.random.default_rng(rng)
+    T = generate_random_poses(robot, n_poses, rng) if T is None else np.asarray(T, float).reshape(-1, 4, 4)
+    rho = robot.leg_lengths(T) + rng.normal(0, sigma_rho, (len(T), N_LEGS))
+    P, R = split_pose(T)
+    Tm = make_T(P + rng.normal(0, sigma_p, P.shape), so3_exp(rng.normal(0, sigma_r, P.shape)) @ R)
+    return GoughData(Tm, rho, sigma_rho or None, sigma_p or None, sigma_r or None, "simulated")
+
+
+def _so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
+    """``J_r⁻¹(w) = I + ½[w]x + (1/θ² − (1 + cos θ)/(2θ sin θ)) [w]x²`` (n, 3, 3)."""
+    from ._rot import skew
+
+    th = np.linalg.norm(w, axis=-1)[:, None, None]
+    K = skew(w)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
+
+
+# ---------------------------------------------------------------- problem
+class GoughProblem:
+    """Weighted residual ``r(x)`` and Jacobian for the free parameters ``x``.
+
+    Generic interface usable by any least-squares/Bayesian estimator:
+    ``x0``, ``names``, ``residual(x)``, ``jacobian(x)`` (both whitened, i.e.
+    divided by the residual standard deviations), ``n_residuals``.
+    """
+
+    def __init__(self, robot: GoughPlatform, data: GoughData, residual: str = "ik", model: int = 42,
+                 free: Sequence[str] | None = None, theta0: np.ndarray | None = None,
+                 sigma_rho: float | None = None, sigma_p: float | None = None, sigma_r: float | None = None,
+                 propagate_pose_noise: bool = True):
+        if residual not in ("ik", "fk"):
+            raise ValueError(f"residual must be 'ik' or 'fk', got {residual!r}")
+        self.robot, self.data, self.kind = robot, data, residual
+        self.pv = robot.parameter_vector(model)
+        if theta0 is not None:
+            self.pv.values = np.asarray(theta0, float).reshape(42).copy()
+        if free is not None:
+            self.pv = self.pv.with_free(free)
+        self.sigma_rho = sigma_rho if sigma_rho is not None else data.sigma_rho
+        self.sigma_p = sigma_p if sigma_p is not None else data.sigma_p
+        self.sigma_r = sigma_r if sigma_r is not None else data.sigma_r
+        self.propagate = propagate_pose_noise
+        self.fk_failures = 0
+
+    @property
+    def names(self) -> list[str]:
+        return self.pv.free_names
+
+    @property
+    def x0(self) -> np.ndarray:
+        return self.pv.to_flat()
+
+    @property
+    def n_residuals(self) -> int:
+        return 6 * len(self.data)
+
+    @property
+    def absolute_sigma(self) -> bool:
+        """True when all noise levels the residual needs are given (then the
+        covariance is not rescaled by the residual variance)."""
+        if self.kind == "ik":
+            return self.sigma_rho is not None
+        return self.sigma_p is not None and self.sigma_r is not None
+
+    def theta(self, x: np.ndarray) -> np.ndarray:
+        return self.pv.from_flat(x)
+
+    # IK --------------------------------------------------------------
+    def _ik_sigma(self, theta):
+        s_rho = self.sigma_rho if self.sigma_rho is not None else 1.0
+        var = np.full((len(self.data), N_LEGS), s_rho**2)
+        if self.propagate and (self.sigma_p or self.sigma_r):
+            _, Jx = self.robot.leg_jacobians(self.data.T, theta)
+            w = np.r_[np.full(3, (self.sigma_p or 0.0) ** 2), np.full(3, (self.sigma_r or 0.0) ** 2)]
+            var = var + np.einsum("nki,i,nki->nk", Jx, w, Jx)
+        return np.sqrt(var)
+
+    def _fk(self, theta):
+        fk = self.robot.forward_kinematics(self.data.rho, theta, guess=self.data.T, n_starts=2, tol=1e-13)
+        self.fk_failures = fk.n_failed
+        return fk
+
+    def _fk_sigma(self):
+        sp = self.sigma_p if self.sigma_p is not None else 1.0
+        sr = self.sigma_r if self.sigma_r is not None else 1.0
+        return np.r_[np.full(3, sp), np.full(3, sr)]
+
+    def residual_and_jacobian(self, x: np.ndarray, jacobian: bool = True):
+        """Whitened residual (m,) and Jacobian (m, p) w.r.t. the free parameters."""
+        theta = self.theta(x)
+        if self.kind == "ik":
+            r = (self.data.rho - self.robot.leg_lengths(self.data.T, theta))
+            s = self._ik_sigma(theta)
+            r = (r / s).reshape(-1)
+            if not jacobian:
+                return r, None
+            Jt, _ = self.robot.leg_jacobians(self.data.T, theta)
+            J = (-Jt / s[..., None]).reshape(-1, 42)[:, self.pv.free]
+            return r, J
+        fk = self._fk(theta)
+        ok = fk.success
+        Pm, Rm = split_pose(self.data.T)
+        e = np.zeros((len(self.data), 6))
+        Tf = fk.T[ok]
+        e[ok, :3] = Pm[ok] - Tf[:, :3, 3]
+        e[ok, 3:] = so3_log(Rm[ok] @ np.swapaxes(Tf[:, :3, :3], -1, -2))
+        s = self._fk_sigma()
+        r = (e / s).reshape(-1)
+        if not jacobian:
+            return r, None
+        J = np.zeros((len(self.data), 6, 42))
+        if ok.any():
+            Jt, Jx = self.robot.leg_jacobians(Tf, theta)
+            dx = np.linalg.solve(Jx, Jt)  # = -∂x_fk/∂θ
+            # exact derivative of log(exp(e) exp(-δ)) w.r.t. δ is -J_r⁻¹(e) (right Jacobian of SO(3))
+            dx[:, 3:] = np.einsum("nij,njk->nik", _so3_right_jacobian_inv(e[ok, 3:]), dx[:, 3:])
+            J[ok] = dx
+        J = (J / s[:, None]).reshape(-1, 42)[:, self.pv.free]
+        return r, J
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        return self.residual_and_jacobian(x, jacobian=False)[0]
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        return self.residual_and_jacobian(x)[1]
+
+
+# ---------------------------------------------------------------- identifiability
+def identifiability_qr(J: np.ndarray, names: Sequence[str], c: float | None = None) -> dict:
+    """Identifiable parameters of a stacked Jacobian by column-pivoted QR.
+
+    ``τ = c · ε · max|R_jj|`` with ``c = max(m, p)`` by default. Returns a dict
+    with ``n_parameters, n_identifiable, identifiable, no_effect, regrouped``
+    (list of ``{parameter, combination: {name: coefficient}}`` for dependent
+    columns: moving it is equivalent to moving the identifiable ones by
+    ``coefficient ×`` its change), ``rank`` and ``condition_number`` (of the
+    identifiable columns) and the ``tolerance`` used.
+    """
+    J = np.asarray(J, float)
+    m, p = J.shape
+    names = list(names)
+    eps = np.finfo(float).eps
+    c = float(max(m, p)) if c is None else float(c)
+    colnorm = np.linalg.norm(J, axis=0)
+    scale = colnorm.max() if colnorm.size and colnorm.max() > 0 else 1.0
+    no_effect = [n for n, cn in zip(names, colnorm) if cn <= c * eps * scale]
+    _, Rq, piv = scipy.linalg.qr(J, mode="economic", pivoting=True)
+    d = np.abs(np.diag(Rq))
+    tol = c * eps * (d.max() if d.size else 0.0)
+    rank = int(np.sum(d > tol))
+    ident_idx = np.sort(piv[:rank])
+    dep = [j for j in piv[rank:] if names[j] not in no_effect]
+    regrouped = []
+    if dep and rank:
+        # express the dependent columns in the identifiable ones: J_dep = J_id C
+        C = scipy.linalg.lstsq(J[:, ident_idx], J[:, dep])[0]
+        for col, j in enumerate(dep):
+            comb = {names[i]: float(C[r, col]) for r, i in enumerate(ident_idx) if abs(C[r, col]) > 1e-9}
+            regrouped.append({"parameter": names[j], "combination": comb})
+    sv = np.linalg.svd(J[:, ident_idx], compute_uv=False) if rank else np.array([1.0])
+    return {
+        "n_parameters": p,
+        "n_identifiable": rank,
+        "identifiable": [names[i] for i in ident_idx],
+        "no_effect": no_effect,
+        "regrouped": regrouped,
+        "rank": rank,
+        "condition_number": float(sv[0] / sv[-1]),
+        "tolerance": float(tol),
+    }
+
+
+def identifiable_gough(
+    robot: GoughPlatform | str | Path | Mapping,
+    data: GoughData | str | Path | None = None,
+    residual: str = "ik",
+    model: int = 42,
+    n_poses: int = 50,
+    seed: int = 0,
+    free: Sequence[str] | None = None,
+) -> dict:
+    """Identifiability of the Gough parameters (entry point for ``estcal identifiable``).
+
+    Uses the measured poses of ``data`` if given, else ``n_poses`` random
+    workspace poses (noise-free, from ``seed``). Returns the dict of
+    :func:`identifiability_qr` plus ``model``, ``residual``, ``n_poses``.
+    """
+    robot = robot if isinstance(robot, GoughPlatform) else load_gough(robot)
+    if data is None:
+        data = simulate_gough_data(robot, n_poses, seed)
+    elif not isinstance(data, GoughData):
+        data = load_gough_data(data)
+    prob = GoughProblem(robot, data, residual, model, free)
+    J = prob.jacobian(prob.x0)
+    out = identifiability_qr(J, prob.names)
+    out.update({"robot": robot.name, "model": model, "residual": residual, "n_poses": len(data)})
+    return out
+
+
+# ---------------------------------------------------------------- result
+@dataclass
+class GoughCalibrationResult:
+    """Outcome of a Gough calibration; ``parameters[name] = {estimate, std, initial}``."""
+
+    method: str
+    residual: str
+    model: int
+    parameters: dict
+    rmse: float
+    n_iterations: int
+    converged: bool
+    covariance: np.ndarray
+    free_names: list
+    theta: np.ndarray
+    identifiability: dict
+    chi2: float
+    n_residuals: int
+    fk_failures: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method, "residual": self.residual, "model": self.model,
+            "parameters": self.parameters, "rmse": self.rmse, "n_iterations": self.n_iterations,
+            "converged": self.converged, "chi2": self.chi2, "n_residuals": self.n_residuals,
+            "fk_failures": self.fk_failures,
+            "identifiability": {k: v for k, v in self.identifiability.items()},
+            "covariance": {"names": self.free_names, "matrix": np.asarray(self.covariance).tolist()},
+            "extra": self.extra,
+        }
+
+    def __str__(self) -> str:
+        rows = [f"Gough calibration ({self.method}, {self.residual.upper()} residuals, Model {self.model}): "
+                f"rmse {self.rmse:.3e} (raw units), {self.n_iterations} iterations, "
+                f"{'converged' if self.converged else 'NOT converged'}",
+                f"{'parameter':<10}{'initial':>14}{'estimate':>14}{'std':>12}"]
+        for n, v in self.parameters.items():
+            std = "—" if v["std"] is None else f"{v['std']:.3e}"
+            rows.append(f"{n:<10}{v['initial']:>14.6g}{v['estimate']:>14.6g}{std:>12}")
+        ide = self.identifiability
+        if ide.get("regrouped") or ide.get("no_effect"):
+            rows.append(f"not identifiable (kept at initial value): "
+                        f"{ide.get('no_effect', []) + [r['parameter'] for r in ide.get('regrouped', [])]}")
+        return "\n".join(rows)
+
+
+# ---------------------------------------------------------------- estimators
+def _lm(prob: GoughProblem, x0: np.ndarray, max_iter: int = 100):
+    res = scipy.optimize.least_squares(
+        lambda x: prob.residual_and_jacobian(x, jacobian=False)[0], x0,
+        jac=lambda x: prob.jacobian(x), method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14,
+        max_nfev=max_iter * (len(x0) + 1))
+    return res.x, int(res.nfev), bool(res.success), {"message": res.message}
+
+
+def _gauss_newton(prob: GoughProblem, x0: np.ndarray, max_iter: int = 50, tol: float = 1e-12):
+    x = x0.copy()
+    r, J = prob.residual_and_jacobian(x)
+    cost = r @ r
+    for it in range(1, max_iter + 1):
+        dx = scipy.linalg.lstsq(J, -r)[0]
+        step = 1.0
+        while step > 1e-6:
+            xn = x + step * dx
+            rn, Jn = prob.residual_and_jacobian(xn)
+            if rn @ rn <= cost:
+                break
+            step /= 2
+        x, r, J, cost_old, cost = xn, rn, Jn, cost, rn @ rn
+        if np.max(np.abs(step * dx)) < tol * (1 + np.max(np.abs(x))) or abs(cost_old - cost) <= 1e-15 * max(cost, 1e-300):
+            return x, it, True, {}
+    return x, max_iter, False, {}
+
+
+def _kalman(prob: GoughProblem, x0: np.ndarray, prior_std: float | None = None, max_passes: int = 15,
+            tol: float = 1e-9):
+    """Iterated extended Kalman filter over the poses (static parameter state).
+
+    Each pose contributes a 6-row whitened measurement (R = I). A pass runs
+    the filter over all poses from the prior ``(x0, prior_std² I)`` with the
+    measurement model linearised at the previous pass' estimate; passes are
+    repeated until the estimate stops moving (iterated EKF ≡ Gauss–Newton on
+    prior + data). The default prior is diffuse relative to the data
+    (``prior_std² = 1e12 / max diag(JᵀJ)``), so the result is the recursive
+    least-squares solution.
+    """
+    n = len(prob.data)
+    p = len(x0)
+    x = x0.copy()
+    if prior_std is None:
+        J0 = prob.jacobian(x0)
+        P0 = np.eye(p) * 1e12 / max(float(np.max(np.sum(J0**2, axis=0))), 1e-300)
+    else:
+        P0 = np.eye(p) * prior_std**2
+    for it in range(1, max_passes + 1):
+        lin = x.copy()
+        r_all, J_all = prob.residual_and_jacobian(lin)
+        r_all, J_all = r_all.reshape(n, 6), J_all.reshape(n, 6, p)
+        xk, P = x0.copy(), P0.copy()
+        for i in range(n):
+            # whitened measurement linearised at `lin`: r_i(x) ≈ r_i(lin) + H (x − lin)
+            H = J_all[i]
+            innov = -(r_all[i] + H @ (xk - lin))
+            S = H @ P @ H.T + np.eye(6)
+            K = np.linalg.solve(S, H @ P).T
+            xk = xk + K @ innov
+            IKH = np.eye(p) - K @ H
+            P = IKH @ P @ IKH.T + K @ K.T  # Joseph form keeps P symmetric positive
+        x = xk
+        if np.max(np.abs(x - lin)) < tol * (1 + np.max(np.abs(x))):
+            return x, it, True, {}
+    return x, max_passes, False, {}
+
+
+def _gtsam(prob: GoughProblem, x0: np.ndarray, max_iter: int = 100):
+    import gtsam
+
+    key = gtsam.symbol("t", 0)
+    graph = gtsam.NonlinearFactorGraph()
+    n = len(prob.data)
+    noise = gtsam.noiseModel.Unit.Create(6)
+
+    # one factor per pose (each evaluates the batch; small n in practice)
+    cache: dict = {}
+
+    def batched(x):
+        k = x.tobytes()
+        if k not in cache:
+            cache.clear()
+            cache[k] = prob.residual_and_jacobian(x)
+        return cache[k]
+
+    def make_cached(i):
+        def err(this, values, H):
+            x = values.atVector(key)
+            r, J = batched(x)
+            if H is not None:
+                H[0] = J.reshape(n, 6, -1)[i]
+            return r.reshape(n, 6)[i]
+        return gtsam.CustomFactor(noise, [key], err)
+
+    for i in range(n):
+        graph.add(make_cached(i))
+    init = gtsam.Values()
+    init.insert(key, x0)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iter)
+    params.setRelativeErrorTol(1e-14)
+    params.setAbsoluteErrorTol(1e-20)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, init, params)
+    result = opt.optimize()
+    x = result.atVector(key)
+    return np.asarray(x), int(opt.iterations()), True, {}
+
+
+def _emcee(prob: GoughProblem, x0: np.ndarray, n_walkers: int | None = None, n_steps: int = 2000,
+           seed: int = 0, prior_std: float = 0.05):
+    """Posterior sampling (Gaussian likelihood of the whitened residuals, broad
+    Gaussian prior of std ``prior_std`` around the initial values), started
+    around the LM optimum. Returns the posterior mean; ``extra`` holds the
+    sample covariance."""
+    import emcee
+
+    x_ml, _, _, _ = _lm(prob, x0)
+    J = prob.jacobian(x_ml)
+    cov = np.linalg.pinv(J.T @ J)
+    s2 = 1.0 if prob.absolute_sigma else float(prob.residual(x_ml) @ prob.residual(x_ml)) / max(
+        prob.n_residuals - len(x0), 1)
+    p = len(x0)
+    nw = n_walkers or max(2 * p + 2, 32)
+    rng = np.random.default_rng(seed)
+
+    def logp(x):
+        r = prob.residual(x)
+        return -0.5 * (r @ r) / s2 - 0.5 * np.sum(((x - x0) / prior_std) ** 2)
+
+    L = np.linalg.cholesky(cov * s2 + 1e-30 * np.eye(p))
+    start = x_ml + (rng.standard_normal((nw, p)) @ L.T)
+    sampler = emcee.EnsembleSampler(nw, p, logp)
+    sampler.random_state = np.random.RandomState(seed).get_state()
+    sampler.run_mcmc(start, n_steps, progress=False)
+    chain = sampler.get_chain(discard=n_steps // 2, flat=True)
+    return chain.mean(axis=0), n_steps, True, {"sample_covariance": np.cov(chain.T),
+                                               "acceptance": float(np.mean(sampler.acceptance_fraction))}
+
+
+ESTIMATORS = {"lm": _lm, "gauss-newton": _gauss_newton, "kalman": _kalman, "gtsam": _gtsam, "emcee": _emcee}
+
+
+def calibrate_gough(
+    robot: GoughPlatform | str | Path | Mapping,
+    data: GoughData | str | Path,
+    method: str = "lm",
+    residual: str = "ik",
+    model: int = 42,
+    free: Sequence[str] | None = None,
+    theta0: np.ndarray | None = None,
+    initial: str = "nominal",
+    daney_results: list | None = None,
+    sigma_rho: float | None = None,
+    sigma_p: float | None = None,
+    sigma_r: float | None = None,
+    **estimator_kw: Any,
+) -> GoughCalibrationResult:
+    """Calibrate a Gough platform from measured poses and leg readings.
+
+    Parameters
+    ----------
+    robot : nominal robot (object, built-in name, robot file or dict).
+    data : :class:`GoughData` or a measurement file (see :func:`load_gough_data`).
+    method : ``"lm"`` (scipy Levenberg–Marquardt, analytic Jacobian),
+        ``"gauss-newton"``, ``"kalman"`` (iterated EKF), ``"gtsam"``
+        (factor graph, LM), ``"emcee"`` (posterior mean).
+    residual : ``"ik"`` or ``"fk"`` (module docstring).
+    model : 42 (a, b, Δρ) or 36 (a, b; offsets fixed at their nominal values).
+    free : parameter names/patterns to estimate (default: the model's set).
+    theta0 / initial : initial value: explicit (42,) vector, or ``"nominal"``
+        (robot file values), or ``"daney"`` (linear per-leg solutions in
+        ``daney_results``, a list of :class:`~estcal.parallel.daney.LegDaneyResult`).
+    sigma_* : noise std (m, m, rad); override those stored with the data.
+
+    Non-identifiable free parameters (QR at the initial value) are kept at
+    their initial value and reported with ``std = None``.
+    """
+    robot = robot if isinstance(robot, GoughPlatform) else load_gough(robot)
+    data = data if isinstance(data, GoughData) else load_gough_data(data)
+    if method not in ESTIMATORS:
+        raise ValueError(f"unknown method {method!r}; choose from {sorted(ESTIMATORS)}")
+    if theta0 is None and initial == "daney":
+        if not daney_results:
+            raise ValueError("initial='daney' needs daney_results (see estcal.parallel.daney.calibrate_leg_daney)")
+        from .daney import daney_initial_theta
+
+        theta0 = daney_initial_theta(robot, daney_results)
+    elif theta0 is None and initial != "nominal":
+        raise ValueError(f"initial must be 'nominal' or 'daney', got {initial!r}")
+    prob = GoughProblem(robot, data, residual, model, free, theta0, sigma_rho, sigma_p, sigma_r)
+    x_init = prob.x0
+    ide = identifiability_qr(prob.jacobian(x_init), prob.names)
+    if ide["n_identifiable"] < len(prob.names):
+        prob.pv = prob.pv.with_free(ide["identifiable"])
+        x_init = prob.x0
+    x, nit, conv, extra = ESTIMATORS[method](prob, x_init, **estimator_kw)
+    r, J = prob.residual_and_jacobian(x)
+    chi2 = float(r @ r)
+    dof = max(prob.n_residuals - len(x), 1)
+    s2 = 1.0 if prob.absolute_sigma else chi2 / dof
+    cov = np.linalg.inv(J.T @ J) * s2
+    if method == "emcee":
+        cov = extra.pop("sample_covariance")
+    if method == "kalman":
+        extra.pop("posterior_covariance_unscaled", None)
+    theta = prob.theta(x)
+    std = dict(zip(prob.names, np.sqrt(np.diag(cov))))
+    pv0 = robot.parameter_vector(model)
+    init_vals = dict(zip(pv0.names, theta0 if theta0 is not None else pv0.values))
+    names_out = GoughProblem(robot, data, residual, model, free).names
+    params = {n: {"estimate": float(theta[pv0.index(n)]), "std": (float(std[n]) if n in std else None),
+                  "initial": float(init_vals[n])} for n in names_out}
+    # rmse of the raw (unwhitened) residuals: m for IK, mixed m/rad for FK
+    prob_raw = GoughProblem(robot, data, residual, model, None, theta, 1.0, 1.0, 1.0, propagate_pose_noise=False)
+    raw = prob_raw.residual(prob_raw.x0)
+    return GoughCalibrationResult(method, residual, model, params, float(np.sqrt(np.mean(raw**2))), nit, conv,
+                                  cov, prob.names, theta, ide, chi2, prob.n_residuals, prob.fk_failures,
+                                  {k: v for k, v in extra.items() if isinstance(v, (int, float, str))})
