@@ -1,0 +1,1 @@
+"""Subcommands of the estcal CLI; each module defines register(app)."""

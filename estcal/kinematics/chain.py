@@ -1,0 +1,534 @@
+"""Serial kinematic chains with analytic identification Jacobians.
+
+One representation serves every convention. A chain is a list of *links*;
+a link is a product of elementary motions (rotation or translation about a
+local axis, each driven by one named parameter), optionally preceded by a
+constant transform (URDF joint origin, merged fixed joints) and containing
+at most one joint motion::
+
+    T_link = C_const · E_1(η_1) ··· E_a(η_a) · J(q_j + η_jvar) · E_{a+1} ··· E_b
+
+* Khalil–Kleinfinger (GECARO eq. [3]), revolute:
+  ``Rot(y,β) Rot(x,α) Trans(x,d) · Rot(z, θ + q) · Trans(z,r)``;
+  prismatic: ``Rot(y,β) Rot(x,α) Trans(x,d) Rot(z,θ) · Trans(z, r + q)``;
+  constant frame (σ = 2): the five motions without a joint.
+* Standard DH: ``Rot(z, θ + q) · Trans(z,d) Trans(x,a) Rot(x,α)`` (prismatic:
+  ``Rot(z,θ) · Trans(z, d + q) · Trans(x,a) Rot(x,α)``).
+* URDF joint: ``C_origin · Trans(x,y,z)(tx,ty,tz) Rot(x,rx) Rot(y,ry) Rot(z,rz) · Rot(axis, q)``
+  with the 6-D placement error at nominal zero.
+* Base (world → frame 0) and tool (frame n → tool): ``Trans(tx,ty,tz) Rot(z,rz) Rot(y,ry) Rot(x,rx)``
+  i.e. a URDF ``xyz/rpy`` pair.
+
+The joint value is ``q = Cj · diag(K) · Cm · reading + offset`` (GECARO eq. [4],
+coupling matrices optional) plus any joint-space correction contributed by a
+non-geometric effect.
+
+Jacobian
+--------
+Differentiating the chain through an elementary rotation about the world axis
+``w`` through the world point ``o`` moves any downstream point ``x`` by
+``w × (x − o)`` and turns the tool by ``w``; a translation along ``w`` moves
+it by ``w``. These are GECARO Appendix II's columns (eq. [27]) —
+``j_α = [s_{j−1} × L ; s_{j−1}]``, ``j_d = [s_{j−1}; 0]`` … — evaluated at the
+current (not only nominal) parameter values, so they are exact for every
+convention. Joint offsets use the joint column; gains use
+``Σ_l j_q_l ∂q_l/∂K_j`` (GECARO App. II, with coupling). Rows are
+``(dx, dy, dz, δx, δy, δz)`` in the world frame; the rotational rows are the
+world-frame rotation vector of ``R(η+dη) R(η)ᵀ``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from .parameters import ParameterVector
+from .transforms import rot_axis, rot_x, rot_y, rot_z, rpy_to_matrix
+
+__all__ = ["Elementary", "Link", "SerialRobot", "Kinematics"]
+
+_AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
+
+
+@dataclass(frozen=True)
+class Elementary:
+    """One elementary motion: ``kind`` 'R' (rotation) or 'P' (translation) along ``axis``
+    by the value of parameter ``param`` (index into the parameter vector)."""
+
+    kind: str
+    axis: str  # 'x', 'y' or 'z'
+    param: int
+
+
+@dataclass
+class Link:
+    """One link of the chain (see module docstring).
+
+    Attributes
+    ----------
+    label : str
+        Frame label used in parameter names (``"3"``, ``"arm_1_joint"``, ``"base"``).
+    const : (4, 4) array
+        Constant transform applied first (URDF origin / merged fixed joints).
+    before, after : list of Elementary
+        Parameter-driven motions before and after the joint motion.
+    joint : int or None
+        Index of the actuated joint (0-based) moving this link, ``None`` for constant frames.
+    joint_kind : 'R' or 'P'
+    joint_axis : (3,) unit vector in the local frame
+    joint_param : int
+        Parameter added to the joint value (Khalil θ_j / r_j, DH θ_j / d_j), or -1.
+    mass : float, com : (3,)
+        Mass (kg) and centre of mass in the frame at the *end* of the link.
+    """
+
+    label: str
+    const: np.ndarray = field(default_factory=lambda: np.eye(4))
+    before: list = field(default_factory=list)
+    joint: int | None = None
+    joint_kind: str = "R"
+    joint_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    joint_param: int = -1
+    after: list = field(default_factory=list)
+    mass: float = 0.0
+    com: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass
+class Kinematics:
+    """Forward kinematics of N poses (all arrays have N as first axis).
+
+    Attributes
+    ----------
+    q : (N, n) joint values (after gains, offsets and effects), rad / m
+    R, p : (N, 3, 3), (N, 3) tool frame in the world (``T_world_tool``)
+    points : (N, k, 3) marker points in the world (empty if no markers)
+    J : (N, 6, P) Jacobian of the tool pose w.r.t. the full parameter vector
+    J_points : (N, k, 3, P) Jacobian of each marker point
+    J_q : (N, 6, n) Jacobian of the tool pose w.r.t. the joint values
+    link_R, link_p : (N, L, 3, 3), (N, L, 3) frame at the end of every link
+    joint_axis, joint_origin : (N, n, 3) world axis and a point on it, per joint
+    """
+
+    q: np.ndarray
+    R: np.ndarray
+    p: np.ndarray
+    points: np.ndarray
+    J: np.ndarray | None
+    J_points: np.ndarray | None
+    J_q: np.ndarray | None
+    link_R: np.ndarray
+    link_p: np.ndarray
+    joint_axis: np.ndarray
+    joint_origin: np.ndarray
+
+    @property
+    def T(self) -> np.ndarray:
+        """Tool frames as homogeneous (N, 4, 4) matrices."""
+        from .transforms import make_transform
+
+        return make_transform(self.R, self.p)
+
+
+def _screw_at(w, o, rot, x):
+    """Velocity of point x (3, 1, N) for unit motions about (rot) / along axes w through o (3, C, N)."""
+    d0, d1, d2 = x[0] - o[0], x[1] - o[1], x[2] - o[2]
+    out = np.empty_like(w)
+    np.subtract(w[1] * d2, w[2] * d1, out=out[0])
+    np.subtract(w[2] * d0, w[0] * d2, out=out[1])
+    np.subtract(w[0] * d1, w[1] * d0, out=out[2])
+    if not rot.all():
+        tr = ~rot
+        out[:, tr] = w[:, tr]
+    return out
+
+
+def _add_joint_blocks(JT, JqT, blocks):
+    """JT[:, idx] += JqT · dq/dθ_idx for each block; JT (r, P, N), JqT (r, n, N).
+
+    Block kinds: 'eye' (D = joint index of each parameter), 'diag' (D (N, n): the
+    parameter of joint l scales column l, e.g. gains) and 'dense' (D (N, n, m))."""
+    for idx, D, kind in blocks or ():
+        if kind == "eye":
+            JT[:, idx] += JqT[:, D]
+        elif kind == "diag":
+            JT[:, idx] += JqT * D.T[None]
+        else:
+            JT[:, idx] += np.einsum("rln,nlm->rmn", JqT, np.broadcast_to(D, (JqT.shape[2],) + D.shape[1:]))
+
+
+def _rot_mat(R, C):
+    """R (3, 3, N) @ C (3, 3) -> (3, 3, N)."""
+    return np.einsum("ikn,kj->ijn", R, C)
+
+
+def _rot_vec(R, v):
+    """R (3, 3, N) @ v (3,) -> (3, N)."""
+    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+class SerialRobot:
+    """A serial robot: links, joints, named parameters and optional effects.
+
+    Build one with :mod:`estcal.kinematics.robots` (built-ins), the robot-file
+    loader :func:`estcal.io.robotfile.load_robot`, or the URDF loader
+    :func:`estcal.kinematics.urdf.robot_from_urdf`.
+
+    Parameters
+    ----------
+    name : str
+    links : list of Link
+        In chain order; the first is usually the base link, the last the tool link.
+    params : ParameterVector
+    joint_names : list of str
+    joint_types : list of {'revolute', 'prismatic'}
+    limits : (n, 2) array, joint-value limits (rad / m)
+    offset_idx, gain_idx : (n,) int arrays into the parameter vector
+    marker_idx : (k, 3) int array, marker coordinates in the tool frame
+    gravity : (3,) world gravity (m/s²)
+    payload_mass, payload_com : payload in the tool frame
+    coupling : optional ``(Cj, Cm)`` coupling matrices (GECARO eq. [4])
+    convention : 'khalil', 'dh' or 'urdf' (informational)
+    """
+
+    def __init__(self, name: str, links: list[Link], params: ParameterVector, joint_names: Sequence[str],
+                 joint_types: Sequence[str], limits, offset_idx, gain_idx, marker_idx=None,
+                 gravity=(0.0, 0.0, -9.81), payload_mass: float = 0.0, payload_com=(0.0, 0.0, 0.0),
+                 coupling=None, convention: str = "khalil", effects: list | None = None,
+                 meta: dict | None = None):
+        self.name = name
+        self.links = links
+        self.params = params
+        self.joint_names = list(joint_names)
+        self.joint_types = list(joint_types)
+        self.limits = np.asarray(limits, float).reshape(len(self.joint_names), 2)
+        self.offset_idx = np.asarray(offset_idx, int)
+        self.gain_idx = np.asarray(gain_idx, int)
+        self.marker_idx = np.zeros((0, 3), int) if marker_idx is None else np.asarray(marker_idx, int).reshape(-1, 3)
+        self.gravity = np.asarray(gravity, float)
+        self.payload_mass = float(payload_mass)
+        self.payload_com = np.asarray(payload_com, float)
+        self.coupling = coupling
+        self.convention = convention
+        self.effects = list(effects or [])
+        self.meta = dict(meta or {})
+        self._compile()
+
+    # ----------------------------------------------------------------- set-up
+    def _compile(self) -> None:
+        """Precompute index arrays used by the vectorised Jacobian."""
+        n = self.n_joints
+        self._joint_link = np.full(n, -1)
+        for li, link in enumerate(self.links):
+            if link.joint is not None:
+                self._joint_link[link.joint] = li
+        if np.any(self._joint_link < 0):
+            missing = [self.joint_names[j] for j in np.flatnonzero(self._joint_link < 0)]
+            raise ValueError(f"joints {missing} are not attached to any link")
+        elem_params = [e.param for link in self.links for e in link.before + link.after]
+        if len(set(elem_params)) != len(elem_params):
+            raise ValueError("a parameter drives more than one elementary motion")
+        self._elem_param = np.array(elem_params, int)
+        self._jvar_param = np.array([self.links[self._joint_link[j]].joint_param for j in range(n)], int)
+        self._joint_is_rot = np.array([self.links[self._joint_link[j]].joint_kind == "R" for j in range(n)])
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_markers(self) -> int:
+        return self.marker_idx.shape[0]
+
+    @property
+    def n_params(self) -> int:
+        return len(self.params)
+
+    def copy(self, params: ParameterVector | None = None, effects: list | None = None) -> "SerialRobot":
+        """Shallow copy with (optionally) another parameter vector / effect list."""
+        return SerialRobot(self.name, self.links, (params or self.params).copy(), self.joint_names,
+                           self.joint_types, self.limits, self.offset_idx, self.gain_idx, self.marker_idx,
+                           self.gravity, self.payload_mass, self.payload_com, self.coupling,
+                           self.convention, list(self.effects if effects is None else effects), self.meta)
+
+    def with_values(self, values) -> "SerialRobot":
+        """Copy whose parameter values are ``values`` (full vector)."""
+        return self.copy(self.params.with_values(values))
+
+    def add_effect(self, effect) -> "SerialRobot":
+        """Copy with a non-geometric effect appended; its parameters join the vector.
+
+        The effect protocol (implemented in :mod:`estcal.effects`):
+
+        * ``param_names`` (list of str), ``initial_values()`` -> array, optional
+          ``param_frames``; ``bind(indices)`` stores ``self.indices`` (positions of
+          its parameters in the robot's vector). The effect is copied before binding.
+        * ``joint_correction(robot, readings, q, theta, context)`` ->
+          ``(dq (N, n), d(dq)/d(θ_effect) (N, n, m) or None)``: added to the joint values.
+        * and/or ``point_correction(robot, readings, points, theta, context,
+          derivatives, J_points=None)`` -> ``(dx (N, k, 3), d(dx)/d(θ_effect) (N, k, 3, m) or None)``:
+          added to the marker points (e.g. thermal expansion).
+
+        Jacobian columns of effect parameters are exact; the dependence of an
+        effect's correction on the geometric parameters (e.g. of a gravity torque
+        on link lengths) is second order and neglected.
+        """
+        import copy as _copy
+
+        effect = _copy.copy(effect)
+        names = list(effect.param_names)
+        params = self.params.extend(names, effect.initial_values(), kind="effect",
+                                    frames=getattr(effect, "param_frames", None))
+        new = self.copy(params, self.effects + [effect])
+        effect.bind(new.params.indices(names))
+        return new
+
+    def check_readings(self, q, where: str = "joint readings") -> np.ndarray:
+        q = np.asarray(q, float)
+        if q.ndim == 1:
+            q = q[None, :]
+        if q.ndim != 2 or q.shape[1] != self.n_joints:
+            raise ValueError(f"{where}: expected shape (N, {self.n_joints}) for joints {self.joint_names}, "
+                             f"got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            bad = np.argwhere(~np.isfinite(q))[0]
+            raise ValueError(f"{where}: non-finite value at row {bad[0]}, joint {self.joint_names[bad[1]]!r}")
+        return q
+
+    # -------------------------------------------------------------- joints
+    def joint_values(self, readings, theta=None, context: dict | None = None, derivatives: bool = False):
+        """Joint values from readings: ``q = Cj diag(K) Cm r + offset (+ effects)``.
+
+        Returns ``q`` (N, n) and, with ``derivatives=True``, ``dq/dθ`` as a dense (N, n, P) array.
+        """
+        theta = self.params.values if theta is None else np.asarray(theta, float)
+        q, blocks = self._joint_values(np.asarray(readings, float), theta, context, derivatives)
+        if not derivatives:
+            return q, None
+        N, n = q.shape
+        dqT = np.zeros((n, len(theta), N))
+        _add_joint_blocks(dqT, np.broadcast_to(np.eye(n)[:, :, None], (n, n, N)), blocks)
+        return q, dqT.transpose(2, 0, 1)
+
+    def _joint_values(self, r, theta, context, derivatives, effects: bool = True):
+        """q and dq/dθ as blocks ``(param indices (m,), D (N or 1, n, m))`` (sparse in θ)."""
+        N, n = r.shape
+        K = theta[self.gain_idx]
+        off = theta[self.offset_idx]
+        blocks = []  # (param indices, D, kind); 'eye': D = joint index per param
+        if self.coupling is None:
+            u = r
+            q = K * u + off
+            if derivatives:
+                blocks.append((self.gain_idx, u, "diag"))
+        else:
+            Cj, Cm = (np.asarray(c, float) for c in self.coupling)
+            u = r @ Cm.T
+            q = (K * u) @ Cj.T + off
+            if derivatives:  # dq_l/dK_j = Cj[l, j] u_j
+                blocks.append((self.gain_idx, Cj[None, :, :] * u[:, None, :], "dense"))
+        if derivatives:
+            blocks.append((self.offset_idx, np.arange(n), "eye"))
+            valid = self._jvar_param >= 0
+            if valid.any():
+                blocks.append((self._jvar_param[valid], np.flatnonzero(valid), "eye"))
+        for eff in (self.effects if effects else ()):
+            if hasattr(eff, "joint_correction"):
+                d, dd = eff.joint_correction(self, r, q, theta, context or {})
+                q = q + d
+                if derivatives and dd is not None:
+                    blocks.append((np.asarray(eff.indices), dd, "dense"))
+        return q, blocks
+
+    # --------------------------------------------------------------- FK + J
+    def kinematics(self, readings, theta=None, context: dict | None = None, jacobian: bool = True,
+                   q_override=None) -> Kinematics:
+        """Tool pose, marker points and analytic Jacobians for N poses at once.
+
+        Parameters
+        ----------
+        readings : (N, n) joint readings (rad / m), column order ``joint_names``.
+        theta : (P,) full parameter vector; default the robot's current values.
+        context : dict of per-pose arrays (``t``, ``temperature``, ``payload``) for effects.
+        jacobian : compute ``J`` (N, 6, P) and ``J_points`` (N, k, 3, P).
+        q_override : (N, n) joint values used instead of the joint model (internal).
+        """
+        readings = self.check_readings(readings)
+        theta = self.params.values if theta is None else np.asarray(theta, float)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
+        N, n = readings.shape
+        if q_override is None:
+            q, dqdth = self._joint_values(readings, theta, context, jacobian)
+        else:
+            q, dqdth = np.asarray(q_override, float), None
+        # Internal layout is component-major with poses last — R (3, 3, N), p (3, N),
+        # axes (3, C, N) — so every operation runs on contiguous length-N rows.
+        R = np.zeros((3, 3, N))
+        R[0, 0] = R[1, 1] = R[2, 2] = 1.0
+        p = np.zeros((3, N))
+        n_links = len(self.links)
+        link_R = np.empty((n_links, 3, 3, N))
+        link_p = np.empty((n_links, 3, N))
+        ja = np.empty((3, n, N))  # joint axes (world)
+        jo = np.empty((3, n, N))  # a point on each joint axis
+        n_el = len(self._elem_param)
+        W = np.empty((3, n_el, N))  # world axis of every elementary motion
+        O = np.empty((3, n_el, N))  # world point on that axis
+        is_rot = np.empty(n_el, bool)
+        k = 0
+        for li, link in enumerate(self.links):
+            # Constant and parameter motions compose into one local transform per
+            # segment: one small product per segment instead of one per motion.
+            Cb_R, Cb_p, k = self._segment(link.const, link.before, theta, R, p, W, O, is_rot, k)
+            p = p + _rot_vec(R, Cb_p)
+            R = _rot_mat(R, Cb_R)
+            if link.joint is not None:
+                j = link.joint
+                val = q[:, j] + (theta[link.joint_param] if link.joint_param >= 0 else 0.0)
+                ax = link.joint_axis
+                jo[:, j] = p
+                ja[:, j] = _rot_vec(R, ax)
+                if link.joint_kind == "R":
+                    if ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0:
+                        c, s_ = np.cos(val), np.sin(val)
+                        x0, y0 = R[:, 0].copy(), R[:, 1].copy()
+                        R[:, 0] = c * x0 + s_ * y0
+                        R[:, 1] = c * y0 - s_ * x0
+                    else:
+                        Rj = rot_axis(ax, val)  # (N, 3, 3)
+                        R = np.einsum("ikn,nkj->ijn", R, Rj)
+                else:
+                    p = p + ja[:, j] * val
+            if link.after:
+                Ca_R, Ca_p, k = self._segment(None, link.after, theta, R, p, W, O, is_rot, k)
+                p = p + _rot_vec(R, Ca_p)
+                R = _rot_mat(R, Ca_R)
+            link_R[li] = R
+            link_p[li] = p
+
+        m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
+        pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
+        points = pts.transpose(2, 1, 0).copy()
+        for eff in self.effects:
+            if hasattr(eff, "point_correction"):
+                d, _ = eff.point_correction(self, readings, points, theta, context or {}, derivatives=False)
+                points = points + d
+        Rn = np.ascontiguousarray(R.transpose(2, 0, 1))
+        pn = np.ascontiguousarray(p.T)
+
+        J = J_points = J_q = None
+        if jacobian:
+            P = self.n_params
+            jrot = self._joint_is_rot
+            el = self._elem_param
+            Wr = W * is_rot[:, None]
+            # tool pose: JT (6, P, N) -> J (N, 6, P) as a view
+            Sq = _screw_at(ja, jo, jrot, p[:, None, :])
+            JqT = np.concatenate([Sq, ja * jrot[:, None]], 0)  # (6, n, N)
+            JT = np.zeros((6, P, N))
+            JT[:3, el] = _screw_at(W, O, is_rot, p[:, None, :])
+            JT[3:, el] = Wr
+            _add_joint_blocks(JT, JqT, dqdth)
+            J = JT.transpose(2, 0, 1)
+            J_q = JqT.transpose(2, 0, 1)
+            JpT = np.zeros((self.n_markers, 3, P, N))
+            for i in range(self.n_markers):
+                x = points[:, i].T[:, None, :]
+                JpT[i][:, el] = _screw_at(W, O, is_rot, x)
+                _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
+                JpT[i][:, self.marker_idx[i]] += R  # d(p + R m)/dm = R, R[a, c] per pose
+            J_points = JpT.transpose(3, 0, 1, 2)
+            for eff in self.effects:
+                if hasattr(eff, "point_correction") and self.n_markers:
+                    _, dd = eff.point_correction(self, readings, points, theta, context or {},
+                                                 derivatives=True, J_points=J_points)
+                    if dd is not None:
+                        J_points[..., eff.indices] += dd
+        R, p = Rn, pn
+        link_R = link_R.transpose(3, 0, 1, 2)
+        link_p = link_p.transpose(2, 0, 1)
+        j_axis = ja.transpose(2, 1, 0)
+        j_orig = jo.transpose(2, 1, 0)
+        return Kinematics(q, R, p, points, J, J_points, J_q, link_R, link_p, j_axis, j_orig)
+
+    def _segment(self, const, elems, theta, R, p, W, O, is_rot, k):
+        """Compose ``const`` and ``elems`` locally; record each motion's world axis/point."""
+        LR = np.eye(3) if const is None else const[:3, :3].copy()
+        Lp = np.zeros(3) if const is None else const[:3, 3].copy()
+        if not elems:
+            return LR, Lp, k
+        m = len(elems)
+        A = np.empty((m, 3))
+        Oloc = np.empty((m, 3))
+        for i, e in enumerate(elems):
+            ai = "xyz".index(e.axis)
+            A[i] = LR[:, ai]
+            Oloc[i] = Lp
+            is_rot[k + i] = e.kind == "R"
+            v = theta[e.param]
+            if e.kind == "R":
+                LR = LR @ {"x": rot_x, "y": rot_y, "z": rot_z}[e.axis](v)
+            else:
+                Lp = Lp + LR[:, ai] * v
+        W[:, k:k + m] = A @ R  # (3, m, N): world axis = R @ a_local
+        O[:, k:k + m] = p[:, None, :] + Oloc @ R
+        return LR, Lp, k + m
+
+    # ------------------------------------------------------------- helpers
+    def fk(self, readings, theta=None, context=None):
+        """Tool frames ``T_world_tool`` as (N, 4, 4) — convenience wrapper."""
+        return self.kinematics(readings, theta, context, jacobian=False).T
+
+    def gravity_torques(self, readings, theta=None, context: dict | None = None, kin: Kinematics | None = None):
+        """Static gravity torque (N·m) / force (N) on every joint, shape (N, n).
+
+        τ_j = a_jᵀ Σ_{i ⪰ j} (c_i − o_j) × (m_i g) for a revolute joint with world axis
+        a_j through o_j, and a_jᵀ Σ m_i g for a prismatic one; the sum runs over the
+        links moved by joint j and the payload (mass ``payload_mass`` at
+        ``payload_com`` in the tool frame, or the per-pose ``payload`` column of
+        ``context`` in kg). This is the torque gravity exerts, so a compliant joint
+        deflects by ``compliance · τ``.
+        """
+        if kin is None:
+            theta = self.params.values if theta is None else theta
+            readings = self.check_readings(readings)
+            # Rigid joint values (no effects): effects such as compliance call this
+            # function themselves, and their feedback on the torque is second order.
+            q, _ = self._joint_values(readings, np.asarray(theta, float), None, False, effects=False)
+            kin = self.kinematics(readings, theta, jacobian=False, q_override=q)
+        N = kin.p.shape[0]
+        masses = np.array([lk.mass for lk in self.links])
+        coms = np.stack([lk.com for lk in self.links])  # (L, 3)
+        c_world = kin.link_p + np.einsum("nlij,lj->nli", kin.link_R, coms)  # (N, L, 3)
+        m = np.broadcast_to(masses, (N, len(masses))).copy()
+        pay_m = np.full(N, self.payload_mass)
+        if context is not None and "payload" in context:
+            pay_m = np.asarray(context["payload"], float).reshape(N)
+        pay_c = kin.p + kin.R @ self.payload_com
+        tau = np.empty((N, self.n_joints))
+        g = self.gravity
+        for j in range(self.n_joints):
+            li = self._joint_link[j]
+            mm = m[:, li:]
+            F = mm[..., None] * g  # (N, L', 3)
+            if self.joint_types[j] == "prismatic":
+                tot = F.sum(1) + pay_m[:, None] * g
+                tau[:, j] = np.einsum("ni,ni->n", kin.joint_axis[:, j], tot)
+            else:
+                r = c_world[:, li:] - kin.joint_origin[:, j][:, None, :]
+                mom = np.cross(r, F).sum(1) + np.cross(pay_c - kin.joint_origin[:, j], pay_m[:, None] * g)
+                tau[:, j] = np.einsum("ni,ni->n", kin.joint_axis[:, j], mom)
+        return tau
+
+    def random_readings(self, n: int, rng=None, margin: float = 0.0) -> np.ndarray:
+        """Uniform random readings within joint limits (shrunk by ``margin`` of the range)."""
+        rng = np.random.default_rng(rng)
+        lo, hi = self.limits[:, 0], self.limits[:, 1]
+        span = hi - lo
+        return rng.uniform(lo + margin * span, hi - margin * span, size=(n, self.n_joints))
+
+    def __repr__(self) -> str:
+        return (f"SerialRobot({self.name!r}, {self.n_joints} joints [{', '.join(self.joint_types)}], "
+                f"{self.n_params} parameters, {self.n_markers} markers, convention={self.convention!r})")

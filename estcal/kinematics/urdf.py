@@ -1,0 +1,126 @@
+"""URDF chains (parsed with yourdfpy) between a root link and a tip link.
+
+Fixed joints are merged: those before the first actuated joint into its
+origin, those after the last one into the constant part of the tool link, so
+the tool parameters (``tool_tx`` …) describe an error of the tip frame. Every
+actuated joint gets a 6-D placement error (``tx_J … rz_J``, FIGAROH's
+"full_params") applied after its URDF origin, an offset and a gain.
+
+Link inertials give the masses used for gravity torques: each actuated
+joint's link carries the mass of every link rigidly attached to it (fixed
+joints, and off-chain branches evaluated at their zero position).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .builder import build_robot
+from .chain import SerialRobot
+
+__all__ = ["robot_from_urdf", "load_urdf"]
+
+
+def load_urdf(path):
+    """Parse a URDF file with yourdfpy (no meshes)."""
+    import yourdfpy
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"URDF file not found: {path}")
+    try:
+        return yourdfpy.URDF.load(str(path), build_scene_graph=False, build_collision_scene_graph=False,
+                                  load_meshes=False, load_collision_meshes=False)
+    except Exception as exc:  # yourdfpy raises various XML errors
+        raise ValueError(f"{path}: cannot parse URDF ({exc})") from exc
+
+
+def _chain(urdf, root: str, tip: str):
+    parent_joint = {j.child: j for j in urdf.robot.joints}
+    links = {lk.name for lk in urdf.robot.links}
+    for name, what in ((root, "root"), (tip, "tip")):
+        if name not in links:
+            raise ValueError(f"{what} link {name!r} is not in the URDF; links include "
+                             f"{sorted(links)[:20]}…")
+    joints = []
+    cur = tip
+    while cur != root:
+        if cur not in parent_joint:
+            raise ValueError(f"link {tip!r} is not below {root!r} in the URDF tree")
+        j = parent_joint[cur]
+        joints.append(j)
+        cur = j.parent
+    return joints[::-1]
+
+
+def _origin(j) -> np.ndarray:
+    return np.eye(4) if j.origin is None else np.asarray(j.origin, float)
+
+
+def _subtree_mass(urdf, link_name: str, exclude: set) -> tuple[float, np.ndarray]:
+    """Mass and centre of mass (in ``link_name``'s frame) of the link and everything
+    hanging from it except the chain joints in ``exclude`` (zero joint positions)."""
+    children = {}
+    for j in urdf.robot.joints:
+        children.setdefault(j.parent, []).append(j)
+    lmap = {lk.name: lk for lk in urdf.robot.links}
+    total_m, moment = 0.0, np.zeros(3)
+    stack = [(link_name, np.eye(4))]
+    while stack:
+        name, T = stack.pop()
+        lk = lmap[name]
+        if lk.inertial is not None and lk.inertial.mass is not None:
+            m = float(lk.inertial.mass)
+            c = (T @ (np.asarray(lk.inertial.origin, float) if lk.inertial.origin is not None else np.eye(4)))[:3, 3]
+            total_m += m
+            moment += m * c
+        for j in children.get(name, []):
+            if j.name in exclude:
+                continue
+            stack.append((j.child, T @ _origin(j)))
+    com = moment / total_m if total_m > 0 else np.zeros(3)
+    return total_m, com
+
+
+def robot_from_urdf(path, root: str | None = None, tip: str | None = None, markers=None,
+                    name: str | None = None) -> SerialRobot:
+    """Build a :class:`SerialRobot` for the chain ``root`` → ``tip`` of a URDF.
+
+    Parameters
+    ----------
+    path : URDF file.
+    root : root link (default: the URDF's root link).
+    tip : tip link (required unless the tree is a single chain).
+    markers : (k, 3) points in the tip frame (metres), optional.
+    """
+    urdf = load_urdf(path)
+    root = root or urdf.base_link
+    if tip is None:
+        leaves = {lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints}
+        if len(leaves) != 1:
+            raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links")
+        tip = leaves.pop()
+    chain = _chain(urdf, root, tip)
+    chain_names = {j.name for j in chain}
+    frames, pending = [], np.eye(4)
+    for j in chain:
+        if j.type == "fixed":
+            pending = pending @ _origin(j)
+            continue
+        if j.type not in ("revolute", "continuous", "prismatic"):
+            raise ValueError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
+        lo, hi = (-np.pi, np.pi) if j.type == "continuous" else (j.limit.lower, j.limit.upper)
+        mass, com = _subtree_mass(urdf, j.child, chain_names)
+        frames.append({"name": j.name, "label": j.name, "convention": "urdf",
+                       "type": "prismatic" if j.type == "prismatic" else "revolute",
+                       "origin": pending @ _origin(j), "axis": np.asarray(j.axis, float),
+                       "limits": [float(lo), float(hi)], "mass": mass, "com": com})
+        pending = np.eye(4)
+    if not frames:
+        raise ValueError(f"{path}: no actuated joint between {root!r} and {tip!r}")
+    robot = build_robot(name or f"{urdf.robot.name}:{root}->{tip}", frames, markers=markers,
+                        convention="urdf", tool_const=pending,
+                        meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip})
+    # Masses rigidly attached after the last actuated joint were counted in its subtree.
+    return robot

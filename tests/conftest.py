@@ -1,0 +1,17 @@
+"""Shared fixtures: the location of ../shared and a skip helper for the TIAGo data."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+TIAGO_DIR = SHARED / "data" / "tiago"
+
+
+@pytest.fixture
+def tiago_dir() -> Path:
+    if not (TIAGO_DIR / "tiago_48_schunk.urdf").exists():
+        pytest.skip(f"TIAGo data not found at {TIAGO_DIR} (it lives in ../shared next to the repository)")
+    return TIAGO_DIR

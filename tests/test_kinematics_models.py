@@ -1,0 +1,111 @@
+"""Forward kinematics against closed forms and published values."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estcal.kinematics import ParameterError, planar2, puma560, puma560_fu, stanford
+from estcal.kinematics.transforms import (matrix_to_quat, matrix_to_rpy, quat_to_matrix, rot_axis, rpy_to_matrix,
+                                          so3_exp, so3_log)
+
+
+def test_puma_table_6_1_zero_pose():
+    """Mooring §9.1: the Table 6.1 model at zero joints is at (0.609, 33.944, 27.008) in."""
+    k = puma560().kinematics(np.zeros((1, 6)), jacobian=False)
+    np.testing.assert_allclose(k.p[0] / 0.0254, [0.609, 33.944, 27.008], atol=6e-4)
+
+
+def test_planar2_closed_form():
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-3, 3, (20, 2))
+    p = planar2().kinematics(q, jacobian=False).p
+    x = 1.0 * np.cos(q[:, 0]) + 0.8 * np.cos(q.sum(1))
+    y = 1.0 * np.sin(q[:, 0]) + 0.8 * np.sin(q.sum(1))
+    np.testing.assert_allclose(p[:, :2], np.c_[x, y], atol=1e-14)
+
+
+def _dh(theta, d, a, alpha):
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]])
+
+
+def test_puma_fu_against_textbook_matrix_2_12():
+    """Standard DH products with the textbook's closed-form link matrix (2.12)."""
+    rows = [(0, 0, -90), (149.09, 431.8, 0), (0, -20.32, 90), (433.07, 0, -90), (0, 0, 90), (56.25, 0, 0)]
+    rng = np.random.default_rng(2)
+    q = rng.uniform(-2, 2, (5, 6))
+    k = puma560_fu().kinematics(q, jacobian=False)
+    for n in range(5):
+        T = np.eye(4)
+        for j, (d, a, al) in enumerate(rows):
+            T = T @ _dh(q[n, j], d * 1e-3, a * 1e-3, np.radians(al))
+        np.testing.assert_allclose(k.T[n], T, atol=1e-12)
+
+
+def test_khalil_stanford_against_matrix_product():
+    """GECARO eq. [3] link by link with explicit 4x4 matrices."""
+    def rx(a):
+        return np.array([[1, 0, 0, 0], [0, np.cos(a), -np.sin(a), 0], [0, np.sin(a), np.cos(a), 0], [0, 0, 0, 1]])
+
+    def rz(a):
+        return np.array([[np.cos(a), -np.sin(a), 0, 0], [np.sin(a), np.cos(a), 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+    def tr(x, z):
+        T = np.eye(4)
+        T[0, 3], T[2, 3] = x, z
+        return T
+
+    h = np.pi / 2
+    table = [(0, 0, h, 0.5), (0.1, 0, None, 0), (-h, 0, None, 0.2), (h, 0, 0, None), (0, 0, None, 0),
+             (-h, 0, None, 0), (h, 0, None, 0), (1.3, 0.2, h, 0.1)]
+    q = np.array([[0.3, -0.4, 0.55, 1.0, -0.7, 2.0]])
+    T = np.eye(4)
+    jq = iter(q[0])
+    for al, d, th, r in table:
+        if th is None:
+            th = next(jq)
+        elif r is None:
+            r = next(jq)
+        T = T @ rx(al) @ tr(d, 0) @ rz(th) @ tr(0, r)
+    np.testing.assert_allclose(stanford().fk(q)[0], T, atol=1e-12)
+
+
+def test_transform_roundtrips():
+    rng = np.random.default_rng(0)
+    R = so3_exp(rng.normal(size=(200, 3)) * 1.5)
+    np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(R)), R, atol=1e-12)
+    np.testing.assert_allclose(rpy_to_matrix(matrix_to_rpy(R)), R, atol=1e-12)
+    np.testing.assert_allclose(so3_exp(so3_log(R)), R, atol=1e-10)
+    # near pi
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    Rpi = rot_axis(axis, np.pi - 1e-7)
+    np.testing.assert_allclose(so3_exp(so3_log(Rpi[None]))[0], Rpi, atol=1e-7)
+
+
+def test_parameter_vector_names_and_errors():
+    pv = puma560().params
+    assert "alpha_3" in pv and "offset_2" in pv and "base_tz" in pv and "tool_rx" in pv and "gain_6" in pv
+    sub = pv.with_free(["offset_*"])
+    assert sub.free_names == [f"offset_{i}" for i in range(1, 7)]
+    x = sub.to_flat() + 0.1
+    full = sub.from_flat(x)
+    assert np.allclose(full[sub.free_indices], x) and np.allclose(np.delete(full, sub.free_indices),
+                                                                   np.delete(pv.values, sub.free_indices))
+    with pytest.raises(ParameterError, match="unknown parameter 'ofset_2'"):
+        pv.index("ofset_2")
+
+
+def test_gravity_torque_planar_closed_form():
+    """Two-link arm in a vertical plane: τ1 = -g (m1 l1/2 c1 + m2 (l1 c1 + l2/2 c12)) about z."""
+    from estcal.kinematics.builder import build_robot
+
+    frames = [{"name": "a", "a": 1.0, "mass": 2.0, "com": [-0.5, 0, 0]},
+              {"name": "b", "a": 0.8, "mass": 1.0, "com": [-0.4, 0, 0]}]
+    robot = build_robot("v", frames, convention="dh", gravity=(0, -9.81, 0))
+    q = np.random.default_rng(0).uniform(-3, 3, (10, 2))
+    tau = robot.gravity_torques(q)
+    c1, c12 = np.cos(q[:, 0]), np.cos(q.sum(1))
+    g = 9.81
+    np.testing.assert_allclose(tau[:, 0], -g * (2.0 * 0.5 * c1 + 1.0 * (c1 + 0.4 * c12)), atol=1e-12)
+    np.testing.assert_allclose(tau[:, 1], -g * (1.0 * 0.4 * c12), atol=1e-12)
