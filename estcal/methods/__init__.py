@@ -1,0 +1,7 @@
+"""Measurement methods (GECARO): residual rows + analytic Jacobian rows, and the Problem that stacks them."""
+from .base import (METHODS, Method, NoiseModel, PointsMethod, PoseMethod, PositionMethod, Rows, get_method,
+                   method_for_dataset, register_method)
+from .problem import Problem, Term
+
+__all__ = ["Method", "NoiseModel", "Rows", "PositionMethod", "PoseMethod", "PointsMethod", "METHODS",
+           "get_method", "register_method", "method_for_dataset", "Problem", "Term"]

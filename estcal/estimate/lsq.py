@@ -1,0 +1,224 @@
+"""Batch least-squares calibration: iterated linear LS, Gauss–Newton, Levenberg–Marquardt.
+
+Each iteration solves the weighted, column-scaled linearised system (GECARO
+eq. [6]-[10]; textbook eqs. 4.47, 4.154, 4.156)::
+
+    minimise ‖ W^{1/2} (e − H Δθ) ‖²,   W = diag(1/σ²)
+
+* ``iterated-lls`` — GECARO's iterated linear least squares: the full step
+  ``Δθ = (W^{1/2} H)⁺ W^{1/2} e``, observation matrix rebuilt every iteration
+  (identical to Gauss–Newton; kept under its published name).
+* ``gauss-newton`` — the same step with a backtracking line search on the cost.
+* ``lm`` — Levenberg–Marquardt with Marquardt's rule (μ divided by ν = 10 after a
+  successful step, multiplied by ν until the cost falls; textbook §4.6),
+  damping ``μ·I`` on the column-scaled system (i.e. ``μ·diag(HᵀWH)``).
+* ``scipy-lm`` — :func:`scipy.optimize.least_squares` (``method="lm"``,
+  MINPACK) with the analytic Jacobian, for comparison.
+
+Columns are scaled to unit norm before every solve (equilibration), so metres
+and radians, large and small parameters are treated alike. The covariance at
+the solution is ``Σ = (HᵀWH)⁻¹`` (textbook 4.54/4.71), multiplied by the
+posterior variance factor ``σ0² = χ²/(M − p)`` when the noise is not known
+(``NoiseModel.known = False``).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg as sla
+
+from .result import CalibrationResult, accuracy
+
+__all__ = ["calibrate_lsq", "UnidentifiableError", "check_identifiable", "LSQ_METHODS"]
+
+LSQ_METHODS = ("lm", "gauss-newton", "iterated-lls", "scipy-lm")
+
+
+class UnidentifiableError(ValueError):
+    """The free parameters are not all identifiable from these data."""
+
+
+def _weighted(rows, free):
+    w = 1.0 / rows.sigma
+    A = rows.H[:, free] * w[:, None]
+    b = rows.e * w
+    return A, b
+
+
+def check_identifiable(A, names, tol_factor: float = None):
+    """Raise :class:`UnidentifiableError` naming dependent / no-effect columns of ``A``.
+
+    Uses QR with column pivoting of the unit-norm-scaled matrix and GECARO's
+    numerical zero τ = c·ε·max|R_jj| (App. III, eq. [34]).
+    """
+    norms = np.linalg.norm(A, axis=0)
+    zero = norms <= np.finfo(float).eps * max(norms.max(), 1e-300) * A.shape[0]
+    if zero.any():
+        bad = [n for n, z in zip(names, zero) if z]
+        raise UnidentifiableError(
+            f"parameters without effect on these measurements: {bad}. Fix them (remove from --free) — "
+            f"run `estcal identifiable` to see the identifiable set")
+    As = A / norms
+    _, R, piv = sla.qr(As, mode="economic", pivoting=True)
+    d = np.abs(np.diag(R))
+    c = A.shape[1]
+    tau = (tol_factor or c) * np.finfo(float).eps * d.max() * max(A.shape) / c
+    tau = max(tau, 1e-10 * d.max())
+    rank = int(np.sum(d > tau))
+    if rank < c:
+        dep = [names[i] for i in piv[rank:]]
+        raise UnidentifiableError(
+            f"{c - rank} of the {c} free parameters are not identifiable from these data "
+            f"(linearly dependent columns; e.g. {dep}). Fix or regroup them — "
+            f"`estcal identifiable` lists an identifiable set")
+    return float(d[0] / d[rank - 1])
+
+
+def _solve(A, b, mu=0.0):
+    """Column-scaled (damped) least-squares step."""
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    As = A / s
+    if mu > 0:
+        As = np.vstack([As, np.sqrt(mu) * np.eye(A.shape[1])])
+        b = np.concatenate([b, np.zeros(A.shape[1])])
+    x, *_ = np.linalg.lstsq(As, b, rcond=None)
+    return x / s
+
+
+def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, tol: float = 1e-10,
+                  theta0=None, validation=(), check: bool = True, verbose: bool = False) -> CalibrationResult:
+    """Estimate the free parameters of ``problem`` by nonlinear least squares.
+
+    Parameters
+    ----------
+    problem : :class:`estcal.methods.problem.Problem`
+    method : one of ``lm``, ``gauss-newton``, ``iterated-lls``, ``scipy-lm``
+    free : parameter names/patterns to estimate (default: the problem's free mask)
+    max_iter, tol : stop when the relative step ‖Δθ/scale‖ and relative cost change are below ``tol``
+    theta0 : full initial parameter vector (default: the problem's current values)
+    validation : datasets scored with the estimate (accuracy before/after)
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    if method not in LSQ_METHODS:
+        raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
+    if free is not None:
+        problem = problem.with_free(free)
+    pv = problem.params
+    fidx = pv.free_indices
+    if fidx.size == 0:
+        raise ValueError("no free parameter to estimate")
+    names = [pv.names[i] for i in fidx]
+    theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    t0 = time.perf_counter()
+
+    rows = problem.evaluate(theta)
+    A, b = _weighted(rows, fidx)
+    if check:
+        check_identifiable(A, names)
+    cost = float(b @ b)
+    converged = False
+    it = 0
+    if method == "scipy-lm":
+        from scipy.optimize import least_squares
+
+        def fun(x):
+            th = theta.copy()
+            th[fidx] = x
+            r = problem.evaluate(th, jacobian=False)
+            return -r.e / r.sigma
+
+        def jac(x):
+            th = theta.copy()
+            th[fidx] = x
+            r = problem.evaluate(th)
+            return r.H[:, fidx] / r.sigma[:, None]
+
+        sol = least_squares(fun, theta[fidx], jac=jac, method="lm", x_scale="jac", xtol=tol, ftol=tol,
+                            gtol=tol, max_nfev=max_iter * 10)
+        theta[fidx] = sol.x
+        it, converged = int(sol.njev or sol.nfev), bool(sol.success)
+    else:
+        mu, nu = 1e-2, 10.0
+        for it in range(1, max_iter + 1):
+            if method == "lm":
+                while True:
+                    dx = _solve(A, b, mu)
+                    trial = theta.copy()
+                    trial[fidx] += dx
+                    r_t = problem.evaluate(trial, jacobian=False)
+                    c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
+                    if c_t <= cost or mu > 1e12:
+                        break
+                    mu *= nu
+                mu = max(mu / nu, 1e-12)
+            else:
+                dx = _solve(A, b)
+                step = 1.0
+                trial = theta.copy()
+                trial[fidx] += dx
+                if method == "gauss-newton":
+                    while True:
+                        r_t = problem.evaluate(trial, jacobian=False)
+                        c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
+                        if c_t <= cost or step < 1e-6:
+                            break
+                        step *= 0.5
+                        trial = theta.copy()
+                        trial[fidx] += step * dx
+                    dx = step * dx
+            theta = trial
+            rows = problem.evaluate(theta)
+            A, b = _weighted(rows, fidx)
+            new_cost = float(b @ b)
+            scale = np.maximum(np.abs(theta[fidx]), 1e-3)
+            small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
+            small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
+            cost = new_cost
+            if verbose:
+                print(f"iter {it}: cost {cost:.6g}, max|step| {np.max(np.abs(dx)):.3g}")
+            if small_step or small_cost:
+                converged = True
+                break
+    rows = problem.evaluate(theta)
+    A, b = _weighted(rows, fidx)
+    chi2 = float(b @ b)
+    dof = int(A.shape[0] - fidx.size)
+    # Σ = (HᵀWH)⁻¹ via the scaled QR factor (stable for poorly scaled columns)
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    _, R = np.linalg.qr(A / s)
+    Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
+    cov = (Rinv @ Rinv.T) / np.outer(s, s)
+    known = all(t.noise.known for t in problem.terms)
+    if not known and dof > 0:
+        cov = cov * (chi2 / dof)
+    res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
+                            std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
+                            all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
+                            covariance_source="model" if known else "scaled by sigma0^2")
+    res.extra["time_s"] = time.perf_counter() - t0
+    res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
+    return res
+
+
+def score(problem, theta_before, theta_after, validation=()) -> dict:
+    """Accuracy before/after on the training terms and on each validation dataset."""
+    robot = problem.robot
+    out = {}
+    t = problem.terms[0]
+    if t.data.kind != "none":
+        out["train"] = {"before": accuracy(robot, theta_before, t.data),
+                        "after": accuracy(robot, theta_after, t.data), "path": t.data.where}
+    vals = []
+    for d in validation:
+        vals.append({"path": d.where, "before": accuracy(robot, theta_before, d),
+                     "after": accuracy(robot, theta_after, d)})
+    if vals:
+        out["validation"] = vals
+    return out

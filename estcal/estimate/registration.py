@@ -1,0 +1,51 @@
+"""Closed-form initial guesses: the base (registration) transform from point correspondences.
+
+Motion-capture and tracker data live in an unknown world frame; starting a
+nonlinear fit from an identity base can fail. :func:`register_base` solves the
+absolute-orientation problem (Kabsch / Horn, SVD form) between points
+predicted in the robot's base frame and the measured points, and returns base
+parameters (``base_tx … base_rz``) that put the robot near the data.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from estcal.kinematics.transforms import matrix_to_rpy, rpy_to_matrix
+
+__all__ = ["kabsch", "register_base"]
+
+
+def kabsch(P, Q):
+    """Rotation R and translation t minimising Σ‖R P_i + t − Q_i‖² (P, Q: (M, 3))."""
+    P, Q = np.asarray(P, float), np.asarray(Q, float)
+    cp, cq = P.mean(0), Q.mean(0)
+    H = (P - cp).T @ (Q - cq)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cq - R @ cp
+
+
+def register_base(robot, data, theta=None):
+    """Full parameter vector with the base frame set by Kabsch on the measured points.
+
+    Predictions use the current marker values (or the tool origin). The existing base
+    transform is composed with the correction, so it works for any starting base.
+    """
+    theta = robot.params.values.copy() if theta is None else np.asarray(theta, float).copy()
+    kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
+    if data.kind == "pose":
+        pred, meas = kin.p, data.p
+    else:
+        k = data.n_points
+        pred = kin.points[:, :k] if robot.n_markers >= k else np.repeat(kin.p[:, None], k, 1)
+        pred, meas = pred.reshape(-1, 3), data.points.reshape(-1, 3)
+    R, t = kabsch(pred, meas)
+    names = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
+    idx = robot.params.indices(names)
+    Rb = rpy_to_matrix(theta[idx[3:]])
+    pb = theta[idx[:3]]
+    Rn, pn = R @ Rb, R @ pb + t
+    theta[idx[:3]] = pn
+    theta[idx[3:]] = matrix_to_rpy(Rn)
+    return theta

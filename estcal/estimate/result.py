@@ -1,0 +1,169 @@
+"""The result object every estimator returns, and accuracy statistics.
+
+All estimators (least squares, Kalman filter, factor graph, MCMC) fill the
+same :class:`CalibrationResult`, so results compare field by field and
+serialise to the same JSON::
+
+    {"method": ..., "parameters": {name: {"estimate", "std", "nominal"}},
+     "rmse_mm": {"train": .., "validation": [..]}, "n_iterations", "converged", ...}
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CalibrationResult", "accuracy", "pose_errors"]
+
+
+def pose_errors(robot, theta, data):
+    """Per-pose position error norms (m) of every measured point and orientation errors (rad).
+
+    Returns ``(pos (N, k), rot (N,) or None)``. For pose data the point is the tool
+    origin; for point data each marker is compared with its measured point.
+    """
+    from estcal.kinematics.transforms import pose_error
+
+    kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
+    if data.kind == "pose":
+        err = pose_error(data.R, data.p, kin.R, kin.p)
+        return np.linalg.norm(err[:, :3], axis=1)[:, None], np.linalg.norm(err[:, 3:], axis=1)
+    if data.points is None:
+        return None, None
+    k = data.n_points
+    pred = kin.points[:, :k] if robot.n_markers >= k else kin.p[:, None, :]
+    return np.linalg.norm(data.points - pred, axis=2), None
+
+
+def accuracy(robot, theta, data) -> dict:
+    """Accuracy statistics in mm / mrad: RMSE (root mean square of error norms), mean, max.
+
+    ``rmse_mm`` is √(mean‖e‖²) over every measured point of every pose (the
+    "norm RMSE" of FIGAROH's tables); per-point RMSE are in ``rmse_mm_per_point``.
+    """
+    pos, rot = pose_errors(robot, theta, data)
+    if pos is None:
+        return {"n_poses": data.n}
+    out = {"n_poses": int(data.n), "rmse_mm": float(np.sqrt(np.mean(pos**2)) * 1e3),
+           "mean_mm": float(pos.mean() * 1e3), "max_mm": float(pos.max() * 1e3)}
+    if pos.shape[1] > 1:
+        out["rmse_mm_per_point"] = [float(v) for v in np.sqrt(np.mean(pos**2, axis=0)) * 1e3]
+    if rot is not None:
+        out.update(rmse_mrad=float(np.sqrt(np.mean(rot**2)) * 1e3), mean_mrad=float(rot.mean() * 1e3),
+                   max_mrad=float(rot.max() * 1e3))
+    return out
+
+
+@dataclass
+class CalibrationResult:
+    """Estimated parameters with uncertainty, fit statistics and accuracy.
+
+    Attributes
+    ----------
+    method : estimator name (``lm``, ``gauss-newton``, ``iterated-lls``, ``kalman``, ``gtsam``, ``mcmc`` …)
+    names : free parameter names (those estimated)
+    estimate, std : (p,) estimates and standard deviations (SI units)
+    covariance : (p, p) parameter covariance
+    nominal : (p,) initial values of the free parameters
+    theta : (P,) full parameter vector at the solution; ``all_names`` its names
+    n_iterations, converged : iteration count and convergence flag
+    chi2, dof : weighted residual sum of squares and degrees of freedom (rows − p)
+    sigma0 : posterior standard deviation of unit weight √(χ²/dof)
+    accuracy : {"train": accuracy dict before/after, "validation": [...]} (mm / mrad)
+    extra : estimator-specific fields (e.g. credible intervals, innovation statistics)
+    """
+
+    method: str
+    names: list
+    estimate: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    nominal: np.ndarray
+    theta: np.ndarray
+    all_names: list
+    n_iterations: int = 0
+    converged: bool = True
+    chi2: float = float("nan")
+    dof: int = 0
+    covariance_source: str = "model"
+    accuracy: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def sigma0(self) -> float:
+        return float(np.sqrt(self.chi2 / self.dof)) if self.dof > 0 else float("nan")
+
+    def parameter(self, name: str) -> tuple[float, float]:
+        i = self.names.index(name)
+        return float(self.estimate[i]), float(self.std[i])
+
+    def robot(self, base_robot):
+        """``base_robot`` with the estimated values (the parameter vector must match)."""
+        return base_robot.with_values(self.theta[: base_robot.n_params])
+
+    def to_dict(self) -> dict:
+        d = {
+            "method": self.method,
+            "parameters": {n: {"estimate": float(e), "std": float(s), "nominal": float(v)}
+                           for n, e, s, v in zip(self.names, self.estimate, self.std, self.nominal)},
+            "n_parameters": len(self.names),
+            "n_iterations": int(self.n_iterations),
+            "converged": bool(self.converged),
+            "chi2": float(self.chi2), "dof": int(self.dof), "sigma0": self.sigma0,
+            "covariance_source": self.covariance_source,
+            "covariance": np.asarray(self.covariance).tolist(),
+            "theta": {n: float(v) for n, v in zip(self.all_names, self.theta)},
+        }
+        acc = self.accuracy or {}
+        rm = {}
+        if "train" in acc:
+            rm["train"] = acc["train"].get("after", {}).get("rmse_mm")
+            rm["train_before"] = acc["train"].get("before", {}).get("rmse_mm")
+        if "validation" in acc:
+            rm["validation"] = [v.get("after", {}).get("rmse_mm") for v in acc["validation"]]
+        d["rmse_mm"] = rm
+        d["accuracy"] = acc
+        d.update({k: _jsonable(v) for k, v in self.extra.items()})
+        return d
+
+    def to_json(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2))
+        return path
+
+    def table(self) -> str:
+        w = max([len(n) for n in self.names] + [9])
+        rows = [f"{'parameter':<{w}}  {'nominal':>13}  {'estimate':>13}  {'std':>11}  {'t':>8}"]
+        for n, v, e, s in zip(self.names, self.nominal, self.estimate, self.std):
+            t = (e - v) / s if s > 0 else float("inf")
+            rows.append(f"{n:<{w}}  {v:>13.6g}  {e:>13.6g}  {s:>11.3g}  {t:>8.2f}")
+        return "\n".join(rows)
+
+    def __str__(self) -> str:
+        head = (f"CalibrationResult(method={self.method!r}, {len(self.names)} parameters, "
+                f"iterations={self.n_iterations}, converged={self.converged}, "
+                f"sigma0={self.sigma0:.4g}, covariance={self.covariance_source})")
+        lines = [head, self.table()]
+        acc = self.accuracy or {}
+        if "train" in acc:
+            b, a = acc["train"].get("before", {}), acc["train"].get("after", {})
+            lines.append(f"train: RMSE {b.get('rmse_mm', float('nan')):.3f} mm -> {a.get('rmse_mm', float('nan')):.3f} mm")
+        for i, v in enumerate(acc.get("validation", [])):
+            lines.append(f"validation[{i}] {v.get('path', '')}: RMSE {v.get('before', {}).get('rmse_mm', float('nan')):.3f}"
+                         f" mm -> {v.get('after', {}).get('rmse_mm', float('nan')):.3f} mm")
+        return "\n".join(lines)
+
+
+def _jsonable(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v

@@ -1,0 +1,203 @@
+"""Measurement methods: residual rows and their analytic Jacobian rows.
+
+Every method turns a :class:`~estcal.io.dataset.Dataset` into stacked rows of
+GECARO's linearised calibration equation (eq. [6])::
+
+    e(θ) = y_measured − y_predicted(θ)        H(θ) = ∂y_predicted/∂θ
+    e(θ + Δθ) ≈ e(θ) − H(θ) Δθ
+
+with one noise standard deviation per row (``sigma``) so that rows of
+different kinds and units are weighted by ``1/sigma`` (position rows in m,
+orientation rows in rad). Methods that need unknowns of their own (plane
+coefficients, …) declare them with :meth:`Method.extra_parameters`; they join
+the parameter vector.
+
+This module holds the base class and the classical methods: ``position``
+(GECARO eq. [7], rows 1–3), ``location``/``pose`` (eq. [7], all six rows) and
+``points`` (k points of one rigid body with unknown coordinates in the tool
+frame — the markers).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estcal.kinematics.transforms import pose_error
+
+__all__ = ["Rows", "NoiseModel", "Method", "PositionMethod", "PoseMethod", "PointsMethod", "METHODS",
+           "register_method", "get_method", "method_for_dataset"]
+
+
+@dataclass
+class NoiseModel:
+    """Measurement noise standard deviations (SI): position (m) and orientation (rad).
+
+    ``scalar`` is the std of scalar measurements (distances (m), plane residuals (m)).
+    ``known`` says whether these are trusted absolute values (covariance from them)
+    or only relative weights (covariance scaled by the posterior variance factor).
+    """
+
+    position: float = 1e-4
+    orientation: float = 1e-3
+    scalar: float = 1e-4
+    known: bool = False
+
+    def to_dict(self) -> dict:
+        return {"position": self.position, "orientation": self.orientation, "scalar": self.scalar,
+                "known": self.known}
+
+
+@dataclass
+class Rows:
+    """Stacked residual rows.
+
+    e : (M,) measured − predicted; H : (M, P) ∂predicted/∂θ; sigma : (M,) noise std per row;
+    pose : (M,) index of the dataset row each residual row comes from;
+    kind : (M,) row kind code: 0 position (m), 1 orientation (rad), 2 scalar (m).
+    """
+
+    e: np.ndarray
+    H: np.ndarray | None
+    sigma: np.ndarray
+    pose: np.ndarray
+    kind: np.ndarray
+    term: np.ndarray = field(default=None)
+
+    @staticmethod
+    def concatenate(parts: list["Rows"]) -> "Rows":
+        H = None if any(p.H is None for p in parts) else np.concatenate([p.H for p in parts], 0)
+        term = np.concatenate([np.full(len(p.e), i) for i, p in enumerate(parts)])
+        return Rows(np.concatenate([p.e for p in parts]), H, np.concatenate([p.sigma for p in parts]),
+                    np.concatenate([p.pose for p in parts]), np.concatenate([p.kind for p in parts]), term)
+
+
+class Method:
+    """Base class of a measurement method (see module docstring).
+
+    Subclasses implement :meth:`rows`; ``requires`` names the dataset kinds accepted.
+    """
+
+    name = "base"
+    requires: tuple = ()
+
+    def check(self, robot, data) -> None:
+        if self.requires and data.kind not in self.requires:
+            raise ValueError(f"{data.where}: method {self.name!r} needs a dataset of kind {self.requires}, "
+                             f"got {data.kind!r} (columns x,y,z for a point, x1..zk for points, "
+                             f"x,y,z,qw,qx,qy,qz for a pose)")
+
+    def extra_parameters(self, robot, data) -> list[tuple[str, float]]:
+        """(name, initial value) of unknowns this method adds to the parameter vector."""
+        return []
+
+    def rows(self, robot, theta, data, noise: NoiseModel, jacobian: bool = True) -> Rows:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+
+def _point_rows(kin, data, robot, which: int):
+    """Predicted point ``which`` (marker index or -1 for the tool origin) and its Jacobian."""
+    if which < 0:
+        return kin.p, (None if kin.J is None else kin.J[:, :3])
+    return kin.points[:, which], (None if kin.J_points is None else kin.J_points[:, which])
+
+
+class PositionMethod(Method):
+    """Position measure (GECARO eq. [7], rows 1–3): one point per pose.
+
+    The measured point is marker 1 when the robot has markers (a point with
+    unknown coordinates in the tool frame), otherwise the tool-frame origin.
+    """
+
+    name = "position"
+    requires = ("position", "points")
+
+    def rows(self, robot, theta, data, noise, jacobian=True):
+        self.check(robot, data)
+        kin = robot.kinematics(data.readings, theta, data.context, jacobian=jacobian)
+        pred, J = _point_rows(kin, data, robot, 0 if robot.n_markers else -1)
+        e = (data.points[:, 0] - pred).reshape(-1)
+        H = None if J is None else J.reshape(-1, J.shape[-1])
+        N = data.n
+        return Rows(e, H, np.full(3 * N, noise.position), np.repeat(np.arange(N), 3), np.zeros(3 * N, int))
+
+
+class PointsMethod(Method):
+    """k points of one rigid body (markers 1..k, unknown coordinates in the tool frame).
+
+    Together the points carry the full pose; their coordinates are the ``markerk_*``
+    parameters, estimated with the rest (the TIAGo case).
+    """
+
+    name = "points"
+    requires = ("position", "points")
+
+    def rows(self, robot, theta, data, noise, jacobian=True):
+        self.check(robot, data)
+        k = data.n_points
+        if robot.n_markers < k:
+            raise ValueError(f"{data.where}: {k} measured points but the robot defines {robot.n_markers} markers; "
+                             f"load the robot with n_markers={k} (or use --points)")
+        kin = robot.kinematics(data.readings, theta, data.context, jacobian=jacobian)
+        e = (data.points - kin.points[:, :k]).reshape(-1)
+        H = None if kin.J_points is None else kin.J_points[:, :k].reshape(-1, robot.n_params)
+        N = data.n
+        return Rows(e, H, np.full(3 * k * N, noise.position), np.repeat(np.arange(N), 3 * k),
+                    np.zeros(3 * k * N, int))
+
+
+class PoseMethod(Method):
+    """Location (full pose) measure, GECARO eq. [7]: 6 rows per pose.
+
+    e = [p_meas − p_pred ; log(R_meas R_predᵀ)] (GECARO App. I with a proper
+    rotation logarithm, which the paper's "method 2" recommends). To first order
+    e(θ+Δθ) = e(θ) − J Δθ with J the world-frame pose Jacobian.
+    """
+
+    name = "location"
+    requires = ("pose",)
+
+    def rows(self, robot, theta, data, noise, jacobian=True):
+        self.check(robot, data)
+        kin = robot.kinematics(data.readings, theta, data.context, jacobian=jacobian)
+        e = pose_error(data.R, data.p, kin.R, kin.p).reshape(-1)
+        H = None if kin.J is None else kin.J.reshape(-1, robot.n_params)
+        N = data.n
+        sig = np.tile(np.r_[np.full(3, noise.position), np.full(3, noise.orientation)], N)
+        return Rows(e, H, sig, np.repeat(np.arange(N), 6), np.tile(np.r_[0, 0, 0, 1, 1, 1], N))
+
+
+METHODS: dict[str, type] = {"position": PositionMethod, "location": PoseMethod, "pose": PoseMethod,
+                            "points": PointsMethod}
+
+
+def register_method(name: str, cls: type) -> None:
+    """Make a method available by name (used by the other method modules and by users)."""
+    METHODS[name] = cls
+
+
+def get_method(name: str, **kwargs) -> Method:
+    # Importing the module of the other GECARO methods registers them.
+    try:
+        import estcal.methods.links  # noqa: F401
+    except ImportError:
+        pass
+    try:
+        return METHODS[name](**kwargs)
+    except KeyError:
+        raise ValueError(f"unknown measurement method {name!r}; available: {sorted(METHODS)}") from None
+
+
+def method_for_dataset(data, robot) -> Method:
+    """The method implied by the dataset's columns: pose → location, k points → points, x,y,z → position."""
+    if data.kind == "pose":
+        return PoseMethod()
+    if data.kind == "points":
+        return PointsMethod()
+    if data.kind == "position":
+        return PositionMethod()
+    raise ValueError(f"{data.where}: no measurement columns (x,y,z / x1..zk / x,y,z,qw,qx,qy,qz); "
+                     f"give --method for an encoder-only (link) method")
