@@ -102,10 +102,16 @@ def batched_lstsq(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     singular values. Rank-deficient systems give NaN solutions (never a
     silently wrong one).
     """
+    A, y = np.asarray(A, float), np.asarray(y, float)
+    finite = np.isfinite(A).all(axis=(-2, -1)) & np.isfinite(y).all(axis=-1)
+    if not finite.all():
+        A = np.where(finite[..., None, None], A, np.eye(*A.shape[-2:]))
+        y = np.where(finite[..., None], y, 0.0)
     Q, Rm = np.linalg.qr(A)
     qty = np.einsum("...ji,...j->...i", Q, y)
     sv = np.linalg.svd(A, compute_uv=False)
     cond = sv[..., 0] / np.maximum(sv[..., -1], 1e-300)
+    cond = np.where(finite, cond, np.inf)
     bad = cond > 1e13
     Rs = np.where(bad[..., None, None], np.eye(Rm.shape[-1]), Rm)
     x = np.linalg.solve(Rs, qty[..., None])[..., 0]
