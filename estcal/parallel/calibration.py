@@ -256,44 +256,127 @@ class GoughProblem:
         sr = self.sigma_r if self.sigma_r is not None else 1.0
         return np.r_[np.full(3, sp), np.full(3, sr)]
 
-    def residual_and_jacobian(self, x: np.ndarray, jacobian: bool = True):
-        """Whitened residual (m,) and Jacobian (m, p) w.r.t. the free parameters."""
-        theta = self.theta(x)
+    def raw_rows(self, theta: np.ndarray, jacobian: bool = True):
+        """Unwhitened residual rows at the full (42,) ``theta``.
+
+        Returns ``e`` (m,) = measured − predicted, ``dE`` (m, 42) = ∂e/∂θ
+        (or None), ``sigma`` (m,), ``pose`` (m,) source pose index and
+        ``kind`` (m,) row kind (0 position m, 1 orientation rad, 2 scalar m).
+        """
+        n = len(self.data)
+        pose = np.repeat(np.arange(n), 6)
         if self.kind == "ik":
-            r = (self.data.rho - self.robot.leg_lengths(self.data.T, theta))
-            s = self._ik_sigma(theta)
-            r = (r / s).reshape(-1)
-            if not jacobian:
-                return r, None
-            Jt, _ = self.robot.leg_jacobians(self.data.T, theta)
-            J = (-Jt / s[..., None]).reshape(-1, 42)[:, self.pv.free]
-            return r, J
+            e = (self.data.rho - self.robot.leg_lengths(self.data.T, theta)).reshape(-1)
+            s = self._ik_sigma(theta).reshape(-1)
+            dE = None
+            if jacobian:
+                Jt, _ = self.robot.leg_jacobians(self.data.T, theta)
+                dE = -Jt.reshape(-1, 42)
+            return e, dE, s, pose, np.full(6 * n, 2)
         fk = self._fk(theta)
         ok = fk.success
         Pm, Rm = split_pose(self.data.T)
-        e = np.zeros((len(self.data), 6))
+        e = np.zeros((n, 6))
         Tf = fk.T[ok]
         e[ok, :3] = Pm[ok] - Tf[:, :3, 3]
         e[ok, 3:] = so3_log(Rm[ok] @ np.swapaxes(Tf[:, :3, :3], -1, -2))
-        s = self._fk_sigma()
-        r = (e / s).reshape(-1)
+        s = np.tile(self._fk_sigma(), n)
+        kind = np.tile(np.r_[0, 0, 0, 1, 1, 1], n)
+        dE = None
+        if jacobian:
+            J = np.zeros((n, 6, 42))
+            if ok.any():
+                Jt, Jx = self.robot.leg_jacobians(Tf, theta)
+                dx = np.linalg.solve(Jx, Jt)  # = -∂x_fk/∂θ
+                # exact derivative of log(exp(e) exp(-δ)) w.r.t. δ is -J_r⁻¹(e) (right Jacobian of SO(3))
+                dx[:, 3:] = np.einsum("nij,njk->nik", _so3_right_jacobian_inv(e[ok, 3:]), dx[:, 3:])
+                J[ok] = dx
+            dE = J.reshape(-1, 42)
+        return e.reshape(-1), dE, s, pose, kind
+
+    def residual_and_jacobian(self, x: np.ndarray, jacobian: bool = True):
+        """Whitened residual (m,) and Jacobian (m, p) w.r.t. the free parameters."""
+        e, dE, s, _, _ = self.raw_rows(self.theta(x), jacobian)
+        r = e / s
         if not jacobian:
             return r, None
-        J = np.zeros((len(self.data), 6, 42))
-        if ok.any():
-            Jt, Jx = self.robot.leg_jacobians(Tf, theta)
-            dx = np.linalg.solve(Jx, Jt)  # = -∂x_fk/∂θ
-            # exact derivative of log(exp(e) exp(-δ)) w.r.t. δ is -J_r⁻¹(e) (right Jacobian of SO(3))
-            dx[:, 3:] = np.einsum("nij,njk->nik", _so3_right_jacobian_inv(e[ok, 3:]), dx[:, 3:])
-            J[ok] = dx
-        J = (J / s[:, None]).reshape(-1, 42)[:, self.pv.free]
-        return r, J
+        return r, (dE / s[:, None])[:, self.pv.free]
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return self.residual_and_jacobian(x, jacobian=False)[0]
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         return self.residual_and_jacobian(x)[1]
+
+
+class _Noise:
+    def __init__(self, known: bool):
+        self.known = known
+
+
+class _Data:
+    kind = "none"  # tells estcal.estimate.lsq.score that there is no serial-chain accuracy to report
+
+    def __init__(self, data: GoughData, residual: str):
+        self.n = len(data)
+        self.where = f"{data.source} (Gough {residual.upper()} residuals)"
+
+
+class _Method:
+    def __init__(self, residual: str):
+        self.name = f"gough-{residual}"
+
+
+class _Term:
+    def __init__(self, prob: GoughProblem):
+        self.method = _Method(prob.kind)
+        self.data = _Data(prob.data, prob.kind)
+        self.noise = _Noise(prob.absolute_sigma)
+
+
+class GoughEstimationProblem:
+    """Adapter giving a :class:`GoughProblem` the interface of
+    :class:`estcal.methods.problem.Problem`, so the shared estimators of
+    :mod:`estcal.estimate` (registry names ``lm``, ``gauss-newton``,
+    ``iterated-lls``, ``scipy-lm``, ``gtsam``, ``kalman``, ``mcmc`` …) run on a
+    Gough platform unchanged.
+
+    ``evaluate(theta)`` returns :class:`estcal.methods.base.Rows` with
+    ``e`` = measured − predicted, ``H = −∂e/∂θ`` (= ∂predicted/∂θ), one σ per row.
+    """
+
+    def __init__(self, prob: GoughProblem):
+        self._prob = prob
+        self.robot = prob.robot
+        self.terms = [_Term(prob)]
+
+    @property
+    def params(self):
+        return self._prob.pv
+
+    def evaluate(self, theta=None, jacobian: bool = True):
+        from estcal.methods.base import Rows
+
+        theta = self.params.values if theta is None else np.asarray(theta, float)
+        e, dE, s, pose, kind = self._prob.raw_rows(theta, jacobian)
+        return Rows(e, None if dE is None else -dE, s, pose, kind, np.zeros(len(e), int))
+
+    def _copy(self, pv):
+        import copy
+
+        prob = copy.copy(self._prob)
+        prob.pv = pv
+        return GoughEstimationProblem(prob)
+
+    def with_free(self, names) -> "GoughEstimationProblem":
+        return self._copy(self.params.with_free(names))
+
+    def with_values(self, theta) -> "GoughEstimationProblem":
+        return self._copy(self.params.with_values(theta))
+
+    def __repr__(self) -> str:
+        return f"GoughEstimationProblem({self.robot.name!r}, {self._prob.kind}, {len(self._prob.data)} poses, " \
+               f"{int(self.params.free.sum())} free)"
 
 
 # ---------------------------------------------------------------- identifiability
@@ -555,7 +638,34 @@ def _emcee(prob: GoughProblem, x0: np.ndarray, n_walkers: int | None = None, n_s
                                                "acceptance": float(np.mean(sampler.acceptance_fraction))}
 
 
+#: Local implementations, used when the shared :mod:`estcal.estimate` registry
+#: does not (yet) provide the estimator, or with ``backend="local"``.
 ESTIMATORS = {"lm": _lm, "gauss-newton": _gauss_newton, "kalman": _kalman, "gtsam": _gtsam, "emcee": _emcee}
+_LOCAL_ALIASES = {"mcmc": "emcee", "scipy-lm": "lm"}
+
+
+def _shared_estimator(method: str):
+    """The estimator of the shared registry, or None if it is not available."""
+    try:
+        from estcal.estimate.registry import get_estimator
+    except ImportError:
+        return None
+    try:
+        return get_estimator(method)
+    except ValueError:
+        return None
+
+
+def estimator_names() -> list[str]:
+    """Estimator names accepted by :func:`calibrate_gough` (shared registry ∪ local)."""
+    names = set(ESTIMATORS) | set(_LOCAL_ALIASES)
+    try:
+        from estcal.estimate.registry import estimator_names as shared
+
+        names |= set(shared())
+    except ImportError:
+        pass
+    return sorted(names)
 
 
 def calibrate_gough(
@@ -571,6 +681,7 @@ def calibrate_gough(
     sigma_rho: float | None = None,
     sigma_p: float | None = None,
     sigma_r: float | None = None,
+    backend: str = "auto",
     **estimator_kw: Any,
 ) -> GoughCalibrationResult:
     """Calibrate a Gough platform from measured poses and leg readings.
@@ -579,9 +690,15 @@ def calibrate_gough(
     ----------
     robot : nominal robot (object, built-in name, robot file or dict).
     data : :class:`GoughData` or a measurement file (see :func:`load_gough_data`).
-    method : ``"lm"`` (scipy Levenberg–Marquardt, analytic Jacobian),
-        ``"gauss-newton"``, ``"kalman"`` (iterated EKF), ``"gtsam"``
-        (factor graph, LM), ``"emcee"`` (posterior mean).
+    method : estimator name. With ``backend="auto"`` (default) the shared
+        estimators of :mod:`estcal.estimate` (``lm``, ``gauss-newton``,
+        ``iterated-lls``, ``scipy-lm``, ``gtsam``, ``kalman``, ``mcmc`` …) run
+        on the problem through :class:`GoughEstimationProblem`; names the
+        shared registry cannot provide fall back to the local
+        implementations: ``lm`` (scipy Levenberg–Marquardt), ``gauss-newton``,
+        ``kalman`` (iterated EKF), ``gtsam`` (factor graph, LM), ``emcee`` /
+        ``mcmc`` (posterior mean and sample covariance).
+    backend : ``"auto"``, ``"shared"`` (registry only) or ``"local"``.
     residual : ``"ik"`` or ``"fk"`` (module docstring).
     model : 42 (a, b, Δρ) or 36 (a, b; offsets fixed at their nominal values).
     free : parameter names/patterns to estimate (default: the model's set).
@@ -595,8 +712,13 @@ def calibrate_gough(
     """
     robot = robot if isinstance(robot, GoughPlatform) else load_gough(robot)
     data = data if isinstance(data, GoughData) else load_gough_data(data)
-    if method not in ESTIMATORS:
-        raise ValueError(f"unknown method {method!r}; choose from {sorted(ESTIMATORS)}")
+    if backend not in ("auto", "shared", "local"):
+        raise ValueError(f"backend must be 'auto', 'shared' or 'local', got {backend!r}")
+    shared = None if backend == "local" else _shared_estimator(method)
+    local_name = _LOCAL_ALIASES.get(method, method)
+    if shared is None and (backend == "shared" or local_name not in ESTIMATORS):
+        raise ValueError(f"estimator {method!r} is not available (backend={backend!r}); "
+                         f"choose from {estimator_names()}")
     if theta0 is None and initial == "daney":
         if not daney_results:
             raise ValueError("initial='daney' needs daney_results (see estcal.parallel.daney.calibrate_leg_daney)")
@@ -611,16 +733,25 @@ def calibrate_gough(
     if ide["n_identifiable"] < len(prob.names):
         prob.pv = prob.pv.with_free(ide["identifiable"])
         x_init = prob.x0
-    x, nit, conv, extra = ESTIMATORS[method](prob, x_init, **estimator_kw)
-    r, J = prob.residual_and_jacobian(x)
-    chi2 = float(r @ r)
-    dof = max(prob.n_residuals - len(x), 1)
-    s2 = 1.0 if prob.absolute_sigma else chi2 / dof
-    cov = np.linalg.inv(J.T @ J) * s2
-    if method == "emcee":
-        cov = extra.pop("sample_covariance")
-    if method == "kalman":
-        extra.pop("posterior_covariance_unscaled", None)
+    if shared is not None:
+        res = shared(GoughEstimationProblem(prob), **estimator_kw)
+        order = [res.names.index(n) for n in prob.names]
+        x = np.asarray(res.estimate, float)[order]
+        cov = np.asarray(res.covariance, float)[np.ix_(order, order)]
+        nit, conv = int(res.n_iterations), bool(res.converged)
+        extra = {"backend": f"estcal.estimate ({res.method})", "covariance_source": res.covariance_source}
+        r, _ = prob.residual_and_jacobian(x, jacobian=False)
+        chi2 = float(r @ r)
+    else:
+        x, nit, conv, extra = ESTIMATORS[local_name](prob, x_init, **estimator_kw)
+        extra["backend"] = f"estcal.parallel.calibration ({local_name})"
+        r, J = prob.residual_and_jacobian(x)
+        chi2 = float(r @ r)
+        dof = max(prob.n_residuals - len(x), 1)
+        s2 = 1.0 if prob.absolute_sigma else chi2 / dof
+        cov = np.linalg.inv(J.T @ J) * s2
+        if local_name == "emcee":
+            cov = extra.pop("sample_covariance")
     theta = prob.theta(x)
     std = dict(zip(prob.names, np.sqrt(np.diag(cov))))
     pv0 = robot.parameter_vector(model)
