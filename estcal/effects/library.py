@@ -1,0 +1,248 @@
+"""The built-in non-geometric effects.
+
+==================  ===========================================  ======================  ===========
+registry name       correction                                   parameters              units
+==================  ===========================================  ======================  ===========
+joint_compliance    δq_j = c_j · τ_j (gravity torque)            ``compliance_<joint>``  rad/(N·m), m/N
+backlash            δq_j = b_j · sign(τ_j)  or  −b_j · sign(a_j)  ``backlash_<joint>``    rad, m
+gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic<k>_sin_<j>`` rad
+                                                                 ``harmonic<k>_cos_<j>``
+encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
+thermal_expansion   δx = α · ΔT · (x − o_base)   (marker points)  ``thermal_alpha``       1/K
+drift               δq_j = v_j · (t − t0)                         ``drift_<joint>``       rad/s, m/s
+==================  ===========================================  ======================  ===========
+
+All corrections are linear in their parameters, so their derivatives (the
+Jacobian columns of the effect parameters) are exact. Every parameter is zero
+at its nominal value (no effect).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .base import Effect, JointEffect, register_effect
+
+__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift"]
+
+
+def _ctx(context: dict, key: str, N: int) -> np.ndarray | None:
+    if context is None or key not in context or context[key] is None:
+        return None
+    a = np.asarray(context[key], float)
+    try:
+        return np.broadcast_to(a.reshape(-1) if a.ndim else a, (N,))
+    except ValueError:
+        raise ValueError(f"context {key!r} has {a.size} values for {N} poses") from None
+
+
+class JointCompliance(JointEffect):
+    """Joint compliance under gravity: ``δq_j = c_j · τ_j``.
+
+    ``τ_j`` is the static gravity torque (N·m; force in N for a prismatic joint)
+    on joint j from the masses of the links it carries and the payload
+    (:meth:`SerialRobot.gravity_torques`; the per-pose ``payload`` context column,
+    in kg, overrides the robot file's payload mass). ``c_j`` (``compliance_<joint>``)
+    is in rad/(N·m) (m/N for a prismatic joint). Klimchik's elastostatic model
+    reduced to the joint stiffness ``k_j = 1/c_j`` (GECARO §5 "non-geometric";
+    Klimchik 2012 eq. 5). The torque is evaluated on the rigid model at the
+    current parameters; its own dependence on geometry is second order.
+    """
+
+    name = "joint_compliance"
+    prefixes = ("compliance",)
+
+    def context_keys(self):
+        return ["payload"]
+
+    def features(self, robot, readings, q, theta, context):
+        tau = robot.gravity_torques(readings, theta, context)
+        return tau[:, None, self.joint_index]
+
+
+class Backlash(JointEffect):
+    """Backlash (half free-play) ``b_j`` (``backlash_<joint>``, rad or m, ≥ 0 physically).
+
+    Without an approach record the link rests against the side its gravity load
+    pushes it to: ``δq_j = b_j · sign(τ_j)`` (τ as in :class:`JointCompliance`).
+    When the dataset has a column ``approach_<joint>`` (the sign of the joint
+    velocity just before the pose was reached: +1 / −1 / 0), the link lags the
+    motor: ``δq_j = −b_j · sign(approach_j)``; this column takes precedence.
+    """
+
+    name = "backlash"
+    prefixes = ("backlash",)
+
+    def context_keys(self):
+        return ["payload"] + [f"approach_{j}" for j in self.joints]
+
+    def features(self, robot, readings, q, theta, context):
+        N = q.shape[0]
+        keys = [_ctx(context, f"approach_{j}", N) for j in self.joints]
+        S = np.empty((N, 1, len(self.joints)))
+        tau = None
+        for i, (j, a) in enumerate(zip(self.joint_index, keys)):
+            if a is not None:
+                S[:, 0, i] = -np.sign(a)
+            else:
+                if tau is None:
+                    tau = robot.gravity_torques(readings, theta, context)
+                S[:, 0, i] = np.sign(tau[:, j])
+        return S
+
+
+class GearHarmonic(JointEffect):
+    """Periodic transmission error: ``δq_j = Σ_k a_kj sin(k φ_j) + b_kj cos(k φ_j)``.
+
+    ``φ_j = ρ_j · r_j`` with ``r_j`` the joint reading (rad) and ``ρ_j`` the gear
+    ratio (``gear_ratio`` in the robot file, stored in ``robot.meta["gear_ratio"]``;
+    1 when absent, i.e. harmonics of the joint angle). Using the reading rather
+    than the corrected joint value keeps the correction independent of the other
+    parameters. Parameters ``harmonic<k>_sin_<joint>`` (a) and
+    ``harmonic<k>_cos_<joint>`` (b) in rad, for ``k in orders`` (default 1, 2, 3).
+    Revolute joints only.
+    """
+
+    name = "gear_harmonic"
+    allowed_types = ("revolute",)
+
+    def __init__(self, robot, joints: Sequence[str] | None = None, orders: Sequence[int] = (1, 2, 3),
+                 gear_ratio=None):
+        super().__init__(robot, joints)
+        self.orders = [int(k) for k in orders]
+        if not self.orders or any(k < 1 for k in self.orders) or len(set(self.orders)) != len(self.orders):
+            raise ValueError(f"effect 'gear_harmonic': orders must be distinct positive integers, got {orders}")
+        self.prefixes = tuple(p for k in self.orders for p in (f"harmonic{k}_sin", f"harmonic{k}_cos"))
+        meta = dict(robot.meta.get("gear_ratio", {}) or {})
+        if gear_ratio is not None:
+            meta.update(gear_ratio if isinstance(gear_ratio, dict) else {j: float(gear_ratio) for j in self.joints})
+        self.gear_ratio = {j: float(meta.get(j, 1.0)) for j in self.joints}
+        self._rho = np.array([self.gear_ratio[j] for j in self.joints])
+        self._explicit_ratio = gear_ratio
+
+    def options(self):
+        d = {"orders": list(self.orders)}
+        if self._explicit_ratio is not None:
+            d["gear_ratio"] = dict(self.gear_ratio)
+        return d
+
+    def features(self, robot, readings, q, theta, context):
+        phi = readings[:, self.joint_index] * self._rho  # (N, s)
+        F = []
+        for k in self.orders:
+            F.append(np.sin(k * phi))
+            F.append(np.cos(k * phi))
+        return np.stack(F, 1)
+
+
+class EncoderGain(JointEffect):
+    """Encoder gain error: ``δq_j = g_j · r_j`` (``encgain_<joint>``, dimensionless).
+
+    ``r_j`` is the joint reading; the effect duplicates the built-in ``gain_<frame>``
+    parameters on purpose (a discrepancy model fitted without gains names it).
+    """
+
+    name = "encoder_gain"
+    prefixes = ("encgain",)
+
+    def features(self, robot, readings, q, theta, context):
+        return readings[:, None, self.joint_index]
+
+
+class Drift(JointEffect):
+    """Slow joint-offset drift: ``δq_j = v_j · (t − t0)`` (``drift_<joint>``, rad/s or m/s).
+
+    Needs the per-pose time ``t`` (s) in the dataset; ``t0`` (s, default 0) is the
+    time at which the offsets are those of the geometric model.
+    """
+
+    name = "drift"
+    prefixes = ("drift",)
+
+    def __init__(self, robot, joints: Sequence[str] | None = None, t0: float = 0.0):
+        super().__init__(robot, joints)
+        self.t0 = float(t0)
+
+    def options(self):
+        return {"t0": self.t0}
+
+    def context_keys(self):
+        return ["t"]
+
+    def features(self, robot, readings, q, theta, context):
+        t = _ctx(context, "t", q.shape[0])
+        if t is None:
+            raise ValueError("effect 'drift' needs the time column 't' (s) in the dataset")
+        return np.broadcast_to((t - self.t0)[:, None, None], (q.shape[0], 1, len(self.joints)))
+
+
+class ThermalExpansion(Effect):
+    """Uniform thermal expansion of the arm about its base: ``δx = α · ΔT · (x − o)``.
+
+    Applied to every measured point (the robot's markers) ``x``; ``o`` is the
+    world position of the base frame (``base_tx, base_ty, base_tz``), so all link
+    lengths and marker offsets scale by ``1 + α ΔT``. ``ΔT = temperature − T_ref``
+    (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``)
+    is in 1/K (steel ≈ 1.2e-5, aluminium ≈ 2.3e-5). Without a ``temperature``
+    column the effect falls back to ``ΔT = t − t_reference`` (warm-up proxy; α
+    then in 1/s); with neither it is zero.
+
+    Only points are corrected (the protocol's ``point_correction``), so use it
+    with position/points data (a robot with markers). The derivative with
+    respect to α is exact; the O(α ΔT) change of the geometric columns is
+    neglected, as for every effect.
+    """
+
+    name = "thermal_expansion"
+    prefixes = ()
+
+    def __init__(self, robot, joints: Sequence[str] | None = None, reference: float = 20.0,
+                 t_reference: float = 0.0):
+        if joints:
+            raise ValueError("effect 'thermal_expansion' acts on the whole arm; it takes no joints")
+        self.robot_joints = list(robot.joint_names)
+        self.joints = []
+        self.joint_index = np.zeros(0, int)
+        self.indices = None
+        self.reference = float(reference)
+        self.t_reference = float(t_reference)
+        self._base_idx = robot.params.indices(["base_tx", "base_ty", "base_tz"])
+
+    @property
+    def param_names(self):
+        return ["thermal_alpha"]
+
+    @property
+    def param_frames(self):
+        return ["base"]
+
+    def options(self):
+        return {"reference": self.reference, "t_reference": self.t_reference}
+
+    def context_keys(self):
+        return ["temperature", "t"]
+
+    def delta_T(self, context, N) -> np.ndarray:
+        T = _ctx(context, "temperature", N)
+        if T is not None:
+            return T - self.reference
+        t = _ctx(context, "t", N)
+        if t is not None:
+            return t - self.t_reference
+        return np.zeros(N)
+
+    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None):
+        N = points.shape[0]
+        o = np.asarray(theta, float)[self._base_idx]
+        dT = self.delta_T(context, N)
+        s = self.values(theta)[0] * dT  # (N,)
+        if not derivatives:
+            return s[:, None, None] * (points - o), None
+        # With derivatives the chain passes the already corrected points x' = x + s (x - o).
+        rel = (points - o) / (1.0 + s)[:, None, None]
+        return s[:, None, None] * rel, (dT[:, None, None] * rel)[..., None]
+
+
+for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift):
+    register_effect(_cls.name, _cls, overwrite=True)
