@@ -371,11 +371,12 @@ def plot(out: dict, path: Path) -> None:
     ax[0].set_title("Method 3.2 (fixed direction)")
     ax[0].legend(fontsize=8)
     ax[1].semilogy(m3["N1"], m3["factor_b"], "C1-", label="3.3.1 $b_k$ vs $N_1$")
-    ax[1].semilogy(m3["N2"], m3["factor_a"], "C0-", label="3.3.2 $a_k$ vs $N_2$ ($N_1$ = 7)")
+    ax[1].semilogy(np.array(m3["N2"]) + m3["N1_for_a"], m3["factor_a"], "C0-",
+                   label="3.3.2 $a_k$ vs $N_1 + N_2$ ($N_1$ = 7)")
     ax[1].semilogy(ik["model42"]["N"], ik["model42"]["factor_a"], "C0--", label="IK Model 42 $a_k$ vs N")
     ax[1].semilogy(ik["model42"]["N"], ik["model42"]["factor_b"], "C1--", label="IK Model 42 $b_k$ vs N")
     ax[1].axhline(2.8, color="C0", lw=0.6, ls=":")
-    ax[1].set_xlabel("number of poses")
+    ax[1].set_xlabel("number of measured poses ($N_1$, $N_1 + N_2$ or N)")
     ax[1].set_title("Method 3.3 (Type II then III)")
     ax[1].legend(fontsize=8)
     for a in ax:
