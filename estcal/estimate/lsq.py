@@ -23,6 +23,10 @@ posterior variance factor ``σ0² = χ²/(M − p)`` when the noise is not known
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import glob
+import os
 import time
 
 import numpy as np
@@ -30,7 +34,7 @@ import scipy.linalg as sla
 
 from .result import CalibrationResult, accuracy
 
-__all__ = ["calibrate_lsq", "UnidentifiableError", "check_identifiable", "LSQ_METHODS"]
+__all__ = ["calibrate_lsq", "UnidentifiableError", "check_identifiable", "LSQ_METHODS", "single_thread_blas"]
 
 LSQ_METHODS = ("lm", "gauss-newton", "iterated-lls", "scipy-lm")
 
@@ -76,19 +80,100 @@ def check_identifiable(A, names, tol_factor: float = None):
 
 
 def _solve(A, b, mu=0.0):
-    """Column-scaled (damped) least-squares step."""
+    """Column-scaled (damped) least-squares step.
+
+    Solves ``min ‖As x − b‖² + μ‖x‖²`` with ``As = A diag(1/s)``, ``s`` the column
+    norms, through a QR factorisation of the (augmented) scaled matrix — the same
+    solution as an SVD-based ``lstsq`` for a full-rank system (identifiability is
+    checked before the loop), at a fraction of the cost.
+    """
     s = np.linalg.norm(A, axis=0)
     s[s == 0] = 1.0
     As = A / s
     if mu > 0:
         As = np.vstack([As, np.sqrt(mu) * np.eye(A.shape[1])])
         b = np.concatenate([b, np.zeros(A.shape[1])])
-    x, *_ = np.linalg.lstsq(As, b, rcond=None)
+    Q, R = np.linalg.qr(As)
+    d = np.abs(np.diag(R))
+    if d.min() <= 1e-13 * d.max():  # (numerically) rank deficient: fall back to the minimum-norm step
+        x, *_ = np.linalg.lstsq(As, b, rcond=None)
+    else:
+        x = sla.solve_triangular(R, Q.T @ b, check_finite=False)
     return x / s
 
 
+_BLAS_SETTERS = None
+
+
+def _blas_thread_setters():
+    """(get, set) pairs of every OpenBLAS loaded by numpy/scipy wheels (ctypes, no dependency)."""
+    global _BLAS_SETTERS
+    if _BLAS_SETTERS is not None:
+        return _BLAS_SETTERS
+    pairs = []
+    roots = {os.path.dirname(os.path.dirname(np.__file__))}
+    for root in roots:
+        for lib in glob.glob(os.path.join(root, "numpy.libs", "*openblas*.so*")) + \
+                glob.glob(os.path.join(root, "scipy.libs", "*openblas*.so*")):
+            try:
+                h = ctypes.CDLL(lib)
+            except OSError:
+                continue
+            for suffix in ("64_", "_64_", ""):
+                get = getattr(h, f"scipy_openblas_get_num_threads{suffix}", None)
+                set_ = getattr(h, f"scipy_openblas_set_num_threads{suffix}", None)
+                if get is not None and set_ is not None:
+                    pairs.append((get, set_))
+                    break
+            else:
+                get = getattr(h, "openblas_get_num_threads", None)
+                set_ = getattr(h, "openblas_set_num_threads", None)
+                if get is not None and set_ is not None:
+                    pairs.append((get, set_))
+    _BLAS_SETTERS = pairs
+    return pairs
+
+
+@contextlib.contextmanager
+def single_thread_blas(enabled: bool = True):
+    """Run BLAS/LAPACK single-threaded inside the block.
+
+    The calibration matrices are tall and thin (M × p with p ≲ 100): OpenBLAS's
+    threads give no speed-up on them and, on a busy machine, their spin-waiting
+    made a 50-pose PUMA fit ~10× slower (measured in ``benchmarks/bench_calibration.py``).
+    Uses ``threadpoolctl`` when installed, otherwise the OpenBLAS setters of the
+    numpy/scipy wheels through ctypes; a no-op when neither is available.
+    """
+    if not enabled:
+        yield
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        threadpool_limits = None
+    if threadpool_limits is not None:
+        with threadpool_limits(1, user_api="blas"):
+            yield
+        return
+    pairs = _blas_thread_setters()
+    old = []
+    for get, set_ in pairs:
+        try:
+            old.append(int(get()))
+            set_(1)
+        except Exception:  # pragma: no cover - exotic BLAS builds
+            old.append(None)
+    try:
+        yield
+    finally:
+        for (get, set_), n in zip(pairs, old):
+            if n is not None:
+                set_(n)
+
+
 def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, tol: float = 1e-10,
-                  theta0=None, validation=(), check: bool = True, verbose: bool = False) -> CalibrationResult:
+                  theta0=None, validation=(), check: bool = True, verbose: bool = False,
+                  single_thread: bool = True) -> CalibrationResult:
     """Estimate the free parameters of ``problem`` by nonlinear least squares.
 
     Parameters
@@ -99,11 +184,17 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
     max_iter, tol : stop when the relative step ‖Δθ/scale‖ and relative cost change are below ``tol``
     theta0 : full initial parameter vector (default: the problem's current values)
     validation : datasets scored with the estimate (accuracy before/after)
+    single_thread : run BLAS single-threaded (see :func:`single_thread_blas`)
 
     Returns
     -------
     CalibrationResult
     """
+    with single_thread_blas(single_thread):
+        return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose)
+
+
+def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose):
     if method not in LSQ_METHODS:
         raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
     if free is not None:
