@@ -171,3 +171,14 @@ def test_shared_estimators_and_local_fallback_agree(true_robot, nominal):
     np.testing.assert_allclose(sh.covariance, lo.covariance, rtol=1e-4, atol=1e-6 * s.min() ** 2)
     with pytest.raises(ValueError, match="not available"):
         calibrate_gough(nominal, data, method="no-such-estimator")
+
+
+def test_csv_reading_column_aliases(true_robot, tmp_path):
+    data = simulate_gough_data(true_robot, 4, 12)
+    data.save_csv(tmp_path / "m.csv")
+    txt = (tmp_path / "m.csv").read_text().replace("rho", "q", 6)
+    (tmp_path / "q.csv").write_text(txt)
+    np.testing.assert_allclose(load_gough_data(tmp_path / "q.csv").rho, data.rho, atol=1e-12)
+    (tmp_path / "none.csv").write_text(txt.replace("q1", "z1", 1))
+    with pytest.raises(ValueError, match="rho1..rho6"):
+        load_gough_data(tmp_path / "none.csv")

@@ -127,3 +127,15 @@ def test_robot_file_roundtrip(robot, tmp_path):
     serial = tmp_path / "serial.yaml"
     serial.write_text("type: khalil\n")
     assert not is_gough_file(serial)
+
+
+def test_robot_file_units_mapping_like_serial_files(robot, tmp_path):
+    import yaml
+
+    d = robot.to_dict("mm")
+    assert d["estcal_robot"] == 1
+    del d["length_unit"]
+    d["units"] = {"length": "mm", "angle": "deg"}
+    p = tmp_path / "u.yaml"
+    p.write_text(yaml.safe_dump(d))
+    np.testing.assert_allclose(load_gough(p).theta, robot.theta, atol=1e-15)

@@ -104,7 +104,8 @@ def load_gough_data(path: str | Path) -> GoughData:
     """Read measurements from CSV, NPZ or JSON.
 
     * CSV: header row with columns ``x,y,z`` (m), orientation as ``psi,theta,phi``
-      (ZYX Euler, rad) or ``qw,qx,qy,qz``, and ``rho1..rho6`` (m).
+      (ZYX Euler, rad) or ``qw,qx,qy,qz`` (scalar-first, as the serial
+      datasets), and the leg readings ``rho1..rho6`` (or ``leg1..6``, ``q1..6``) in m.
     * NPZ: arrays ``T`` (N,4,4) and ``rho`` (N,6) (optional scalars ``sigma_*``).
     * JSON: the output of :meth:`GoughData.to_dict`.
     """
@@ -150,7 +151,13 @@ def load_gough_data(path: str | Path) -> GoughData:
             np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
     else:
         raise ValueError(f"{p}: orientation columns psi,theta,phi or qw,qx,qy,qz required; header is {cols}")
-    rho = col([f"rho{k}" for k in range(1, 7)])
+    for prefix in ("rho", "leg", "q"):
+        if all(f"{prefix}{k}" in ix for k in range(1, 7)):
+            rho = col([f"{prefix}{k}" for k in range(1, 7)])
+            break
+    else:
+        raise ValueError(f"{p}: leg readings needed as columns rho1..rho6 (or leg1..leg6, q1..q6) in m; "
+                         f"header is {cols}")
     return GoughData(make_T(P, R), rho, source=str(p))
 
 

@@ -385,6 +385,7 @@ class GoughPlatform:
         """Robot-file dictionary (``type: gough``) in ``length_unit`` (m/cm/mm)."""
         s = 1.0 / _UNIT[length_unit]
         out: dict[str, Any] = {
+            "estcal_robot": 1,
             "type": "gough",
             "name": self.name,
             "length_unit": length_unit,
@@ -407,7 +408,8 @@ class GoughPlatform:
         """Build from a robot-file dictionary; see :func:`load_gough`."""
         if str(d.get("type", "")).lower() != "gough":
             raise ValueError(f"{source}: not a Gough robot file (expected `type: gough`, got {d.get('type')!r})")
-        unit = str(d.get("length_unit", "m"))
+        units = d.get("units")
+        unit = str(d.get("length_unit", units.get("length", "m") if isinstance(units, Mapping) else "m"))
         if unit not in _UNIT:
             raise ValueError(f"{source}: length_unit must be one of {sorted(_UNIT)}, got {unit!r}")
         s = _UNIT[unit]
@@ -518,9 +520,10 @@ def load_gough(src: str | Path | Mapping[str, Any]) -> GoughPlatform:
 
     Robot file keys (lengths in ``length_unit``: ``m`` (default), ``cm``, ``mm``)::
 
+        estcal_robot: 1                            # optional, as the serial robot files
         type: gough
         name: left_hand
-        length_unit: cm
+        length_unit: cm                            # or units: {length: cm}
         base_points: [[x, y, z], ... 6 rows]       # a_k, base frame
         platform_points: [[x, y, z], ... 6 rows]   # b_k, platform frame
         leg_offsets: [15.25, ...]                  # Δρ_k (or one scalar)
