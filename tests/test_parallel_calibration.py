@@ -182,3 +182,17 @@ def test_csv_reading_column_aliases(true_robot, tmp_path):
     (tmp_path / "none.csv").write_text(txt.replace("q1", "z1", 1))
     with pytest.raises(ValueError, match="rho1..rho6"):
         load_gough_data(tmp_path / "none.csv")
+
+
+def test_result_serialises_and_rmse_matches_noise(true_robot):
+    import json
+
+    sig = 2e-5
+    data = simulate_gough_data(true_robot, 60, 13, sigma_rho=sig)
+    res = calibrate_gough(true_robot, data, method="gauss-newton")
+    json.dumps(res.to_dict())
+    json.dumps(identifiable_gough(true_robot, data))
+    # residual RMS after fitting p of m parameters: E[rms²] = σ²(m − p)/m
+    m, p = res.n_residuals, 42
+    assert res.rmse**2 / (sig**2 * (m - p) / m) == pytest.approx(1.0, abs=4 * np.sqrt(2 / (m - p)))
+    assert "rmse" in str(res) and "drho_6" in str(res)

@@ -461,7 +461,13 @@ def identifiable_gough(
 # ---------------------------------------------------------------- result
 @dataclass
 class GoughCalibrationResult:
-    """Outcome of a Gough calibration; ``parameters[name] = {estimate, std, initial}``."""
+    """Outcome of a Gough calibration; ``parameters[name] = {estimate, std, initial}`` (SI).
+
+    ``rmse`` is the RMS of the leg-reading residuals (IK) or of the position
+    residual components (FK), in m; for FK ``extra["rmse_rotation_rad"]``
+    holds that of the orientation components. ``std`` is None for free
+    parameters found unidentifiable (kept at their initial value).
+    """
 
     method: str
     residual: str
@@ -492,7 +498,7 @@ class GoughCalibrationResult:
 
     def __str__(self) -> str:
         rows = [f"Gough calibration ({self.method}, {self.residual.upper()} residuals, Model {self.model}): "
-                f"rmse {self.rmse:.3e} (raw units), {self.n_iterations} iterations, "
+                f"rmse {self.rmse:.3e} m, {self.n_iterations} iterations, "
                 f"{'converged' if self.converged else 'NOT converged'}",
                 f"{'parameter':<10}{'initial':>14}{'estimate':>14}{'std':>12}"]
         for n, v in self.parameters.items():
@@ -766,9 +772,12 @@ def calibrate_gough(
     names_out = GoughProblem(robot, data, residual, model, free).names
     params = {n: {"estimate": float(theta[pv0.index(n)]), "std": (float(std[n]) if n in std else None),
                   "initial": float(init_vals[n])} for n in names_out}
-    # rmse of the raw (unwhitened) residuals: m for IK, mixed m/rad for FK
-    prob_raw = GoughProblem(robot, data, residual, model, None, theta, 1.0, 1.0, 1.0, propagate_pose_noise=False)
-    raw = prob_raw.residual(prob_raw.x0)
-    return GoughCalibrationResult(method, residual, model, params, float(np.sqrt(np.mean(raw**2))), nit, conv,
+    # RMS of the raw residual components: leg readings (m) for IK; for FK the
+    # position components (m), the orientation components (rad) go to extra.
+    e, _, _, _, kind = GoughProblem(robot, data, residual, model).raw_rows(theta, jacobian=False)
+    rmse = float(np.sqrt(np.mean(e[kind != 1] ** 2)))
+    if residual == "fk":
+        extra["rmse_rotation_rad"] = float(np.sqrt(np.mean(e[kind == 1] ** 2)))
+    return GoughCalibrationResult(method, residual, model, params, rmse, nit, conv,
                                   cov, prob.names, theta, ide, chi2, prob.n_residuals, prob.fk_failures,
                                   {k: v for k, v in extra.items() if isinstance(v, (int, float, str))})
