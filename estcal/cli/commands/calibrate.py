@@ -1,0 +1,506 @@
+"""``estcal calibrate``: batch estimation of a robot's parameters from a measurement file.
+
+The command (and the Python functions it is built on, reused by the
+experiments) goes through five steps:
+
+1. **Robot** — :func:`estcal.io.robotfile.load_robot` (built-in name, robot
+   file, URDF with ``--root/--tip``), with as many unknown markers as measured
+   points. A Gough-platform robot file is handed to
+   :func:`estcal.parallel.calibration.calibrate_gough`.
+2. **Measurement** — from the columns (``x,y,z`` → position of the tool origin;
+   ``x1..zk`` → k points with unknown coordinates in the tool frame, ``--points N``
+   keeps the first N; ``x,y,z,qw..qz`` → location), or a method named by
+   ``--measure``/``--method`` (``position``, ``location``, ``point-link`` …).
+3. **Initial guess** — data in an unknown frame (points / poses) are first
+   registered: the base transform is set by Kabsch/Horn
+   (:func:`estcal.estimate.register_base`).
+4. **Free set** — ``--free`` (names or shell patterns) or ``--level``:
+
+   * ``registration``: base (6) + markers (or the tool frame when no markers);
+   * ``joint_offset``: + joint offsets;
+   * ``full``: + geometric and tool parameters.
+
+   Every level is reduced to an identifiable set by :func:`select_free` on the
+   calibration data only (never the validation files): columns of the weighted
+   observation matrix are taken in priority order — markers and method
+   unknowns, base, offsets, geometric, tool (GECARO's priority rule "offsets
+   before geometry before base/tool", with the registration set nested first
+   because the data frame is unknown) — and a column is kept when its
+   component orthogonal to the kept ones is not numerically zero (GECARO
+   App. III; relative tolerance 1e-8 on unit-norm columns). Dropped columns are
+   reported as *no effect* or *regrouped* with the relation ``a_j = Σ β_k a_k``
+   (``β = R1⁻¹ R2``), i.e. the kept parameter ``k`` absorbs ``β_k Δη_j``.
+   With ``--selection aic`` (default for ``full``) an identifiable candidate is
+   also required to lower Akaike's criterion on the calibration data
+   (``M ln(RSS/M) + 2p``, or ``χ² + 2p`` with known noise), linearised at the
+   registration solution: structurally identifiable but practically
+   unsupported parameters are left at their nominal values.
+5. **Estimation** — any estimator of :mod:`estcal.estimate.registry`
+   (``lm``, ``gauss-newton``, ``iterated-lls``, ``scipy-lm``, ``gtsam``, ``kalman``,
+   ``mcmc`` …), then a report: parameter table (estimate ± std, regrouped
+   names), RMSE/mean/max position (mm) and orientation (mrad) before/after on
+   the calibration file and on each ``--validate`` file in order.
+
+JSON (``--json PATH``): :meth:`CalibrationResult.to_dict` — ``parameters``
+({name: {estimate, std, nominal}}), ``rmse_mm`` ({train, train_before,
+validation: [..]}), ``n_iterations``, ``converged``, ``accuracy`` … — plus
+``selection`` (level, criterion, identifiable, no_effect, regrouped,
+condition_number), ``robot``, ``data``, ``validate``, ``measure``, ``estimator``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+__all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
+           "count_point_columns", "LEVELS"]
+
+LEVELS = ("registration", "joint_offset", "full")
+_ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
+_REL_TOL = 1e-8
+
+
+# --------------------------------------------------------------------------- selection
+@dataclass
+class Selection:
+    """Outcome of :func:`select_free`.
+
+    identifiable : chosen free parameters (estimation order)
+    no_effect : candidates whose column is zero on these data
+    regrouped : {dropped name: {kept name: β}} — the kept parameter absorbs β·Δη_dropped
+    rejected : identifiable candidates not supported by the information criterion
+    condition_number : of the column-scaled weighted observation matrix of the chosen set
+    """
+
+    level: str
+    criterion: str
+    identifiable: list
+    no_effect: list = field(default_factory=list)
+    regrouped: dict = field(default_factory=dict)
+    rejected: list = field(default_factory=list)
+    condition_number: float = float("nan")
+    theta: np.ndarray | None = field(default=None, repr=False)  # linearisation point (full vector)
+
+    def to_dict(self) -> dict:
+        return {"level": self.level, "criterion": self.criterion, "n_identifiable": len(self.identifiable),
+                "identifiable": list(self.identifiable), "no_effect": list(self.no_effect),
+                "regrouped": {k: dict(v) for k, v in self.regrouped.items()}, "rejected": list(self.rejected),
+                "condition_number": float(self.condition_number)}
+
+    def regroup_label(self, name: str) -> str:
+        """``name`` followed by the dropped parameters it absorbs (readable regrouping)."""
+        terms = [(d, b) for d, rel in self.regrouped.items() for k, b in rel.items() if k == name]
+        terms.sort(key=lambda t: -abs(t[1]))
+        parts = [f"{b:+.3g}·{d}" for d, b in terms]
+        if not parts:
+            return name
+        shown = " ".join(parts[:3]) + (" …" if len(parts) > 3 else "")
+        return f"{name} [{shown}]"
+
+
+def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]:
+    """Candidate groups of a level, in priority order (the first group is the registration set)."""
+    if level not in LEVELS:
+        raise ValueError(f"unknown level {level!r}; choose one of {LEVELS}")
+    kinds = dict(zip(pv.names, pv.kinds))
+    markers = [n for n in pv.names if kinds[n] == "marker"]
+    other = [n for n in pv.names if kinds[n] == "other"]  # unknowns added by the methods
+    base = [n for n in pv.names if kinds[n] == "base"]
+    tool = [n for n in pv.names if kinds[n] == "tool"]
+    if markers:
+        reg_tool = []
+    else:
+        reg_tool = [n for n in tool if n.startswith("tool_t") or pose_data]
+    groups = [markers + other + base + reg_tool]
+    if level in ("joint_offset", "full"):
+        groups.append([n for n in pv.names if kinds[n] == "offset"])
+    if level == "full":
+        groups.append([n for n in pv.names if kinds[n] == "geometric"])
+        groups.append([n for n in tool if n not in reg_tool])
+    return groups
+
+
+def _weighted_matrix(problem, theta):
+    rows = problem.evaluate(theta)
+    w = 1.0 / rows.sigma
+    return rows.H * w[:, None], rows.e * w
+
+
+def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
+                groups: list[list[str]] | None = None, known_noise: bool | None = None,
+                refine_registration: bool = True) -> Selection:
+    """Identifiable free set of a level on the problem's (calibration) data.
+
+    Parameters
+    ----------
+    problem : :class:`estcal.methods.Problem` (its data: the calibration file only)
+    level : ``registration``, ``joint_offset`` or ``full`` (ignored when ``groups`` is given)
+    criterion : ``structural`` (QR rank only) or ``aic`` (+ Akaike's criterion, see module docstring)
+    theta : linearisation point (default: the problem's values)
+    groups : explicit candidate groups in priority order (first group = always-kept set)
+    known_noise : AIC with absolute weights (default: from the problem's noise models)
+    refine_registration : for ``aic``, linearise at the fit of the first group (registration)
+
+    The ordered Gram–Schmidt below is QR without pivoting on the priority-sorted,
+    unit-norm columns: ``|R_jj| ≤ 1e-8`` marks a dependent column (GECARO App. III,
+    with the priority order of §1.5 deciding which of dependent columns is kept).
+    """
+    if criterion not in ("structural", "aic"):
+        raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural' or 'aic'")
+    pv = problem.params
+    pose = any(t.data.kind == "pose" for t in problem.terms)
+    if groups is None:
+        groups = level_candidates(pv, level, pose)
+    theta = pv.values.copy() if theta is None else np.asarray(theta, float)
+    A, b = _weighted_matrix(problem, theta)
+    norms = np.linalg.norm(A, axis=0)
+    scale = max(float(norms.max()), 1e-300)
+    M = A.shape[0]
+    kept: list[int] = []
+    Q = np.zeros((M, 0))
+    no_effect, regrouped_idx = [], []
+    first = set(pv.indices(groups[0])) if groups and groups[0] else set()
+    order = [pv.index(n) for g in groups for n in g]
+    if known_noise is None:
+        known_noise = all(t.noise.known for t in problem.terms)
+    if refine_registration and len(groups) > 1 and first:
+        # Linearise where the registration set fits the data: at the nominal point the
+        # unknown markers sit at the tool origin, which creates dependencies (marker vs
+        # last-joint placement) that vanish once the markers are located.
+        from estcal.estimate.lsq import calibrate_lsq
+
+        reg_sel = select_free(problem, groups=[groups[0]], theta=theta)
+        if reg_sel.identifiable:
+            try:
+                r0 = calibrate_lsq(problem.with_values(theta), "lm", free=reg_sel.identifiable, check=False)
+                theta = r0.theta
+                A, b = _weighted_matrix(problem, theta)
+                norms = np.linalg.norm(A, axis=0)
+                scale = max(float(norms.max()), 1e-300)
+            except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
+                pass
+    rejected = []
+    rss = float(b @ b)
+
+    def aic(r, p):
+        return r + 2 * p if known_noise else M * np.log(max(r, 1e-300) / M) + 2 * p
+
+    for i in order:
+        if norms[i] <= 1e-12 * scale:
+            no_effect.append(pv.names[i])
+            continue
+        a = A[:, i] / norms[i]
+        v = a - Q @ (Q.T @ a)
+        v -= Q @ (Q.T @ v)  # re-orthogonalise (classical Gram–Schmidt twice is stable)
+        nv = float(np.linalg.norm(v))
+        if nv <= _REL_TOL:
+            regrouped_idx.append(i)
+            continue
+        u = v / nv
+        if criterion == "aic" and i not in first:
+            r_new = rss - float(u @ b) ** 2
+            if not aic(r_new, len(kept) + 1) < aic(rss, len(kept)):
+                rejected.append(pv.names[i])
+                continue
+            rss = r_new
+        elif criterion == "aic":
+            rss -= float(u @ b) ** 2
+        kept.append(i)
+        Q = np.column_stack([Q, u])
+    regrouped = {}
+    if kept and regrouped_idx:
+        Ak = A[:, kept] / norms[kept]
+        for j in regrouped_idx:
+            beta, *_ = np.linalg.lstsq(Ak, A[:, j] / norms[j], rcond=None)
+            coef = beta * norms[j] / norms[kept]  # unscaled: a_j = Σ coef_k a_k
+            rel = {pv.names[kept[m]]: float(c) for m, c in enumerate(coef) if abs(beta[m]) > 1e-6}
+            regrouped[pv.names[j]] = rel
+    cond = float("nan")
+    if kept:
+        s = np.linalg.svd(A[:, kept] / norms[kept], compute_uv=False)
+        cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    # estimation order: the vector's own order (stable, readable tables)
+    names = [pv.names[i] for i in sorted(kept)]
+    return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
+
+
+# --------------------------------------------------------------------------- helpers
+def count_point_columns(path) -> tuple[int, bool, bool]:
+    """(k points x1..zk, has x,y,z, has quaternion) from a CSV header."""
+    with Path(path).open(newline="") as fh:
+        header = [h.strip() for h in next(csv.reader(fh), [])]
+    k = 0
+    while all(f"{c}{k + 1}" in header for c in "xyz"):
+        k += 1
+    return k, all(c in header for c in "xyz"), all(c in header for c in ("qw", "qx", "qy", "qz"))
+
+
+def _unit(name: str, robot) -> tuple[str, float]:
+    """Display unit and factor from SI for a parameter name."""
+    head = name.split("_")[0]
+    if name.startswith(("base_r", "tool_r")) or head in _ANGLE_PREFIX:
+        return "mrad", 1e3
+    if head == "gain":
+        return "", 1.0
+    if head == "offset":
+        for j, li in enumerate(robot.offset_idx):
+            if robot.params.names[li] == name:
+                return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
+    return "mm", 1e3
+
+
+def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
+                    free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
+                    validate=(), noise=None, register: bool = True, options: dict | None = None):
+    """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
+
+    Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
+    """
+    from estcal.estimate import register_base
+    from estcal.estimate.registry import get_estimator
+    from estcal.methods import NoiseModel, Problem, get_method
+
+    noise = noise or NoiseModel()
+    method = get_method(measure) if measure else None
+    problem = Problem(robot, [(method, data, noise)], noise)
+    pv = problem.params
+    theta0 = pv.values.copy()
+    base_free = True
+    sel = None
+    if free is not None:
+        problem.with_free(free)  # raises ParameterError naming an unknown parameter / pattern
+        base_free = any(n.startswith("base_") for n in problem.with_free(free).params.free_names)
+    if register and base_free and data.kind in ("position", "points", "pose") and "base_tx" in pv:
+        theta0 = register_base(problem.robot, data, theta0)
+        problem = problem.with_values(theta0)
+    start = problem
+    if free is None:
+        crit = selection or ("aic" if level == "full" else "structural")
+        sel = select_free(problem, level, crit, known_noise=noise.known)
+        free = sel.identifiable
+        start = problem.with_values(sel.theta)  # staged: start from the registration fit
+    est = get_estimator(estimator)
+    res = est(start, free=free, validation=list(validate), **(options or {}))
+    if start is not problem:
+        from estcal.estimate.lsq import score
+
+        res.accuracy = score(problem, theta0, res.theta, list(validate))
+        res.nominal = theta0[problem.params.indices(res.names)]
+    if sel is not None:
+        res.extra["selection"] = sel.to_dict()
+    res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
+                                                                           data.kind != "none") else "nominal"
+    return res, sel, problem
+
+
+def _fmt(v, nd=3):
+    return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
+
+
+def _print_report(console, res, sel, robot, data_path, validate_paths, measure_name, estimator):
+    from rich.table import Table
+
+    title = (f"estcal calibrate — {robot.name}, {measure_name}, estimator {estimator}: "
+             f"{len(res.names)} parameters, {res.n_iterations} iterations, "
+             f"{'converged' if res.converged else 'NOT converged'}, σ0 = {res.sigma0:.3g} "
+             f"(covariance {res.covariance_source})")
+    t = Table(title=title, title_justify="left")
+    for c, j in (("parameter", "left"), ("initial", "right"), ("estimate", "right"), ("± std", "right"),
+                 ("unit", "left")):
+        t.add_column(c, justify=j)
+    for n, v, e, s in zip(res.names, res.nominal, res.estimate, res.std):
+        u, f = _unit(n, robot)
+        label = sel.regroup_label(n) if sel is not None else n
+        t.add_row(label, f"{v * f:.5g}", f"{e * f:.5g}", f"{s * f:.3g}", u)
+    console.print(t)
+    if sel is not None:
+        msg = f"selection: level {sel.level}, criterion {sel.criterion}, condition number {sel.condition_number:.3g}"
+        if sel.no_effect:
+            msg += f"\n  no effect on these data: {', '.join(sel.no_effect)}"
+        if sel.regrouped:
+            msg += f"\n  regrouped (absorbed by the kept parameters shown in brackets): {', '.join(sel.regrouped)}"
+        if sel.rejected:
+            msg += f"\n  identifiable but not supported by AIC (kept nominal): {', '.join(sel.rejected)}"
+        console.print(msg)
+    acc = res.accuracy or {}
+    a = Table(title="accuracy (position mm, orientation mrad)", title_justify="left")
+    for c in ("data", "poses", "RMSE before", "RMSE after", "mean after", "max after", "rot RMSE before",
+              "rot RMSE after", "rot max after"):
+        a.add_column(c, justify="left" if c == "data" else "right")
+    rows = []
+    if "train" in acc:
+        rows.append((f"calibration: {data_path}", acc["train"]))
+    for p, v in zip(validate_paths, acc.get("validation", [])):
+        rows.append((f"validation: {p}", v))
+    for label, d in rows:
+        b, af = d.get("before", {}), d.get("after", {})
+        a.add_row(label, str(af.get("n_poses", "")), _fmt(b.get("rmse_mm")), _fmt(af.get("rmse_mm")),
+                  _fmt(af.get("mean_mm")), _fmt(af.get("max_mm")), _fmt(b.get("rmse_mrad")),
+                  _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
+    console.print(a)
+    console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+
+
+def _fail(msg: str, code: int = 2):
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(code)
+
+
+# --------------------------------------------------------------------------- command
+def register(app: typer.Typer) -> None:
+    @app.command("calibrate")
+    def calibrate(
+        data: Path = typer.Argument(..., help="Calibration dataset (CSV: joint columns + x,y,z / x1..zk / pose)."),
+        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
+        root: Optional[str] = typer.Option(None, help="URDF root link."),
+        tip: Optional[str] = typer.Option(None, help="URDF tip link."),
+        method: Optional[str] = typer.Option(
+            None, "--method", "-m",
+            help="A measurement method (position, location, point-link, …) or an estimator (lm, gauss-newton, "
+                 "iterated-lls, scipy-lm, gtsam, isam2, kalman, ukf, mcmc); dispatched by name."),
+        estimator: Optional[str] = typer.Option(None, "--estimator", help="Estimator name (default lm)."),
+        measure: Optional[str] = typer.Option(None, "--measure", help="Measurement method name (default: "
+                                                                      "from the columns)."),
+        free: Optional[str] = typer.Option(None, "--free", help="Comma-separated parameter names or patterns "
+                                                                "to estimate (e.g. 'base_*,marker1_*,offset_*')."),
+        level: Optional[str] = typer.Option(None, "--level", help="registration | joint_offset | full "
+                                                                  "(default full when --free is not given)."),
+        selection: Optional[str] = typer.Option(None, "--selection",
+                                                help="structural | aic (default: aic for full, else structural)."),
+        validate: list[Path] = typer.Option([], "--validate", help="Validation dataset(s), scored in order."),
+        points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
+        noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
+        noise_rot: float = typer.Option(1e-3, "--noise-rot", help="Orientation noise std (rad)."),
+        known_noise: bool = typer.Option(False, "--known-noise", help="Trust the noise values (covariance not "
+                                                                      "rescaled by σ0²)."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+    ) -> None:
+        """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
+        from rich.console import Console
+
+        from estcal.estimate.lsq import UnidentifiableError
+        from estcal.estimate.registry import estimator_names
+        from estcal.io import load_dataset
+        from estcal.io.dataset import DatasetError
+        from estcal.kinematics.parameters import ParameterError
+        from estcal.methods import METHODS, NoiseModel, get_method
+
+        console = Console(width=160)
+        # --method dispatch: estimator names and measurement-method names are disjoint
+        try:
+            get_method("position")  # imports the optional method modules so METHODS is complete
+        except ValueError:
+            pass
+        if method is not None:
+            if method in estimator_names():
+                if estimator and estimator != method:
+                    _fail(f"--method {method} names an estimator but --estimator {estimator} was also given")
+                estimator = method
+            elif method in METHODS:
+                if measure and measure != method:
+                    _fail(f"--method {method} names a measurement method but --measure {measure} was also given")
+                measure = method
+            else:
+                _fail(f"unknown --method {method!r}: neither a measurement method ({', '.join(sorted(METHODS))}) "
+                      f"nor an estimator ({', '.join(estimator_names())})")
+        estimator = estimator or "lm"
+        if estimator not in estimator_names():
+            _fail(f"unknown estimator {estimator!r}; choose one of {estimator_names()}")
+        if measure is not None and measure not in METHODS:
+            _fail(f"unknown measurement method {measure!r}; choose one of {sorted(METHODS)}")
+        if free is not None and level is not None:
+            _fail("give either --free or --level, not both")
+        if level is not None and level not in LEVELS:
+            _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
+        if not data.exists():
+            _fail(f"{data}: file not found")
+
+        # Gough platforms have their own calibration entry point
+        try:
+            from estcal.parallel import is_gough_file
+        except ImportError:  # pragma: no cover
+            is_gough_file = None
+        if is_gough_file is not None and is_gough_file(robot):
+            from estcal.parallel.calibration import calibrate_gough
+
+            free_list = [s.strip() for s in free.split(",") if s.strip()] if free else None
+            try:
+                gres = calibrate_gough(robot, data, method=estimator, free=free_list)
+            except (ValueError, KeyError) as exc:
+                _fail(str(exc))
+            console.print(str(gres))
+            if validate:
+                console.print("note: --validate is not supported for Gough platforms (ignored)")
+            if json_path:
+                out = gres.to_dict()
+                out.update(robot=robot, data=str(data), estimator=estimator)
+                Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+                Path(json_path).write_text(json.dumps(_jsonable(out), indent=2))
+                console.print(f"wrote {json_path}")
+            return
+
+        from estcal.io.robotfile import load_robot
+
+        k, has_xyz, has_quat = count_point_columns(data)
+        n_markers = None
+        if k and not has_quat:
+            n_markers = points if points is not None else k
+            if n_markers > k:
+                _fail(f"{data}: --points {points} but the file has {k} points (x1..z{k})")
+        elif points is not None:
+            _fail(f"{data}: --points needs x1,y1,z1 … columns")
+        try:
+            rob = load_robot(robot, root=root, tip=tip, n_markers=n_markers)
+        except (ValueError, FileNotFoundError, KeyError) as exc:
+            _fail(str(exc))
+        try:
+            ds = load_dataset(data, rob, points=n_markers if k else None)
+            vals = [load_dataset(v, rob, points=n_markers if k else None) for v in validate]
+        except (DatasetError, FileNotFoundError) as exc:
+            _fail(str(exc))
+        for d in [ds] + vals:
+            for w in d.warnings:
+                console.print(f"warning: {d.where}: {w}")
+        noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
+        free_list = None
+        if free is not None:
+            free_list = [s.strip() for s in free.split(",") if s.strip()]
+            if not free_list:
+                _fail("--free is empty")
+        try:
+            res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
+                                                level=level or "full", selection=selection, validate=vals,
+                                                noise=noise)
+        except ParameterError as exc:
+            _fail(f"--free: {exc}")
+        except UnidentifiableError as exc:
+            _fail(f"{exc}\n  (try `estcal identifiable --robot {robot}` or `--level full` to let estcal choose "
+                  f"an identifiable set)")
+        except ValueError as exc:
+            _fail(str(exc))
+        measure_name = problem.terms[0].method.name
+        _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
+        if json_path:
+            res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
+                             measure=measure_name, estimator=estimator,
+                             noise=noise.to_dict(), points=n_markers)
+            res.to_json(json_path)
+            console.print(f"wrote {json_path}")
+
+
+def _jsonable(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v
