@@ -1,0 +1,16 @@
+"""What the simulation gets wrong: diagnose measured data, name the non-geometric cause,
+extend the model and measure the gain (issue 6).
+
+>>> from estcal.discrepancy import diagnose            # doctest: +SKIP
+>>> res = diagnose(robot, data, validate=[data2], noise=2e-4)
+>>> res.causes, res.verdict, res.rmse_mm
+
+See ``docs/discrepancy.md``.
+"""
+from .analysis import partial_joint_residuals, residual_analysis, save_plots
+from .diagnose import Candidate, Cause, DiagnosisResult, cross_validate, default_candidates, diagnose
+from .geometric import fit_geometric, geometric_candidates, gravity_ready, identifiable_subset
+
+__all__ = ["diagnose", "DiagnosisResult", "Cause", "Candidate", "default_candidates", "cross_validate",
+           "residual_analysis", "partial_joint_residuals", "save_plots", "fit_geometric", "geometric_candidates",
+           "gravity_ready", "identifiable_subset"]

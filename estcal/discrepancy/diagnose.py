@@ -1,0 +1,548 @@
+"""Diagnose measured data: where the geometric model fails, which physical effect explains it, and the gain.
+
+Workflow of :func:`diagnose` (issue 6):
+
+1. **Geometric fit** — registration, then every identifiable base, marker/tool,
+   joint-offset and link parameter (:func:`~estcal.discrepancy.geometric.fit_geometric`);
+   no joint gains (an encoder gain error is a candidate effect, so it gets named).
+2. **Residual analysis** — partial joint residuals against joint angles, gravity
+   torques, their sign, time/temperature, workspace position; χ² against the
+   noise; harmonics (:mod:`estcal.discrepancy.analysis`); plots in ``report``.
+3. **Candidates** — every registered effect (:mod:`estcal.effects`, users add
+   theirs with :func:`~estcal.effects.register_effect`) on every joint it applies
+   to (harmonic orders 1, 2, 3 as separate candidates; drift with ``t0`` = first
+   time stamp; thermal expansion when a time/temperature column exists).
+4. **Forward selection** — at each step every candidate is screened by the exact
+   least-squares gain of its columns projected orthogonally to the current
+   model's columns (the model is linear in the effect parameters; the projection
+   also gives the identifiability check: a column whose orthogonal part is below
+   ``regroup_tol`` of its norm *regroups* into parameters already in the model,
+   so the effect cannot be "found"). The best ``n_refit`` are refitted by
+   Levenberg–Marquardt; the best by BIC is accepted when
+
+   * ΔBIC < 0, with BIC = χ² + p ln M (known noise) or M ln(RSS/M) + p ln M;
+   * its significance test passes at the family-wise level ``alpha``
+     (Bonferroni over the candidates screened at this step): likelihood ratio
+     Δχ² ~ χ²_k when the noise is known, the nested F test
+     F = (ΔRSS/k) / (RSS₁/(M − p₁)) ~ F(k, M − p₁) otherwise;
+   * it explains at least ``min_explained`` of the residual left above the noise
+     floor (χ² − dof with known noise; the whole residual otherwise), so a
+     significant but marginal proxy of an out-of-library error is not named;
+   * the k-fold cross-validated RMSE decreases.
+
+5. **Output** — :class:`DiagnosisResult`: named causes with joints, parameter
+   estimates ± std, ΔBIC, the fraction of the geometric residual variance each
+   explains, and RMSE / max of the geometric and extended models on the training
+   data, in cross-validation and on validation data.
+
+References: Schwarz (1978) for BIC; the nested F test (e.g. Seber & Lee,
+*Linear Regression Analysis*, §4.3); GECARO App. III for the QR identifiability.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from scipy import stats
+
+from estcal.estimate import calibrate_lsq
+from estcal.estimate.result import pose_errors
+from estcal.methods import NoiseModel, Problem
+
+from .analysis import residual_analysis, save_plots
+from .geometric import fit_geometric, gravity_ready, orthonormal_basis, weighted_system, with_effect_context
+
+__all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates", "cross_validate"]
+
+
+@dataclass
+class Candidate:
+    """One candidate extension: registered effect ``effect`` on ``joints`` with ``options``."""
+
+    effect: str
+    joints: list | None = None
+    options: dict = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        j = ",".join(self.joints) if self.joints else "arm"
+        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders",))
+        return f"{self.effect}{o}({j})"
+
+    def make(self, robot):
+        from estcal.effects import make_effect
+
+        return make_effect(self.effect, robot, joints=self.joints, **self.options)
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "joints": self.joints, "options": _plain(self.options)}
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
+
+
+def default_candidates(robot, data, effects: Sequence[str] | None = None, harmonic_orders=(1, 2, 3)):
+    """Candidates from the effect registry for ``robot`` and ``data``.
+
+    Per joint for effects that take joints; once for whole-arm effects (those
+    that refuse a joint list, e.g. ``thermal_expansion``). Time/temperature
+    effects only when the data have the column they need.
+    """
+    from estcal.effects import EFFECTS
+
+    names = list(EFFECTS) if effects is None else list(effects)
+    ctx = data.context
+    out = []
+    for name in names:
+        if name == "drift":
+            if "t" not in ctx:
+                continue
+            opts = {"t0": float(np.min(ctx["t"]))}
+        elif name == "thermal_expansion":
+            if "temperature" in ctx:
+                opts = {"reference": float(np.mean(ctx["temperature"]))}
+            elif "t" in ctx:
+                opts = {"t_reference": float(np.min(ctx["t"]))}
+            else:
+                continue
+            out.append(Candidate(name, None, opts))
+            continue
+        else:
+            opts = {}
+        variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
+        per_joint = []
+        for j in robot.joint_names:
+            for o in variants:
+                try:
+                    Candidate(name, [j], o).make(robot)
+                except (ValueError, TypeError):
+                    continue
+                per_joint.append(Candidate(name, [j], o))
+        if per_joint:
+            out += per_joint
+        else:
+            try:
+                Candidate(name, None, opts).make(robot)
+                out.append(Candidate(name, None, opts))
+            except (ValueError, TypeError):
+                continue
+    return out
+
+
+@dataclass
+class Cause:
+    """A named non-geometric effect accepted by the selection."""
+
+    effect: str
+    joints: list
+    parameters: dict  # name -> {"estimate", "std"}
+    delta_bic: float
+    test: str
+    statistic: float
+    p_value: float
+    explained_fraction: float  # of the geometric model's residual (weighted RSS)
+    explained_excess_fraction: float  # of the residual above the noise floor left at this step
+    cv_rmse_mm_before: float
+    cv_rmse_mm_after: float
+    options: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return _plain({"effect": self.effect, "joints": list(self.joints), "parameters": self.parameters,
+                       "delta_bic": self.delta_bic, "test": self.test, "statistic": self.statistic,
+                       "p_value": self.p_value, "explained_fraction": self.explained_fraction,
+                       "explained_excess_fraction": self.explained_excess_fraction,
+                       "cv_rmse_mm_before": self.cv_rmse_mm_before, "cv_rmse_mm_after": self.cv_rmse_mm_after,
+                       "options": self.options})
+
+    def describe(self) -> str:
+        ps = ", ".join(f"{n} = {v['estimate']:.4g} ± {v['std']:.2g}" for n, v in self.parameters.items())
+        j = ", ".join(self.joints) if self.joints else "whole arm"
+        return (f"{self.effect} on {j}: {ps}; ΔBIC {self.delta_bic:.1f}, {self.test} p = {self.p_value:.2g}, "
+                f"explains {100 * self.explained_fraction:.0f}% of the geometric residual")
+
+
+@dataclass
+class DiagnosisResult:
+    """What :func:`diagnose` found. ``to_dict()`` has at least the keys ``causes``,
+    ``verdict`` and ``rmse_mm`` ({``geometric``, ``extended``} × {``train``, ``cv``, ``validation``})."""
+
+    causes: list
+    verdict: str
+    rmse_mm: dict
+    max_mm: dict
+    analysis: dict
+    steps: list
+    noise: dict
+    geometric_free: list
+    geometric_dropped: list
+    model: dict
+    geometric_model: dict
+    lumped_masses: bool
+    report_files: list = field(default_factory=list)
+    robot: object = field(default=None, repr=False)  # the extended robot at the estimate
+    geometric_robot: object = field(default=None, repr=False)
+
+    @property
+    def named(self) -> list[tuple[str, tuple]]:
+        return [(c.effect, tuple(c.joints)) for c in self.causes]
+
+    def to_dict(self) -> dict:
+        return _plain({"causes": [c.to_dict() for c in self.causes], "verdict": self.verdict,
+                       "rmse_mm": self.rmse_mm, "max_mm": self.max_mm, "noise": self.noise,
+                       "geometric_free": self.geometric_free, "geometric_dropped": self.geometric_dropped,
+                       "lumped_masses": self.lumped_masses, "steps": self.steps, "analysis": self.analysis,
+                       "model": self.model, "geometric_model": self.geometric_model,
+                       "report_files": self.report_files})
+
+    def to_json(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2))
+        return path
+
+    def __str__(self) -> str:
+        def f(x):
+            return "   –  " if x is None else f"{x:6.3f}"
+
+        lines = [f"Diagnosis: {self.verdict}"]
+        for c in self.causes:
+            lines.append("  cause: " + c.describe())
+        lines.append(f"  {'RMSE (mm)':<12}{'train':>8}{'CV':>8}{'valid':>8}   max: train / valid")
+        for k in ("geometric", "extended"):
+            r, m = self.rmse_mm[k], self.max_mm[k]
+            lines.append(f"  {k:<12}{f(r['train']):>8}{f(r['cv']):>8}{f(r['validation']):>8}   "
+                         f"{f(m['train'])} / {f(m['validation'])}")
+        nf = self.analysis.get("noise_floor", {})
+        if nf:
+            s = f"  geometric fit: χ²/dof = {nf['chi2_per_dof']:.3g}"
+            if nf.get("noise_known"):
+                s += f" (p = {nf['p_value']:.2g}; {'at' if nf['at_noise_floor'] else 'above'} the noise floor)"
+            lines.append(s)
+        if self.analysis.get("strongest"):
+            s = ", ".join(f"{d['joint']}~{d['feature']} R²={d['r2']:.2f}" for d in self.analysis["strongest"][:4])
+            lines.append(f"  strongest residual structures: {s}")
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ helpers
+def _folds(n: int, k: int, rng) -> list[np.ndarray]:
+    k = int(min(max(k, 2), n))
+    perm = np.random.default_rng(rng).permutation(n)
+    return [np.sort(f) for f in np.array_split(perm, k)]
+
+
+def cross_validate(problem, theta, free, folds, max_iter: int = 30):
+    """k-fold cross-validated point errors: refit ``free`` on k−1 folds (LM from ``theta``),
+    predict the held-out poses. Returns ``(rmse_mm, max_mm)`` over every held-out point."""
+    term = problem.terms[0]
+    data = term.data
+    sq = []
+    for test in folds:
+        train = np.setdiff1d(np.arange(data.n), test)
+        sub = Problem(problem.robot.with_values(theta), [(term.method, data.subset(train), term.noise)])
+        res = calibrate_lsq(sub, "lm", free=free, check=False, max_iter=max_iter)
+        pos, _ = pose_errors(sub.robot, res.theta, data.subset(test))
+        sq.append(pos.reshape(-1))
+    e = np.concatenate(sq)
+    return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
+
+
+def _scores(robot, theta, datasets):
+    if not datasets:
+        return None, None
+    es = []
+    for d in datasets:
+        pos, _ = pose_errors(robot, theta, d)
+        es.append(pos.reshape(-1))
+    e = np.concatenate(es)
+    return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
+
+
+def _ic(rss, M, p, known):
+    """BIC (up to a constant) of a Gaussian model: χ² + p ln M (known σ) or M ln(RSS/M) + p ln M."""
+    return (rss if known else M * math.log(rss / M)) + p * math.log(M)
+
+
+def _test(rss0, rss1, k, M, p1, known):
+    """Significance of adding k parameters: LR (known σ) or nested F."""
+    if known:
+        stat = max(rss0 - rss1, 0.0)
+        return "likelihood ratio", stat, float(stats.chi2.sf(stat, k))
+    d2 = max(M - p1, 1)
+    F = max(rss0 - rss1, 0.0) / k / (rss1 / d2)
+    return "nested F", F, float(stats.f.sf(F, k, d2))
+
+
+def _fit(problem, theta, free, max_iter=100):
+    return calibrate_lsq(problem.with_values(theta), "lm", free=free, check=False, max_iter=max_iter)
+
+
+# ------------------------------------------------------------------ main
+def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, alpha: float = 0.01,
+             max_effects: int = 3, min_explained: float = 0.3, n_refit: int = 3, regroup_tol: float = 1e-3,
+             ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
+             cv_max_iter: int = 30, verbose: bool = False) -> DiagnosisResult:
+    """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
+
+    Parameters
+    ----------
+    robot : SerialRobot or robot spec (built-in name, .yaml, .urdf).
+    data : Dataset (position / points / pose) of the robot's joints.
+    validate : datasets scored with both models (not used for any decision).
+    candidates : list of :class:`Candidate`, of registered effect names, or None
+        (every registered effect on every joint, :func:`default_candidates`).
+    k_folds : folds of the cross-validation (by pose).
+    noise : measurement noise — a :class:`NoiseModel`, or a float (position std,
+        m, taken as known). None: unknown (relative weights, F tests).
+    alpha : family-wise significance level of each selection step.
+    max_effects : most effects named.
+    min_explained : least fraction of the residual above the noise floor an effect
+        must explain to be named.
+    n_refit : candidates refitted nonlinearly per step (best linearised gains).
+    regroup_tol : relative size below which an effect column counts as regrouped
+        into the model's parameters (not identifiable).
+    ident_tol : relative numerical zero of the geometric identifiable set.
+    free : explicit geometric free set (default: identifiable geometric parameters).
+    report : folder for plots, ``diagnosis.json`` and ``summary.txt``.
+    rng : seed of the fold assignment.
+    robot_spec : how to reload the nominal robot (stored in the fit for
+        :func:`estcal.discrepancy.feedback.simulate_from_fit`).
+    """
+    from estcal.io.robotfile import load_robot
+
+    if isinstance(robot, (str, Path)):
+        robot_spec = robot_spec or str(robot)
+        robot = load_robot(robot, n_markers=data.n_points if data.kind in ("points",) else None)
+    if isinstance(noise, NoiseModel):
+        nm = noise
+    elif noise is None:
+        nm = NoiseModel(known=False)
+    else:
+        nm = NoiseModel(position=float(noise), orientation=float(noise), scalar=float(noise), known=True)
+    known = bool(nm.known)
+    data = with_effect_context(robot, data)
+    validate = [with_effect_context(robot, d) for d in validate]
+
+    # 1. geometric model ------------------------------------------------------
+    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol)
+    theta_g = gres.theta.copy()
+    grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
+    problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])
+    b, A, _ = weighted_system(problem, theta_g, gfree)
+    M = len(b)
+    rss_g = float(b @ b)
+    p_g = len(gfree)
+    folds = _folds(data.n, k_folds, rng)
+    cv_g = cross_validate(problem, theta_g, gfree, folds, cv_max_iter)
+
+    # 2. residual analysis -----------------------------------------------------
+    tau = grobot.gravity_torques(data.readings, theta_g, data.context)
+    analysis = residual_analysis(problem, theta_g, known, p_g, {"tau": tau})
+    analysis["lumped_masses"] = lumped
+
+    # 3.-4. forward selection ---------------------------------------------------
+    if candidates is None:
+        cands = default_candidates(grobot, data)
+    else:
+        cands = []
+        for c in candidates:
+            if isinstance(c, Candidate):
+                cands.append(c)
+            elif isinstance(c, str):
+                cands += default_candidates(grobot, data, effects=[c])
+            else:
+                cands.append(Candidate(*c))
+    cur_problem, cur_theta, cur_free = problem, theta_g, list(gfree)
+    cur_rss, cur_p, cur_cv = rss_g, p_g, cv_g
+    causes, steps, used = [], [], set()
+    for step in range(max_effects):
+        b, A, _ = weighted_system(cur_problem, cur_theta, cur_free)
+        Q = orthonormal_basis(A)
+        b_perp = b - Q @ (Q.T @ b)
+        table = []
+        for c in cands:
+            if c.label in used:
+                continue
+            entry = {"candidate": c.label, "effect": c.effect, "joints": c.joints}
+            try:
+                eff = c.make(cur_problem.robot)
+                rob = cur_problem.robot.with_values(cur_theta).add_effect(eff)
+                prob = Problem(rob, [(t.method, t.data, t.noise) for t in cur_problem.terms])
+                names = list(eff.param_names)
+                th_c = rob.params.values.copy()
+                _, E, _ = weighted_system(prob, th_c, names)
+            except Exception as exc:  # an effect that cannot run on these data (missing column …)
+                entry.update(status="skipped", reason=str(exc))
+                table.append(entry)
+                continue
+            En = np.linalg.norm(E, axis=0)
+            Ep = E - Q @ (Q.T @ E)
+            rel = np.linalg.norm(Ep, axis=0) / np.maximum(En, 1e-300)
+            if np.any(En == 0) or rel.min() < regroup_tol:
+                entry.update(status="regroups", orthogonal_fraction=float(rel.min() if En.all() else 0.0))
+                table.append(entry)
+                continue
+            sv = np.linalg.svd(Ep / En, compute_uv=False)
+            if sv.min() < regroup_tol * sv.max():
+                entry.update(status="regroups", orthogonal_fraction=float(sv.min() / sv.max()))
+                table.append(entry)
+                continue
+            x, *_ = np.linalg.lstsq(Ep, b_perp, rcond=None)
+            r = b_perp - Ep @ x
+            rss1 = float(r @ r)
+            k = len(names)
+            entry.update(status="ok", k=k, rss_linear=rss1,
+                         delta_bic_linear=_ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known),
+                         _obj=(c, rob, prob, names))
+            table.append(entry)
+        ok = [e for e in table if e["status"] == "ok"]
+        n_tested = max(len(ok), 1)
+        ok.sort(key=lambda e: e["delta_bic_linear"])
+        refits = []
+        for e in ok[:n_refit]:
+            c, rob, prob, names = e["_obj"]
+            res = _fit(prob, rob.params.values, cur_free + names)
+            rss1 = float(res.chi2)
+            k = len(names)
+            dbic = _ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known)
+            tname, stat, pval = _test(cur_rss, rss1, k, M, cur_p + k, known)
+            e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
+            refits.append((dbic, e, res))
+        refits.sort(key=lambda t: t[0])
+        accepted = None
+        n_cv = 0
+        for dbic, e, res in refits:
+            c, rob, prob, names = e["_obj"]
+            excess = cur_rss - (max(M - cur_p, 0) if known else 0.0)
+            frac_excess = (cur_rss - e["rss"]) / excess if excess > 0 else 0.0
+            e["explained_excess_fraction"] = float(frac_excess)
+            reasons = []
+            if not dbic < 0:
+                reasons.append("ΔBIC ≥ 0")
+            if not e["p_value"] < alpha / n_tested:
+                reasons.append(f"p = {e['p_value']:.2g} ≥ α/{n_tested}")
+            if not frac_excess >= min_explained:
+                reasons.append(f"explains {100 * frac_excess:.0f}% < {100 * min_explained:.0f}% of the excess")
+            if not reasons and n_cv < 2:
+                n_cv += 1
+                cv_e = cross_validate(prob, res.theta, cur_free + names, folds, cv_max_iter)
+                e["cv_rmse_mm"] = cv_e[0]
+                if not cv_e[0] < cur_cv[0]:
+                    reasons.append(f"CV RMSE {cv_e[0]:.4g} ≥ {cur_cv[0]:.4g} mm")
+            elif not reasons:
+                reasons.append("not cross-validated (limit)")
+            e["rejected"] = reasons
+            if not reasons:
+                accepted = (e, res, cv_e)
+                break
+        steps.append({"step": step + 1, "rss_before": cur_rss, "n_candidates": len(cands) - len(used),
+                      "n_tested": len(ok), "alpha_per_test": alpha / n_tested,
+                      "table": [{k: _plain(v) for k, v in e.items() if not k.startswith("_")}
+                                for e in sorted(table, key=lambda e: e.get("delta_bic_linear", np.inf))[:12]],
+                      "regroups": [e["candidate"] for e in table if e["status"] == "regroups"],
+                      "accepted": accepted[0]["candidate"] if accepted else None})
+        if verbose:
+            print(f"step {step + 1}: " + ", ".join(f"{e['candidate']} ΔBIC {e['delta_bic']:.1f} "
+                                                   f"p {e['p_value']:.2g} {e.get('rejected')}"
+                                                   for _, e, _ in refits))
+        if accepted is None:
+            break
+        e, res, cv_e = accepted
+        c, rob, prob, names = e["_obj"]
+        used.add(c.label)
+        params = {n: {"estimate": float(res.parameter(n)[0]), "std": float(res.parameter(n)[1])} for n in names}
+        causes.append(Cause(c.effect, list(c.joints or []), params, float(e["delta_bic"]), e["test"],
+                            float(e["statistic"]), float(e["p_value"]), (cur_rss - e["rss"]) / rss_g,
+                            float(e["explained_excess_fraction"]), cur_cv[0], cv_e[0], _plain(c.options)))
+        cur_problem, cur_theta, cur_free = prob, res.theta.copy(), cur_free + names
+        cur_rss, cur_p, cur_cv = float(e["rss"]), cur_p + len(names), cv_e
+
+    # 5. output ---------------------------------------------------------------
+    gr = problem.robot
+    xr = cur_problem.robot
+    tr_g = _scores(gr, theta_g, [data])
+    tr_x = _scores(xr, cur_theta, [data])
+    va_g = _scores(gr, theta_g, validate)
+    va_x = _scores(xr, cur_theta, validate)
+    rmse = {"geometric": {"train": tr_g[0], "cv": cv_g[0], "validation": va_g[0]},
+            "extended": {"train": tr_x[0], "cv": cur_cv[0], "validation": va_x[0]}}
+    mx = {"geometric": {"train": tr_g[1], "cv": cv_g[1], "validation": va_g[1]},
+          "extended": {"train": tr_x[1], "cv": cur_cv[1], "validation": va_x[1]}}
+    if validate:
+        rmse["validation_each"] = {"geometric": [_scores(gr, theta_g, [d])[0] for d in validate],
+                                   "extended": [_scores(xr, cur_theta, [d])[0] for d in validate],
+                                   "paths": [d.where for d in validate]}
+    final_floor = residual_analysis(cur_problem, cur_theta, known, cur_p)["noise_floor"]
+    analysis["noise_floor_extended"] = final_floor
+    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, known)
+    model = {"robot": getattr(robot, "name", None), "robot_spec": robot_spec, "n_markers": int(robot.n_markers),
+             "gravity": gr.gravity.tolist(), "lumped_masses": lumped,
+             "effects": [e.to_dict() for e in xr.effects],
+             "theta": dict(zip(xr.params.names, map(float, cur_theta))),
+             "free": cur_free, "noise": nm.to_dict(),
+             "residual": {"rmse_mm": tr_x[0], "max_mm": tr_x[1], "chi2_per_dof": final_floor["chi2_per_dof"]}}
+    gmodel = {"theta": dict(zip(gr.params.names, map(float, theta_g))), "free": gfree,
+              "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],
+                           "chi2_per_dof": analysis["noise_floor"]["chi2_per_dof"]}}
+    result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
+                             gmodel, lumped, robot=xr.with_values(cur_theta),
+                             geometric_robot=gr.with_values(theta_g))
+    if report is not None:
+        folder = Path(report)
+        folder.mkdir(parents=True, exist_ok=True)
+        files = []
+        if plots:
+            files = save_plots(folder, problem, theta_g, analysis, tau=tau, title=robot.name,
+                               extended=(cur_problem, cur_theta) if causes else None)
+        result.report_files = files + ["diagnosis.json", "summary.txt"]
+        result.to_json(folder / "diagnosis.json")
+        (folder / "summary.txt").write_text(str(result) + "\n")
+    return result
+
+
+def _verdict(causes, floor_g, floor_x, steps, rmse, known) -> str:
+    def gain():
+        g, x = rmse["geometric"], rmse["extended"]
+        s = f"RMSE train {g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm"
+        if g["validation"] is not None:
+            s += f", validation {g['validation']:.3g} → {x['validation']:.3g} mm"
+        return s
+
+    if not causes:
+        if known and floor_g.get("at_noise_floor"):
+            return (f"No significant non-geometric effect: the geometric model fits at the noise floor "
+                    f"(χ²/dof = {floor_g['chi2_per_dof']:.3g}, p = {floor_g['p_value']:.2g}); no cause named.")
+        best = None
+        for e in (steps[0]["table"] if steps else []):
+            if "delta_bic" in e:
+                best = e
+                break
+        s = "No candidate effect of the library explains the residual; no cause named"
+        if known:
+            s += f" (the geometric fit is above the noise floor, χ²/dof = {floor_g['chi2_per_dof']:.3g})"
+        if best is not None:
+            s += (f"; best candidate {best['candidate']} rejected: "
+                  f"{'; '.join(best.get('rejected', [])) or 'not significant'}")
+        return s + ". The residual is not explained by the modelled effects."
+    names = "; ".join(f"{c.effect} of {', '.join(c.joints) if c.joints else 'the arm'}" for c in causes)
+    s = f"Named cause(s): {names}. {gain()}."
+    if known:
+        if floor_x.get("at_noise_floor"):
+            s += f" The extended model fits at the noise floor (χ²/dof = {floor_x['chi2_per_dof']:.3g})."
+        else:
+            s += (f" A residual above the noise floor remains unexplained (χ²/dof = "
+                  f"{floor_x['chi2_per_dof']:.3g}).")
+    return s
