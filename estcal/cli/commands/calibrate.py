@@ -275,7 +275,10 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     sel = None
     if free is not None:
         problem.with_free(free)  # raises ParameterError naming an unknown parameter / pattern
-        base_free = any(n.startswith("base_") for n in problem.with_free(free).params.free_names)
+        # register only when the whole base frame is estimated: Kabsch moves all six
+        # base parameters, and a fixed one must keep its given value
+        fn = set(problem.with_free(free).params.free_names)
+        base_free = all(f"base_{c}" in fn for c in ("tx", "ty", "tz", "rx", "ry", "rz"))
     if register and base_free and data.kind in ("position", "points", "pose") and "base_tx" in pv:
         theta0 = register_base(problem.robot, data, theta0)
         problem = problem.with_values(theta0)
