@@ -192,3 +192,24 @@ def test_urdf_via_load_robot_and_roundtrip(tiago_dir, tmp_path):
     _same_robot(r, back, atol=1e-10)
     d = robot_to_dict(back)
     assert d["convention"] == "urdf" and d["joints"][0]["type"] == "prismatic"
+
+
+def test_packaged_puma_with_masses():
+    """Same geometry and names as puma560; gravity torque on j2 from the upper arm and everything
+    beyond it (a check of the mass bookkeeping against a hand sum at the zero pose)."""
+    heavy, plain = load_robot("puma560_masses"), BUILTIN["puma560"]()
+    q = plain.random_readings(20, np.random.default_rng(0))
+    np.testing.assert_array_equal(heavy.fk(q), plain.fk(q))
+    assert heavy.params.names == plain.params.names
+    tau = heavy.gravity_torques(q)
+    assert np.all(tau[:, 0] == 0) or np.abs(tau[:, 0]).max() < 1e-9  # vertical first axis
+    assert np.abs(tau[:, 1]).max() > 50  # N·m: 17.4 kg at ~0.2 m plus the forearm
+    # τ2 = a2ᵀ Σ (c_i − o2) × m_i g over links 2..6 computed here from the link frames directly
+    k = heavy.kinematics(q[:1], jacobian=False)
+    a2, o2 = k.joint_axis[0, 1], k.joint_origin[0, 1]
+    tot = 0.0
+    for li, link in enumerate(heavy.links):
+        if link.mass:
+            c = k.link_p[0, li] + k.link_R[0, li] @ link.com
+            tot += a2 @ np.cross(c - o2, link.mass * heavy.gravity) if li >= 2 else 0.0
+    assert tau[0, 1] == pytest.approx(tot, rel=1e-12)

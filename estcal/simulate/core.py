@@ -283,7 +283,8 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
              errors=None, error_std: ErrorModel | dict | None = None, effects: Sequence = (),
              noise: NoiseModel | dict | None = None, seed: int | None = 0, margin: float = 0.0,
              readings=None, dt: float | None = None, t=None, temperature=None, payload=None,
-             record_approach: bool = False, markers=None, n_points: int = 3) -> SimulationResult:
+             record_approach: bool = False, markers=None, n_points: int = 3,
+             effect_params: dict | None = None) -> SimulationResult:
     """Simulate a calibration dataset.
 
     Parameters
@@ -310,6 +311,8 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     payload : kg — constant, ``(lo, hi, "uniform")`` random per pose, or N values
         (written as the ``payload`` column; used by gravity-dependent effects).
     record_approach : write ``approach_<joint>`` columns (random ±1) for backlash joints.
+    effect_params : ``{effect parameter name: value}`` for any of the requested effects
+        (alternative to the per-effect ``params``).
     markers : (k, 3) tool-frame points replacing the robot's markers.
     """
     from estcal.effects import make_effect
@@ -357,8 +360,12 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         raise ValueError(f"errors must be None, 'none', 'random' or a dict of parameter errors, got {errors!r}")
     for k, v in err.items():
         true.params[k] = nominal.params[k] + v
+    given = {str(k): float(v) for k, v in (effect_params or {}).items()}
+    owned = set()
     for s in specs:
         eff = make_effect(s["effect"], true, joints=s["joints"], **s["options"])
+        s["params"] = {**{k: v for k, v in given.items() if k in eff.param_names}, **s["params"]}
+        owned |= set(eff.param_names)
         true = true.add_effect(eff)
         sd = DEFAULT_EFFECT_STD.get(s["effect"], 0.0)
         for pname in eff.param_names:
@@ -374,6 +381,10 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         if unknown:
             raise ValueError(f"effect {s['effect']!r}: unknown parameters {sorted(unknown)}; "
                              f"its parameters are {eff.param_names}")
+
+    if set(given) - owned:
+        raise ValueError(f"effect parameters {sorted(set(given) - owned)} belong to none of the requested "
+                         f"effects; their parameters are {sorted(owned)}")
 
     # ---- poses and context
     if readings is not None:

@@ -1,0 +1,61 @@
+"""``estcal fk``: forward kinematics of every row of a dataset."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("fk")
+    def fk_cmd(
+        data: Path = typer.Argument(..., help="Dataset CSV with one column per joint (rad / m)."),
+        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF (.urdf)."),
+        output: Path = typer.Option(..., "--output", "-o", help="CSV to write: x,y,z,qw,qx,qy,qz per row."),
+        root: Optional[str] = typer.Option(None, help="URDF root link."),
+        tip: Optional[str] = typer.Option(None, help="URDF tip link."),
+        with_joints: bool = typer.Option(False, "--with-joints", help="Also copy the joint columns."),
+        markers: bool = typer.Option(False, "--markers", help="Also write the robot's marker points x1,y1,z1,…"),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write a short JSON summary."),
+    ) -> None:
+        """Tool frame in the world (x,y,z in m; quaternion qw,qx,qy,qz) for every row's joint readings.
+
+        Effects in the robot file are evaluated with the row's t / temperature / payload columns.
+        """
+        import numpy as np
+        from rich.console import Console
+        from rich.markup import escape
+
+        from estcal.effects import effect_context
+        from estcal.io.dataset import load_dataset
+        from estcal.io.robotfile import load_robot
+        from estcal.kinematics.transforms import matrix_to_quat
+
+        console = Console()
+        try:
+            rb = load_robot(robot, root=root, tip=tip)
+            ds = load_dataset(data, rb)
+            kin = rb.kinematics(ds.readings, context=effect_context(rb, ds), jacobian=False)
+        except (ValueError, KeyError, FileNotFoundError) as exc:
+            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
+            raise typer.Exit(2) from None
+        cols, names = [], []
+        if with_joints:
+            cols.append(ds.readings)
+            names += list(rb.joint_names)
+        cols += [kin.p, matrix_to_quat(kin.R)]
+        names += ["x", "y", "z", "qw", "qx", "qy", "qz"]
+        if markers and rb.n_markers:
+            cols.append(kin.points.reshape(len(ds.readings), -1))
+            names += [f"{c}{k + 1}" for k in range(rb.n_markers) for c in "xyz"]
+        output.parent.mkdir(parents=True, exist_ok=True)
+        np.savetxt(output, np.column_stack(cols), delimiter=",", header=",".join(names), comments="",
+                   fmt="%.15g")
+        console.print(f"{len(ds.readings)} rows -> {output} ({', '.join(names)})")
+        for w in ds.warnings:
+            console.print("[yellow]warning:[/yellow] " + escape(w))
+        if json_path is not None:
+            json_path.write_text(json.dumps({"rows": int(len(ds.readings)), "robot": rb.name, "input": str(data),
+                                             "output": str(output), "columns": names}, indent=2))
