@@ -105,6 +105,10 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
 
     names = list(EFFECTS) if effects is None else list(effects)
     ctx = data.context
+    tau = None
+    if any(n in ("joint_compliance", "backlash") for n in names):
+        tau = robot.gravity_torques(data.readings, context=ctx)
+        big = max(float(np.abs(tau).max()), 1e-300)
     out = []
     for name in names:
         if name == "drift":
@@ -124,7 +128,15 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
             opts = {}
         variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
         per_joint = []
-        for j in robot.joint_names:
+        for ji, j in enumerate(robot.joint_names):
+            if name in ("joint_compliance", "backlash") and tau is not None:
+                # a torque that is numerically zero (vertical axis) or of constant sign (backlash)
+                # gives a column that is noise or an offset: not a candidate
+                t = tau[:, ji]
+                if np.abs(t).max() <= 1e-9 * big:
+                    continue
+                if name == "backlash" and "approach_" + j not in ctx and (np.all(t > 0) or np.all(t < 0)):
+                    continue
             for o in variants:
                 try:
                     Candidate(name, [j], o).make(robot)
@@ -326,6 +338,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     if isinstance(robot, (str, Path)):
         robot_spec = robot_spec or str(robot)
         robot = load_robot(robot, n_markers=data.n_points if data.kind in ("points",) else None)
+    if data.kind == "points" and robot.n_markers == 0:
+        # unknown points on the tool: markers initialised at the tool origin, estimated with the rest
+        robot = load_robot(robot, n_markers=data.n_points)
     if isinstance(noise, NoiseModel):
         nm = noise
     elif noise is None:
@@ -469,6 +484,12 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                             float(e["explained_excess_fraction"]), cur_cv[0], cv_e[0], _plain(c.options)))
         cur_problem, cur_theta, cur_free = prob, res.theta.copy(), cur_free + names
         cur_rss, cur_p, cur_cv = float(e["rss"]), cur_p + len(names), cv_e
+        cur_res = res
+    if causes:
+        # estimates of the final (jointly fitted) model, not those of the step that added each effect
+        for c in causes:
+            c.parameters = {n: {"estimate": float(cur_res.parameter(n)[0]), "std": float(cur_res.parameter(n)[1])}
+                            for n in c.parameters}
 
     # 5. output ---------------------------------------------------------------
     gr = problem.robot
