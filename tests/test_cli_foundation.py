@@ -83,3 +83,20 @@ def test_fk_missing_joint_column(tmp_path):
     p.write_text("j1,j2,j3,j4,j5\n0,0,0,0,0\n")
     r = runner.invoke(app, ["fk", "--robot", "puma560", str(p), "-o", str(tmp_path / "o.csv")])
     assert r.exit_code == 2 and "missing joint column" in r.output and "j6" in r.output
+
+
+def test_benchmark_quick_smoke(tmp_path):
+    """The kinematics benchmark runs and writes its documented keys (timing is not asserted)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_kinematics.py"
+    spec = importlib.util.spec_from_file_location("bench_kinematics", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "b.json"
+    mod.main(["--quick", "--poses", "200", "--json", str(out)])
+    r = json.loads(out.read_text())
+    for key in ("fk_ms", "fk_jac_ms", "poses_per_s", "fd_jac_ms", "fd_over_analytic", "max_abs_diff", "n_params"):
+        assert key in r
+    assert r["max_abs_diff"] < 1e-6 and r["n_poses"] == 200
