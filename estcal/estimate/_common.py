@@ -1,0 +1,202 @@
+"""Helpers shared by the probabilistic and recursive estimators.
+
+Every estimator here (factor graph, Kalman filters, MCMC) consumes a
+:class:`~estcal.methods.problem.Problem` and splits its stacked rows into
+*measurement groups*: the rows of one dataset row (pose) of one term. A group
+is the unit a filter processes at a time and the unit of one factor in the
+factor graph. :class:`GroupedProblem` builds, for any set of groups, a
+sub-problem whose rows are exactly those groups' rows (via
+``Dataset.subset``), so a filter step or a factor evaluates only its own poses.
+Problem-like objects without splittable terms (e.g. the Gough adapter) fall
+back to evaluating the full problem and selecting rows.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["GroupedProblem", "resolve_free", "noise_known", "identifiable_free", "finish_result",
+           "default_prior_std"]
+
+
+def resolve_free(problem, free=None):
+    """``(problem, fidx, names)`` with the free set applied (patterns allowed)."""
+    if free is not None:
+        problem = problem.with_free(free)
+    pv = problem.params
+    fidx = pv.free_indices
+    if fidx.size == 0:
+        raise ValueError("no free parameter to estimate (give --free or set the robot's free mask)")
+    return problem, fidx, [pv.names[i] for i in fidx]
+
+
+def noise_known(problem) -> bool:
+    """True when every term's noise is a trusted absolute value (``NoiseModel.known``)."""
+    return all(bool(getattr(getattr(t, "noise", None), "known", False)) for t in getattr(problem, "terms", []))
+
+
+def default_prior_std(problem, names, scale: float = 1.0) -> np.ndarray:
+    """Documented default prior standard deviations (SI), per parameter kind.
+
+    ``0.1`` m or rad for geometric, base, tool, offset, marker and other
+    parameters, ``0.1`` for the dimensionless gains: wide compared with any
+    plausible calibration correction (mm, mrad) yet proper, so the filter and
+    the posterior are defined before the data make every parameter identifiable.
+    """
+    return np.full(len(names), 0.1 * scale)
+
+
+def identifiable_free(problem, candidates=None, theta=None) -> list[str]:
+    """An identifiable free set: candidates kept in order while they add rank.
+
+    Uses :func:`estcal.identify.select_identifiable` when it exists; otherwise a
+    greedy, order-preserving rank test of the whitened, column-normalised
+    Jacobian at ``theta`` (a parameter is kept if its column is not in the span
+    of the columns kept before it; numerical zero as in GECARO App. III).
+    """
+    pv = problem.params
+    if candidates is None:
+        candidates = list(pv.names)
+    else:
+        cand = []
+        for c in candidates:
+            cand += pv.select(c) if any(ch in c for ch in "*?[") else [c]
+        candidates = cand
+    try:  # the identification engineer's selector, when present
+        from estcal.identify import select_identifiable  # type: ignore
+
+        out = select_identifiable(problem.with_free(candidates), theta=theta)
+        names = getattr(out, "names", out)
+        if isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names):
+            return list(names)
+    except Exception:  # noqa: BLE001 - any failure falls back to the rank test below
+        pass
+    rows = problem.evaluate(theta)
+    A = rows.H[:, pv.indices(candidates)] / rows.sigma[:, None]
+    nrm = np.linalg.norm(A, axis=0)
+    keep: list[int] = []
+    Q = np.zeros((A.shape[0], 0))
+    tol = 1e-8
+    for j in range(A.shape[1]):
+        if nrm[j] <= 1e-12 * max(nrm.max(), 1e-300):
+            continue
+        a = A[:, j] / nrm[j]
+        r = a - Q @ (Q.T @ a)
+        r = r - Q @ (Q.T @ r)  # re-orthogonalise (classical Gram–Schmidt twice)
+        if np.linalg.norm(r) > tol ** 0.5 * 1e-2:
+            keep.append(j)
+            Q = np.column_stack([Q, r / np.linalg.norm(r)])
+    return [candidates[j] for j in keep]
+
+
+@dataclass
+class Group:
+    term: int
+    pose: int
+
+
+class GroupedProblem:
+    """A problem split into measurement groups (one per dataset row and term).
+
+    Parameters
+    ----------
+    problem : Problem (or a Problem-like object with ``params`` and ``evaluate``).
+
+    Attributes
+    ----------
+    groups : list of (term index, pose index), ordered term by term, pose by pose
+        (or by the ``t`` context column when every term has one).
+    """
+
+    def __init__(self, problem):
+        self.problem = problem
+        terms = getattr(problem, "terms", None)
+        self.splittable = bool(terms) and all(hasattr(t.data, "subset") for t in terms)
+        rows = problem.evaluate(jacobian=False)
+        term = rows.term if rows.term is not None else np.zeros(len(rows.e), int)
+        keys = sorted(set(zip(term.tolist(), rows.pose.tolist())))
+        if self.splittable and all("t" in getattr(t.data, "context", {}) for t in terms):
+            keys.sort(key=lambda k: (terms[k[0]].data.context["t"][k[1]], k))
+        self.groups = [Group(int(a), int(b)) for a, b in keys]
+        self._row_index = {}
+        for i, g in enumerate(self.groups):
+            self._row_index[(g.term, g.pose)] = i
+        self.row_group = np.array([self._row_index[(a, b)] for a, b in zip(term.tolist(), rows.pose.tolist())])
+        self.n_rows = len(rows.e)
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def rows_of(self, ids) -> np.ndarray:
+        """Indices (into the full stacked rows) of the rows of groups ``ids``."""
+        return np.flatnonzero(np.isin(self.row_group, np.asarray(ids)))
+
+    def subproblem(self, ids):
+        """An object with ``evaluate(theta, jacobian)`` returning exactly the rows of groups ``ids``.
+
+        Rows come in the order of the full problem restricted to these groups.
+        """
+        ids = np.atleast_1d(np.asarray(ids, int))
+        if not self.splittable:
+            return _SelectRows(self.problem, self.rows_of(ids))
+        from estcal.methods.problem import Problem, Term
+
+        terms = []
+        for ti, t in enumerate(self.problem.terms):
+            poses = sorted(self.groups[i].pose for i in ids if self.groups[i].term == ti)
+            if poses:
+                terms.append(Term(t.method, t.data.subset(np.array(poses, int)), t.noise))
+        sub = Problem.__new__(Problem)
+        sub.robot = self.problem.robot
+        sub.terms = terms
+        return sub
+
+
+class _SelectRows:
+    """Fallback sub-problem: evaluate everything, keep some rows (non-splittable problems)."""
+
+    def __init__(self, problem, idx):
+        self.problem, self.idx = problem, idx
+
+    @property
+    def params(self):
+        return self.problem.params
+
+    def evaluate(self, theta=None, jacobian=True):
+        from estcal.methods.base import Rows
+
+        r = self.problem.evaluate(theta, jacobian)
+        i = self.idx
+        return Rows(r.e[i], None if r.H is None else r.H[i], r.sigma[i], r.pose[i], r.kind[i],
+                    None if r.term is None else r.term[i])
+
+
+def finish_result(problem, method, names, fidx, estimate, cov, theta_full, nominal, n_iterations=0,
+                  converged=True, covariance_source="model", theta_before=None, validation=(), t0=None,
+                  extra=None):
+    """Build the shared :class:`CalibrationResult` (χ² and dof from the problem's rows at the estimate)."""
+    import time
+
+    from .lsq import score
+    from .result import CalibrationResult
+
+    rows = problem.evaluate(theta_full, jacobian=False)
+    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    dof = int(len(rows.e) - len(fidx))
+    cov = np.asarray(cov, float)
+    res = CalibrationResult(method=method, names=list(names), estimate=np.asarray(estimate, float).copy(),
+                            std=np.sqrt(np.clip(np.diag(cov), 0, None)), covariance=cov,
+                            nominal=np.asarray(nominal, float).copy(), theta=np.asarray(theta_full, float).copy(),
+                            all_names=list(problem.params.names), n_iterations=int(n_iterations),
+                            converged=bool(converged), chi2=chi2, dof=dof, covariance_source=covariance_source)
+    if extra:
+        res.extra.update(extra)
+    if t0 is not None:
+        res.extra["time_s"] = time.perf_counter() - t0
+    try:
+        res.accuracy = score(problem, problem.params.values if theta_before is None else theta_before,
+                             theta_full, validation)
+    except (AttributeError, IndexError, TypeError):  # Problem-like objects without datasets
+        res.accuracy = {}
+    return res

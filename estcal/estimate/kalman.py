@@ -1,0 +1,282 @@
+"""Recursive calibration: extended and unscented Kalman filtering of the parameter vector.
+
+State: the free parameters x (absolute values, SI). Random-walk model of the
+textbook (§4.5, eqs 4.104–4.112)::
+
+    x_k = x_{k−1} + w_{k−1},  Cov(w) = Q        (Q = 0: constant parameters, 4.104–4.106)
+    z_k = h_k(x_k) + v_k,      Cov(v) = R_k      (one measurement group: the rows of one pose)
+
+Predict ``P_k(−) = P_{k−1} + Q``; gain ``K_k = P_k(−) H_kᵀ (H_k P_k(−) H_kᵀ + R_k)⁻¹``
+(4.111); update ``x̂_k = x̂_{k−1} + K_k ν_k`` (4.110) and
+``P_k = P_k(−) − K_k H_k P_k(−)`` (4.112; filterpy uses the Joseph form).
+With Q = 0 and a prior (μx, P0) the last estimate equals the batch MAP of
+eqs 4.69–4.70 for a linear model; with Q > 0 the covariance does not fall
+below the Riccati floor P∞ (:mod:`estcal.estimate.riccati`).
+
+The measurement of one group is written for filterpy as ``z = 0`` and
+``h(x) = −e(x) = predicted − measured`` so that the innovation ``z − h(x)`` is
+the residual ``e`` of :class:`~estcal.methods.problem.Problem` and
+``∂h/∂x = H`` (the identification Jacobian) — the filters are filterpy's
+:class:`~filterpy.kalman.ExtendedKalmanFilter` and
+:class:`~filterpy.kalman.UnscentedKalmanFilter`, not hand-written ones.
+The UKF's sigma points are evaluated in one vectorised call
+(:func:`estcal.estimate.batcheval.evaluate_many`).
+
+``passes > 1`` re-runs the filter from the same prior with every group
+linearised at the previous pass's estimate (an iterated — Gauss–Newton — EKF):
+for Q = 0 its fixed point is the MAP / least-squares solution.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._common import GroupedProblem, default_prior_std, finish_result, noise_known, resolve_free
+from .innovation import InnovationMonitor
+
+__all__ = ["ParameterFilter", "calibrate_kalman", "calibrate_ukf", "process_noise", "default_burn_in"]
+
+
+def process_noise(names, q=0.0) -> np.ndarray:
+    """Process-noise covariance Q (per update step) from std ``q``.
+
+    ``q`` is a scalar (same std for every free parameter, SI units per step), an
+    array (one std per free parameter), a dict ``{name or pattern: std}`` (others
+    0), or a full (p, p) covariance matrix.
+    """
+    import fnmatch
+
+    p = len(names)
+    if isinstance(q, dict):
+        s = np.zeros(p)
+        for pat, v in q.items():
+            hit = [i for i, n in enumerate(names) if fnmatch.fnmatchcase(n, pat)]
+            if not hit:
+                raise ValueError(f"process noise: {pat!r} matches no free parameter (free: {names})")
+            s[hit] = float(v)
+        return np.diag(s ** 2)
+    q = np.asarray(q, float)
+    if q.ndim == 2:
+        if q.shape != (p, p):
+            raise ValueError(f"Q must be ({p}, {p}), got {q.shape}")
+        return q
+    s = np.broadcast_to(q, (p,)).astype(float)
+    return np.diag(s ** 2)
+
+
+def default_burn_in(dims, n_free: int) -> int:
+    """Steps until the rows seen reach twice the number of free parameters."""
+    c = np.cumsum(dims)
+    k = int(np.searchsorted(c, 2 * n_free))
+    return min(k + 1, len(dims))
+
+
+@dataclass
+class Step:
+    """One filter step: innovation, its covariance and NIS."""
+
+    y: np.ndarray
+    S: np.ndarray
+    nis: float
+
+
+class ParameterFilter:
+    """A filterpy EKF or UKF over the free parameters of a problem.
+
+    Parameters
+    ----------
+    theta : (P,) full parameter vector (fixed parameters keep these values).
+    fidx : indices of the free parameters.
+    P0 : (p, p) prior covariance; Q : (p, p) process noise per step.
+    kind : ``"ekf"`` or ``"ukf"``.
+    ukf_alpha, ukf_beta, ukf_kappa : Van der Merwe sigma-point parameters.
+    """
+
+    def __init__(self, theta, fidx, P0, Q=None, kind: str = "ekf", names=None, ukf_alpha: float = 1e-2,
+                 ukf_beta: float = 2.0, ukf_kappa: float = 0.0):
+        self.theta0 = np.asarray(theta, float).copy()
+        self.fidx = np.asarray(fidx, int)
+        self.names = list(names) if names is not None else [str(i) for i in self.fidx]
+        p = self.fidx.size
+        self.Q = np.zeros((p, p)) if Q is None else np.asarray(Q, float)
+        self.kind = kind
+        x0 = self.theta0[self.fidx].copy()
+        if kind == "ekf":
+            from filterpy.kalman import ExtendedKalmanFilter
+
+            f = ExtendedKalmanFilter(dim_x=p, dim_z=1)
+        elif kind == "ukf":
+            from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+            pts = MerweScaledSigmaPoints(p, alpha=ukf_alpha, beta=ukf_beta, kappa=ukf_kappa)
+            f = UnscentedKalmanFilter(dim_x=p, dim_z=1, dt=1.0, hx=None, fx=lambda x, dt: x, points=pts)
+        else:
+            raise ValueError(f"unknown filter {kind!r}; choose 'ekf' or 'ukf'")
+        f.x = x0  # 1-D state: filterpy's algebra works unchanged and avoids (p, 1) reshapes
+        f.P = np.array(P0, float)
+        f.Q = self.Q
+        self.f = f
+        self.monitor = InnovationMonitor()
+        self.n_steps = 0
+        self.n_rows = 0
+
+    # ---------------------------------------------------------------- state
+    @property
+    def x(self) -> np.ndarray:
+        return np.asarray(self.f.x, float).copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        return np.asarray(self.f.P, float).copy()
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.f.P), 0, None))
+
+    def full(self, x=None) -> np.ndarray:
+        th = self.theta0.copy()
+        th[self.fidx] = self.f.x if x is None else x
+        return th
+
+    # ---------------------------------------------------------------- step
+    def step(self, sub, x_lin=None) -> Step:
+        """Predict (P += Q) and update with the rows of ``sub`` (an object with ``evaluate``).
+
+        ``x_lin`` : linearise at this free-parameter vector instead of the current
+        estimate (EKF only; used by iterated passes).
+        """
+        f = self.f
+        if self.kind == "ekf":
+            f.predict()
+            lin = f.x if x_lin is None else np.asarray(x_lin, float)
+            rows = sub.evaluate(self.full(lin))
+            H = rows.H[:, self.fidx]
+            e = rows.e
+            R = np.diag(rows.sigma ** 2)
+            if x_lin is None:
+                hx = -e
+            else:  # affine model about x_lin: h(x) = −e_lin + H (x − x_lin)
+                hx = -e + H @ (f.x - lin)
+            z = np.zeros(e.size)
+            f.update(z, lambda x: H, lambda x: hx, R=R)
+            y, S = np.asarray(f.y, float), np.asarray(f.S, float)
+        else:
+            from .batcheval import evaluate_many
+
+            f.predict()
+            sig = f.sigmas_f
+            TH = np.broadcast_to(self.theta0, (sig.shape[0], self.theta0.size)).copy()
+            TH[:, self.fidx] = sig
+            E = evaluate_many(sub, TH)
+            lookup = {s.tobytes(): -E[i] for i, s in enumerate(sig)}
+            rows = sub.evaluate(self.full(f.x), jacobian=False)
+            R = np.diag(rows.sigma ** 2)
+            f.update(np.zeros(E.shape[1]), R=R, hx=lambda s: lookup[np.asarray(s).tobytes()])
+            f.P = 0.5 * (f.P + f.P.T)
+            y, S = np.asarray(f.y, float), np.asarray(f.S, float)
+        nis = self.monitor.add(y, S)
+        self.n_steps += 1
+        self.n_rows += y.size
+        return Step(y, S, nis)
+
+
+def _prior(problem, names, fidx, prior_std, P0):
+    if P0 is not None:
+        P0 = np.asarray(P0, float)
+        if P0.ndim == 1:
+            P0 = np.diag(P0 ** 2)
+        return P0
+    if prior_std is None:
+        s = default_prior_std(problem, names)
+    elif isinstance(prior_std, dict):
+        s = default_prior_std(problem, names)
+        for k, v in prior_std.items():
+            s[names.index(k)] = v
+    else:
+        s = np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+    return np.diag(s ** 2)
+
+
+def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", prior_std=None, P0=None,
+                     q=0.0, batch_size: int = 1, passes: int = 1, theta0=None, burn_in: int | None = None,
+                     lags: int = 10, history: bool = False, ukf_alpha: float = 1e-2,
+                     scale_covariance: bool | None = None, **_ignored):
+    """Kalman-filter calibration: process the problem's poses one group at a time.
+
+    Parameters
+    ----------
+    problem : :class:`~estcal.methods.problem.Problem`
+    free : free parameter names/patterns (default: the problem's free mask)
+    filter : ``"ekf"`` (filterpy ExtendedKalmanFilter) or ``"ukf"`` (UnscentedKalmanFilter)
+    prior_std / P0 : prior std (scalar, per-parameter array or ``{name: std}``) or full P0;
+        default :func:`~estcal.estimate._common.default_prior_std` (0.1, wide)
+    q : process-noise std per step (see :func:`process_noise`); 0 = constant parameters
+    batch_size : poses per update (1 = measurement by measurement)
+    passes : iterated-EKF passes (each re-linearises at the previous pass's estimates)
+    theta0 : full initial parameter vector (prior mean of the free ones); default the problem's values
+    burn_in : steps left out of the innovation tests (default: until 2 p rows were seen)
+    history : keep per-step estimates and standard deviations in ``extra``
+    scale_covariance : multiply P by σ0² = χ²/dof (default: when the noise is not known,
+        as :func:`~estcal.estimate.lsq.calibrate_lsq` does)
+
+    Returns
+    -------
+    CalibrationResult with ``extra["innovation"]`` (tests), ``extra["filter"]``, ``extra["q"]``.
+    """
+    t0 = time.perf_counter()
+    problem, fidx, names = resolve_free(problem, free)
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    P0m = _prior(problem, names, fidx, prior_std, P0)
+    Q = process_noise(names, q)
+    gp = GroupedProblem(problem)
+    ng = len(gp)
+    batches = [list(range(i, min(i + batch_size, ng))) for i in range(0, ng, batch_size)]
+    subs = [gp.subproblem(b) for b in batches]
+    lin_traj = None
+    hist_x, hist_s = [], []
+    for it in range(passes):
+        flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha)
+        traj = []
+        for k, sub in enumerate(subs):
+            flt.step(sub, None if lin_traj is None else lin_traj[k])
+            traj.append(flt.x)
+            if history and it == passes - 1:
+                hist_x.append(flt.x)
+                hist_s.append(flt.std)
+        if filter == "ukf":
+            break
+        # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
+        lin_traj = [traj[-1]] * len(traj)
+    x, P = flt.x, flt.P
+    theta_full = flt.full(x)
+    known = noise_known(problem)
+    rows = problem.evaluate(theta_full, jacobian=False)
+    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    dof = len(rows.e) - len(fidx)
+    if scale_covariance is None:
+        scale_covariance = not known
+    src = "model (filter P)"
+    if scale_covariance and dof > 0:
+        P = P * (chi2 / dof)
+        src = "filter P scaled by sigma0^2"
+    bi = default_burn_in(flt.monitor.dims, len(fidx)) if burn_in is None else burn_in
+    extra = {"filter": filter, "q": np.sqrt(np.diag(Q)), "n_updates": flt.n_steps, "batch_size": batch_size,
+             "passes": passes, "prior_std": np.sqrt(np.diag(P0m))}
+    try:
+        extra["innovation"] = flt.monitor.tests(burn_in=bi, lags=lags).to_dict()
+    except ValueError as exc:
+        extra["innovation"] = {"error": str(exc)}
+    if history:
+        extra["history"] = {"estimate": np.array(hist_x), "std": np.array(hist_s), "nis": np.array(flt.monitor.nis)}
+    return finish_result(problem, "kalman" if filter == "ekf" else "ukf", names, fidx, x, P, theta_full, nominal,
+                         n_iterations=passes, converged=True, covariance_source=src, theta_before=theta,
+                         validation=validation, t0=t0, extra=extra)
+
+
+def calibrate_ukf(problem, free=None, validation=(), **options):
+    """:func:`calibrate_kalman` with filterpy's UnscentedKalmanFilter (single pass)."""
+    options.pop("filter", None)
+    return calibrate_kalman(problem, free=free, validation=validation, filter="ukf", **options)
