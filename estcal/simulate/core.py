@@ -451,8 +451,10 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     if q_mask.any():
         rec[:, q_mask] = np.round(rec[:, q_mask] / res[q_mask]) * res[q_mask]
 
-    ds = dataset_from_arrays(nominal.joint_names, rec, points=pts, R=R, p=p, context=context, columns=columns,
-                             path=None)
+    # approach columns are effect context too: in Dataset.context so that code passing
+    # ``dataset.context`` to the kinematics sees them (and in columns, as a CSV reload gives)
+    ds = dataset_from_arrays(nominal.joint_names, rec, points=pts, R=R, p=p, context={**context, **columns},
+                             columns=columns, path=None)
 
     # ---- how wrong is the nominal model (at the recorded readings) w.r.t. the true measurement
     kn = nominal.kinematics(rec, jacobian=False)
