@@ -1,0 +1,454 @@
+"""Calibration as a factor graph in gtsam (batch LM / Dogleg, incremental iSAM2, smoothing).
+
+Variables
+---------
+* ``x0`` — the free calibration parameters as one ``gtsam`` Vector variable
+  (or, for time-varying calibration, a constant block ``c0`` plus one varying
+  block ``v{b}`` per time batch b);
+* optionally ``q{i}`` — the latent joint readings of pose i (errors in
+  variables): the encoder reading enters as a prior factor with the encoder
+  noise, instead of being taken as exact.
+
+Factors
+-------
+* one :class:`gtsam.CustomFactor` per measurement group (the rows of one pose
+  of one term of the :class:`~estcal.methods.problem.Problem`, so every
+  measurement method of the problem is supported). Its error is the whitened
+  residual ``(predicted − measured)/σ = −e/σ`` and its Jacobian ``H/σ`` (rows
+  of the identification Jacobian), with a unit noise model — optionally wrapped
+  in ``noiseModel.Robust`` with a Huber or Cauchy kernel (threshold in σ units);
+* Gaussian priors on the parameters (``PriorFactorVector``), optional for the
+  batch solvers (none by default: the solution is then the least-squares one)
+  and required by iSAM2 and the smoother;
+* between factors ``(v_{b+1} − v_b)/σ_q`` whose noise is the process noise —
+  the batch (smoother) counterpart of the random-walk Kalman filter.
+
+The factor callbacks share a cache: gtsam linearises every factor at the same
+values, so the first factor of a block evaluates all the block's poses in one
+vectorised ``Problem.evaluate`` and the others read their rows from it.
+``extra["python_factor_time_s"]`` reports the time spent inside the Python
+callbacks (kinematics included) against the total solve time, which says
+whether the Python ``CustomFactor`` is the bottleneck.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._common import GroupedProblem, default_prior_std, finish_result, noise_known, resolve_free
+
+__all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise"]
+
+
+def _gtsam():
+    try:
+        import gtsam
+    except ImportError as exc:  # pragma: no cover - gtsam is a declared dependency
+        raise ImportError("the factor-graph estimators need gtsam (pip install gtsam)") from exc
+    return gtsam
+
+
+def robust_noise(dim: int, kernel: str | None = None, k: float | None = None):
+    """Unit noise model of dimension ``dim``, optionally robust (``huber`` k=1.345, ``cauchy`` k=2.385).
+
+    The residuals are already whitened, so the kernel threshold ``k`` is in units of σ.
+    """
+    gtsam = _gtsam()
+    base = gtsam.noiseModel.Unit.Create(dim)
+    if kernel is None or kernel in ("none", "l2", "gaussian"):
+        return base
+    kernel = kernel.lower()
+    if kernel == "huber":
+        m = gtsam.noiseModel.mEstimator.Huber.Create(1.345 if k is None else k)
+    elif kernel == "cauchy":
+        m = gtsam.noiseModel.mEstimator.Cauchy.Create(2.385 if k is None else k)
+    else:
+        raise ValueError(f"unknown robust kernel {kernel!r}; choose 'huber', 'cauchy' or none")
+    return gtsam.noiseModel.Robust.Create(m, base)
+
+
+class _Timer:
+    def __init__(self):
+        self.t = 0.0
+        self.calls = 0
+        self.evals = 0
+
+
+class _Block:
+    """Rows of a set of groups at a given free-parameter vector, cached on the vector's bytes."""
+
+    def __init__(self, gp: GroupedProblem, ids, theta, fidx, timer: _Timer):
+        self.sub, self.row_group = _sub_with_rows(gp, ids)
+        self.theta = theta
+        self.fidx = fidx
+        self.timer = timer
+        self._key = None
+        self._rows = None
+        self.slices = {g: np.flatnonzero(self.row_group == g) for g in ids}
+
+    def rows(self, x):
+        k = x.tobytes()
+        if k != self._key:
+            th = self.theta.copy()
+            th[self.fidx] = x
+            r = self.sub.evaluate(th)
+            self._rows = (-r.e / r.sigma, r.H[:, self.fidx] / r.sigma[:, None])
+            self._key = k
+            self.timer.evals += 1
+        return self._rows
+
+
+def _sub_with_rows(gp: GroupedProblem, ids):
+    """Sub-problem of groups ``ids`` and the group id of each of its rows."""
+    ids = list(ids)
+    sub = gp.subproblem(ids)
+    if not gp.splittable:
+        return sub, gp.row_group[gp.rows_of(ids)]
+    r = sub.evaluate(jacobian=False)
+    back = {}
+    ti_new = 0
+    for ti in range(len(gp.problem.terms)):
+        poses = sorted(gp.groups[i].pose for i in ids if gp.groups[i].term == ti)
+        if poses:
+            for local, pose in enumerate(poses):
+                back[(ti_new, local)] = gp._row_index[(ti, pose)]
+            ti_new += 1
+    term = r.term if r.term is not None else np.zeros(len(r.e), int)
+    return sub, np.array([back[(a, b)] for a, b in zip(term.tolist(), r.pose.tolist())])
+
+
+def _measurement_factor(block: _Block, g: int, keys, parts, x_template, noise):
+    """CustomFactor on ``keys``; ``parts[i]`` = positions in the free vector of key i's entries."""
+    gtsam = _gtsam()
+    sl = block.slices[g]
+    timer = block.timer
+
+    def error(this, values, jac):
+        t = time.perf_counter()
+        x = x_template.copy()
+        for key, part in zip(keys, parts):
+            x[part] = values.atVector(key)
+        r, A = block.rows(x)
+        if jac is not None:
+            for i, part in enumerate(parts):
+                jac[i] = A[sl][:, part]
+        timer.t += time.perf_counter() - t
+        timer.calls += 1
+        return r[sl]
+
+    return gtsam.CustomFactor(noise, list(keys), error)
+
+
+def _prior_std(problem, names, prior_std):
+    if prior_std is None or (isinstance(prior_std, str) and prior_std == "default"):
+        return default_prior_std(problem, names)
+    if isinstance(prior_std, dict):
+        s = default_prior_std(problem, names)
+        for k, v in prior_std.items():
+            s[names.index(k)] = v
+        return s
+    return np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+
+
+def _check(problem, fidx, names, theta):
+    from .lsq import _weighted, check_identifiable
+
+    A, _ = _weighted(problem.evaluate(theta), fidx)
+    check_identifiable(A, names)
+
+
+def _latent_factor(sub, theta, fidx, robot, xkey, qkey, noise, timer):
+    """Errors-in-variables factor: measurement of one pose as a function of (θ, joint readings)."""
+    gtsam = _gtsam()
+    term = sub.terms[0]
+    data0 = term.data
+    off = robot.offset_idx
+    gi = robot.gain_idx
+
+    def error(this, values, jac):
+        t = time.perf_counter()
+        x = values.atVector(xkey)
+        r = np.asarray(values.atVector(qkey), float)
+        th = theta.copy()
+        th[fidx] = x
+        d = data0.subset(slice(None))
+        d.readings = r[None, :]
+        rows = term.method.rows(robot, th, d, term.noise, jacobian=jac is not None)
+        err = -rows.e / rows.sigma
+        if jac is not None:
+            Hs = rows.H / rows.sigma[:, None]
+            K = th[gi]
+            if robot.coupling is None:
+                D = np.diag(K)
+            else:
+                Cj, Cm = (np.asarray(c, float) for c in robot.coupling)
+                D = Cj @ np.diag(K) @ Cm
+            jac[0] = Hs[:, fidx]
+            jac[1] = Hs[:, off] @ D  # ∂pred/∂reading = ∂pred/∂q · ∂q/∂reading (offset column = ∂/∂q)
+        timer.t += time.perf_counter() - t
+        timer.calls += 1
+        timer.evals += 1
+        return err
+
+    return gtsam.CustomFactor(noise, [xkey, qkey], error)
+
+
+def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm", robust: str | None = None,
+                    robust_k: float | None = None, prior_std=None, use_prior: bool = False, theta0=None,
+                    max_iter: int = 100, latent_joints: bool = False, encoder_std=None, check: bool = True,
+                    marginals: bool = True, **_ignored):
+    """Batch factor-graph calibration (gtsam LM or Dogleg) with marginal covariances.
+
+    Parameters
+    ----------
+    problem : :class:`~estcal.methods.problem.Problem`
+    free : free parameter names/patterns (default: the problem's free mask)
+    optimizer : ``"lm"`` (LevenbergMarquardtOptimizer) or ``"dogleg"`` (DoglegOptimizer)
+    robust : ``None``, ``"huber"`` or ``"cauchy"`` (threshold ``robust_k`` in σ units)
+    prior_std / use_prior : Gaussian prior on the free parameters around their initial
+        values (added when ``use_prior`` or ``prior_std`` is given)
+    latent_joints : errors-in-variables — one latent reading vector per pose with an
+        encoder prior of std ``encoder_std`` (rad or m per joint; default 1e-4)
+    marginals : covariance from :class:`gtsam.Marginals` (of the free-parameter variable)
+
+    Returns
+    -------
+    CalibrationResult (``method="gtsam"``); ``extra`` holds the optimiser, kernel,
+    final graph error, and Python-callback timing; with latent joints the estimated
+    readings' corrections in ``extra["latent_readings_correction"]``.
+    """
+    gtsam = _gtsam()
+    t0 = time.perf_counter()
+    problem, fidx, names = resolve_free(problem, free)
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    if check:
+        _check(problem, fidx, names, theta)
+    gp = GroupedProblem(problem)
+    timer = _Timer()
+    X = gtsam.symbol("x", 0)
+    graph = gtsam.NonlinearFactorGraph()
+    init = gtsam.Values()
+    init.insert(X, nominal.copy())
+    p = len(fidx)
+    allpos = np.arange(p)
+    if latent_joints:
+        if not gp.splittable:
+            raise ValueError("latent joints need a Problem whose terms have datasets")
+        robot = problem.robot
+        n = robot.n_joints
+        es = np.broadcast_to(np.asarray(1e-4 if encoder_std is None else encoder_std, float), (n,))
+        enc_noise = gtsam.noiseModel.Diagonal.Sigmas(es.copy())
+        qkeys = []
+        for gi, g in enumerate(gp.groups):
+            sub = gp.subproblem([gi])
+            r0 = sub.terms[0].data.readings[0].astype(float)
+            qk = gtsam.symbol("q", gi)
+            qkeys.append((qk, r0))
+            init.insert(qk, r0.copy())
+            graph.add(gtsam.PriorFactorVector(qk, r0.copy(), enc_noise))
+            m = len(sub.evaluate(theta, jacobian=False).e)
+            graph.add(_latent_factor(sub, theta, fidx, robot, X, qk, robust_noise(m, robust, robust_k), timer))
+    else:
+        block = _Block(gp, range(len(gp)), theta, fidx, timer)
+        for g in range(len(gp)):
+            m = block.slices[g].size
+            graph.add(_measurement_factor(block, g, [X], [allpos], nominal, robust_noise(m, robust, robust_k)))
+    if use_prior or prior_std is not None:
+        s = _prior_std(problem, names, prior_std)
+        graph.add(gtsam.PriorFactorVector(X, nominal.copy(), gtsam.noiseModel.Diagonal.Sigmas(s)))
+    if optimizer == "lm":
+        params = gtsam.LevenbergMarquardtParams()
+        params.setDiagonalDamping(True)
+        params.setlambdaInitial(1e-3)
+    elif optimizer == "dogleg":
+        params = gtsam.DoglegParams()
+    else:
+        raise ValueError(f"unknown optimizer {optimizer!r}; choose 'lm' or 'dogleg'")
+    params.setMaxIterations(max_iter)
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-14)
+    t_opt = time.perf_counter()
+    opt = (gtsam.LevenbergMarquardtOptimizer if optimizer == "lm" else gtsam.DoglegOptimizer)(graph, init, params)
+    result = opt.optimize()
+    solve_s = time.perf_counter() - t_opt
+    x = np.asarray(result.atVector(X), float)
+    n_iter = int(opt.iterations())
+    cov = None
+    if marginals:
+        t_m = time.perf_counter()
+        cov = np.asarray(gtsam.Marginals(graph, result).marginalCovariance(X))
+        marg_s = time.perf_counter() - t_m
+    else:
+        marg_s = 0.0
+        cov = np.full((p, p), np.nan)
+    theta_full = theta.copy()
+    theta_full[fidx] = x
+    rows = problem.evaluate(theta_full, jacobian=False)
+    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    dof = len(rows.e) - p
+    src = "gtsam marginals"
+    if not noise_known(problem) and dof > 0 and robust is None:
+        cov = cov * (chi2 / dof)
+        src = "gtsam marginals scaled by sigma0^2"
+    extra = {"optimizer": optimizer, "robust": robust or "none", "graph_error": float(graph.error(result)),
+             "n_factors": int(graph.size()), "solve_time_s": solve_s, "marginals_time_s": marg_s,
+             "python_factor_time_s": timer.t, "python_factor_calls": timer.calls,
+             "kinematics_evaluations": timer.evals,
+             "python_factor_fraction": timer.t / max(solve_s + marg_s, 1e-12)}
+    if latent_joints:
+        corr = np.array([np.asarray(result.atVector(k)) - r0 for k, r0 in qkeys])
+        extra["latent_readings_correction"] = corr
+        extra["encoder_std"] = es
+    return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
+                         converged=n_iter < max_iter, covariance_source=src, theta_before=theta,
+                         validation=validation, t0=t0, extra=extra)
+
+
+def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0=None, batch_size: int = 1,
+                    relinearize_threshold: float = 1e-9, robust: str | None = None, robust_k: float | None = None,
+                    history: bool = False, **_ignored):
+    """Incremental calibration with gtsam's iSAM2: measurement groups added as they arrive.
+
+    A Gaussian prior (default :func:`default_prior_std`, wide) makes the problem
+    well posed before enough poses have arrived. After each update the current
+    estimate and marginal covariance are available (``history=True`` keeps their
+    trajectory and the per-update time in ``extra``).
+    """
+    gtsam = _gtsam()
+    t0 = time.perf_counter()
+    problem, fidx, names = resolve_free(problem, free)
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    gp = GroupedProblem(problem)
+    timer = _Timer()
+    X = gtsam.symbol("x", 0)
+    p = len(fidx)
+    block = _Block(gp, range(len(gp)), theta, fidx, timer)
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(relinearize_threshold)
+    params.relinearizeSkip = 1
+    isam = gtsam.ISAM2(params)
+    s = _prior_std(problem, names, prior_std)
+    first = gtsam.NonlinearFactorGraph()
+    first.add(gtsam.PriorFactorVector(X, nominal.copy(), gtsam.noiseModel.Diagonal.Sigmas(s)))
+    init = gtsam.Values()
+    init.insert(X, nominal.copy())
+    pending = first
+    times, hist_x, hist_s = [], [], []
+    allpos = np.arange(p)
+    for start in range(0, len(gp), batch_size):
+        g = pending if start == 0 else gtsam.NonlinearFactorGraph()
+        for gi in range(start, min(start + batch_size, len(gp))):
+            m = block.slices[gi].size
+            g.add(_measurement_factor(block, gi, [X], [allpos], nominal, robust_noise(m, robust, robust_k)))
+        tu = time.perf_counter()
+        isam.update(g, init if start == 0 else gtsam.Values())
+        times.append(time.perf_counter() - tu)
+        if history:
+            est = isam.calculateEstimate()
+            hist_x.append(np.asarray(est.atVector(X)))
+            hist_s.append(np.sqrt(np.diag(isam.marginalCovariance(X))))
+    est = isam.calculateEstimate()
+    x = np.asarray(est.atVector(X), float)
+    cov = np.asarray(isam.marginalCovariance(X))
+    theta_full = theta.copy()
+    theta_full[fidx] = x
+    rows = problem.evaluate(theta_full, jacobian=False)
+    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    dof = len(rows.e) - p
+    src = "iSAM2 marginal"
+    if not noise_known(problem) and dof > 0:
+        cov = cov * (chi2 / dof)
+        src = "iSAM2 marginal scaled by sigma0^2"
+    extra = {"n_updates": len(times), "update_time_s": np.array(times), "mean_update_time_s": float(np.mean(times)),
+             "python_factor_time_s": timer.t, "kinematics_evaluations": timer.evals, "prior_std": s}
+    if history:
+        extra["history"] = {"estimate": np.array(hist_x), "std": np.array(hist_s)}
+    return finish_result(problem, "isam2", names, fidx, x, cov, theta_full, nominal, n_iterations=len(times),
+                         converged=True, covariance_source=src, theta_before=theta, validation=validation, t0=t0,
+                         extra=extra)
+
+
+def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_size: int = 10, prior_std=None,
+                          theta0=None, max_iter: int = 100, robust: str | None = None, **_ignored):
+    """Time-varying calibration: one parameter state per batch of poses, linked by process noise.
+
+    Parameters whose process-noise std ``q`` (per batch transition, same forms as
+    :func:`estcal.estimate.kalman.process_noise` except full matrices) is zero
+    share one constant variable; the others get a variable ``v_b`` per batch b,
+    linked by between factors ``(v_{b+1} − v_b)/q``. A prior (default wide) sits on
+    the first state. The smoothed trajectory and its marginal stds are in
+    ``extra["trajectory"]``; the returned estimate is the last batch's state (the
+    quantity the Kalman filter reports after the last update).
+    """
+    from .kalman import process_noise
+
+    gtsam = _gtsam()
+    t0 = time.perf_counter()
+    problem, fidx, names = resolve_free(problem, free)
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    qs = np.sqrt(np.diag(process_noise(names, q)))
+    var = np.flatnonzero(qs > 0)
+    const = np.flatnonzero(qs == 0)
+    if var.size == 0:
+        raise ValueError("time-varying calibration needs q > 0 for at least one parameter")
+    gp = GroupedProblem(problem)
+    timer = _Timer()
+    batches = [list(range(i, min(i + batch_size, len(gp)))) for i in range(0, len(gp), batch_size)]
+    s = _prior_std(problem, names, prior_std)
+    graph = gtsam.NonlinearFactorGraph()
+    init = gtsam.Values()
+    C = gtsam.symbol("c", 0)
+    if const.size:
+        init.insert(C, nominal[const].copy())
+        graph.add(gtsam.PriorFactorVector(C, nominal[const].copy(), gtsam.noiseModel.Diagonal.Sigmas(s[const])))
+    V = [gtsam.symbol("v", b) for b in range(len(batches))]
+    graph.add(gtsam.PriorFactorVector(V[0], nominal[var].copy(), gtsam.noiseModel.Diagonal.Sigmas(s[var])))
+    between = gtsam.noiseModel.Diagonal.Sigmas(qs[var])
+    for b, ids in enumerate(batches):
+        init.insert(V[b], nominal[var].copy())
+        if b:
+            graph.add(gtsam.BetweenFactorVector(V[b - 1], V[b], np.zeros(var.size), between))
+        block = _Block(gp, ids, theta, fidx, timer)
+        keys, parts = ([C, V[b]], [const, var]) if const.size else ([V[b]], [var])
+        for g in ids:
+            m = block.slices[g].size
+            graph.add(_measurement_factor(block, g, keys, parts, nominal, robust_noise(m, robust)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setDiagonalDamping(True)
+    params.setMaxIterations(max_iter)
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-14)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, init, params)
+    result = opt.optimize()
+    marg = gtsam.Marginals(graph, result)
+    traj = np.empty((len(batches), len(fidx)))
+    tstd = np.empty_like(traj)
+    for b in range(len(batches)):
+        traj[b, var] = np.asarray(result.atVector(V[b]))
+        if const.size:
+            traj[b, const] = np.asarray(result.atVector(C))
+    # covariance of the last state: joint marginal of (c, v_last)
+    keys = gtsam.KeyVector([C, V[-1]]) if const.size else gtsam.KeyVector([V[-1]])
+    J = np.asarray(marg.jointMarginalCovariance(keys).fullMatrix())
+    order = np.concatenate([const, var]) if const.size else var
+    cov = np.empty((len(fidx), len(fidx)))
+    cov[np.ix_(order, order)] = J
+    for b in range(len(batches)):
+        vs = np.sqrt(np.diag(np.asarray(marg.marginalCovariance(V[b]))))
+        tstd[b, var] = vs
+        if const.size:
+            tstd[b, const] = np.sqrt(np.clip(np.diag(cov)[const], 0, None))
+    x = traj[-1]
+    theta_full = theta.copy()
+    theta_full[fidx] = x
+    extra = {"trajectory": {"estimate": traj, "std": tstd, "batch_size": batch_size,
+                            "batch_first_group": [b[0] for b in batches]},
+             "q": qs, "varying": [names[i] for i in var], "python_factor_time_s": timer.t}
+    return finish_result(problem, "gtsam-timevarying", names, fidx, x, cov, theta_full, nominal,
+                         n_iterations=int(opt.iterations()), converged=int(opt.iterations()) < max_iter,
+                         covariance_source="gtsam marginals (last state)", theta_before=theta,
+                         validation=validation, t0=t0, extra=extra)

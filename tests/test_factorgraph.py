@@ -1,0 +1,102 @@
+"""Factor-graph calibration (gtsam): batch LM/Dogleg, robust kernels, iSAM2, EIV, time-varying smoother."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gtsam")
+
+from estcal.estimate.factorgraph import calibrate_gtsam, calibrate_isam2, calibrate_timevarying  # noqa: E402
+from estcal.estimate.kalman import calibrate_kalman  # noqa: E402
+from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
+from estcal.estimate.registry import get_estimator  # noqa: E402
+from estcal.estimate.testproblems import drifting_problem, simulated_problem  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def puma():
+    sim = simulated_problem("puma560", n_poses=60, seed=11)
+    return sim, calibrate_lsq(sim.problem)
+
+
+@pytest.mark.parametrize("optimizer", ["lm", "dogleg"])
+def test_batch_equals_lm_with_marginals(puma, optimizer):
+    sim, lm = puma
+    g = calibrate_gtsam(sim.problem, optimizer=optimizer)
+    assert np.abs((g.estimate - lm.estimate) / lm.std).max() < 1e-3
+    # gtsam.Marginals vs (HᵀWH)⁻¹ of the lead's LM
+    np.testing.assert_allclose(g.covariance, lm.covariance, rtol=1e-6, atol=1e-14)
+    assert g.extra["python_factor_calls"] > 0 and 0 < g.extra["python_factor_fraction"]
+
+
+def test_registry_and_json(puma):
+    sim, lm = puma
+    g = get_estimator("gtsam")(sim.problem, free=sim.free, validation=())
+    d = g.to_dict()
+    assert d["method"] == "gtsam" and set(d["parameters"]) == set(lm.names)
+    i2 = get_estimator("isam2")(sim.problem, free=sim.free)
+    assert np.abs((i2.estimate - lm.estimate) / lm.std).max() < 1e-2
+    np.testing.assert_allclose(i2.std, lm.std, rtol=1e-3)
+
+
+def test_unknown_noise_scales_covariance_like_lm():
+    sim = simulated_problem("puma560", n_poses=60, seed=12, known=False)
+    lm = calibrate_lsq(sim.problem)
+    g = calibrate_gtsam(sim.problem)
+    np.testing.assert_allclose(g.std, lm.std, rtol=1e-5)
+
+
+def test_prior_matches_linear_map():
+    """With a prior the solution is the MAP (4.69-4.70): compare with the EKF after 3 passes."""
+    sim = simulated_problem("puma560", n_poses=40, seed=13)
+    g = calibrate_gtsam(sim.problem, prior_std=1e-3)
+    k = calibrate_kalman(sim.problem, prior_std=1e-3, passes=4)
+    assert np.abs((g.estimate - k.estimate) / k.std).max() < 1e-3
+    np.testing.assert_allclose(g.std, k.std, rtol=1e-4)
+
+
+def test_robust_kernels_resist_outliers():
+    sim = simulated_problem("puma560", n_poses=100, seed=14, outliers=0.1, outlier_scale=100.0)
+    truth = sim.truth_free
+    clean = simulated_problem("puma560", n_poses=100, seed=14)
+    ref = calibrate_lsq(clean.problem)
+    plain = calibrate_gtsam(sim.problem)
+    err = lambda r: np.sqrt(np.mean(((r.estimate - truth) / ref.std) ** 2))  # noqa: E731
+    for kernel in ("huber", "cauchy"):
+        rob = calibrate_gtsam(sim.problem, robust=kernel)
+        assert err(rob) < 0.25 * err(plain), kernel
+    assert err(calibrate_gtsam(sim.problem, robust="cauchy")) < 3.0
+
+
+def test_errors_in_variables_latent_joints():
+    sim = simulated_problem("puma560", n_poses=30, seed=15)
+    lm = calibrate_lsq(sim.problem)
+    # tight encoder prior: the latent readings stay put and the answer is the plain one
+    g = calibrate_gtsam(sim.problem, latent_joints=True, encoder_std=1e-10)
+    assert np.abs((g.estimate - lm.estimate) / lm.std).max() < 1e-3
+    # loose encoder prior: parameters less certain (encoder noise is a factor, not folded into R)
+    g2 = calibrate_gtsam(sim.problem, latent_joints=True, encoder_std=1e-4)
+    assert np.all(g2.std >= g.std * (1 - 1e-9))
+    assert g2.extra["latent_readings_correction"].shape == (30, 6)
+
+
+def test_timevarying_smoother_last_state_equals_filter():
+    sim = drifting_problem("puma560", n_poses=120, seed=16, drift={"theta_2": 3e-3})
+    q = {"theta_2": 3e-3 / 12 * 1.5}  # per batch of 10 poses
+    sm = calibrate_timevarying(sim.problem, q=q, batch_size=10)
+    kf = calibrate_kalman(sim.problem, q=q, batch_size=10, passes=3)
+    # same information; they differ only through where the drifting state is linearised
+    # (filtered vs smoothed estimates), a second-order effect
+    assert np.abs((sm.estimate - kf.estimate) / kf.std).max() < 0.15
+    np.testing.assert_allclose(sm.std, kf.std, rtol=1e-2)
+    i = sim.free.index("theta_2")
+    traj = sm.extra["trajectory"]["estimate"][:, i]
+    truth = sim.truth_path[[b + 5 for b in sm.extra["trajectory"]["batch_first_group"]], sim.problem.params.index("theta_2")]
+    # the smoothed trajectory follows the drift (it spans most of it)
+    assert np.corrcoef(traj, truth)[0, 1] > 0.9
+
+
+def test_unidentifiable_free_set_raises():
+    sim = simulated_problem("puma560", n_poses=20, seed=17)
+    with pytest.raises(ValueError, match="identifiable"):
+        calibrate_gtsam(sim.problem, free=sim.free + ["offset_2"])
