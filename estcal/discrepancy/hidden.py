@@ -60,6 +60,8 @@ def eligible_joints(robot, effect_name, readings, context=None, min_torque=1e-3)
             if tau is None:
                 tau = robot.gravity_torques(readings, context=context)
             t = tau[:, j]
+            if np.abs(t).max() <= 1e-9 * max(np.abs(tau).max(), 1e-300):
+                continue  # numerically zero torque (vertical axis): the sign is rounding noise
             if effect_name == "joint_compliance" and np.std(t) < min_torque:
                 continue
             if effect_name == "backlash":

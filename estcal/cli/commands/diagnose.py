@@ -1,0 +1,110 @@
+"""``estcal diagnose``: what the geometric model gets wrong on measured data, and which effect explains it.
+
+Runs :func:`estcal.discrepancy.diagnose` (geometric fit, residual analysis,
+forward selection of library effects by BIC / significance test /
+cross-validation, identifiability by QR) and prints the named cause(s), the
+verdict and the RMSE of the geometric and extended models (train, CV,
+validation). Robot and data options are those of ``estcal calibrate``.
+
+JSON (``--json PATH``): ``causes`` (list of {``effect``, ``joints``,
+``parameters`` {name: {estimate, std}}, ``delta_bic``, ``explained_fraction``,
+``test``, ``p_value``, …}), ``verdict``, ``rmse_mm`` and ``max_mm``
+({``geometric``, ``extended``} × {``train``, ``cv``, ``validation``}),
+``analysis`` (noise floor, feature R², spectrum), ``steps`` (selection log),
+``model`` (the identified robot: every parameter value, effects, gravity — the
+input of ``estcal simulate --from-fit``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+__all__ = ["register"]
+
+
+def _fail(msg: str, code: int = 2):
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(code)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("diagnose")
+    def diagnose_cmd(
+        data: Path = typer.Argument(..., help="Measured dataset (CSV: joint columns + x,y,z / x1..zk / pose)."),
+        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
+        root: Optional[str] = typer.Option(None, help="URDF root link."),
+        tip: Optional[str] = typer.Option(None, help="URDF tip link."),
+        points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
+        validate: list[Path] = typer.Option([], "--validate", help="Validation dataset(s) (scored, never used "
+                                                                  "for decisions)."),
+        effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
+                                                                      "(default: every registered effect)."),
+        noise_pos: Optional[float] = typer.Option(None, "--noise-pos", help="Known position noise std (m); "
+                                                  "default unknown (F tests, no noise-floor test)."),
+        k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
+        alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
+        max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
+        urdf_masses: bool = typer.Option(True, "--urdf-chain-masses/--no-urdf-chain-masses",
+                                         help="For URDF robots, count the links after the last actuated "
+                                              "joint (tool, sensor, gripper) in its mass."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
+                                                                     "summary.txt."),
+    ) -> None:
+        """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
+        from estcal.cli.commands.calibrate import count_point_columns
+        from estcal.discrepancy import diagnose
+        from estcal.io import load_dataset
+        from estcal.io.dataset import DatasetError
+        from estcal.io.robotfile import load_robot
+
+        if not data.exists():
+            _fail(f"{data}: file not found")
+        k, _, has_quat = count_point_columns(data)
+        n_markers = None
+        if k and not has_quat:
+            n_markers = points if points is not None else k
+            if n_markers > k:
+                _fail(f"{data}: --points {points} but the file has {k} points (x1..z{k})")
+        elif points is not None:
+            _fail(f"{data}: --points needs x1,y1,z1 … columns")
+        try:
+            rob = load_robot(robot, root=root, tip=tip, n_markers=n_markers)
+        except (ValueError, FileNotFoundError, KeyError) as exc:
+            _fail(str(exc))
+        if urdf_masses and rob.meta.get("urdf"):
+            from estcal.discrepancy.masses import with_urdf_masses
+
+            rob = with_urdf_masses(rob)
+        try:
+            ds = load_dataset(data, rob, points=n_markers if k else None)
+            vals = [load_dataset(v, rob, points=n_markers if k else None) for v in validate]
+        except (DatasetError, FileNotFoundError) as exc:
+            _fail(str(exc))
+        cands = None
+        if effects:
+            from estcal.effects import EFFECTS
+
+            cands = [e.strip() for e in effects.split(",") if e.strip()]
+            bad = [e for e in cands if e not in EFFECTS]
+            if bad:
+                _fail(f"--effects: unknown effect(s) {bad}; registered: {', '.join(sorted(EFFECTS))}")
+        spec = robot if not (root or tip) else None
+        try:
+            res = diagnose(rob, ds, validate=vals, candidates=cands, k_folds=k_folds, noise=noise_pos, alpha=alpha,
+                           max_effects=max_effects, report=report, rng=seed, robot_spec=spec)
+        except ValueError as exc:
+            _fail(str(exc))
+        res.model["robot_spec"] = robot
+        res.model["root"], res.model["tip"] = root, tip
+        res.model["urdf_chain_masses"] = bool(urdf_masses and rob.meta.get("urdf"))
+        typer.echo(str(res))
+        if report is not None:
+            res.to_json(Path(report) / "diagnosis.json")
+            typer.echo(f"report: {report}/ ({', '.join(res.report_files)})")
+        if json_path:
+            res.to_json(json_path)
+            typer.echo(f"wrote {json_path}")
