@@ -190,8 +190,10 @@ class ThermalExpansion(Effect):
 
     Only points are corrected (the protocol's ``point_correction``), so use it
     with position/points data (a robot with markers). The derivative with
-    respect to α is exact; the O(α ΔT) change of the geometric columns is
-    neglected, as for every effect.
+    respect to α is exact. The other parameters' point columns change by
+    O(α ΔT) (the expanded point is not rigidly attached); :meth:`correct_jacobian`
+    makes them exact when the chain passes the pose Jacobian ``J`` to
+    ``point_correction``, otherwise that relative 1e-4 term is neglected.
     """
 
     name = "thermal_expansion"
@@ -232,7 +234,7 @@ class ThermalExpansion(Effect):
             return t - self.t_reference
         return np.zeros(N)
 
-    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None):
+    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None):
         N = points.shape[0]
         o = np.asarray(theta, float)[self._base_idx]
         dT = self.delta_T(context, N)
@@ -241,7 +243,27 @@ class ThermalExpansion(Effect):
             return s[:, None, None] * (points - o), None
         # With derivatives the chain passes the already corrected points x' = x + s (x - o).
         rel = (points - o) / (1.0 + s)[:, None, None]
+        if J_points is not None and J is not None:
+            self.correct_jacobian(J_points, J, points, o, s)
         return s[:, None, None] * rel, (dT[:, None, None] * rel)[..., None]
+
+    def correct_jacobian(self, J_points, J, points, o, s) -> None:
+        """Make the other parameters' point columns exact (in place).
+
+        The chain differentiates the corrected point ``x' = o + (1+s)(x − o)`` as if it
+        were rigidly attached, giving ``v_i(x')``; the exact column is
+        ``(1+s) v_i(x) − s ∂o/∂θ_i = v_i(x') + s (v_i(x') + ω_i × (o − x') − ∂o/∂θ_i)``,
+        with ``ω_i`` the tool's angular velocity column (rows 3–5 of the pose Jacobian
+        ``J``) and ``∂o/∂θ`` the unit columns of ``base_tx, base_ty, base_tz``. Used
+        when the chain passes ``J``; otherwise the O(α ΔT) difference is neglected.
+        """
+        w = J[:, 3:, :]  # (N, 3, P)
+        for k in range(points.shape[1]):
+            d = o - points[:, k]  # (N, 3)
+            wxd = np.cross(w, d[:, :, None], axisa=1, axisb=1, axisc=1)  # (N, 3, P)
+            corr = J_points[:, k] + wxd
+            corr[:, [0, 1, 2], self._base_idx] -= 1.0
+            J_points[:, k] += s[:, None, None] * corr
 
 
 for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift):
