@@ -18,7 +18,7 @@ Usage::
                                           [--quick] [--json PATH]
 
 ``--json`` writes the keys above plus ``robot``, ``n_poses``, ``n_params``,
-``repeats``, ``target_ms`` and ``meets_target``. Not a timed test: numbers
+``repeats``, ``target_ms``, ``meets_target`` (median) and ``meets_target_best``. Not a timed test: numbers
 depend on the machine.
 """
 from __future__ import annotations
@@ -82,6 +82,7 @@ def run(robot_name: str = "puma560", n_poses: int = 10_000, repeats: int = 7, fd
         "fd_jac_ms": t_fd * 1e3, "fd_over_analytic": t_fd / t_jac,
         "max_abs_diff": float(np.abs(Ja - Jf).max()),
         "target_ms": 50.0, "meets_target": bool(t_jac * 1e3 < 50.0) if n_poses == 10_000 else None,
+        "meets_target_best": bool(ts_jac.min() * 1e3 < 50.0) if n_poses == 10_000 else None,
         "python": platform.python_version(), "numpy": np.__version__, "machine": platform.machine(),
     }
 
@@ -103,8 +104,8 @@ def main(argv=None) -> dict:
     print(f"  FK only                 {r['fk_ms']:9.2f} ms   [{r['fk_best_ms']:.2f}]")
     print(f"  FK + analytic Jacobian  {r['fk_jac_ms']:9.2f} ms   [{r['fk_jac_best_ms']:.2f}]   "
           f"{r['poses_per_s']:,.0f} poses/s"
-          + (f"   target < 50 ms: {'met' if r['meets_target'] else 'NOT met'}" if r["meets_target"] is not None
-             else ""))
+          + (f"   target < 50 ms: median {'met' if r['meets_target'] else 'NOT met'}, best "
+             f"{'met' if r['meets_target_best'] else 'NOT met'}" if r["meets_target"] is not None else ""))
     print(f"  finite-diff Jacobian    {r['fd_jac_ms']:9.2f} ms   ({r['fd_over_analytic']:.1f}x the analytic time)")
     print(f"  max |analytic - FD|     {r['max_abs_diff']:.2e}")
     if a.json:
