@@ -13,7 +13,7 @@ same poses, noise and prior (tested in ``tests/test_design_model.py``).
 
 Methods
 -------
-``position``  tool position (3 rows, σ in m)
+``position``  one point: marker 1 if the robot has markers, else the tool origin (3 rows, σ in m)
 ``pose``      tool position + orientation (6 rows; σ in m and ``sigma_rot`` in rad)
 ``points``    positions of all marker points (3 k rows, σ in m)
 """
@@ -139,8 +139,8 @@ class DesignModel:
         """Measurement Jacobian blocks (..., r, p) for readings ``Q`` (..., n)."""
         flat, lead = self._flat(Q)
         kin = self.robot.kinematics(flat, self.theta, jacobian=True)
-        if self.method == "position":
-            J = kin.J[:, :3][:, :, self._idx]
+        if self.method == "position":  # as PositionMethod: marker 1 if the robot has markers
+            J = (kin.J_points[:, 0] if self.robot.n_markers else kin.J[:, :3])[:, :, self._idx]
         elif self.method == "pose":
             J = kin.J[:, :, self._idx]
         else:
@@ -190,48 +190,45 @@ class DesignModel:
 
 def identifiable_subset(robot: SerialRobot, method: str = "position", candidates=None, n_poses: int = 60,
                         rng=0, tol: float = 1e-8, exclude=("gain_*",), prefer=None) -> list[str]:
-    """A set of free parameters with independent Jacobian columns (QR with pivoting).
+    """A set of free parameters with independent Jacobian columns (a base set).
 
-    Columns of the stacked Jacobian over ``n_poses`` random poses are scaled to
-    unit norm (so units do not matter); a column-pivoted QR keeps the largest
-    independent set (``|R_kk| > tol |R_00|``). ``prefer`` (list of names) are
-    considered first, in order, before the greedy pivoting of the rest.
+    The stacked Jacobian over ``n_poses`` random poses (or ``candidates``) is
+    analysed by :func:`estcal.identify.core.identifiable` (GECARO App. III,
+    priority-ordered sequential QR on unit-norm columns) with priorities
+    ``prefer`` (highest, in the given order) > joint offsets > geometric >
+    base > tool > markers. Without that module a column-pivoted QR of the
+    unit-norm columns is used (``|R_kk| > tol``).
 
     Parameters whose names match ``exclude`` patterns are not considered.
     Returns the selected names in the robot's parameter order.
     """
     import fnmatch
 
-    from scipy.linalg import qr
-
     names = [nm for nm in robot.params.free_names if not any(fnmatch.fnmatchcase(nm, e) for e in exclude or ())]
     model = DesignModel(robot, method, names, sigma=1.0, sigma_rot=1.0 if method == "pose" else None)
     Q = model.random_readings(n_poses, rng) if candidates is None else np.asarray(candidates, float)
     J = model.jacobian(Q).reshape(-1, model.p)
+    kinds = dict(zip(robot.params.names, robot.params.kinds))
+    rank_of = {"offset": 5, "geometric": 4, "base": 3, "tool": 2, "marker": 1}
+    pri = np.array([rank_of.get(kinds[n], 1) for n in names], int)
+    for i, nm in enumerate(prefer or []):
+        if nm in names:
+            pri[names.index(nm)] = 100 + len(prefer) - i
+    try:
+        from estcal.identify.core import identifiable
+    except ImportError:  # pragma: no cover - depends on the tree state
+        identifiable = None
+    if identifiable is not None:
+        res = identifiable(J, names, priorities=pri)
+        keep = set(res.identifiable)
+        return [n for n in robot.params.names if n in keep]
+    from scipy.linalg import qr
+
     norms = np.linalg.norm(J, axis=0)
-    keep = norms > tol * max(norms.max(), 1e-300)
-    Js = np.where(keep, J / np.where(keep, norms, 1.0), 0.0)
-    chosen: list[int] = []
-    if prefer:
-        for nm in prefer:
-            if nm not in names:
-                continue
-            j = names.index(nm)
-            if not keep[j]:
-                continue
-            trial = chosen + [j]
-            s = np.linalg.svd(Js[:, trial], compute_uv=False)
-            if s[-1] > tol:
-                chosen = trial
-    rest = [j for j in range(len(names)) if keep[j] and j not in chosen]
-    if chosen:
-        Qc, _ = np.linalg.qr(Js[:, chosen])
-        Jr = Js[:, rest] - Qc @ (Qc.T @ Js[:, rest])
-    else:
-        Jr = Js[:, rest]
-    if rest:
-        _, R, piv = qr(Jr, mode="economic", pivoting=True)
-        d = np.abs(np.diag(R))  # columns have unit norm, so |R_kk| is an absolute scale
-        k = int(np.sum(d > tol))
-        chosen += [rest[i] for i in piv[:k]]
-    return [names[j] for j in sorted(chosen)]
+    ok = norms > 1e-12 * max(norms.max(), 1e-300)
+    order = [j for j in np.argsort(-pri, kind="stable") if ok[j]]
+    Js = J[:, order] / norms[order]
+    _, R, piv = qr(Js, mode="economic", pivoting=True)
+    k = int(np.sum(np.abs(np.diag(R)) > tol))
+    keep = {names[order[i]] for i in piv[:k]}
+    return [n for n in robot.params.names if n in keep]

@@ -1,0 +1,114 @@
+"""``estcal design``: an optimal measurement plan for a robot, method and noise model.
+
+Prints and (``--json PATH``) saves the plan (joint readings), its criterion,
+every other criterion, the predicted parameter standard deviations
+((JᵀWJ)⁻¹, the covariance the estimators report) and the distribution of the
+criterion over random plans of the same size.
+
+JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
+``plan`` (:meth:`Plan.to_dict`: ``readings_rad``, ``readings_deg``, ``value``, …),
+``criteria`` (all criteria of the plan, ``param_std`` in SI units),
+``rho0_mm`` (predicted RMS position error at each test pose), ``test_poses_rad``,
+``baseline`` (:meth:`BaselineStats.to_dict`: min/mean/max/percentiles),
+``beats_random`` (plan better than the best random plan).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("design")
+    def design_cmd(
+        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
+        method: str = typer.Option("position", "--method", help="position, pose or points."),
+        n: int = typer.Option(..., "--n", help="Number of poses m in the plan."),
+        criterion: str = typer.Option("D", "--criterion", "-c",
+                                      help="D, A, E, G, O1..O5, cond (κ(J)), cond_JtJ, test-pose, test-pose-max."),
+        test_pose: Optional[List[str]] = typer.Option(
+            None, "--test-pose", help="Test pose 'q1,q2,...' (revolute in deg, prismatic in mm); repeatable. "
+                                      "Default (when needed): mid-range of every joint."),
+        candidates: Optional[Path] = typer.Option(None, "--candidates",
+                                                  help="CSV of candidate readings (rad / m; header optional)."),
+        degrees: bool = typer.Option(False, "--degrees", help="Candidate CSV revolute columns are in degrees."),
+        algorithm: str = typer.Option("fedorov", "--algorithm",
+                                      help="greedy, fedorov, detmax (discrete) or continuous."),
+        n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidates when no CSV is given."),
+        restarts: int = typer.Option(4, "--restarts", help="Restarts (discrete) / starts (continuous)."),
+        sigma_mm: float = typer.Option(0.1, "--sigma", help="Position noise std per coordinate (mm)."),
+        sigma_rot_mrad: float = typer.Option(1.0, "--sigma-rot", help="Orientation noise std (mrad), pose method."),
+        free: Optional[str] = typer.Option(None, "--free",
+                                           help="Free parameters (comma-separated names/patterns); "
+                                                "default: an identifiable subset (offsets first)."),
+        random_plans: int = typer.Option(1000, "--random-plans", help="Random plans in the baseline."),
+        seed: int = typer.Option(0, "--seed"),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON."),
+    ) -> None:
+        """Optimise which poses to measure (plan of m poses) and compare with random plans."""
+        import numpy as np
+        from rich.console import Console
+        from rich.markup import escape
+
+        from estcal.design._cli import default_test_pose, format_readings, parse_free, parse_poses
+        from estcal.design.criteria import CRITERIA, larger_is_better, normalise_criterion
+        from estcal.design.model import DesignModel, resolve_robot
+        from estcal.design.plans import (evaluate_plan, load_candidates, optimise_continuous,
+                                         optimise_discrete, random_baseline)
+
+        console = Console()
+        try:
+            crit = normalise_criterion(criterion)
+            rb = resolve_robot(robot)
+            names = parse_free(free, rb, method)
+            model = DesignModel(rb, method, names, sigma=sigma_mm * 1e-3,
+                                sigma_rot=sigma_rot_mrad * 1e-3 if method == "pose" else None)
+            q_test = parse_poses(test_pose, rb)
+            if q_test is None and CRITERIA[crit][1]:
+                q_test = default_test_pose(rb)
+            cand = None if candidates is None else load_candidates(candidates, rb, degrees)
+            if algorithm == "continuous":
+                if cand is not None:
+                    raise ValueError("--candidates applies to the discrete algorithms, not 'continuous'")
+                plan = optimise_continuous(model, n, crit, n_starts=restarts, rng=seed, q_test=q_test,
+                                           executor="serial" if restarts <= 1 else None, prescreen=200)
+            else:
+                plan = optimise_discrete(model, n, crit, candidates=cand, n_candidates=n_candidates,
+                                         algorithm=algorithm, restarts=restarts, rng=seed, q_test=q_test)
+            crits = evaluate_plan(model, plan.readings, q_test=q_test)
+            base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test)
+        except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
+            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
+            raise typer.Exit(2) from None
+        better = plan.value > base.max if larger_is_better(crit) else plan.value < base.min
+        console.print(f"robot {rb.name}, method {method}, σ = {sigma_mm} mm, {model.p} free parameters")
+        console.print(f"plan ({plan.method}, m = {plan.m}): {crit} = {plan.value:.6g}   [{CRITERIA[crit][2]}]")
+        console.print("joint readings (" + ", ".join(rb.joint_names) + "):")
+        for line in format_readings(plan.readings, rb):
+            console.print("  " + line)
+        console.print(escape(str(crits)))
+        rho = None
+        if q_test is not None:
+            J0 = model.position_jacobian(q_test)
+            C = model.covariance(plan.readings)
+            rho = np.sqrt(np.einsum("tap,pq,taq->t", J0, C, J0)) * 1e3
+            console.print("predicted RMS position error at the test pose(s) (mm): "
+                          + ", ".join(f"{v:.5g}" for v in rho))
+        console.print("predicted parameter std (m / rad):")
+        for k, v in crits.param_std.items():
+            console.print(f"  {k:<14}{v:.4g}")
+        console.print(escape(str(base)))
+        console.print(f"optimised plan {'beats' if better else 'does NOT beat'} the best of "
+                      f"{base.n_plans} random plans")
+        if json_path is not None:
+            out = {"robot": rb.name, "method": method, "sigma_mm": sigma_mm, "free": names, "criterion": crit,
+                   "plan": plan.to_dict(), "criteria": crits.to_dict(),
+                   "rho0_mm": None if rho is None else rho.tolist(),
+                   "test_poses_rad": None if q_test is None else q_test.tolist(),
+                   "baseline": base.to_dict(), "beats_random": bool(better)}
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps(out, indent=2, default=float))
+            console.print(f"wrote {json_path}")
