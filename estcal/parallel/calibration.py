@@ -194,6 +194,12 @@ def _so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- problem
+#: Relative weights used when a noise level is not given (the defaults of
+#: :class:`estcal.methods.base.NoiseModel`); the covariance is then rescaled
+#: by the residual variance, so only their ratios matter.
+DEFAULT_SIGMA = {"rho": 1e-4, "position": 1e-4, "orientation": 1e-3}
+
+
 class GoughProblem:
     """Weighted residual ``r(x)`` and Jacobian for the free parameters ``x``.
 
@@ -245,7 +251,7 @@ class GoughProblem:
 
     # IK --------------------------------------------------------------
     def _ik_sigma(self, theta):
-        s_rho = self.sigma_rho if self.sigma_rho is not None else 1.0
+        s_rho = self.sigma_rho if self.sigma_rho is not None else DEFAULT_SIGMA["rho"]
         var = np.full((len(self.data), N_LEGS), s_rho**2)
         if self.propagate and (self.sigma_p or self.sigma_r):
             _, Jx = self.robot.leg_jacobians(self.data.T, theta)
@@ -259,8 +265,8 @@ class GoughProblem:
         return fk
 
     def _fk_sigma(self):
-        sp = self.sigma_p if self.sigma_p is not None else 1.0
-        sr = self.sigma_r if self.sigma_r is not None else 1.0
+        sp = self.sigma_p if self.sigma_p is not None else DEFAULT_SIGMA["position"]
+        sr = self.sigma_r if self.sigma_r is not None else DEFAULT_SIGMA["orientation"]
         return np.r_[np.full(3, sp), np.full(3, sr)]
 
     def raw_rows(self, theta: np.ndarray, jacobian: bool = True):
@@ -273,7 +279,11 @@ class GoughProblem:
         n = len(self.data)
         pose = np.repeat(np.arange(n), 6)
         if self.kind == "ik":
-            e = (self.data.rho - self.robot.leg_lengths(self.data.T, theta)).reshape(-1)
+            # leg lengths inline (hot path of the samplers: no pose re-splitting)
+            th = np.asarray(theta, float).reshape(N_LEGS, 7)
+            T = self.data.T
+            v = T[:, None, :3, 3] + np.einsum("nij,kj->nki", T[:, :3, :3], th[:, 3:6]) - th[None, :, 0:3]
+            e = (self.data.rho - (np.sqrt(np.einsum("nki,nki->nk", v, v)) - th[:, 6])).reshape(-1)
             s = self._ik_sigma(theta).reshape(-1)
             dE = None
             if jacobian:
@@ -322,22 +332,47 @@ class _Noise:
 
 
 class _Data:
-    kind = "none"  # tells estcal.estimate.lsq.score that there is no serial-chain accuracy to report
+    """Dataset-like view of the Gough measurements for the shared estimators.
 
-    def __init__(self, data: GoughData, residual: str):
-        self.n = len(data)
-        self.where = f"{data.source} (Gough {residual.upper()} residuals)"
+    ``kind = "none"`` tells :func:`estcal.estimate.lsq.score` there is no
+    serial-chain accuracy to report; ``subset`` lets
+    :class:`estcal.estimate._common.GroupedProblem` split the problem by pose
+    (a Kalman step or a factor then evaluates only its own poses).
+    """
+
+    kind = "none"
+
+    def __init__(self, prob: GoughProblem):
+        self.prob = prob
+        self.n = len(prob.data)
+        self.where = f"{prob.data.source} (Gough {prob.kind.upper()} residuals)"
+        self.context: dict = {}
+
+    def subset(self, idx) -> "_Data":
+        import copy
+
+        sub = copy.copy(self.prob)
+        sub.data = self.prob.data.subset(np.asarray(idx, int))
+        return _Data(sub)
 
 
 class _Method:
+    """Measurement-method-like object: the Gough IK or FK residual rows."""
+
     def __init__(self, residual: str):
         self.name = f"gough-{residual}"
+
+    def rows(self, robot, theta, data: _Data, noise, jacobian: bool = True):
+        from estcal.methods.base import Rows
+
+        e, dE, s, pose, kind = data.prob.raw_rows(np.asarray(theta, float)[:42], jacobian)
+        return Rows(e, None if dE is None else -dE, s, pose, kind)
 
 
 class _Term:
     def __init__(self, prob: GoughProblem):
         self.method = _Method(prob.kind)
-        self.data = _Data(prob.data, prob.kind)
+        self.data = _Data(prob)
         self.noise = _Noise(prob.absolute_sigma)
 
 
@@ -365,8 +400,9 @@ class GoughEstimationProblem:
         from estcal.methods.base import Rows
 
         theta = self.params.values if theta is None else np.asarray(theta, float)
-        e, dE, s, pose, kind = self._prob.raw_rows(theta, jacobian)
-        return Rows(e, None if dE is None else -dE, s, pose, kind, np.zeros(len(e), int))
+        t = self.terms[0]
+        r = t.method.rows(self.robot, theta, t.data, t.noise, jacobian)
+        return Rows(r.e, r.H, r.sigma, r.pose, r.kind, np.zeros(len(r.e), int))
 
     def _copy(self, pv):
         import copy

@@ -176,6 +176,11 @@ class GoughPlatform:
         """Flat parameter values in :func:`gough_parameter_names` order (42,)."""
         return np.concatenate([self.a, self.b, self.drho[:, None]], axis=1).reshape(-1)
 
+    @property
+    def params(self) -> ParameterVector:
+        """All 42 parameters (Model 42), as ``SerialRobot.params`` (for the shared estimators)."""
+        return self.parameter_vector(42)
+
     def parameter_vector(self, model: int = 42) -> ParameterVector:
         """Named parameters; ``model=36`` fixes the offsets ``drho_k``."""
         if model not in (36, 42):
