@@ -41,7 +41,7 @@ import numpy as np
 from .core import IdentifiabilityResult, identifiable, resolve_priorities
 
 __all__ = ["gecaro_priorities", "priorities_from_matrix", "load_priorities", "observation_matrix", "identify",
-           "select_identifiable", "expand_patterns"]
+           "select_identifiable", "expand_patterns", "gecaro_table2_priorities"]
 
 
 def _is_multiple_of_half_pi(v: float, tol: float = 1e-9) -> bool:
@@ -126,15 +126,21 @@ def load_priorities(path) -> dict:
 
 
 def expand_patterns(names: Sequence[str], patterns) -> list[str]:
-    """Names matching any of ``patterns`` (fnmatch; a comma-separated string is split), in ``names`` order."""
+    """Names matching any of ``patterns`` (fnmatch; a comma-separated string is split), in ``names`` order.
+
+    A wildcard pattern may match nothing (so one candidate list serves Khalil, DH and URDF
+    robots); an explicit name that does not exist, or a list matching nothing, is an error.
+    """
     if isinstance(patterns, str):
         patterns = [p.strip() for p in patterns.split(",") if p.strip()]
     out = []
     for p in patterns:
         hit = [n for n in names if fnmatch.fnmatchcase(n, p)]
-        if not hit:
-            raise ValueError(f"pattern {p!r} matches no parameter; parameters are {list(names)}")
+        if not hit and not any(ch in p for ch in "*?["):
+            raise ValueError(f"unknown parameter {p!r}; parameters are {list(names)}")
         out += hit
+    if not out:
+        raise ValueError(f"patterns {list(patterns)} match no parameter; parameters are {list(names)}")
     keep = set(out)
     return [n for n in names if n in keep]
 
@@ -293,3 +299,23 @@ def select_identifiable(problem, candidates=None, priorities=None, rules: str = 
     W, names = observation_matrix(problem, names)
     prio = _merge_priorities(problem, names, priorities, rules)
     return identifiable(W, names, prio, tol_factor=tol_factor, tau_floor=tau_floor).identifiable
+
+
+def gecaro_table2_priorities(robot) -> dict:
+    """Priorities restricting a Khalil robot to GECARO's parameter list (Table 2).
+
+    GECARO's standard parameters are θ0, r0, (α, d, θ, r, β) of frames 1…n+1 and the
+    gains K1…Kn (2 + 5(n+1) + n). estcal's Khalil chains carry more: the 6-parameter
+    ``base_*``/``tool_*`` frames, α0, d0, β0 of frame 0 (GECARO sets α0 = d0 = 0 by
+    construction) and ``offset_j`` — whose column equals that of the joint variable's
+    parameter (θ_j of a revolute joint, r_j of a prismatic one), which *is* GECARO's
+    joint offset. Returns ``{name: 0}`` for those (not identified); the priorities of the
+    GECARO list come from the rules (``rules="order"``: parameter-vector order,
+    ``rules="gecaro"``: GECARO's default rules).
+    """
+    first = next(lk.label for lk in robot.links if lk.label not in ("base", "tool"))
+    out = {}
+    for n, k in zip(robot.params.names, robot.params.kinds):
+        if k in ("base", "tool", "offset", "marker") or n in (f"alpha_{first}", f"d_{first}", f"beta_{first}"):
+            out[n] = 0
+    return out
