@@ -284,7 +284,7 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
              noise: NoiseModel | dict | None = None, seed: int | None = 0, margin: float = 0.0,
              readings=None, dt: float | None = None, t=None, temperature=None, payload=None,
              record_approach: bool = False, markers=None, n_points: int = 3,
-             effect_params: dict | None = None) -> SimulationResult:
+             effect_params: dict | None = None, home=None) -> SimulationResult:
     """Simulate a calibration dataset.
 
     Parameters
@@ -313,6 +313,7 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     record_approach : write ``approach_<joint>`` columns (random ±1) for backlash joints.
     effect_params : ``{effect parameter name: value}`` for any of the requested effects
         (alternative to the per-effect ``params``).
+    home : (n,) home readings of strategy S2 (default mid-range).
     markers : (k, 3) tool-frame points replacing the robot's markers.
     """
     from estcal.effects import make_effect
@@ -391,7 +392,7 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         r_true = nominal.check_readings(readings, "readings")
         strategy = "given"
     else:
-        r_true = generate_poses(nominal, n_poses, strategy, r_pose, margin=margin)
+        r_true = generate_poses(nominal, n_poses, strategy, r_pose, margin=margin, home=home)
         strategy = str(strategy).upper()
     N = r_true.shape[0]
     if t is None and dt is None and "drift" in names:
