@@ -237,12 +237,15 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     else:
         mu, nu = 1e-2, 10.0
         for it in range(1, max_iter + 1):
+            r_t = None
             if method == "lm":
                 while True:
                     dx = _solve(A, b, mu)
                     trial = theta.copy()
                     trial[fidx] += dx
-                    r_t = problem.evaluate(trial, jacobian=False)
+                    # Jacobian computed with the trial residuals: an accepted step (the
+                    # common case) then needs no second forward-kinematics pass
+                    r_t = problem.evaluate(trial, jacobian=True)
                     c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
                     if c_t <= cost or mu > 1e12:
                         break
@@ -253,9 +256,10 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                 step = 1.0
                 trial = theta.copy()
                 trial[fidx] += dx
+                r_t = None
                 if method == "gauss-newton":
                     while True:
-                        r_t = problem.evaluate(trial, jacobian=False)
+                        r_t = problem.evaluate(trial, jacobian=step == 1.0)
                         c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
                         if c_t <= cost or step < 1e-6:
                             break
@@ -264,7 +268,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                         trial[fidx] += step * dx
                     dx = step * dx
             theta = trial
-            rows = problem.evaluate(theta)
+            rows = r_t if (r_t is not None and r_t.H is not None) else problem.evaluate(theta)
             A, b = _weighted(rows, fidx)
             new_cost = float(b @ b)
             scale = np.maximum(np.abs(theta[fidx]), 1e-3)
@@ -276,8 +280,9 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
             if small_step or small_cost:
                 converged = True
                 break
-    rows = problem.evaluate(theta)
-    A, b = _weighted(rows, fidx)
+    if method == "scipy-lm":  # the loop above leaves rows/A/b at the final theta otherwise
+        rows = problem.evaluate(theta)
+        A, b = _weighted(rows, fidx)
     chi2 = float(b @ b)
     dof = int(A.shape[0] - fidx.size)
     # Σ = (HᵀWH)⁻¹ via the scaled QR factor (stable for poorly scaled columns)
