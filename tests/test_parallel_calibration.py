@@ -114,10 +114,17 @@ def test_identifiability_full_rank_and_translation_only_gauge(true_robot):
     ide = identifiable_gough(true_robot, data)
     assert ide["n_identifiable"] == 24
     for g in ide["regrouped"]:
-        (other, coef), = g["combination"].items()
+        (other, coef), = g["relation"].items()
         k, c = g["parameter"][1], g["parameter"][-1]
         assert {g["parameter"][0], other[0]} == {"a", "b"} and other[1] == k and other[-1] == c
         assert coef == pytest.approx(-1.0, abs=1e-9)
+    # the local pivoted-QR fallback finds the same rank and the same pairs
+    from estcal.parallel.calibration import GoughProblem, identifiability_qr
+
+    prob = GoughProblem(true_robot, data)
+    loc = identifiability_qr(prob.jacobian(prob.x0), prob.names)
+    assert loc["n_identifiable"] == 24 and loc["no_effect"] == []
+    assert all(abs(next(iter(g["combination"].values())) + 1) < 1e-9 for g in loc["regrouped"])
     # Model 36 drops the offsets from the count
     assert identifiable_gough(true_robot, n_poses=30, model=36)["n_parameters"] == 36
 

@@ -467,6 +467,25 @@ def identifiability_qr(J: np.ndarray, names: Sequence[str], c: float | None = No
     }
 
 
+def _identify(J: np.ndarray, names: Sequence[str]) -> dict:
+    """Identifiability of the columns of the whitened Jacobian ``J``: the shared
+    :func:`estcal.identify.core.identifiable` (GECARO App. III, sequential QR in
+    parameter order) when available, else :func:`identifiability_qr`.
+    Both return ``n_parameters, n_identifiable, identifiable, no_effect,
+    regrouped ({parameter, relation: {base: coefficient}}), condition_number``."""
+    try:
+        from estcal.identify.core import identifiable
+    except ImportError:
+        out = identifiability_qr(J, names)
+        for g in out["regrouped"]:
+            g["relation"] = g["combination"]
+        out["backend"] = "estcal.parallel.calibration.identifiability_qr"
+        return out
+    out = identifiable(J, list(names)).to_dict()
+    out["backend"] = "estcal.identify"
+    return out
+
+
 def identifiable_gough(
     robot: GoughPlatform | str | Path | Mapping,
     data: GoughData | str | Path | None = None,
@@ -479,8 +498,11 @@ def identifiable_gough(
     """Identifiability of the Gough parameters (entry point for ``estcal identifiable``).
 
     Uses the measured poses of ``data`` if given, else ``n_poses`` random
-    workspace poses (noise-free, from ``seed``). Returns the dict of
-    :func:`identifiability_qr` plus ``model``, ``residual``, ``n_poses``.
+    workspace poses (noise-free, from ``seed``). The analysis is the shared
+    :func:`estcal.identify.core.identifiable` on the whitened Jacobian (fallback
+    :func:`identifiability_qr`). Returns its dict (``n_parameters,
+    n_identifiable, identifiable, no_effect, regrouped, condition_number`` …)
+    plus ``robot``, ``model``, ``residual``, ``n_poses``.
     """
     robot = robot if isinstance(robot, GoughPlatform) else load_gough(robot)
     if data is None:
@@ -489,7 +511,7 @@ def identifiable_gough(
         data = load_gough_data(data)
     prob = GoughProblem(robot, data, residual, model, free)
     J = prob.jacobian(prob.x0)
-    out = identifiability_qr(J, prob.names)
+    out = _identify(J, prob.names)
     out.update({"robot": robot.name, "model": model, "residual": residual, "n_poses": len(data)})
     return out
 
@@ -778,7 +800,7 @@ def calibrate_gough(
         raise ValueError(f"initial must be 'nominal' or 'daney', got {initial!r}")
     prob = GoughProblem(robot, data, residual, model, free, theta0, sigma_rho, sigma_p, sigma_r)
     x_init = prob.x0
-    ide = identifiability_qr(prob.jacobian(x_init), prob.names)
+    ide = _identify(prob.jacobian(x_init), prob.names)
     if ide["n_identifiable"] < len(prob.names):
         prob.pv = prob.pv.with_free(ide["identifiable"])
         x_init = prob.x0
