@@ -228,6 +228,12 @@ def identify(robot, method: str | None = "position", data=None, n_poses: int = 6
     from estcal.methods.generate import generate
 
     mname = method if isinstance(method, str) else getattr(method, "name", None)
+    if isinstance(method, str):
+        import estcal.methods.links  # noqa: F401  (registers the GECARO methods)
+        from estcal.methods.base import METHODS
+
+        if method not in METHODS:
+            raise ValueError(f"unknown measurement method {method!r}; available: {sorted(METHODS)}")
     meta = {"robot": robot.name, "method": mname}
     notes = []
     if data is None:
