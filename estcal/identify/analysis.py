@@ -287,8 +287,8 @@ def _candidates(problem, robot, candidates) -> list[str]:
 
 
 def select_identifiable(problem, candidates=None, priorities=None, rules: str = "gecaro",
-                        tol_factor: float = 1.0, tau_floor: float = 1e-10) -> list[str]:
-    """An identifiable free set for ``problem`` (from its own data, at its current values).
+                        tol_factor: float = 1.0, tau_floor: float = 1e-10, theta=None) -> list[str]:
+    """An identifiable free set for ``problem`` (from its own data, at its current values or ``theta``).
 
     ``candidates``: names/patterns to consider (default: the problem's free parameters,
     e.g. ``["alpha_*", "d_*", "theta_*", "r_*", "beta_*", "offset_*", "base_*", "marker*"]``);
@@ -302,7 +302,7 @@ def select_identifiable(problem, candidates=None, priorities=None, rules: str = 
         names = expand_patterns(pv.names, candidates)
     extras = [n for n, k in zip(pv.names, pv.kinds) if k == "other" and n not in names]
     names = [n for n in pv.names if n in set(names) | set(extras)]
-    W, names = observation_matrix(problem, names)
+    W, names = observation_matrix(problem, names, theta)
     prio = _merge_priorities(problem, names, priorities, rules)
     return identifiable(W, names, prio, tol_factor=tol_factor, tau_floor=tau_floor).identifiable
 
