@@ -1,0 +1,68 @@
+"""Smoke runs (``--quick``) of the identification experiments, with their headline checks."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(f"exp_{name}", ROOT / "experiments" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_stanford_convergence_quick(tmp_path):
+    out = _load("stanford_convergence").main(["--quick", "--json", str(tmp_path / "s.json")])
+    d = json.loads((tmp_path / "s.json").read_text())
+    assert set(d) == {"config", "trials", "summary"}
+    for tr in out["trials"]:
+        assert tr["initial_rmse_mm"] == pytest.approx(600.0, rel=1e-3)
+        assert tr["n_free"] == 34  # GECARO Table 2, location measure
+    # GECARO: about 5 iterations from 60 cm of initial end-point error
+    for est in ("gauss-newton", "lm"):
+        assert out["summary"][est]["success_rate"] == 1.0
+        assert out["summary"][est]["max_iterations"] <= 12
+
+
+def test_puma_case_study_quick(tmp_path):
+    out = _load("puma_case_study").main(["--quick", "--json", str(tmp_path / "p.json")])
+    assert json.loads((tmp_path / "p.json").read_text())["fit"]["converged"]
+    assert out["fit"]["n_parameters"] == 30  # the textbook's 30-parameter model, full pose
+    s = out["summary"]
+    assert s["nominal_rms_in"] > 0.5 and s["nominal_rms_deg"] > 1.0  # Table 6.13 nominal: ~1 in, ~3.5 deg
+    # calibrated at the noise floor: below one measurement's 3-D noise, far below the book's 0.02-0.04 in
+    assert s["calibrated_rms_in"] < s["measurement_noise_3d"]["position_in"]
+    assert s["calibrated_rms_deg"] < s["measurement_noise_3d"]["orientation_deg"]
+    assert out["parameter_errors"]["max_z"] < 5
+
+
+def test_textbook_5r1p_quick(tmp_path):
+    out = _load("textbook_5r1p").main(["--quick", "--json", str(tmp_path / "t.json")])
+    assert set(out["tables"]) == {"4.2", "4.5", "4.6", "4.7"}
+    c = out["checks"]
+    assert c["4.2 angle error grows as the tool distance shrinks"]
+    assert c["4.5 noise-free best, largest measurement noise worst (angle)"]
+    assert c["4.6 kappa at m=36: S1 >> S2 > S3, S4 (S4 <= S3 as in the book)"]
+    assert c["4.7 S4: kappa grows as the joint range shrinks (F < E)"]
+
+
+def test_tiago_mocap_quick(tiago_dir, tmp_path):
+    out = _load("tiago_mocap").main(["--quick", "--data", str(tiago_dir), "--json", str(tmp_path / "t.json")])
+    runs = {(r["points"], r["level"], r["criterion"]): r for r in out["runs"]}
+    reg = runs[(1, "registration", "structural")]
+    assert reg["train_rmse_mm"] == pytest.approx(3.37, abs=0.005)
+    assert reg["validation_rmse_mm"] == pytest.approx(4.87, abs=0.005)
+    jo = runs[(1, "joint_offset", "structural")]
+    assert jo["n_parameters"] == 14  # FIGAROH's joint_offset count
+    assert jo["train_rmse_mm"] == pytest.approx(2.88, abs=0.01)
+    # issue 3 acceptance: full level, one point, set chosen on the training file only
+    assert out["target_full_1pt"]["met"]
+    assert out["target_full_1pt"]["validation_rmse_mm"] <= 3.07
