@@ -243,3 +243,20 @@ def test_shared_probabilistic_estimators_run_on_gough(true_robot, residual, meth
     s2 = np.array([v["std"] for v in res.parameters.values()])
     # posterior std from ~100 effective samples: relative s.e. ≈ 1/sqrt(2·100) ≈ 7 %
     np.testing.assert_allclose(s2, s, rtol={"ukf": 0.1, "mcmc": 0.3}.get(method, 0.02))
+
+
+@pytest.mark.parametrize("residual,R", [("ik", 120), ("fk", 30)])
+def test_covariance_with_pose_noise_matches_monte_carlo(true_robot, residual, R):
+    """Pose-measurement noise correlates the six residuals of a pose; with the
+    per-pose covariance whitening the χ² statistic is again χ²(R·p)."""
+    rng = np.random.default_rng(15)
+    T = simulate_gough_data(true_robot, 25, 16).T
+    kw = dict(sigma_rho=1e-5, sigma_p=2e-5, sigma_r=2e-4)
+    stat, p = 0.0, 7
+    for _ in range(R):
+        data = simulate_gough_data(true_robot, 0, rng, T=T, **kw)
+        res = calibrate_gough(true_robot, data, free=LEG3, residual=residual, backend="local")
+        e = res.theta[14:21] - true_robot.theta[14:21]
+        stat += e @ np.linalg.solve(res.covariance, e)
+    lo, hi = stats.chi2.ppf([0.0005, 0.9995], R * p)
+    assert lo < stat < hi, (stat / (R * p))

@@ -250,24 +250,55 @@ class GoughProblem:
         return self.pv.from_flat(x)
 
     # IK --------------------------------------------------------------
-    def _ik_sigma(self, theta):
-        s_rho = self.sigma_rho if self.sigma_rho is not None else DEFAULT_SIGMA["rho"]
-        var = np.full((len(self.data), N_LEGS), s_rho**2)
-        if self.propagate and (self.sigma_p or self.sigma_r):
+    def pose_covariance(self) -> np.ndarray:
+        """Covariance (n, 6, 6) of the 6 residuals of each pose.
+
+        IK: ``C = σ_ρ² I + J_x Σ_pose J_xᵀ`` — a pose-measurement error moves
+        all six predicted lengths, so the residuals of one pose are correlated.
+        FK: ``C = Σ_pose + σ_ρ² J_x⁻¹ J_x⁻ᵀ`` (reading noise through the FK).
+        ``Σ_pose = diag(σ_p² I3, σ_r² I3)``. Missing levels: σ_ρ defaults to
+        :data:`DEFAULT_SIGMA` for IK and contributes nothing to FK; pose levels
+        default for FK and contribute nothing to IK. Evaluated once, at the
+        measured poses and the initial parameters, so the weights are fixed
+        during the estimation (a proper weighted least-squares cost).
+        """
+        if getattr(self, "_cov", None) is None:
+            theta = self.pv.values
+            n = len(self.data)
             _, Jx = self.robot.leg_jacobians(self.data.T, theta)
-            w = np.r_[np.full(3, (self.sigma_p or 0.0) ** 2), np.full(3, (self.sigma_r or 0.0) ** 2)]
-            var = var + np.einsum("nki,i,nki->nk", Jx, w, Jx)
-        return np.sqrt(var)
+            sp, sr, srho = self.sigma_p, self.sigma_r, self.sigma_rho
+            if self.kind == "ik":
+                srho = srho if srho is not None else DEFAULT_SIGMA["rho"]
+                C = np.broadcast_to(np.eye(6) * srho**2, (n, 6, 6)).copy()
+                if self.propagate and (sp or sr):
+                    w = np.r_[np.full(3, (sp or 0.0) ** 2), np.full(3, (sr or 0.0) ** 2)]
+                    C += np.einsum("nki,i,nli->nkl", Jx, w, Jx)
+            else:
+                sp = sp if sp is not None else DEFAULT_SIGMA["position"]
+                sr = sr if sr is not None else DEFAULT_SIGMA["orientation"]
+                C = np.broadcast_to(np.diag(np.r_[np.full(3, sp**2), np.full(3, sr**2)]), (n, 6, 6)).copy()
+                if self.propagate and srho:
+                    Jinv = np.linalg.inv(Jx)
+                    C += srho**2 * Jinv @ np.swapaxes(Jinv, -1, -2)
+            self._cov = C
+            self._Linv = np.linalg.inv(np.linalg.cholesky(C))
+        return self._cov
+
+    def subset(self, idx) -> "GoughProblem":
+        """The same problem restricted to poses ``idx`` (weights kept)."""
+        import copy
+
+        self.pose_covariance()
+        sub = copy.copy(self)
+        idx = np.asarray(idx, int)
+        sub.data = self.data.subset(idx)
+        sub._cov, sub._Linv = self._cov[idx], self._Linv[idx]
+        return sub
 
     def _fk(self, theta):
         fk = self.robot.forward_kinematics(self.data.rho, theta, guess=self.data.T, n_starts=2, tol=1e-13)
         self.fk_failures = fk.n_failed
         return fk
-
-    def _fk_sigma(self):
-        sp = self.sigma_p if self.sigma_p is not None else DEFAULT_SIGMA["position"]
-        sr = self.sigma_r if self.sigma_r is not None else DEFAULT_SIGMA["orientation"]
-        return np.r_[np.full(3, sp), np.full(3, sr)]
 
     def raw_rows(self, theta: np.ndarray, jacobian: bool = True):
         """Unwhitened residual rows at the full (42,) ``theta``.
@@ -275,6 +306,8 @@ class GoughProblem:
         Returns ``e`` (m,) = measured − predicted, ``dE`` (m, 42) = ∂e/∂θ
         (or None), ``sigma`` (m,), ``pose`` (m,) source pose index and
         ``kind`` (m,) row kind (0 position m, 1 orientation rad, 2 scalar m).
+        ``sigma`` is the square root of the diagonal of :meth:`pose_covariance`;
+        the estimators use the decorrelated rows of :meth:`whitened`.
         """
         n = len(self.data)
         pose = np.repeat(np.arange(n), 6)
@@ -284,7 +317,7 @@ class GoughProblem:
             T = self.data.T
             v = T[:, None, :3, 3] + np.einsum("nij,kj->nki", T[:, :3, :3], th[:, 3:6]) - th[None, :, 0:3]
             e = (self.data.rho - (np.sqrt(np.einsum("nki,nki->nk", v, v)) - th[:, 6])).reshape(-1)
-            s = self._ik_sigma(theta).reshape(-1)
+            s = np.sqrt(np.diagonal(self.pose_covariance(), axis1=1, axis2=2)).reshape(-1)
             dE = None
             if jacobian:
                 Jt, _ = self.robot.leg_jacobians(self.data.T, theta)
@@ -297,7 +330,7 @@ class GoughProblem:
         Tf = fk.T[ok]
         e[ok, :3] = Pm[ok] - Tf[:, :3, 3]
         e[ok, 3:] = so3_log(Rm[ok] @ np.swapaxes(Tf[:, :3, :3], -1, -2))
-        s = np.tile(self._fk_sigma(), n)
+        s = np.sqrt(np.diagonal(self.pose_covariance(), axis1=1, axis2=2)).reshape(-1)
         kind = np.tile(np.r_[0, 0, 0, 1, 1, 1], n)
         dE = None
         if jacobian:
@@ -311,13 +344,22 @@ class GoughProblem:
             dE = J.reshape(-1, 42)
         return e.reshape(-1), dE, s, pose, kind
 
+    def whitened(self, theta: np.ndarray, jacobian: bool = True):
+        """Decorrelated rows ``L_i⁻¹ e_i`` and ``L_i⁻¹ ∂e_i/∂θ`` (``C_i = L_i L_iᵀ``)
+        at the full ``theta``: unit-variance, independent residuals (m,), (m, 42)."""
+        e, dE, _, pose, kind = self.raw_rows(theta, jacobian)
+        self.pose_covariance()
+        n = len(self.data)
+        r = np.einsum("nij,nj->ni", self._Linv, e.reshape(n, 6)).reshape(-1)
+        J = None if dE is None else np.einsum("nij,njk->nik", self._Linv, dE.reshape(n, 6, -1)).reshape(6 * n, -1)
+        return r, J, pose, kind
+
     def residual_and_jacobian(self, x: np.ndarray, jacobian: bool = True):
         """Whitened residual (m,) and Jacobian (m, p) w.r.t. the free parameters."""
-        e, dE, s, _, _ = self.raw_rows(self.theta(x), jacobian)
-        r = e / s
+        r, J, _, _ = self.whitened(self.theta(x), jacobian)
         if not jacobian:
             return r, None
-        return r, (dE / s[:, None])[:, self.pv.free]
+        return r, J[:, self.pv.free]
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return self.residual_and_jacobian(x, jacobian=False)[0]
@@ -349,11 +391,7 @@ class _Data:
         self.context: dict = {}
 
     def subset(self, idx) -> "_Data":
-        import copy
-
-        sub = copy.copy(self.prob)
-        sub.data = self.prob.data.subset(np.asarray(idx, int))
-        return _Data(sub)
+        return _Data(self.prob.subset(idx))
 
 
 class _Method:
@@ -365,8 +403,9 @@ class _Method:
     def rows(self, robot, theta, data: _Data, noise, jacobian: bool = True):
         from estcal.methods.base import Rows
 
-        e, dE, s, pose, kind = data.prob.raw_rows(np.asarray(theta, float)[:42], jacobian)
-        return Rows(e, None if dE is None else -dE, s, pose, kind)
+        # decorrelated rows (unit σ): the shared estimators only use e/σ and H/σ
+        r, J, pose, kind = data.prob.whitened(np.asarray(theta, float)[:42], jacobian)
+        return Rows(r, None if J is None else -J, np.ones(len(r)), pose, kind)
 
 
 class _Term:
@@ -478,10 +517,12 @@ def _identify(J: np.ndarray, names: Sequence[str]) -> dict:
     except ImportError:
         out = identifiability_qr(J, names)
         for g in out["regrouped"]:
-            g["relation"] = g["combination"]
+            g["relation"] = dict(g["combination"])
         out["backend"] = "estcal.parallel.calibration.identifiability_qr"
         return out
     out = identifiable(J, list(names)).to_dict()
+    for g in out["regrouped"]:
+        g.setdefault("combination", dict(g["relation"]))  # same key as the local fallback
     out["backend"] = "estcal.identify"
     return out
 
