@@ -57,6 +57,24 @@ def _segment(const, elems, TH):
     return LR, Lp
 
 
+def _mm(R, L):
+    """Component-wise product of stacks of 3×3 matrices, layout (3, 3, ...): R·L.
+
+    Nine explicit sums of (W, N) arrays: several times faster than ``matmul`` on
+    (W, N, 3, 3) stacks, whose per-matrix overhead dominates for 3×3 blocks.
+    """
+    out = np.empty(np.broadcast_shapes(R.shape, L.shape))
+    for i in range(3):
+        for k in range(3):
+            out[i, k] = R[i, 0] * L[0, k] + R[i, 1] * L[1, k] + R[i, 2] * L[2, k]
+    return out
+
+
+def _mv(R, v):
+    """R (3, 3, ...) times v (3, ...) component-wise."""
+    return np.stack([R[i, 0] * v[0] + R[i, 1] * v[1] + R[i, 2] * v[2] for i in range(3)])
+
+
 def batched_kinematics(robot, readings, TH):
     """Tool rotation (W, N, 3, 3), position (W, N, 3) and markers (W, N, k, 3) for W parameter vectors."""
     TH = np.atleast_2d(np.asarray(TH, float))
@@ -69,12 +87,15 @@ def batched_kinematics(robot, readings, TH):
     else:
         Cj, Cm = (np.asarray(c, float) for c in robot.coupling)
         q = (K * (r @ Cm.T)[None]) @ Cj.T + off
-    R = np.broadcast_to(np.eye(3), (W, N, 3, 3)).copy()
-    p = np.zeros((W, N, 3))
+    # layout: component axes first, then (walker, pose)
+    R = np.zeros((3, 3, W, N))
+    R[0, 0] = R[1, 1] = R[2, 2] = 1.0
+    p = np.zeros((3, W, N))
     for link in robot.links:
-        LR, Lp = _segment(link.const, link.before, TH)
-        p = p + (R @ Lp[:, None, :, None])[..., 0]
-        R = R @ LR[:, None]
+        if link.before or not np.array_equal(link.const, np.eye(4)):
+            LR, Lp = _segment(link.const, link.before, TH)
+            p = p + _mv(R, Lp.T[..., None])
+            R = _mm(R, LR.transpose(1, 2, 0)[..., None])  # (3, 3, W, 1)
         if link.joint is not None:
             val = q[:, :, link.joint]
             if link.joint_param >= 0:
@@ -82,24 +103,26 @@ def batched_kinematics(robot, readings, TH):
             ax = np.asarray(link.joint_axis, float)
             if link.joint_kind == "R" and ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0:
                 # rotation about local z: mix the first two columns (as the core does)
-                c, s = np.cos(val)[..., None], np.sin(val)[..., None]
-                x0, y0 = R[..., :, 0].copy(), R[..., :, 1].copy()
-                R[..., :, 0] = c * x0 + s * y0
-                R[..., :, 1] = c * y0 - s * x0
+                c, s = np.cos(val), np.sin(val)
+                x0, y0 = R[:, 0].copy(), R[:, 1].copy()
+                R[:, 0] = c * x0 + s * y0
+                R[:, 1] = c * y0 - s * x0
             elif link.joint_kind == "R":
-                R = R @ rot_axis(ax, val)
+                R = _mm(R, rot_axis(ax, val).transpose(2, 3, 0, 1))
             else:
-                p = p + (R @ ax) * val[..., None]
+                p = p + (R[:, 0] * ax[0] + R[:, 1] * ax[1] + R[:, 2] * ax[2]) * val
         if link.after:
             LR, Lp = _segment(None, link.after, TH)
-            p = p + (R @ Lp[:, None, :, None])[..., 0]
-            R = R @ LR[:, None]
+            p = p + _mv(R, Lp.T[..., None])
+            R = _mm(R, LR.transpose(1, 2, 0)[..., None])
+    Rout = R.transpose(2, 3, 0, 1)
+    pout = p.transpose(1, 2, 0)
     if robot.n_markers:
         m = TH[:, robot.marker_idx]  # (W, k, 3)
-        pts = p[:, :, None, :] + np.einsum("wnij,wkj->wnki", R, m)
+        pts = pout[:, :, None, :] + np.einsum("wnij,wkj->wnki", Rout, m)
     else:
         pts = np.zeros((W, N, 0, 3))
-    return R, p, pts
+    return Rout, pout, pts
 
 
 def evaluate_many(problem, thetas) -> np.ndarray:

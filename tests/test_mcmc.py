@@ -1,0 +1,100 @@
+"""Posterior sampling with emcee; the vectorised residuals it relies on."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("emcee")
+
+from estcal.estimate.batcheval import can_batch, evaluate_many  # noqa: E402
+from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
+from estcal.estimate.mcmc import calibrate_mcmc, sample_posterior  # noqa: E402
+from estcal.estimate.registry import get_estimator  # noqa: E402
+from estcal.estimate.testproblems import simulated_problem  # noqa: E402
+from estcal.io.dataset import dataset_from_arrays  # noqa: E402
+from estcal.kinematics.robots import puma560, robot_5r1p, stanford  # noqa: E402
+from estcal.methods.base import NoiseModel  # noqa: E402
+from estcal.methods.problem import Problem  # noqa: E402
+
+
+@pytest.mark.parametrize("make", [puma560, stanford, robot_5r1p])
+def test_evaluate_many_equals_problem_evaluate(make):
+    rob = make()
+    rng = np.random.default_rng(0)
+    q = rob.random_readings(15, rng)
+    kin = rob.kinematics(q, jacobian=False)
+    terms = [("location", dataset_from_arrays(rob.joint_names, q, R=kin.R, p=kin.p), NoiseModel(1e-4, 1e-3)),
+             ("position", dataset_from_arrays(rob.joint_names, q, points=kin.p + 1e-3), NoiseModel(2e-4))]
+    prob = Problem(rob, terms)
+    assert can_batch(prob)
+    TH = rob.params.values + 1e-2 * rng.standard_normal((7, rob.n_params))
+    E = evaluate_many(prob, TH)
+    ref = np.stack([prob.evaluate(t, jacobian=False).e for t in TH])
+    np.testing.assert_allclose(E, ref, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def posterior():
+    sim = simulated_problem("puma560", n_poses=100, seed=21)
+    lm = calibrate_lsq(sim.problem)
+    res = calibrate_mcmc(sim.problem, target_ess=400, max_steps=3000, seed=1)
+    return sim, lm, res
+
+
+def test_posterior_agrees_with_lm(posterior):
+    sim, lm, res = posterior
+    ess = res.extra["ess"]
+    # Monte-Carlo error of a posterior mean is std/√ESS: allow 4.5 of it (max over 30 parameters)
+    z = (res.estimate - lm.estimate) / lm.std
+    assert np.all(np.abs(z) < 4.5 / np.sqrt(ess) + 0.02)
+    # std of a sample std ≈ std/√(2 ESS)
+    assert np.all(np.abs(res.std / lm.std - 1) < 4.5 / np.sqrt(2 * ess) + 0.02)
+    assert res.converged and res.extra["min_ess"] >= 400
+    assert 0.05 < res.extra["acceptance_fraction"] < 0.95
+
+
+def test_result_json_has_intervals(posterior):
+    sim, lm, res = posterior
+    d = res.to_dict()
+    assert d["method"] == "mcmc"
+    ci = d["credible_intervals"]
+    assert set(ci) == set(lm.names)
+    for n, (lo, hi) in ci.items():
+        e, s = res.parameter(n)
+        assert lo < e < hi
+        assert 0.7 < (hi - lo) / (2 * 1.96 * s) < 1.3  # near-Gaussian posterior
+
+
+def test_noise_scale_sampled_when_noise_unknown():
+    sim = simulated_problem("puma560", n_poses=60, seed=22, known=False, sigma_p=2e-4, sigma_r=2e-4)
+    # the noise model says 1e-4: the true scale is 2 (known=False → λ is sampled)
+    from estcal.methods.base import NoiseModel as NM
+
+    t = sim.problem.terms[0]
+    t.noise = NM(1e-4, 1e-4, known=False)
+    smp = sample_posterior(sim.problem, target_ess=200, max_steps=2000, seed=3)
+    lam = smp.noise_scale
+    lm = calibrate_lsq(sim.problem)
+    # posterior of λ ≈ σ0 (1 ± 1/√(2 dof)); σ0 itself scatters around the true 2 with the same spread
+    sd = 2.0 / np.sqrt(2 * lm.dof)
+    assert lam is not None and abs(lam.mean() - lm.sigma0) < sd and abs(lam.mean() - 2.0) < 4 * sd
+    assert abs(lam.std() / sd - 1) < 0.3
+
+
+def test_stretch_move_and_registry():
+    sim = simulated_problem("planar2", n_poses=30, seed=23, method="position", free=["a_1", "a_2", "offset_2"])
+    lm = calibrate_lsq(sim.problem)
+    r = get_estimator("mcmc")(sim.problem, free=sim.free, moves="stretch", target_ess=150, max_steps=3000,
+                              n_walkers=16)
+    assert np.all(np.abs((r.estimate - lm.estimate) / lm.std) < 0.4)
+
+
+def test_arviz_and_corner(tmp_path):
+    sim = simulated_problem("planar2", n_poses=30, seed=24, method="position", free=["a_1", "a_2", "offset_2"])
+    smp = sample_posterior(sim.problem, target_ess=100, max_steps=1000, n_walkers=16)
+    path = smp.corner(tmp_path / "corner.png")
+    assert path.exists() and path.stat().st_size > 1000
+    az = pytest.importorskip("arviz")
+    idata = smp.to_inference_data()
+    assert isinstance(idata, az.InferenceData)
+    assert idata.posterior["a_1"].shape == (16, smp.chain.shape[0])
