@@ -1,0 +1,214 @@
+"""``estcal online``: recursive (Kalman) calibration of a dataset streamed row by row."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def _row_dataset(header, values, joint_names, where):
+    """One CSV row as a one-pose Dataset (pose, k points or one point, by the header's columns)."""
+    import numpy as np
+
+    from estcal.io.dataset import DatasetError, dataset_from_arrays
+    from estcal.kinematics.transforms import quat_to_matrix
+
+    col = dict(zip(header, values))
+    missing = [j for j in joint_names if j not in col]
+    if missing:
+        raise DatasetError(f"{where}: missing joint column(s) {missing}; the file has {header}")
+
+    def num(name):
+        try:
+            v = float(col[name])
+        except ValueError:
+            raise DatasetError(f"{where}, column {name!r}: {col[name]!r} is not a number") from None
+        if not np.isfinite(v):
+            raise DatasetError(f"{where}, column {name!r}: value is not finite")
+        return v
+
+    r = np.array([[num(j) for j in joint_names]])
+    ctx = {c: np.array([num(c)]) for c in ("t", "temperature", "payload") if c in col}
+    if all(c in col for c in POSE_COLS):
+        q = np.array([[num(c) for c in ("qw", "qx", "qy", "qz")]])
+        n = np.linalg.norm(q)
+        if abs(n - 1) > 1e-3:
+            raise DatasetError(f"{where}: quaternion norm {n:.6f}, expected 1")
+        return dataset_from_arrays(joint_names, r, R=quat_to_matrix(q / n), p=np.array([[num(c) for c in "xyz"]]),
+                                   context=ctx, path=where)
+    k = 0
+    while all(f"{c}{k + 1}" in col for c in "xyz"):
+        k += 1
+    if k:
+        pts = np.array([[[num(f"{c}{i + 1}") for c in "xyz"] for i in range(k)]])
+    elif all(c in col for c in "xyz"):
+        pts = np.array([[[num(c) for c in "xyz"]]])
+    else:
+        raise DatasetError(f"{where}: no measurement columns (x,y,z / x1..zk / x,y,z,qw,qx,qy,qz)")
+    return dataset_from_arrays(joint_names, r, points=pts, context=ctx, path=where)
+
+
+def _lines(data: str):
+    if data == "-":
+        yield from sys.stdin
+    else:
+        with open(data, newline="") as fh:
+            yield from fh
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("online")
+    def online_cmd(
+        data: str = typer.Argument(..., help="Dataset CSV, or '-' to read rows from standard input as they come."),
+        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
+        free: Optional[str] = typer.Option(None, "--free", help="Comma-separated names/patterns to estimate "
+                                           "(default: an identifiable set for a file, the robot's free mask for stdin)."),
+        q: float = typer.Option(0.0, "--q", help="Process-noise std per row (SI; 0 = constant parameters, "
+                                "> 0 = random walk / drift)."),
+        q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q only to these names/patterns."),
+        filter_kind: str = typer.Option("ekf", "--filter", help="ekf or ukf (filterpy)."),
+        method: Optional[str] = typer.Option(None, "--method", help="Measurement method (default: from the columns)."),
+        sigma_p: float = typer.Option(1e-4, "--sigma-p", help="Position noise std, m."),
+        sigma_r: float = typer.Option(1e-3, "--sigma-r", help="Orientation noise std, rad."),
+        prior_std: float = typer.Option(0.1, "--prior-std", help="Prior std of every free parameter (m / rad)."),
+        every: int = typer.Option(10, "--every", help="Print a status line every N rows."),
+        show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
+        root: Optional[str] = typer.Option(None, help="URDF root link."),
+        tip: Optional[str] = typer.Option(None, help="URDF tip link."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
+                                                 "tests and the printed history as JSON."),
+    ) -> None:
+        """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
+        are printed as the rows arrive (units: m, rad)."""
+        import csv
+
+        import numpy as np
+        from rich.console import Console
+        from rich.markup import escape
+        from rich.table import Table
+
+        from estcal.estimate.kalman import ParameterFilter, default_burn_in, process_noise
+        from estcal.io.dataset import DatasetError
+        from estcal.methods.base import NoiseModel, get_method, method_for_dataset
+        from estcal.methods.problem import Problem, Term
+
+        console = Console(stderr=False)
+        err = Console(stderr=True)
+
+        def fail(msg):
+            err.print("[red]error:[/red] " + escape(str(msg)), soft_wrap=True)
+            raise typer.Exit(2)
+
+        try:
+            try:
+                from estcal.io.robotfile import load_robot
+
+                rb = load_robot(robot, root=root, tip=tip)
+            except ImportError:
+                from estcal.kinematics.robots import get_builtin
+
+                rb = get_builtin(robot)
+        except (ValueError, KeyError, FileNotFoundError) as exc:
+            fail(exc)
+        noise = NoiseModel(sigma_p, sigma_r, known=True)
+        if free:
+            names_pat = [s.strip() for s in free.split(",") if s.strip()]
+        elif data != "-":
+            from estcal.estimate._common import identifiable_free
+            from estcal.io.dataset import load_dataset
+
+            try:
+                ds_all = load_dataset(data, rb)
+            except (ValueError, FileNotFoundError) as exc:
+                fail(exc)
+            prob_all = Problem(rb, [(method, ds_all, noise)])
+            names_pat = identifiable_free(prob_all)
+        else:
+            names_pat = rb.params.free_names
+        try:
+            rb = rb.copy(rb.params.with_free(names_pat))
+        except KeyError as exc:
+            fail(exc)
+        pv = rb.params
+        fidx = pv.free_indices
+        names = pv.free_names
+        try:
+            Q = process_noise(names, {p.strip(): q for p in q_params.split(",")} if q_params else q)
+        except ValueError as exc:
+            fail(exc)
+        P0 = np.eye(len(names)) * prior_std ** 2
+        try:
+            flt = ParameterFilter(pv.values, fidx, P0, Q, kind=filter_kind, names=names)
+        except ValueError as exc:
+            fail(exc)
+        meth = get_method(method) if method else None
+        lines = _lines(data)
+        where = "<stdin>" if data == "-" else data
+        try:
+            header = next(csv.reader([next(lines)]))
+        except StopIteration:
+            fail(f"{where}: empty input (expected a header row)")
+        header = [h.strip() for h in header]
+        history = []
+        shown = list(range(min(show, len(names))))
+        console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
+                      f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}")
+        burn = None
+        for ln, line in enumerate(lines, start=2):
+            if not line.strip():
+                continue
+            vals = next(csv.reader([line]))
+            if len(vals) != len(header):
+                fail(f"{where}, line {ln}: {len(vals)} fields but the header has {len(header)}")
+            try:
+                ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}")
+                m = meth or method_for_dataset(ds, rb)
+                sub = Problem.__new__(Problem)
+                sub.robot = rb
+                sub.terms = [Term(m, ds, noise)]
+                step = flt.step(sub)
+            except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
+                fail(exc)
+            if burn is None and flt.n_rows >= 2 * len(names):
+                burn = flt.n_steps
+            k = flt.n_steps
+            if k % every == 0:
+                run = flt.monitor.running(burn or k)
+                x, s = flt.x, flt.std
+                history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
+                                "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(), "std": s.tolist()})
+                par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
+                console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
+                              f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+        if flt.n_steps == 0:
+            fail(f"{where}: no data rows")
+        x, s = flt.x, flt.std
+        table = Table(title=f"estimate after {flt.n_steps} rows")
+        for c in ("parameter", "nominal", "estimate", "std"):
+            table.add_column(c, justify="right" if c != "parameter" else "left")
+        for i, n in enumerate(names):
+            table.add_row(n, f"{pv.values[fidx[i]]:.6g}", f"{x[i]:.6g}", f"{s[i]:.3g}")
+        console.print(table)
+        bi = default_burn_in(flt.monitor.dims, len(names))
+        try:
+            tests = flt.monitor.tests(burn_in=bi).to_dict()
+            from estcal.estimate.innovation import InnovationTests
+
+            console.print(str(InnovationTests(**tests)))
+        except ValueError as exc:
+            tests = {"error": str(exc)}
+            console.print(f"innovation tests: {exc}")
+        if json_path is not None:
+            out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
+                   "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
+                                                             "nominal": float(pv.values[fidx[i]])}
+                                                         for i, n in enumerate(names)},
+                   "covariance": flt.P.tolist(), "innovation": tests, "history": history}
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps(out, indent=2))
+            console.print(f"JSON -> {json_path}")
