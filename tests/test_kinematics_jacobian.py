@@ -118,3 +118,26 @@ def test_joint_values_gain_offset_coupling():
     gi = robot.gain_idx
     # dq_l/dK_j = Cj[l, j] (Cm r)_j
     np.testing.assert_allclose(dq[:, :, gi], Cj[None] * (r @ Cm.T)[:, None, :], atol=1e-14)
+
+
+def test_pose_residual_rows_exact_at_large_residual():
+    """Location-method rows are the exact derivative of −e even far from the solution."""
+    from estcal.io import dataset_from_arrays
+    from estcal.kinematics.transforms import so3_exp
+    from estcal.methods import NoiseModel, PoseMethod
+
+    robot = puma560()
+    rng = np.random.default_rng(5)
+    q = robot.random_readings(5, rng)
+    k = robot.kinematics(q, jacobian=False)
+    data = dataset_from_arrays(robot.joint_names, q, R=so3_exp(rng.normal(0, 0.5, (5, 3))) @ k.R, p=k.p + 0.1)
+    m, noise = PoseMethod(), NoiseModel()
+    theta = robot.params.values
+    rows = m.rows(robot, theta, data, noise)
+    eps = 1e-6
+    for i in range(robot.n_params):
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += eps
+        tm[i] -= eps
+        de = (m.rows(robot, tp, data, noise, False).e - m.rows(robot, tm, data, noise, False).e) / (2 * eps)
+        np.testing.assert_allclose(-de, rows.H[:, i], atol=1e-7)

@@ -227,7 +227,9 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
     if "t" not in context and "t_start_robot" in header and "t_end_robot" in header:
         if np.all(np.isfinite(col["t_start_robot"])) and np.all(np.isfinite(col["t_end_robot"])):
             context["t"] = 0.5 * (col["t_start_robot"] + col["t_end_robot"])
-    columns = {h: col[h].copy() for h in header if h not in used and np.all(np.isfinite(col[h]))}
+    # Method columns may be partly empty (e.g. ``distance`` only on the second row of a
+    # pair): keep them with NaN where empty; drop only columns with no number at all.
+    columns = {h: col[h].copy() for h in header if h not in used and np.any(np.isfinite(col[h]))}
     ds = Dataset(names, readings, kind, pts, R, p, context, columns, np.arange(2, len(body) + 2), where)
     if check_units:
         _check_units(ds, robot)
@@ -256,8 +258,11 @@ def _check_units(ds: Dataset, robot) -> None:
                            f"millimetres; estcal expects metres")
 
 
-def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: str = "%.10g") -> Path:
-    """Write a dataset CSV in the documented format (joint columns, measurement, context, extra)."""
+def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: str = "%.17g") -> Path:
+    """Write a dataset CSV in the documented format (joint columns, measurement, context, extra).
+
+    The default format round-trips float64 exactly (identifiability checks on link
+    data rely on exactly repeated end points)."""
     from estcal.kinematics.transforms import matrix_to_quat
 
     cols: dict[str, np.ndarray] = {}

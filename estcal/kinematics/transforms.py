@@ -19,7 +19,7 @@ import numpy as np
 __all__ = [
     "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "rpy_to_matrix", "matrix_to_rpy",
     "quat_to_matrix", "matrix_to_quat", "so3_exp", "so3_log", "pose_error",
-    "make_transform", "invert_transform",
+    "make_transform", "invert_transform", "so3_right_jacobian_inv",
 ]
 
 
@@ -192,3 +192,19 @@ def invert_transform(T):
     T = np.asarray(T, dtype=float)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     return make_transform(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def so3_right_jacobian_inv(phi):
+    """Inverse right Jacobian of SO(3) at rotation vectors ``phi`` (..., 3) -> (..., 3, 3).
+
+    ``log(exp(φ) exp(δ)) ≈ φ + J_r⁻¹(φ) δ`` with
+    ``J_r⁻¹ = I + ½[φ]x + (1/θ² − (1 + cos θ)/(2 θ sin θ)) [φ]x²`` (series near 0).
+    """
+    phi = np.asarray(phi, dtype=float)
+    th = np.linalg.norm(phi, axis=-1)
+    small = th < 1e-5
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
+                 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(np.where(small, 1.0, ths))))
+    K = skew(phi)
+    return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)

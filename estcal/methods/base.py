@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.kinematics.transforms import pose_error
+from estcal.kinematics.transforms import pose_error, so3_right_jacobian_inv
 
 __all__ = ["Rows", "NoiseModel", "Method", "PositionMethod", "PoseMethod", "PointsMethod", "METHODS",
            "register_method", "get_method", "method_for_dataset"]
@@ -153,8 +153,10 @@ class PoseMethod(Method):
     """Location (full pose) measure, GECARO eq. [7]: 6 rows per pose.
 
     e = [p_meas − p_pred ; log(R_meas R_predᵀ)] (GECARO App. I with a proper
-    rotation logarithm, which the paper's "method 2" recommends). To first order
-    e(θ+Δθ) = e(θ) − J Δθ with J the world-frame pose Jacobian.
+    rotation logarithm, which the paper's "method 2" recommends). A change of the
+    prediction R_pred → exp([J_ω Δθ]x) R_pred changes the rotation residual by
+    −J_r⁻¹(e_rot) J_ω Δθ (J_r: right Jacobian of SO(3)), so the orientation rows are
+    J_r⁻¹(e_rot) J_ω — exact at any residual, equal to J_ω at e = 0 (GECARO eq. [7]).
     """
 
     name = "location"
@@ -163,8 +165,13 @@ class PoseMethod(Method):
     def rows(self, robot, theta, data, noise, jacobian=True):
         self.check(robot, data)
         kin = robot.kinematics(data.readings, theta, data.context, jacobian=jacobian)
-        e = pose_error(data.R, data.p, kin.R, kin.p).reshape(-1)
-        H = None if kin.J is None else kin.J.reshape(-1, robot.n_params)
+        err = pose_error(data.R, data.p, kin.R, kin.p)
+        e = err.reshape(-1)
+        H = None
+        if kin.J is not None:
+            H = np.array(kin.J)
+            H[:, 3:] = so3_right_jacobian_inv(err[:, 3:]) @ H[:, 3:]
+            H = H.reshape(-1, robot.n_params)
         N = data.n
         sig = np.tile(np.r_[np.full(3, noise.position), np.full(3, noise.orientation)], N)
         return Rows(e, H, sig, np.repeat(np.arange(N), 6), np.tile(np.r_[0, 0, 0, 1, 1, 1], N))
