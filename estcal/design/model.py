@@ -25,7 +25,7 @@ import numpy as np
 
 from estcal.kinematics.chain import SerialRobot
 
-__all__ = ["DesignModel", "identifiable_subset", "resolve_robot"]
+__all__ = ["DesignModel", "identifiable_subset", "resolve_robot", "ToolBox"]
 
 METHODS = ("position", "pose", "points")
 
@@ -232,3 +232,27 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
     k = int(np.sum(np.abs(np.diag(R)) > tol))
     keep = {names[order[i]] for i in piv[:k]}
     return [n for n in robot.params.names if n in keep]
+
+
+class ToolBox:
+    """Workspace constraint: tool (or marker ``point``) position inside an axis-aligned box.
+
+    ``ToolBox(robot, lower=(x, y, z), upper=(x, y, z))(Q)`` returns (N, 6) margins
+    (m), all ≥ 0 when the point is inside — the vectorised per-pose constraint
+    format of :mod:`estcal.design.plans`. ``None`` bounds are ignored. Picklable,
+    so it also works with process pools.
+    """
+
+    def __init__(self, robot: SerialRobot, lower=None, upper=None, point: int | None = None):
+        self.robot = robot
+        inf = np.inf
+        self.lower = np.array([-inf] * 3 if lower is None else [(-inf if v is None else v) for v in lower], float)
+        self.upper = np.array([inf] * 3 if upper is None else [(inf if v is None else v) for v in upper], float)
+        self.point = point
+
+    def __call__(self, Q) -> np.ndarray:
+        Q = np.atleast_2d(np.asarray(Q, float))
+        kin = self.robot.kinematics(Q, jacobian=False)
+        x = kin.p if self.point is None else kin.points[:, self.point]
+        g = np.concatenate([x - self.lower, self.upper - x], -1)
+        return np.where(np.isfinite(g), g, 1e3)
