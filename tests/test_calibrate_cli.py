@@ -140,3 +140,26 @@ def test_tiago_registration_level_reproduces_published(tiago_dir, tmp_path):
     assert d["rmse_mm"]["validation"][0] == pytest.approx(4.87, abs=0.005)
     assert sorted(d["parameters"]) == sorted(["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz",
                                               "marker1_x", "marker1_y", "marker1_z"])
+
+
+def test_selection_agrees_with_identify_module(tmp_path):
+    """The level selection's structural step equals estcal.identify's sequential QR with the same priorities."""
+    identify = pytest.importorskip("estcal.identify")
+    from estcal.cli.commands.calibrate import level_candidates, select_free
+    from estcal.io import load_dataset
+    from estcal.methods import NoiseModel, Problem
+
+    train, _ = _simulate(tmp_path, 30, 9, "train.csv")
+    robot = puma560()
+    ds = load_dataset(train, robot)
+    prob = Problem(robot, [(None, ds, NoiseModel(1e-5, 1e-4))])
+    sel = select_free(prob, "full", "structural", refine_registration=False)
+    groups = level_candidates(prob.params, "full", pose_data=True)
+    names = [n for g in groups for n in g]
+    prio = {n: len(groups) - gi for gi, g in enumerate(groups) for n in g}
+    rows = prob.evaluate()
+    W = rows.H / rows.sigma[:, None]
+    W = W[:, prob.params.indices(names)]
+    ref = identify.identifiable(W, names, priorities=[prio[n] for n in names])
+    assert sorted(ref.identifiable) == sorted(sel.identifiable)
+    assert len(sel.identifiable) == 30
