@@ -163,3 +163,23 @@ def test_selection_agrees_with_identify_module(tmp_path):
     ref = identify.identifiable(W, names, priorities=[prio[n] for n in names])
     assert sorted(ref.identifiable) == sorted(sel.identifiable)
     assert len(sel.identifiable) == 30
+
+
+@pytest.mark.parametrize("estimator", ["kalman", "gtsam"])
+def test_other_estimators_through_cli_agree_with_lm(tmp_path, estimator):
+    train, _ = _simulate(tmp_path, 30, 10, "train.csv")
+    free = ",".join(TRUE_DELTA)
+    common = [str(train), "--robot", "puma560", "--free", free, "--noise-pos", "1e-5", "--noise-rot", "1e-4",
+              "--known-noise"]
+    r = _run(common + ["--json", str(tmp_path / "lm.json")])
+    assert r.exit_code == 0, r.output
+    r = _run(common + ["--method", estimator, "--json", str(tmp_path / "e.json")])
+    if r.exit_code != 0 and "not available" in r.output:
+        pytest.skip(f"estimator {estimator} not available: {r.output.strip()}")
+    assert r.exit_code == 0, r.output
+    a, b = (json.loads((tmp_path / f).read_text()) for f in ("lm.json", "e.json"))
+    assert b["method"] == estimator
+    for n in TRUE_DELTA:
+        # same posterior mode/mean to a small fraction of the standard error
+        assert abs(a["parameters"][n]["estimate"] - b["parameters"][n]["estimate"]) < 0.1 * a["parameters"][n]["std"]
+        assert b["parameters"][n]["std"] == pytest.approx(a["parameters"][n]["std"], rel=0.05)

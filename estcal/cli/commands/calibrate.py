@@ -487,6 +487,10 @@ def register(app: typer.Typer) -> None:
                   f"an identifiable set)")
         except ValueError as exc:
             _fail(str(exc))
+        except (RuntimeError, np.linalg.LinAlgError) as exc:  # e.g. a backend's numerical failure
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
+                  f"or check the free set with `estcal identifiable`")
         measure_name = problem.terms[0].method.name
         _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
         if json_path:
