@@ -114,7 +114,7 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
         if name == "drift":
             if "t" not in ctx:
                 continue
-            opts = {"t0": float(np.min(ctx["t"]))}
+            opts = {"t0": float(np.min(ctx["t"]))}  # 0 with session time
         elif name == "thermal_expansion":
             if "temperature" in ctx:
                 opts = {"reference": float(np.mean(ctx["temperature"]))}
@@ -306,7 +306,8 @@ def _fit(problem, theta, free, max_iter=100):
 def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, alpha: float = 0.01,
              max_effects: int = 3, min_explained: float = 0.3, n_refit: int = 3, regroup_tol: float = 1e-3,
              ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
-             cv_max_iter: int = 30, verbose: bool = False) -> DiagnosisResult:
+             cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
+             session_time: bool = True) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -327,6 +328,12 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     regroup_tol : relative size below which an effect column counts as regrouped
         into the model's parameters (not identifiable).
     ident_tol : relative numerical zero of the geometric identifiable set.
+    geometric : ``full`` (every identifiable geometric parameter, default), ``aic``
+        (those an Akaike criterion supports) or ``joint_offset``; see
+        :func:`~estcal.discrepancy.geometric.fit_geometric`.
+    session_time : measure ``t`` from the first pose of each dataset (drift and
+        warm-up are session effects; a validation file from another day then
+        starts at its own t = 0). The absolute time stays in ``columns["t_abs"]``.
     free : explicit geometric free set (default: identifiable geometric parameters).
     report : folder for plots, ``diagnosis.json`` and ``summary.txt``.
     rng : seed of the fold assignment.
@@ -350,9 +357,14 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     known = bool(nm.known)
     data = with_effect_context(robot, data)
     validate = [with_effect_context(robot, d) for d in validate]
+    if session_time:
+        for d in [data] + validate:
+            if "t" in d.context:
+                d.columns["t_abs"] = d.context["t"].copy()
+                d.context["t"] = d.context["t"] - d.context["t"].min()
 
     # 1. geometric model ------------------------------------------------------
-    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol)
+    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
     theta_g = gres.theta.copy()
     grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
     problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])

@@ -138,12 +138,19 @@ def gravity_ready(robot, theta=None, nominal_theta=None):
     return new, lumped
 
 
-def fit_geometric(robot, data, noise, free=None, tol: float = 1e-4, register: bool = True, max_iter: int = 100):
+def fit_geometric(robot, data, noise, free=None, tol: float = 1e-4, register: bool = True, max_iter: int = 100,
+                  level: str = "full"):
     """The standard geometric calibration of ``robot`` on ``data``.
 
     Registration (Kabsch) and a base + marker fit first (so that the identifiable
-    set is judged at a sensible linearisation point), then every identifiable
-    parameter of :func:`geometric_candidates` (or ``free``).
+    set is judged at a sensible linearisation point), then the identifiable
+    parameters of :func:`geometric_candidates` (or ``free``) of ``level``:
+
+    * ``full`` — every identifiable one (the issue's "standard geometric calibration");
+    * ``aic`` — those an Akaike criterion supports, in priority order
+      (:func:`estcal.cli.commands.calibrate.select_free` with ``criterion="aic"``);
+      structurally identifiable but unsupported parameters stay nominal;
+    * ``joint_offset`` — base, markers/tool and joint offsets only.
 
     Returns ``(problem, result, free_names, dropped_names)``.
     """
@@ -160,9 +167,29 @@ def fit_geometric(robot, data, noise, free=None, tol: float = 1e-4, register: bo
             r0 = calibrate_lsq(problem, "lm", free=k0, check=False, max_iter=max_iter)
             theta = r0.theta
             problem = problem.with_values(theta)
+    if level not in ("full", "aic", "joint_offset"):
+        raise ValueError(f"unknown geometric level {level!r}; choose full, aic or joint_offset")
     cands = list(free) if free is not None else geometric_candidates(problem.robot)
+    if free is None and level == "joint_offset":
+        kinds = dict(zip(problem.params.names, problem.params.kinds))
+        cands = [n for n in cands if kinds[n] in ("base", "marker", "offset")
+                 or (kinds[n] == "tool" and problem.robot.n_markers == 0)]
     _, A, _ = weighted_system(problem, theta, cands)
     keep, dropped = identifiable_subset(A, cands, tol)
+    if free is None and level == "aic":
+        from estcal.cli.commands.calibrate import select_free
+
+        # Linearise at the joint-offset solution (offsets before geometry, GECARO's priority),
+        # then keep the link/tool parameters that lower AIC.
+        kinds = dict(zip(problem.params.names, problem.params.kinds))
+        first = [n for n in keep if kinds[n] in ("base", "marker", "offset")]
+        rest = [n for n in keep if n not in first]
+        r1 = calibrate_lsq(problem.with_values(theta), "lm", free=first, check=False, max_iter=max_iter)
+        theta = r1.theta
+        problem = problem.with_values(theta)
+        sel = select_free(problem, groups=[first, rest], criterion="aic", theta=theta, refine_registration=False)
+        dropped = dropped + [n for n in keep if n not in sel.identifiable]
+        keep = [n for n in keep if n in sel.identifiable]
     res = calibrate_lsq(problem, "lm", free=keep, check=False, max_iter=max_iter)
     # Re-check at the solution: a parameter can lose identifiability away from nominal.
     _, A, _ = weighted_system(problem, res.theta, keep)
