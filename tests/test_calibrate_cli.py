@@ -183,3 +183,29 @@ def test_other_estimators_through_cli_agree_with_lm(tmp_path, estimator):
         # same posterior mode/mean to a small fraction of the standard error
         assert abs(a["parameters"][n]["estimate"] - b["parameters"][n]["estimate"]) < 0.1 * a["parameters"][n]["std"]
         assert b["parameters"][n]["std"] == pytest.approx(a["parameters"][n]["std"], rel=0.05)
+
+
+def test_point_link_level_full_recovers_errors(tmp_path):
+    """Encoder-only point-link data (--method point-link): the level selection drops what a point
+    link cannot see (base, frames 0-1: GECARO Table 2) and recovers the true errors exactly."""
+    from estcal.kinematics import stanford
+    from estcal.methods.generate import link_data
+
+    robot = stanford()
+    truth = robot.params.values.copy()
+    delta = {"offset_2": 2e-3, "d_3": -1e-3, "alpha_4": 1.5e-3, "r_5": 1e-3}
+    for k, v in delta.items():
+        truth[robot.params.index(k)] += v
+    ds = link_data(robot, 40, 2, "point", rng=1, theta=truth)
+    path = write_dataset(tmp_path / "link.csv", ds)
+    out = tmp_path / "link.json"
+    r = _run([str(path), "--robot", "stanford", "--method", "point-link", "--level", "full",
+              "--selection", "structural", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(out.read_text())
+    sel = d["selection"]
+    assert d["measure"] == "point-link"
+    for n in ("base_rx", "base_ry", "base_rz", "theta_1", "r_1", "d_1"):
+        assert n in sel["no_effect"]
+    for n, v in delta.items():
+        assert d["parameters"][n]["estimate"] == pytest.approx(truth[robot.params.index(n)], abs=1e-9)

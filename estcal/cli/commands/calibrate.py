@@ -134,7 +134,7 @@ def _weighted_matrix(problem, theta):
 
 def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
                 groups: list[list[str]] | None = None, known_noise: bool | None = None,
-                refine_registration: bool = True) -> Selection:
+                refine_registration: bool = True, exclude=()) -> Selection:
     """Identifiable free set of a level on the problem's (calibration) data.
 
     Parameters
@@ -145,7 +145,9 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     theta : linearisation point (default: the problem's values)
     groups : explicit candidate groups in priority order (first group = always-kept set)
     known_noise : AIC with absolute weights (default: from the problem's noise models)
-    refine_registration : for ``aic``, linearise at the fit of the first group (registration)
+    refine_registration : linearise at the fit of the first group (registration) for higher levels
+    exclude : names reported as *no effect* without looking at their columns (e.g. the
+        parameters a structural analysis on consistent simulated data found without effect)
 
     The ordered Gram–Schmidt below is QR without pivoting on the priority-sorted,
     unit-norm columns: ``|R_jj| ≤ 1e-8`` marks a dependent column (GECARO App. III,
@@ -157,6 +159,9 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     pose = any(t.data.kind == "pose" for t in problem.terms)
     if groups is None:
         groups = level_candidates(pv, level, pose)
+    exclude = set(exclude)
+    if exclude:
+        groups = [[n for n in g if n not in exclude] for g in groups]
     theta = pv.values.copy() if theta is None else np.asarray(theta, float)
     A, b = _weighted_matrix(problem, theta)
     norms = np.linalg.norm(A, axis=0)
@@ -225,6 +230,7 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     if kept:
         s = np.linalg.svd(A[:, kept] / norms[kept], compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    no_effect = [n for n in pv.names if n in exclude] + no_effect
     # estimation order: the vector's own order (stable, readable tables)
     names = [pv.names[i] for i in sorted(kept)]
     return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
@@ -285,7 +291,8 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     start = problem
     if free is None:
         crit = selection or ("aic" if level == "full" else "structural")
-        sel = select_free(problem, level, crit, known_noise=noise.known)
+        exclude = _structural_no_effect(robot, problem, level, data) if method is not None else []
+        sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
         free = sel.identifiable
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
     est = get_estimator(estimator)
@@ -300,6 +307,34 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     return res, sel, problem
+
+
+_DIRECT = ("position", "location", "pose", "points")
+
+
+def _structural_no_effect(robot, problem, level, data) -> list[str]:
+    """Parameters without effect for a constraint method (links, planes, distance).
+
+    Their observation matrix on real data is evaluated where the constraints do not
+    hold exactly, so columns that vanish at consistency (the base orientation for a
+    point link, …) are small but not zero there. GECARO's analysis on simulated,
+    consistent configurations (:func:`estcal.identify.identify`) finds them; they are
+    removed from the candidates. Direct measures (position, location, points) need no
+    such step.
+    """
+    mname = problem.terms[0].method.name
+    if mname in _DIRECT or data.kind != "none":
+        return []
+    try:
+        from estcal.identify import identify
+    except ImportError:  # pragma: no cover - identify is part of the package
+        return []
+    cands = [n for g in level_candidates(problem.params, level) for n in g if n in robot.params]
+    try:
+        ref = identify(robot, mname, None, candidates=cands, check_excitation=False)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError):
+        return []
+    return [n for n in ref.no_effect if n in cands]
 
 
 def _fmt(v, nd=3):
