@@ -349,10 +349,12 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
 
     # ---- true robot: nominal + errors + effects
     true = nominal.copy()
+    error_model = None
     if errors is None or (isinstance(errors, str) and errors.lower() == "none"):
         err = {}
     elif isinstance(errors, str) and errors.lower() == "random":
-        err = random_errors(nominal, error_std, r_err)
+        error_model = error_std if isinstance(error_std, ErrorModel) else ErrorModel(**(error_std or {}))
+        err = random_errors(nominal, error_model, r_err)
     elif isinstance(errors, dict):
         err = {str(k): float(v) for k, v in errors.items()}
         for k in err:
@@ -494,9 +496,7 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         "measure": measure,
         "margin": margin,
         "noise": noise.to_dict(),
-        "error_model": (ErrorModel(**error_std) if isinstance(error_std, dict) else
-                        (error_std or ErrorModel())).to_dict() if isinstance(errors, str) and
-        errors.lower() == "random" else None,
+        "error_model": error_model.to_dict() if error_model is not None else None,
         "parameters": {n: float(v) for n, v in zip(pv.names, pv.values)},
         "nominal": {n: float(v) for n, v in zip(nominal.params.names, nominal.params.values)},
         "errors": {n: v for n, v in err.items() if v != 0.0},  # true = nominal + error
