@@ -84,6 +84,7 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
     rng = np.random.default_rng(seed)
     rob = _robot(robot)
     q = rob.random_readings(n_poses, rng, margin=0.05) if readings is None else np.asarray(readings, float)
+    n_poses = q.shape[0]
     noise = NoiseModel(position=sigma_p, orientation=sigma_r, known=known)
     nominal = rob.params.values.copy()
     meas = _measure(rob, nominal, q, method, 0.0, 0.0, rng)
