@@ -209,3 +209,23 @@ def test_point_link_level_full_recovers_errors(tmp_path):
         assert n in sel["no_effect"]
     for n, v in delta.items():
         assert d["parameters"][n]["estimate"] == pytest.approx(truth[robot.params.index(n)], abs=1e-9)
+
+
+def test_gough_platform_is_dispatched(tmp_path):
+    """A Gough robot (built-in left_hand) goes to estcal.parallel.calibrate_gough."""
+    from estcal.parallel.calibration import simulate_gough_data
+    from estcal.parallel.gough import left_hand
+
+    nominal = left_hand()
+    rng = np.random.default_rng(0)
+    true_robot = nominal.with_theta(nominal.theta + rng.normal(0, 1e-3, nominal.theta.size))
+    data = simulate_gough_data(true_robot, 40, 1)
+    path = tmp_path / "gough.json"
+    path.write_text(json.dumps(data.to_dict()))
+    out = tmp_path / "g.json"
+    r = _run([str(path), "--robot", "left_hand", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(out.read_text())
+    assert d["converged"] and len(d["parameters"]) == 42
+    est = np.array([v["estimate"] for v in d["parameters"].values()])
+    np.testing.assert_allclose(est, true_robot.theta, atol=1e-9)
