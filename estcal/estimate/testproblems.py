@@ -94,7 +94,7 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
     pv = prob.params
     if truth is None:
         truth = nominal.copy()
-        idx = pv.indices(free)
+        idx = pv.with_free(free).free_indices
         for i in idx:
             lin = pv.names[i].split("_")[0] in ("d", "a", "r") or pv.names[i].endswith(("_tx", "_ty", "_tz", "_x", "_y", "_z"))
             truth[i] += (deviation[0] if lin else deviation[1]) * rng.standard_normal()
