@@ -1,0 +1,51 @@
+"""Smoke tests: every design experiment runs in --quick mode and writes its documented JSON keys."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+EXP = Path(__file__).resolve().parents[1] / "experiments"
+
+
+def _run(name, tmp_path, *extra):
+    spec = importlib.util.spec_from_file_location(name, EXP / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / f"{name}.json"
+    mod.main(["--quick", "--json", str(out), *extra])
+    return json.loads(out.read_text())
+
+
+def test_klimchik_2link_quick(tmp_path):
+    d = _run("klimchik_2link", tmp_path)
+    assert set(d["table1"]) == {"0", "30", "60", "90", "120", "150", "180"}
+    for q20, v in d["table1"].items():  # numerical optimum = closed form (20) (limits at 0°, 180°)
+        assert v == pytest.approx(d["table1_detail"][q20]["closed_form"], rel=2e-3)
+    assert d["fig2"]["c"] == pytest.approx(0.8192, abs=1e-3) and d["fig2"]["b"] == pytest.approx(1.0, abs=1e-9)
+    assert d["fig3"]["c"] < d["fig3"]["b"] < d["fig3"]["a"]
+    assert d["fig3_optimum"]["rho0_over_sigma"] <= d["fig3"]["c"] + 1e-9
+    assert len(d["fig3_optimum"]["plan_deg"]) == 3
+
+
+def test_5r1p_strategies_quick(tmp_path):
+    d = _run("design_5r1p_strategies", tmp_path)
+    assert d["rank"] == 21
+    assert d["ranking_46"][-1] == "S1" and d["ranking_46"][0] in ("S3", "S4")
+
+
+def test_kr270_quick(tmp_path):
+    d = _run("kr270_design", tmp_path)
+    for k in ("3", "4", "3x4", "4x3", "12"):
+        row = d["table2"][k]
+        assert row["proposed_um"] < row["random_mean_um"]
+    assert d["table2"]["3x4"]["proposed_um"] == pytest.approx(d["table2"]["3"]["proposed_um"] / 2, rel=1e-9)
+
+
+def test_active_calibration_quick(tmp_path):
+    d = _run("active_calibration", tmp_path, "--png", str(tmp_path / "a.png"))
+    assert (tmp_path / "a.png").exists()
+    assert set(d["curves"]) == {"active", "random", "plan"}
+    assert d["curves"]["active"]["predicted_mm"][-1] < d["curves"]["active"]["predicted_mm"][0]
