@@ -77,3 +77,23 @@ def test_identifiable_subset_is_full_rank():
         J = model.jacobian(model.random_readings(40, 9)).reshape(-1, model.p)
         assert np.linalg.matrix_rank(J / np.linalg.norm(J, axis=0)) == len(free)
         assert len(free) == 25  # Mooring (4.397): position-only PUMA has 25; Stanford also 25 here
+
+
+def test_accuracy_map_region_grid_and_box():
+    from estcal.design.criteria import accuracy_map
+    from estcal.design.model import ToolBox
+    from estcal.kinematics.robots import planar2
+
+    model = DesignModel(planar2(), "position", ["a_1", "a_2"], sigma=1e-3)
+    C = np.diag([1e-6, 4e-6])
+    amap = model.accuracy_map(C, region=[[0, np.pi / 2], [0, np.pi / 2]], grid=3)
+    assert len(amap.std) == 9
+    # hand value: at q = (0, 0) the x error is Δl1 + Δl2 → std sqrt(1e-6 + 4e-6); y has none
+    k = int(np.flatnonzero(np.all(amap.q == 0, axis=1))[0])
+    assert amap.std[k] == pytest.approx(np.sqrt(5e-6))
+    # Cartesian box: keep poses with x ≥ 1.0 m
+    box = ToolBox(model.robot, lower=(1.0, None, None))
+    sub = model.accuracy_map(C, region=[[0, np.pi / 2], [0, np.pi / 2]], grid=3, constraint=box)
+    assert np.all(sub.xyz[:, 0] >= 1.0) and 0 < len(sub.std) < 9
+    ref = accuracy_map(C, model.position_jacobian(sub.q))
+    np.testing.assert_allclose(sub.std, ref.std)

@@ -179,6 +179,36 @@ class DesignModel:
 
         return covariance(self.information(Q))
 
+    def accuracy_map(self, C, region=None, n: int = 1000, rng=None, grid: int | None = None, constraint=None):
+        """Expected position error after calibration over a workspace region.
+
+        Parameters
+        ----------
+        C : (p, p) parameter covariance (a plan's :meth:`covariance`, or an estimator's).
+        region : (n_joints, 2) joint-space box (rad / m); default the joint limits.
+        n : number of uniform random poses in the box (ignored when ``grid`` is given).
+        grid : points per joint of a regular grid instead (grid**n_joints poses).
+        constraint : per-pose feasibility callback (e.g. :class:`ToolBox` for a Cartesian box).
+
+        Returns
+        -------
+        :class:`~estcal.design.criteria.AccuracyMap` (std = sqrt(trace(J_k C J_kᵀ)) per pose, m).
+        """
+        from .criteria import accuracy_map
+
+        box = self.robot.limits if region is None else np.asarray(region, float)
+        if grid:
+            axes = [np.linspace(lo, hi, grid) for lo, hi in box]
+            Q = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.n_joints)
+        else:
+            Q = self.random_readings(n, rng, box)
+        if constraint is not None:
+            g = np.asarray(constraint(Q), float).reshape(len(Q), -1)
+            Q = Q[np.all(g >= 0, axis=1)]
+            if not len(Q):
+                raise ValueError("no pose of the region satisfies the constraint")
+        return accuracy_map(C, self.position_jacobian(Q), Q, self.positions(Q))
+
     # -------------------------------------------------------- sampling
     def random_readings(self, n, rng=None, limits=None) -> np.ndarray:
         """Uniform random readings within ``limits`` (n_joints, 2) (default: joint limits)."""

@@ -10,7 +10,8 @@ JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
 ``criteria`` (all criteria of the plan, ``param_std`` in SI units),
 ``rho0_mm`` (predicted RMS position error at each test pose), ``test_poses_rad``,
 ``baseline`` (:meth:`BaselineStats.to_dict`: min/mean/max/percentiles),
-``beats_random`` (plan better than the best random plan).
+``beats_random`` (plan better than the best random plan), ``accuracy_map`` (with ``--map N``:
+``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``).
 """
 from __future__ import annotations
 
@@ -45,6 +46,11 @@ def register(app: typer.Typer) -> None:
                                            help="Free parameters (comma-separated names/patterns); "
                                                 "default: an identifiable subset (offsets first)."),
         random_plans: int = typer.Option(1000, "--random-plans", help="Random plans in the baseline."),
+        map_n: int = typer.Option(0, "--map", help="Accuracy map: expected position error over N random poses "
+                                                 "within the joint limits (0 = off)."),
+        map_box: Optional[str] = typer.Option(None, "--map-box",
+                                              help="Restrict the map to a tool-position box "
+                                                   "'xmin,ymin,zmin,xmax,ymax,zmax' (mm)."),
         seed: int = typer.Option(0, "--seed"),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON."),
     ) -> None:
@@ -80,6 +86,17 @@ def register(app: typer.Typer) -> None:
                                          algorithm=algorithm, restarts=restarts, rng=seed, q_test=q_test)
             crits = evaluate_plan(model, plan.readings, q_test=q_test)
             base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test)
+            amap = None
+            if map_n > 0:
+                from estcal.design.model import ToolBox
+
+                box = None
+                if map_box:
+                    v = [float(x) * 1e-3 for x in map_box.split(",")]
+                    if len(v) != 6:
+                        raise ValueError("--map-box needs 6 numbers xmin,ymin,zmin,xmax,ymax,zmax (mm)")
+                    box = ToolBox(rb, v[:3], v[3:])
+                amap = model.accuracy_map(model.covariance(plan.readings), n=map_n, rng=seed + 2, constraint=box)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
             console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
             raise typer.Exit(2) from None
@@ -101,6 +118,8 @@ def register(app: typer.Typer) -> None:
         for k, v in crits.param_std.items():
             console.print(f"  {k:<14}{v:.4g}")
         console.print(escape(str(base)))
+        if amap is not None:
+            console.print(escape(str(amap)))
         console.print(f"optimised plan {'beats' if better else 'does NOT beat'} the best of "
                       f"{base.n_plans} random plans")
         if json_path is not None:
@@ -108,7 +127,8 @@ def register(app: typer.Typer) -> None:
                    "plan": plan.to_dict(), "criteria": crits.to_dict(),
                    "rho0_mm": None if rho is None else rho.tolist(),
                    "test_poses_rad": None if q_test is None else q_test.tolist(),
-                   "baseline": base.to_dict(), "beats_random": bool(better)}
+                   "baseline": base.to_dict(), "beats_random": bool(better),
+                   "accuracy_map": None if amap is None else amap.to_dict()}
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps(out, indent=2, default=float))
             console.print(f"wrote {json_path}")
