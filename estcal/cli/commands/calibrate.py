@@ -141,7 +141,8 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     ----------
     problem : :class:`estcal.methods.Problem` (its data: the calibration file only)
     level : ``registration``, ``joint_offset`` or ``full`` (ignored when ``groups`` is given)
-    criterion : ``structural`` (QR rank only) or ``aic`` (+ Akaike's criterion, see module docstring)
+    criterion : ``structural`` (QR rank only), ``aic`` (+ Akaike's criterion, see module docstring)
+        or ``bic`` (Schwarz: penalty ln M per parameter instead of 2)
     theta : linearisation point (default: the problem's values)
     groups : explicit candidate groups in priority order (first group = always-kept set)
     known_noise : AIC with absolute weights (default: from the problem's noise models)
@@ -153,8 +154,8 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     unit-norm columns: ``|R_jj| ≤ 1e-8`` marks a dependent column (GECARO App. III,
     with the priority order of §1.5 deciding which of dependent columns is kept).
     """
-    if criterion not in ("structural", "aic"):
-        raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural' or 'aic'")
+    if criterion not in ("structural", "aic", "bic"):
+        raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural', 'aic' or 'bic'")
     pv = problem.params
     pose = any(t.data.kind == "pose" for t in problem.terms)
     if groups is None:
@@ -193,8 +194,10 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     rejected = []
     rss = float(b @ b)
 
+    pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
+
     def aic(r, p):
-        return r + 2 * p if known_noise else M * np.log(max(r, 1e-300) / M) + 2 * p
+        return r + pen * p if known_noise else M * np.log(max(r, 1e-300) / M) + pen * p
 
     for i in order:
         if norms[i] <= 1e-12 * scale:
@@ -208,13 +211,13 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
             regrouped_idx.append(i)
             continue
         u = v / nv
-        if criterion == "aic" and i not in first:
+        if criterion != "structural" and i not in first:
             r_new = rss - float(u @ b) ** 2
             if not aic(r_new, len(kept) + 1) < aic(rss, len(kept)):
                 rejected.append(pv.names[i])
                 continue
             rss = r_new
-        elif criterion == "aic":
+        elif criterion != "structural":
             rss -= float(u @ b) ** 2
         kept.append(i)
         Q = np.column_stack([Q, u])
@@ -410,7 +413,8 @@ def register(app: typer.Typer) -> None:
         level: Optional[str] = typer.Option(None, "--level", help="registration | joint_offset | full "
                                                                   "(default full when --free is not given)."),
         selection: Optional[str] = typer.Option(None, "--selection",
-                                                help="structural | aic (default: aic for full, else structural)."),
+                                                help="structural | aic | bic (default: aic for full, else "
+                                                     "structural)."),
         validate: list[Path] = typer.Option([], "--validate", help="Validation dataset(s), scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
         noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
