@@ -34,7 +34,10 @@ experiments) goes through five steps:
    also required to lower Akaike's criterion on the calibration data
    (``M ln(RSS/M) + 2p``, or ``χ² + 2p`` with known noise), linearised at the
    registration solution: structurally identifiable but practically
-   unsupported parameters are left at their nominal values.
+   unsupported parameters are left at their nominal values (``--selection bic``:
+   Schwarz's penalty ln M instead of 2). For constraint methods (links, planes,
+   distance) the parameters GECARO's analysis on consistent simulated data finds
+   without effect (:func:`estcal.identify.identify`) are removed first.
 5. **Estimation** — any estimator of :mod:`estcal.estimate.registry`
    (``lm``, ``gauss-newton``, ``iterated-lls``, ``scipy-lm``, ``gtsam``, ``kalman``,
    ``mcmc`` …), then a report: parameter table (estimate ± std, regrouped
@@ -415,7 +418,7 @@ def register(app: typer.Typer) -> None:
         selection: Optional[str] = typer.Option(None, "--selection",
                                                 help="structural | aic | bic (default: aic for full, else "
                                                      "structural)."),
-        validate: list[Path] = typer.Option([], "--validate", help="Validation dataset(s), scored in order."),
+        validate: list[Path] = typer.Option([], "--validate", help="Validation dataset; repeat the option for several, scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
         noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
         noise_rot: float = typer.Option(1e-3, "--noise-rot", help="Orientation noise std (rad)."),
