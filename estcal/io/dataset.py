@@ -7,7 +7,9 @@ Columns (SI units; see ``docs/dataset.md``):
   - ``x,y,z`` — one point (the tool origin, or marker 1 when the robot has markers);
   - ``x1,y1,z1,…,xk,yk,zk`` — k points of one rigid body (markers 1..k);
   - ``x,y,z,qw,qx,qy,qz`` — full pose of the tool frame (quaternion scalar-first);
-* optional ``t`` (s), ``temperature`` (°C), ``payload`` (kg). When ``t`` is absent
+* optional ``t`` (s), ``temperature`` (°C), ``payload`` (kg) and ``approach_<joint>``
+  (±1, direction in which the joint approached the pose) — the *context* passed
+  to non-geometric effects. When ``t`` is absent
   but ``t_start_robot``/``t_end_robot`` are present (the TIAGo files), ``t`` is
   the middle of that window;
 * method columns used by the measurement methods (``group`` for link methods,
@@ -224,6 +226,12 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
             need([c])
             context[c] = col[c].copy()
             used.add(c)
+    # approach direction of each joint (±1) drives direction-dependent backlash
+    for h in header:
+        if h.startswith("approach_") and h not in used:
+            need([h])
+            context[h] = col[h].copy()
+            used.add(h)
     if "t" not in context and "t_start_robot" in header and "t_end_robot" in header:
         if np.all(np.isfinite(col["t_start_robot"])) and np.all(np.isfinite(col["t_end_robot"])):
             context["t"] = 0.5 * (col["t_start_robot"] + col["t_end_robot"])

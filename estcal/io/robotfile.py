@@ -438,12 +438,12 @@ def robot_to_dict(robot: SerialRobot) -> dict:
         joints.append(jd)
         labels.append(lab)
     # explicit labels only where the default numbering would differ
-    from estcal.kinematics.builder import _labels
+    from estcal.kinematics.builder import frame_labels
 
     if conv_top == "urdf":
         default = [jd["name"] for jd in joints]
     else:
-        default = _labels([{"type": jd["type"]} for jd in joints])
+        default = frame_labels([{"type": jd["type"]} for jd in joints])
     for jd, lab, dl in zip(joints, labels, default):
         if lab != dl:
             jd["label"] = lab

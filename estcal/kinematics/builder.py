@@ -24,7 +24,7 @@ from .chain import Elementary, Link, SerialRobot
 from .parameters import ParameterVector
 from .transforms import make_transform, rpy_to_matrix
 
-__all__ = ["build_robot", "KHALIL_PARAMS", "DH_PARAMS", "URDF_PARAMS", "FRAME6_PARAMS"]
+__all__ = ["build_robot", "frame_labels", "KHALIL_PARAMS", "DH_PARAMS", "URDF_PARAMS", "FRAME6_PARAMS"]
 
 KHALIL_PARAMS = ("alpha", "d", "theta", "r", "beta")
 DH_PARAMS = ("theta", "d", "a", "alpha", "beta")  # beta: Hayati Ry, nominal 0
@@ -55,7 +55,7 @@ def _frame6_link(label: str, prefix: str, xyz, rpy, P: _Params, const=None) -> L
     return Link(label=label, const=np.eye(4) if const is None else np.asarray(const, float), before=before)
 
 
-def _labels(frames: Sequence[dict]) -> list[str]:
+def frame_labels(frames: Sequence[dict]) -> list[str]:
     """Khalil/DH frame numbering: actuated joints 1..n; constant frames before the
     first joint count down from 0, later ones continue the count (GECARO's 0 … n+1)."""
     first = next((i for i, f in enumerate(frames) if f.get("type", "revolute") != "fixed"), len(frames))
@@ -85,7 +85,7 @@ def build_robot(name: str, frames: Sequence[dict], base=None, tool=None, markers
     links: list[Link] = []
     b = base or {}
     links.append(_frame6_link("base", "base", b.get("xyz", (0, 0, 0)), b.get("rpy", (0, 0, 0)), P))
-    labels = _labels(frames) if convention != "urdf" else [f.get("label", f["name"]) for f in frames]
+    labels = frame_labels(frames) if convention != "urdf" else [f.get("label", f["name"]) for f in frames]
     joint_names, joint_types, limits, offsets, gains = [], [], [], [], []
     for f, label in zip(frames, labels):
         ftype = f.get("type", "revolute")

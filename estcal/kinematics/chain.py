@@ -38,6 +38,7 @@ world-frame rotation vector of ``R(η+dη) R(η)ᵀ``.
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -442,8 +443,13 @@ class SerialRobot:
             J_points = JpT.transpose(3, 0, 1, 2)
             for eff in self.effects:
                 if hasattr(eff, "point_correction") and self.n_markers:
+                    # Effects that scale the whole point (thermal) also need the pose
+                    # Jacobian to correct the other columns; older effects may not take it.
+                    kw = {"J_points": J_points}
+                    if "J" in inspect.signature(eff.point_correction).parameters:
+                        kw["J"] = J
                     _, dd = eff.point_correction(self, readings, points, theta, context or {},
-                                                 derivatives=True, J_points=J_points)
+                                                 derivatives=True, **kw)
                     if dd is not None:
                         J_points[..., eff.indices] += dd
         R, p = Rn, pn
