@@ -100,3 +100,36 @@ def test_unidentifiable_free_set_raises():
     sim = simulated_problem("puma560", n_poses=20, seed=17)
     with pytest.raises(ValueError, match="identifiable"):
         calibrate_gtsam(sim.problem, free=sim.free + ["offset_2"])
+
+
+def test_rpy_rate_matrix_finite_differences():
+    from estcal.estimate.factorgraph import rpy_rate_matrix
+    from estcal.kinematics.transforms import rpy_to_matrix, so3_log
+
+    rpy = np.array([0.3, -0.4, 1.1])
+    R = rpy_to_matrix(rpy)
+    h = 1e-7
+    N = np.column_stack([so3_log(rpy_to_matrix(rpy + h * e) @ R.T) / h for e in np.eye(3)])
+    np.testing.assert_allclose(rpy_rate_matrix(rpy), N, atol=1e-6)
+
+
+def test_base_as_pose3_variable(puma):
+    sim, lm = puma
+    g = calibrate_gtsam(sim.problem, base_pose3=True)
+    assert g.extra["pose3_frames"] == ["base"]
+    assert np.abs((g.estimate - lm.estimate) / lm.std).max() < 1e-3
+    np.testing.assert_allclose(g.covariance, lm.covariance, rtol=1e-6, atol=1e-14)
+    # a Pose3 prior on the base (e.g. from a registration) tightens the base parameters
+    from estcal.kinematics.transforms import rpy_to_matrix
+
+    pv = sim.problem.params
+    tb = sim.truth[pv.indices(["base_tx", "base_ty", "base_tz"])]
+    Rb = rpy_to_matrix(sim.truth[pv.indices(["base_rx", "base_ry", "base_rz"])])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rb, tb
+    gp = calibrate_gtsam(sim.problem, base_pose3=True, base_prior=(T, np.full(6, 1e-6)))
+    i = [gp.names.index(n) for n in ("base_tx", "base_ty", "base_tz")]
+    assert np.all(gp.std[i] < 0.2 * g.std[i])
+    assert np.all(np.abs(gp.estimate[i] - tb) < 5e-6)
+    with pytest.raises(ValueError, match="tool"):
+        calibrate_gtsam(sim.problem, tool_pose3=True)

@@ -47,13 +47,15 @@ def default_prior_std(problem, names, scale: float = 1.0) -> np.ndarray:
     return np.full(len(names), 0.1 * scale)
 
 
-def identifiable_free(problem, candidates=None, theta=None) -> list[str]:
+def identifiable_free(problem, candidates=None, theta=None, use_identify: bool = True) -> list[str]:
     """An identifiable free set: candidates kept in order while they add rank.
 
     Uses :func:`estcal.identify.select_identifiable` when it exists; otherwise a
     greedy, order-preserving rank test of the whitened, column-normalised
     Jacobian at ``theta`` (a parameter is kept if its column is not in the span
-    of the columns kept before it; numerical zero as in GECARO App. III).
+    of the columns kept before it). ``use_identify=False`` forces the rank test
+    (reproducible sets for the simulated test problems, whatever the priority
+    rules of :mod:`estcal.identify`).
     """
     pv = problem.params
     if candidates is None:
@@ -63,15 +65,15 @@ def identifiable_free(problem, candidates=None, theta=None) -> list[str]:
         for c in candidates:
             cand += pv.select(c) if any(ch in c for ch in "*?[") else [c]
         candidates = cand
-    try:  # the identification engineer's selector, when present
-        from estcal.identify import select_identifiable  # type: ignore
+    if use_identify:
+        try:  # the identification engineer's selector, when present
+            from estcal.identify import select_identifiable  # type: ignore
 
-        out = select_identifiable(problem.with_free(candidates), theta=theta)
-        names = getattr(out, "names", out)
-        if isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names):
-            return list(names)
-    except Exception:  # noqa: BLE001 - any failure falls back to the rank test below
-        pass
+            names = select_identifiable(problem, candidates=candidates, theta=theta)
+            if isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names):
+                return list(names)
+        except (ImportError, ValueError, KeyError, TypeError):  # fall back to the rank test below
+            pass
     rows = problem.evaluate(theta)
     A = rows.H[:, pv.indices(candidates)] / rows.sigma[:, None]
     nrm = np.linalg.norm(A, axis=0)

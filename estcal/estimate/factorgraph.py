@@ -38,7 +38,7 @@ import numpy as np
 
 from ._common import GroupedProblem, default_prior_std, finish_result, noise_known, resolve_free
 
-__all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise"]
+__all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise", "rpy_rate_matrix"]
 
 
 def _gtsam():
@@ -140,6 +140,95 @@ def _measurement_factor(block: _Block, g: int, keys, parts, x_template, noise):
     return gtsam.CustomFactor(noise, list(keys), error)
 
 
+_SIX = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+def rpy_rate_matrix(rpy) -> np.ndarray:
+    """N(rpy): angular velocity in the parent frame = N · d(rpy)/dt for R = Rz(y) Ry(p) Rx(r).
+
+    Columns: roll axis Rz Ry x̂, pitch axis Rz ŷ, yaw axis ẑ. Singular at pitch = ±90°.
+    """
+    from estcal.kinematics.transforms import rot_y, rot_z
+
+    r, p, y = rpy
+    Rz = rot_z(y)
+    return np.column_stack([Rz @ rot_y(p) @ np.array([1.0, 0, 0]), Rz @ np.array([0, 1.0, 0]), np.array([0, 0, 1.0])])
+
+
+def _pose3_param_map(R, rpy):
+    """G = ∂(t, rpy)/∂ξ for the retraction T·Exp(ξ), ξ = (ω, v) in gtsam's order: dt = R v, d(rpy) = N⁻¹ R ω."""
+    N = rpy_rate_matrix(rpy)
+    if abs(np.linalg.det(N)) < 1e-9:
+        raise ValueError("frame at pitch ±90° (gimbal lock of the rpy parameters): use the vector form "
+                         "(base_pose3/tool_pose3 = False)")
+    G = np.zeros((6, 6))
+    G[:3, 3:] = R
+    G[3:, :3] = np.linalg.solve(N, R)
+    return G
+
+
+class _PoseLayout:
+    """Free-vector positions of the 6 parameters of the frames held as Pose3 variables."""
+
+    def __init__(self, names, frames):
+        self.frames = list(frames)
+        self.pos6 = {}
+        for f in self.frames:
+            want = [f"{f}_{c}" for c in _SIX]
+            miss = [w for w in want if w not in names]
+            if miss:
+                raise ValueError(f"{f}_pose3 needs all six {f} parameters free; missing {miss}")
+            self.pos6[f] = np.array([names.index(w) for w in want])
+        used = np.concatenate([self.pos6[f] for f in self.frames]) if self.frames else np.zeros(0, int)
+        self.vec = np.setdiff1d(np.arange(len(names)), used)
+
+    def pose_of(self, x, f):
+        from estcal.kinematics.transforms import rpy_to_matrix
+
+        gtsam = _gtsam()
+        p6 = x[self.pos6[f]]
+        return gtsam.Pose3(gtsam.Rot3(rpy_to_matrix(p6[3:])), gtsam.Point3(*p6[:3]))
+
+    def write(self, x, f, pose):
+        from estcal.kinematics.transforms import matrix_to_rpy
+
+        x[self.pos6[f][:3]] = np.asarray(pose.translation())
+        x[self.pos6[f][3:]] = matrix_to_rpy(pose.rotation().matrix())
+
+
+def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
+    """Measurement factor on the vector variable and the Pose3 frame variables."""
+    gtsam = _gtsam()
+    sl = block.slices[g]
+    timer = block.timer
+
+    def error(this, values, jac):
+        t = time.perf_counter()
+        x = x_template.copy()
+        if vec.size:
+            x[vec] = values.atVector(xkey)
+        poses = {}
+        for f, k in zip(layout.frames, pkeys):
+            poses[f] = values.atPose3(k)
+            layout.write(x, f, poses[f])
+        r, A = block.rows(x)
+        if jac is not None:
+            Ag = A[sl]
+            i = 0
+            if vec.size:
+                jac[0] = Ag[:, vec]
+                i = 1
+            for j, f in enumerate(layout.frames):
+                G = _pose3_param_map(poses[f].rotation().matrix(), x[layout.pos6[f][3:]])
+                jac[i + j] = Ag[:, layout.pos6[f]] @ G
+        timer.t += time.perf_counter() - t
+        timer.calls += 1
+        return r[sl]
+
+    keys = ([xkey] if vec.size else []) + list(pkeys)
+    return gtsam.CustomFactor(noise, keys, error)
+
+
 def _prior_std(problem, names, prior_std):
     if prior_std is None or (isinstance(prior_std, str) and prior_std == "default"):
         return default_prior_std(problem, names)
@@ -197,7 +286,8 @@ def _latent_factor(sub, theta, fidx, robot, xkey, qkey, noise, timer):
 def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm", robust: str | None = None,
                     robust_k: float | None = None, prior_std=None, use_prior: bool = False, theta0=None,
                     max_iter: int = 100, latent_joints: bool = False, encoder_std=None, check: bool = True,
-                    marginals: bool = True, **_ignored):
+                    marginals: bool = True, base_pose3: bool = False, tool_pose3: bool = False,
+                    base_prior=None, **_ignored):
     """Batch factor-graph calibration (gtsam LM or Dogleg) with marginal covariances.
 
     Parameters
@@ -211,6 +301,12 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     latent_joints : errors-in-variables — one latent reading vector per pose with an
         encoder prior of std ``encoder_std`` (rad or m per joint; default 1e-4)
     marginals : covariance from :class:`gtsam.Marginals` (of the free-parameter variable)
+    base_pose3 / tool_pose3 : hold the base (world → frame 0) / tool frame as a ``gtsam.Pose3``
+        variable instead of its six ``tx…rz`` entries of the vector (all six must be free); the
+        factor Jacobian w.r.t. the Pose3 tangent ξ = (ω, v) is ``H_(t,rpy) · ∂(t, rpy)/∂ξ``
+        (:func:`_pose3_param_map`), and the reported covariance is mapped back to the parameters
+    base_prior : ``(T_world_base (4, 4), sigmas (6,) in gtsam order ω then v)`` — a
+        ``PriorFactorPose3`` on the base (e.g. from a registration); needs ``base_pose3``
 
     Returns
     -------
@@ -250,6 +346,25 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
             graph.add(gtsam.PriorFactorVector(qk, r0.copy(), enc_noise))
             m = len(sub.evaluate(theta, jacobian=False).e)
             graph.add(_latent_factor(sub, theta, fidx, robot, X, qk, robust_noise(m, robust, robust_k), timer))
+    elif base_pose3 or tool_pose3:
+        layout = _PoseLayout(names, [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on])
+        init.erase(X)
+        if layout.vec.size:
+            init.insert(X, nominal[layout.vec].copy())
+        pkeys = [gtsam.symbol(f[0], 0) for f in layout.frames]
+        for f, k in zip(layout.frames, pkeys):
+            init.insert(k, layout.pose_of(nominal, f))
+        block = _Block(gp, range(len(gp)), theta, fidx, timer)
+        for g in range(len(gp)):
+            m = block.slices[g].size
+            graph.add(_pose_factor(block, g, X, layout.vec, layout, pkeys, nominal, robust_noise(m, robust, robust_k)))
+        if base_prior is not None:
+            if not base_pose3:
+                raise ValueError("base_prior needs base_pose3=True")
+            Tb, sb = base_prior
+            Tb = np.asarray(Tb, float)
+            graph.add(gtsam.PriorFactorPose3(pkeys[0], gtsam.Pose3(gtsam.Rot3(Tb[:3, :3]), gtsam.Point3(*Tb[:3, 3])),
+                                             gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sb, float))))
     else:
         block = _Block(gp, range(len(gp)), theta, fidx, timer)
         for g in range(len(gp)):
@@ -273,12 +388,34 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     opt = (gtsam.LevenbergMarquardtOptimizer if optimizer == "lm" else gtsam.DoglegOptimizer)(graph, init, params)
     result = opt.optimize()
     solve_s = time.perf_counter() - t_opt
-    x = np.asarray(result.atVector(X), float)
     n_iter = int(opt.iterations())
+    pose_mode = (base_pose3 or tool_pose3) and not latent_joints
+    if pose_mode:
+        x = nominal.copy()
+        if layout.vec.size:
+            x[layout.vec] = np.asarray(result.atVector(X), float)
+        for f, k in zip(layout.frames, pkeys):
+            layout.write(x, f, result.atPose3(k))
+    else:
+        x = np.asarray(result.atVector(X), float)
     cov = None
     if marginals:
         t_m = time.perf_counter()
-        cov = np.asarray(gtsam.Marginals(graph, result).marginalCovariance(X))
+        mg = gtsam.Marginals(graph, result)
+        if pose_mode:
+            # joint marginal of (x0, pose keys) in tangent coordinates, mapped to the parameters
+            keys = ([X] if layout.vec.size else []) + pkeys
+            jm = mg.jointMarginalCovariance(gtsam.KeyVector(keys))
+            blocks = ([layout.vec] if layout.vec.size else []) + [layout.pos6[f] for f in layout.frames]
+            maps = ([np.eye(layout.vec.size)] if layout.vec.size else []) + [
+                _pose3_param_map(result.atPose3(k).rotation().matrix(), x[layout.pos6[f][3:]])
+                for f, k in zip(layout.frames, pkeys)]
+            cov = np.zeros((p, p))
+            for a, (ka, ia, Ga) in enumerate(zip(keys, blocks, maps)):
+                for b, (kb, ib, Gb) in enumerate(zip(keys, blocks, maps)):
+                    cov[np.ix_(ia, ib)] = Ga @ np.asarray(jm.at(ka, kb)) @ Gb.T
+        else:
+            cov = np.asarray(mg.marginalCovariance(X))
         marg_s = time.perf_counter() - t_m
     else:
         marg_s = 0.0
@@ -293,6 +430,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
         cov = cov * (chi2 / dof)
         src = "gtsam marginals scaled by sigma0^2"
     extra = {"optimizer": optimizer, "robust": robust or "none", "graph_error": float(graph.error(result)),
+             "pose3_frames": [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on],
              "n_factors": int(graph.size()), "solve_time_s": solve_s, "marginals_time_s": marg_s,
              "python_factor_time_s": timer.t, "python_factor_calls": timer.calls,
              "kinematics_evaluations": timer.evals,

@@ -47,7 +47,7 @@ def puma_free_set(problem, candidates=None) -> list:
     """Identifiable PUMA free set for ``problem`` (rank test, see :func:`identifiable_free`)."""
     from ._common import identifiable_free
 
-    return identifiable_free(problem, PUMA_CANDIDATES if candidates is None else candidates)
+    return identifiable_free(problem, PUMA_CANDIDATES if candidates is None else candidates, use_identify=False)
 
 
 def _measure(robot, theta, readings, kind, sigma_p, sigma_r, rng, context=None):
@@ -112,7 +112,7 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
 def identifiable_free_default(problem):
     from ._common import identifiable_free
 
-    return identifiable_free(problem)
+    return identifiable_free(problem, use_identify=False)
 
 
 def drifting_problem(robot="puma560", n_poses: int = 200, seed=0, drift: dict | None = None, **kw) -> Simulated:
