@@ -39,6 +39,7 @@ world-frame rotation vector of ``R(η+dη) R(η)ᵀ``.
 from __future__ import annotations
 
 import inspect
+import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -49,6 +50,7 @@ from .transforms import rot_axis, rot_x, rot_y, rot_z, rpy_to_matrix
 
 __all__ = ["Elementary", "Link", "SerialRobot", "Kinematics"]
 
+_OTHER = {0: (1, 2), 1: (2, 0), 2: (0, 1)}  # Rot(axis) mixes these columns (cyclic order)
 _AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
 
@@ -473,9 +475,15 @@ class SerialRobot:
             A[i] = LR[:, ai]
             Oloc[i] = Lp
             is_rot[k + i] = e.kind == "R"
-            v = theta[e.param]
+            v = float(theta[e.param])
             if e.kind == "R":
-                LR = LR @ {"x": rot_x, "y": rot_y, "z": rot_z}[e.axis](v)
+                # scalar rotation: right-multiplying by Rot(axis, v) mixes the two other columns
+                c, s_ = math.cos(v), math.sin(v)
+                i1, i2 = _OTHER[ai]
+                a1, a2 = LR[:, i1].copy(), LR[:, i2]
+                LR = LR.copy()
+                LR[:, i1] = c * a1 + s_ * a2
+                LR[:, i2] = c * a2 - s_ * a1
             else:
                 Lp = Lp + LR[:, ai] * v
         W[:, k:k + m] = A @ R  # (3, m, N): world axis = R @ a_local
