@@ -32,7 +32,8 @@ def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos
     valid = simulate(nominal, n_poses=n_poses, measure="pose", errors=truth, noise=noise, seed=seed + 1)
     res, sel, problem = run_calibration(
         nominal, train.dataset, level="full", validate=[valid.dataset],
-        noise=NoiseModel(position=sigma_pos, orientation=sigma_rot, known=True), estimator=estimator)
+        noise=NoiseModel(position=sigma_pos, orientation=sigma_rot, known=True), estimator=estimator,
+        selection="structural")  # the full identifiable set (QR), as the textbook counts it
     # The estimated (base) parameters absorb the errors of the regrouped ones, so the
     # truth to compare with is the same model fitted to noise-free measurements.
     from estcal.estimate import calibrate_lsq
