@@ -78,10 +78,11 @@ def test_online_experiment_quick(tmp_path):
 
 
 def test_agreement_experiment_quick(tmp_path):
-    d = _run("estimator_agreement.py", "--quick", "--sims", "3", "--poses", "60", "--json", str(tmp_path / "a.json"))
+    # MCMC agreement is tested in test_mcmc.py; left out here to keep the smoke test fast
+    d = _run("estimator_agreement.py", "--quick", "--sims", "3", "--poses", "60", "--skip-mcmc",
+             "--json", str(tmp_path / "a.json"))
     ag = d["agreement"]
-    assert ag["gtsam"]["max_dz"] < 1e-3 and ag["kalman"]["max_dz"] < 0.1
-    assert ag["mcmc"]["max_dz"] < ag["mcmc"]["mc_error_bound"] + 0.05
+    assert ag["gtsam"]["max_dz"] < 1e-3 and ag["kalman"]["max_dz"] < 0.1 and "mcmc" not in ag
     assert d["outliers"]["gtsam-huber"] < 0.25 * d["outliers"]["lm"]
     assert d["unmodelled"]["fires"]
     assert json.loads((tmp_path / "a.json").read_text())["settings"]["sims"] == 3
