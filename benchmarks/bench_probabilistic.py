@@ -8,7 +8,8 @@
        pose (kinematics + Jacobian of one pose through ``Problem.evaluate`` + update);
    (d) batch-linearised: Jacobians of 100 poses in one vectorised call, then 100
        filterpy updates (what a high-rate logger would do between re-linearisations).
-2. iSAM2: time per new measurement (``update`` with one factor) vs a gtsam batch LM re-solve
+2. gtsam batch: one CustomFactor per pose vs several poses per factor (Python-callback cost).
+   iSAM2: time per new measurement (``update`` with one factor) vs a gtsam batch LM re-solve
    of all measurements so far, at several sizes.
 3. MCMC: wall time for the ESS of every parameter of the PUMA problem (100 poses, location,
    30 identifiable parameters) to reach 1,000, with the default (Laplace-MH + DE) moves and
@@ -16,7 +17,8 @@
 
 Usage: ``python benchmarks/bench_probabilistic.py [--quick] [--json PATH]``
 JSON keys: ``kalman`` ({filterpy_3d, filterpy_6d, numpy_3d, numpy_6d, ekf_step_pose,
-batch_linearised}: updates/s), ``isam2`` (list of {k, isam2_update_ms, batch_resolve_ms}),
+batch_linearised}: updates/s), ``gtsam`` (list of {poses, poses_per_factor,
+solve_plus_marginals_s, python_callback_s, callbacks}), ``isam2`` (list of {k, isam2_update_ms, batch_resolve_ms}),
 ``mcmc`` ({moves: {wall_s, min_ess, tau_max, steps, evaluations}}), ``machine`` (nproc, load).
 """
 from __future__ import annotations
@@ -131,6 +133,24 @@ def bench_isam2(quick):
     return rows
 
 
+def bench_gtsam(quick):
+    """Batch solve with one CustomFactor per pose vs grouped factors: the Python-callback cost."""
+    from estcal.estimate.factorgraph import calibrate_gtsam
+    from estcal.estimate.testproblems import simulated_problem
+
+    rows = []
+    for n in ((100,) if quick else (100, 400)):
+        sim = simulated_problem("puma560", n_poses=n, seed=3)
+        calibrate_gtsam(sim.problem)  # warm-up (imports, caches)
+        for ppf in (1, 10, n):
+            r = calibrate_gtsam(sim.problem, poses_per_factor=ppf)
+            e = r.extra
+            rows.append({"poses": n, "poses_per_factor": ppf, "solve_plus_marginals_s": e["solve_time_s"]
+                         + e["marginals_time_s"], "python_callback_s": e["python_factor_time_s"],
+                         "callbacks": e["python_factor_calls"], "kinematics_evaluations": e["kinematics_evaluations"]})
+    return rows
+
+
 def bench_mcmc(quick):
     from estcal.estimate.mcmc import sample_posterior
     from estcal.estimate.testproblems import simulated_problem
@@ -162,6 +182,13 @@ def main(argv=None):
     print(f"  EKF step incl. one-pose kinematics ({k['state_dim_pose_steps']} params, 6-D): "
           f"{k['ekf_step_pose']:8.0f}/s")
     print(f"  batch-linearised (100 poses per Jacobian call) + filterpy updates: {k['batch_linearised']:8.0f}/s")
+    g = bench_gtsam(a.quick)
+    res["gtsam"] = g
+    print("gtsam batch LM + marginals: one CustomFactor per pose vs grouped:")
+    for r in g:
+        print(f"  {r['poses']:4d} poses, {r['poses_per_factor']:4d} poses/factor: {r['solve_plus_marginals_s'] * 1e3:7.1f} ms, "
+              f"Python callbacks {r['python_callback_s'] * 1e3:7.1f} ms in {r['callbacks']} calls "
+              f"({r['kinematics_evaluations']} vectorised kinematics evaluations)")
     rows = bench_isam2(a.quick)
     res["isam2"] = rows
     print("iSAM2 update per new pose vs batch LM re-solve:")

@@ -121,7 +121,7 @@ def _sub_with_rows(gp: GroupedProblem, ids):
 def _measurement_factor(block: _Block, g: int, keys, parts, x_template, noise):
     """CustomFactor on ``keys``; ``parts[i]`` = positions in the free vector of key i's entries."""
     gtsam = _gtsam()
-    sl = block.slices[g]
+    sl = block.slices[g] if np.isscalar(g) else np.concatenate([block.slices[i] for i in g])
     timer = block.timer
 
     def error(this, values, jac):
@@ -287,7 +287,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
                     robust_k: float | None = None, prior_std=None, use_prior: bool = False, theta0=None,
                     max_iter: int = 100, latent_joints: bool = False, encoder_std=None, check: bool = True,
                     marginals: bool = True, base_pose3: bool = False, tool_pose3: bool = False,
-                    base_prior=None, **_ignored):
+                    base_prior=None, poses_per_factor: int = 1, **_ignored):
     """Batch factor-graph calibration (gtsam LM or Dogleg) with marginal covariances.
 
     Parameters
@@ -305,6 +305,8 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
         variable instead of its six ``tx…rz`` entries of the vector (all six must be free); the
         factor Jacobian w.r.t. the Pose3 tangent ξ = (ω, v) is ``H_(t,rpy) · ∂(t, rpy)/∂ξ``
         (:func:`_pose3_param_map`), and the reported covariance is mapped back to the parameters
+    poses_per_factor : measurement groups per CustomFactor (1 = one factor per pose, what robust
+        kernels need; larger values cut the Python-callback overhead, see the module docstring)
     base_prior : ``(T_world_base (4, 4), sigmas (6,) in gtsam order ω then v)`` — a
         ``PriorFactorPose3`` on the base (e.g. from a registration); needs ``base_pose3``
 
@@ -367,9 +369,10 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
                                              gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sb, float))))
     else:
         block = _Block(gp, range(len(gp)), theta, fidx, timer)
-        for g in range(len(gp)):
-            m = block.slices[g].size
-            graph.add(_measurement_factor(block, g, [X], [allpos], nominal, robust_noise(m, robust, robust_k)))
+        for start in range(0, len(gp), poses_per_factor):
+            gs = list(range(start, min(start + poses_per_factor, len(gp))))
+            m = sum(block.slices[g].size for g in gs)
+            graph.add(_measurement_factor(block, gs, [X], [allpos], nominal, robust_noise(m, robust, robust_k)))
     if use_prior or prior_std is not None:
         s = _prior_std(problem, names, prior_std)
         graph.add(gtsam.PriorFactorVector(X, nominal.copy(), gtsam.noiseModel.Diagonal.Sigmas(s)))
