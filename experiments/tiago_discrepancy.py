@@ -61,7 +61,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     from estcal.discrepancy import cross_validate, diagnose
-    from estcal.discrepancy.geometric import fit_geometric, gravity_ready
+    from estcal.discrepancy.geometric import derive_approach, fit_geometric, gravity_ready, with_effect_context
     from estcal.discrepancy.masses import urdf_chain_masses, with_urdf_masses
     from estcal.effects import make_effect
     from estcal.estimate import calibrate_lsq
@@ -105,11 +105,29 @@ def main(argv=None) -> dict:
     out["decisions"].append(f"geometric level '{chosen}': lowest CV RMSE on 11-30")
     print(f"  -> chosen on 11-30: {chosen}")
 
-    # 3. diagnosis -------------------------------------------------------------------
+    # 3. diagnosis, with backlash driven by the load sign or by the approach direction ---------
+    # The postures were recorded one after the other (t_start_robot increases), so each joint
+    # approached posture i from the side sign(q(i) - q(i-1)): derive_approach. Whether backlash
+    # follows the load or the approach is decided by the CV of the diagnosis on 11-30.
     print("\n== diagnose (decisions on 11-30; 11-26 scored only)")
-    res = diagnose(robot, train, validate=[valid], k_folds=k, noise=None, geometric=chosen,
-                   report=args.report, robot_spec="tiago")
-    print(res)
+    runs = {}
+    for approach in (False, True):
+        r = diagnose(robot, train, validate=[valid], k_folds=k, noise=None, geometric=chosen,
+                     report=(args.report / ("approach" if approach else "load")) if args.report else None,
+                     robot_spec="tiago", approach_from_order=approach)
+        runs[approach] = r
+        print(f"\n-- backlash driven by {'the approach direction (posture order)' if approach else 'the load sign'}:")
+        print(r)
+    approach = runs[True].rmse_mm["extended"]["cv"] < runs[False].rmse_mm["extended"]["cv"]
+    res = runs[approach]
+    out["approach_from_order"] = approach
+    out["diagnosis_other"] = {"approach_from_order": not approach, "causes": [c.to_dict() for c in runs[not approach].causes],
+                              "rmse_mm": runs[not approach].rmse_mm, "verdict": runs[not approach].verdict}
+    out["decisions"].append(f"backlash driven by the {'approach direction' if approach else 'load sign'}: lower "
+                            f"extended-model CV RMSE on 11-30 ({runs[approach].rmse_mm['extended']['cv']:.3f} vs "
+                            f"{runs[not approach].rmse_mm['extended']['cv']:.3f} mm)")
+    if approach:  # score with the same approach columns the diagnosis used
+        train, valid = (with_effect_context(robot, derive_approach(d)) for d in (train, valid))
     out["diagnosis"] = res.to_dict()
     out["decisions"].append("named causes: " + (", ".join(f"{c.effect}({','.join(c.joints)})" for c in res.causes)
                                                 or "none") + " — selected on 11-30 (BIC, F test, CV)")
@@ -128,23 +146,31 @@ def main(argv=None) -> dict:
 
     # 5. hypotheses --------------------------------------------------------------------
     print("\n== Hypotheses scored alike (CV on 11-30; 11-26 not used for any choice)")
-    problem, gres, free, _ = fit_geometric(robot, train, nm, level=chosen)
+    raw_t = load_dataset(folder / "qualisys_2021-11-30_static_postures.csv", robot)
+    raw_v = load_dataset(folder / "qualisys_2021-11-26_static_postures.csv", robot)
+    app_t, app_v = (with_effect_context(robot, derive_approach(d)) for d in (raw_t, raw_v))
+    problem, gres, free, _ = fit_geometric(robot, raw_t, nm, level=chosen)
     grob, _ = gravity_ready(problem.robot, gres.theta, robot.params.values)
     hyps = [("geometric only", []),
             ("compliance arm_6", [("joint_compliance", ["arm_6_joint"], {})]),
-            ("backlash arm_6 (publisher)", [("backlash", ["arm_6_joint"], {})]),
+            ("backlash(load) arm_6 (publisher)", [("backlash", ["arm_6_joint"], {})]),
             ("encoder gain arm_5 (publisher)", [("encoder_gain", ["arm_5_joint"], {})]),
             ("harmonic 1 arm_5", [("gear_harmonic", ["arm_5_joint"], {"orders": [1]})]),
-            ("compliance + backlash arm_6", [("joint_compliance", ["arm_6_joint"], {}),
-                                             ("backlash", ["arm_6_joint"], {})]),
+            ("compliance + backlash(load) arm_6", [("joint_compliance", ["arm_6_joint"], {}),
+                                                   ("backlash", ["arm_6_joint"], {})]),
+            ("backlash(approach) arm_6", [("backlash", ["arm_6_joint"], {})], "approach"),
+            ("backlash(approach) arm_5", [("backlash", ["arm_5_joint"], {})], "approach"),
+            ("compliance + backlash(approach) arm_6", [("joint_compliance", ["arm_6_joint"], {}),
+                                                       ("backlash", ["arm_6_joint"], {})], "approach"),
             ("compliance arm_6 + arm_3", [("joint_compliance", ["arm_6_joint"], {}),
                                           ("joint_compliance", ["arm_3_joint"], {})]),
             ("compliance arm_2..arm_7", [("joint_compliance", [f"arm_{i}_joint" for i in range(2, 8)], {})])]
     if args.quick:
-        hyps = hyps[:4]
+        hyps = [hyps[0], hyps[1], hyps[8]]
     M = train.n * 12
     rows = []
-    for label, effs in hyps:
+    for label, effs, *how in hyps:
+        train, valid = (app_t, app_v) if how else (raw_t, raw_v)
         rb = grob.with_values(gres.theta)
         for name, joints, opts in effs:
             rb = rb.add_effect(make_effect(name, rb, joints=joints, **opts))

@@ -54,7 +54,8 @@ from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
 
 from .analysis import residual_analysis, save_plots
-from .geometric import fit_geometric, gravity_ready, orthonormal_basis, weighted_system, with_effect_context
+from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
+                        with_effect_context)
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates", "cross_validate"]
 
@@ -129,7 +130,10 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
         variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
         per_joint = []
         for ji, j in enumerate(robot.joint_names):
-            if name in ("joint_compliance", "backlash") and tau is not None:
+            if name == "backlash" and "approach_" + j in ctx:
+                if not np.any(ctx["approach_" + j]):
+                    continue
+            elif name in ("joint_compliance", "backlash") and tau is not None:
                 # a torque that is numerically zero (vertical axis) or of constant sign (backlash)
                 # gives a column that is noise or an offset: not a candidate
                 t = tau[:, ji]
@@ -307,7 +311,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              max_effects: int = 3, min_explained: float = 0.3, n_refit: int = 3, regroup_tol: float = 1e-3,
              ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
-             session_time: bool = True) -> DiagnosisResult:
+             session_time: bool = True, approach_from_order: bool = False) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -331,6 +335,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     geometric : ``full`` (every identifiable geometric parameter, default), ``aic``
         (those an Akaike criterion supports) or ``joint_offset``; see
         :func:`~estcal.discrepancy.geometric.fit_geometric`.
+    approach_from_order : infer ``approach_<joint>`` columns from the posture order
+        (:func:`~estcal.discrepancy.geometric.derive_approach`) for data and validation
+        data, so that backlash is tested against the approach direction.
     session_time : measure ``t`` from the first pose of each dataset (drift and
         warm-up are session effects; a validation file from another day then
         starts at its own t = 0). The absolute time stays in ``columns["t_abs"]``.
@@ -355,6 +362,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     else:
         nm = NoiseModel(position=float(noise), orientation=float(noise), scalar=float(noise), known=True)
     known = bool(nm.known)
+    if approach_from_order:
+        data = derive_approach(data)
+        validate = [derive_approach(d) for d in validate]
     data = with_effect_context(robot, data)
     validate = [with_effect_context(robot, d) for d in validate]
     if session_time:
@@ -525,7 +535,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              "gravity": gr.gravity.tolist(), "lumped_masses": lumped,
              "effects": [e.to_dict() for e in xr.effects],
              "theta": dict(zip(xr.params.names, map(float, cur_theta))),
-             "free": cur_free, "noise": nm.to_dict(),
+             "free": cur_free, "noise": nm.to_dict(), "geometric_level": geometric,
+             "approach_from_order": bool(approach_from_order), "session_time": bool(session_time),
              "residual": {"rmse_mm": tr_x[0], "max_mm": tr_x[1], "chi2_per_dof": final_floor["chi2_per_dof"]}}
     gmodel = {"theta": dict(zip(gr.params.names, map(float, theta_g))), "free": gfree,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],

@@ -23,7 +23,7 @@ from estcal.kinematics.transforms import rpy_to_matrix
 from estcal.methods import Problem
 
 __all__ = ["geometric_candidates", "identifiable_subset", "fit_geometric", "gravity_ready", "weighted_system",
-           "with_effect_context", "orthonormal_basis"]
+           "with_effect_context", "orthonormal_basis", "derive_approach"]
 
 BASE = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
 
@@ -97,6 +97,30 @@ def with_effect_context(robot, data):
     for k, v in (data.columns or {}).items():
         if k.startswith("approach_") and k not in d.context:
             d.context[k] = np.asarray(v, float)
+    return d
+
+
+def derive_approach(data, threshold: float = 1e-3):
+    """Copy of ``data`` with ``approach_<joint>`` columns inferred from the posture order.
+
+    Static postures recorded one after the other are each reached by moving from
+    the previous one, so joint j approached posture i from the side
+    ``sign(q_j(i) − q_j(i−1))`` (time order from ``t`` when present, else the row
+    order). Moves smaller than ``threshold`` (rad or m), and the first posture, get 0
+    (unknown). Existing ``approach_*`` columns are kept. The backlash effect then uses
+    the approach direction (``δq = −b·sign(approach)``) instead of the load sign.
+    """
+    d = data.subset(slice(None))
+    order = np.argsort(d.context["t"], kind="stable") if "t" in d.context else np.arange(d.n)
+    dq = np.zeros_like(d.readings)
+    dq[order[1:]] = np.diff(d.readings[order], axis=0)
+    for j, name in enumerate(d.joint_names):
+        key = f"approach_{name}"
+        if key in d.columns or key in d.context:
+            continue
+        a = np.sign(dq[:, j])
+        a[np.abs(dq[:, j]) < threshold] = 0.0
+        d.columns[key] = a
     return d
 
 

@@ -1,0 +1,51 @@
+"""Issue 6 on the real TIAGo data: the diagnosis decided on 11-30 names arm_6 backlash
+(approach direction) and arm_6 gravity compliance, and the extension lowers the error on
+the 11-26 file it never saw."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_tiago_arm6_backlash_and_compliance(tiago_dir):
+    from estcal.discrepancy import diagnose
+    from estcal.discrepancy.geometric import derive_approach, with_effect_context
+    from estcal.discrepancy.masses import with_urdf_masses
+    from estcal.estimate.result import pose_errors
+    from estcal.io import load_dataset
+    from estcal.kinematics import tiago
+
+    robot = with_urdf_masses(tiago(n_markers=4))
+    # the URDF's hand rides on arm_7: arm_tool, wrist_ft, wrist_ft_tool links (0.1 kg each),
+    # gripper 0.63871, two fingers 0.06286, two fingertips 1e-6, two frames 1e-4 (URDF inertials)
+    hand = 3 * 0.1 + 0.63871 + 2 * 0.06286 + 2 * 1e-6 + 2 * 1e-4
+    assert robot.links[8].mass == pytest.approx(0.234252 + hand, abs=1e-9)
+    train = load_dataset(tiago_dir / "qualisys_2021-11-30_static_postures.csv", robot)
+    valid = load_dataset(tiago_dir / "qualisys_2021-11-26_static_postures.csv", robot)
+    res = diagnose(robot, train, validate=[valid], geometric="aic", approach_from_order=True, plots=False)
+    assert sorted(res.named) == [("backlash", ("arm_6_joint",)), ("joint_compliance", ("arm_6_joint",))]
+    b = res.causes[[c.effect for c in res.causes].index("backlash")].parameters["backlash_arm_6_joint"]
+    assert b["estimate"] > 5 * b["std"]  # positive: the link lags the motor, as backlash does
+    g, x = res.rmse_mm["geometric"], res.rmse_mm["extended"]
+    assert x["cv"] < g["cv"] and x["validation"] < g["validation"] - 0.5
+    # FIGAROH's metric (BL point on 11-26; full_params 3.07 mm)
+    v = with_effect_context(robot, derive_approach(valid))
+    pos, _ = pose_errors(res.robot, res.robot.params.values, v)
+    assert np.sqrt(np.mean(pos[:, 0] ** 2)) * 1e3 < 2.8
+
+
+def test_tiago_experiment_quick(tiago_dir, tmp_path):
+    out = tmp_path / "t.json"
+    p = subprocess.run([sys.executable, str(REPO / "experiments" / "tiago_discrepancy.py"), "--quick", "--json",
+                        str(out)], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert p.returncode == 0, p.stderr
+    d = json.loads(out.read_text())
+    assert d["chosen_level"] in ("joint_offset", "aic", "full")
+    assert d["diagnosis"]["causes"] and "verdict" in d["diagnosis"]
