@@ -174,9 +174,10 @@ class Cause:
     cv_rmse_mm_before: float
     cv_rmse_mm_after: float
     options: dict = field(default_factory=dict)
+    alternatives: list = field(default_factory=list)  # competing candidates within ΔBIC 10
 
     def to_dict(self) -> dict:
-        return _plain({"effect": self.effect, "joints": list(self.joints), "parameters": self.parameters,
+        return _plain({"alternatives": self.alternatives, "effect": self.effect, "joints": list(self.joints), "parameters": self.parameters,
                        "delta_bic": self.delta_bic, "test": self.test, "statistic": self.statistic,
                        "p_value": self.p_value, "explained_fraction": self.explained_fraction,
                        "explained_excess_fraction": self.explained_excess_fraction,
@@ -186,8 +187,12 @@ class Cause:
     def describe(self) -> str:
         ps = ", ".join(f"{n} = {v['estimate']:.4g} ± {v['std']:.2g}" for n, v in self.parameters.items())
         j = ", ".join(self.joints) if self.joints else "whole arm"
-        return (f"{self.effect} on {j}: {ps}; ΔBIC {self.delta_bic:.1f}, {self.test} p = {self.p_value:.2g}, "
-                f"explains {100 * self.explained_fraction:.0f}% of the geometric residual")
+        s = (f"{self.effect} on {j}: {ps}; ΔBIC {self.delta_bic:.1f}, {self.test} p = {self.p_value:.2g}, "
+             f"explains {100 * self.explained_fraction:.0f}% of the geometric residual")
+        if self.alternatives:
+            s += "; hard to tell from " + ", ".join(f"{a['candidate']} (ΔBIC +{a['delta_bic_difference']:.1f})"
+                                                  for a in self.alternatives)
+        return s
 
 
 @dataclass
@@ -504,6 +509,11 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         causes.append(Cause(c.effect, list(c.joints or []), params, float(e["delta_bic"]), e["test"],
                             float(e["statistic"]), float(e["p_value"]), (cur_rss - e["rss"]) / rss_g,
                             float(e["explained_excess_fraction"]), cur_cv[0], cv_e[0], _plain(c.options)))
+        # Competing explanations: refitted candidates whose BIC is within 10 of the accepted one
+        # (Kass & Raftery: a BIC difference above 10 is very strong evidence).
+        causes[-1].alternatives = [{"candidate": o["candidate"], "delta_bic_difference": float(o["delta_bic"]
+                                                                                            - e["delta_bic"])}
+                                   for _, o, _ in refits if o is not e and o["delta_bic"] - e["delta_bic"] < 10]
         cur_problem, cur_theta, cur_free = prob, res.theta.copy(), cur_free + names
         cur_rss, cur_p, cur_cv = float(e["rss"]), cur_p + len(names), cv_e
         cur_res = res
