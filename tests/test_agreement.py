@@ -126,3 +126,46 @@ def test_registry_entries_resolve(name):
     from estcal.estimate.registry import get_estimator
 
     assert callable(get_estimator(name))
+
+
+def test_cli_online_tracks_drift_effect_only_with_q(tmp_path):
+    """Data from the foundation's ``drift`` effect (δq_2 = v·t); the filter's model has no drift."""
+    pytest.importorskip("estcal.effects")
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+    from estcal.effects import make_effect
+    from estcal.io.dataset import dataset_from_arrays, write_dataset
+    from estcal.kinematics.transforms import so3_exp
+
+    base = simulated_problem("puma560", n_poses=150, seed=500)
+    rob = base.problem.robot
+    try:
+        rd = rob.add_effect(make_effect("drift", rob, joints=["j2"]))
+    except (ValueError, TypeError) as exc:  # effect API changed
+        pytest.skip(f"drift effect unavailable: {exc}")
+    n = 150
+    t = np.arange(n, dtype=float)
+    v = 3e-3 / n  # rad/s: 3 mrad over the sequence
+    th = np.concatenate([base.truth, np.zeros(len(rd.params) - len(base.truth))])
+    th[rd.params.index("drift_j2")] = v
+    q = base.problem.terms[0].data.readings
+    kin = rd.kinematics(q, th, {"t": t}, jacobian=False)
+    rng = np.random.default_rng(1)
+    R = so3_exp(1e-4 * rng.standard_normal((n, 3))) @ kin.R
+    p = kin.p + 1e-4 * rng.standard_normal((n, 3))
+    path = write_dataset(tmp_path / "drift.csv", dataset_from_arrays(rob.joint_names, q, R=R, p=p, context={"t": t}))
+    runner = CliRunner()
+    final_truth = base.truth[rob.params.index("theta_2")] + v * t[-1]
+    out = {}
+    for label, qv in (("q0", "0"), ("q", str(2 * v))):
+        js = tmp_path / f"{label}.json"
+        r = runner.invoke(app, ["online", str(path), "--robot", "puma560", "--free", ",".join(base.free),
+                                "--sigma-r", "1e-4", "--q", qv, "--q-params", "theta_2", "--every", "50",
+                                "--json", str(js)])
+        assert r.exit_code == 0, r.output
+        d = json.loads(js.read_text())
+        e = d["parameters"]["theta_2"]
+        out[label] = ((e["estimate"] - final_truth) / e["std"], d["innovation"]["fires"])
+    assert abs(out["q"][0]) < 3.5 and not out["q"][1]
+    assert abs(out["q0"][0]) > 6 and out["q0"][1]
