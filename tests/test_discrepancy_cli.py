@@ -46,6 +46,15 @@ def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
     v = truth[0]["params"]["compliance_j3"]
     p = d["causes"][0]["parameters"]["compliance_j3"]
     assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * v
+    # closing the loop: `estcal simulate --from-fit` simulates the identified robot
+    r = CliRunner().invoke(app, ["simulate", "--from-fit", str(out), "--n", "12", "--seed", "3",
+                                 "-o", str(tmp_path / "sim.csv"), "--truth", str(tmp_path / "truth.json")])
+    assert r.exit_code == 0, r.output
+    t = json.loads((tmp_path / "truth.json").read_text())
+    assert t["effects"][0]["effect"] == "joint_compliance"
+    assert t["effects"][0]["params"]["compliance_j3"] == pytest.approx(p["estimate"])
+    assert t["parameters"]["theta_3"] == pytest.approx(d["model"]["theta"]["theta_3"])
+    assert t["noise"]["position"] == pytest.approx(SIGMA)  # the fit's known noise
 
 
 def test_cli_diagnose_errors_name_the_problem(tmp_path):

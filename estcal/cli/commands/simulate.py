@@ -77,6 +77,10 @@ def register(app: typer.Typer) -> None:
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="Dataset CSV to write."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth JSON to write."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON."),
+        from_fit: Optional[Path] = typer.Option(
+            None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
+                                     "(geometric + named effects); --errors/--effects are ignored, the noise "
+                                     "defaults to the fit's, --measure position means the fit's kind."),
     ) -> None:
         """Simulate a calibration dataset: true robot = nominal + parameter errors + effects.
 
@@ -114,14 +118,25 @@ def register(app: typer.Typer) -> None:
                 if len(pay) != 2:
                     raise typer.BadParameter("--payload: give M or LO,HI")
                 pay = (pay[0], pay[1], "uniform")
-            res = simulate(nominal, n_poses=n, strategy=strategy, measure=measure, errors=_load_errors(errors),
-                           error_std=ErrorModel(angle=error_angle, length=error_length, offset=error_offset,
-                                                gain=error_gain),
-                           effects=specs,
-                           noise=NoiseModel(position=noise_pos, orientation=noise_rot, joint=noise_joint,
-                                            resolution=resolution, distribution=noise_dist),
-                           seed=seed, margin=margin, dt=dt, temperature=temp, payload=pay,
-                           record_approach=approach, n_points=n_points, effect_params=eparams)
+            if from_fit is not None:
+                from estcal.discrepancy.feedback import simulate_from_fit
+
+                given = noise_pos or noise_rot or noise_joint or resolution
+                res = simulate_from_fit(
+                    from_fit, n_poses=n, strategy=strategy, measure=None if measure == "position" else measure,
+                    noise=NoiseModel(position=noise_pos, orientation=noise_rot, joint=noise_joint,
+                                     resolution=resolution, distribution=noise_dist) if given else None,
+                    seed=seed, context={"temperature": temp, "payload": pay}, margin=margin, dt=dt,
+                    record_approach=approach)
+            else:
+                res = simulate(nominal, n_poses=n, strategy=strategy, measure=measure, errors=_load_errors(errors),
+                               error_std=ErrorModel(angle=error_angle, length=error_length, offset=error_offset,
+                                                    gain=error_gain),
+                               effects=specs,
+                               noise=NoiseModel(position=noise_pos, orientation=noise_rot, joint=noise_joint,
+                                                resolution=resolution, distribution=noise_dist),
+                               seed=seed, margin=margin, dt=dt, temperature=temp, payload=pay,
+                               record_approach=approach, n_points=n_points, effect_params=eparams)
         except typer.BadParameter:
             raise
         except (ValueError, KeyError, FileNotFoundError) as exc:
