@@ -27,8 +27,11 @@ Run::
 JSON keys: ``levels`` ({level: {n_params, train, loo}}), ``chosen_level``,
 ``diagnosis`` (the :class:`DiagnosisResult` dict: ``causes``, ``verdict``,
 ``rmse_mm`` …), ``bl_point_mm`` ({geometric, extended} × {train, validation}),
-``hypotheses`` (list of {model, n_params, bic, train, loo, validation,
-validation_bl, parameters}), ``figaroh`` (published figures), ``decisions``.
+``hypotheses`` (list of {model, n_params, bic, train, cv, validation, train_bl,
+validation_bl, parameters}), ``feedback`` (geometric-fit residual statistics of the
+measured 11-30 data and of data simulated at the same postures from the identified
+robot, and from the geometric-only robot), ``figaroh`` (published figures),
+``approach_from_order``, ``decisions``.
 """
 from __future__ import annotations
 
@@ -143,6 +146,31 @@ def main(argv=None) -> dict:
           f"{', '.join(res.steps[0]['regroups']) if res.steps else '-'})")
     for e in st[:8]:
         print(f"    {e['candidate']:<40} ΔBIC_lin {e.get('delta_bic_linear', float('nan')):8.1f}")
+
+    # 6. simulation feedback: the identified robot at the measured postures -------------
+    from estcal.discrepancy.feedback import residual_comparison, simulate_like
+
+    raw0 = load_dataset(folder / "qualisys_2021-11-30_static_postures.csv", robot)
+    fb = {}
+    for lab, fit in (("identified (geometric + named effects)", res), ("geometric only", None)):
+        if fit is None:
+            d = res.to_dict()
+            d["model"] = dict(d["model"], effects=[], theta=d["geometric_model"]["theta"],
+                              residual=d["geometric_model"]["residual"])
+            fit = d
+        sim = simulate_like(fit, raw0, robot=robot, seed=1)
+        fb[lab] = residual_comparison(fit, raw0, sim, robot=robot, noise=nm)
+    out["feedback"] = fb
+    print("\n== Simulation feedback on 11-30: geometric-model residual of measured vs simulated data")
+    m0 = next(iter(fb.values()))["measured"]
+    print(f"  {'data':<44}{'RMSE':>7}{'max':>7}   partial RMS per joint (mrad | mm)")
+    print(f"  {'measured':<44}{m0['rmse_mm']:7.3f}{m0['max_mm']:7.3f}   "
+          + " ".join(f"{v:5.1f}" for v in m0["partial_rms"].values()))
+    for lab, c in fb.items():
+        sm = c["simulated"]
+        print(f"  {'simulated, ' + lab:<44}{sm['rmse_mm']:7.3f}{sm['max_mm']:7.3f}   "
+              + " ".join(f"{v:5.1f}" for v in sm["partial_rms"].values()))
+    print(f"  joints: {', '.join(m0['partial_rms'])}")
 
     # 5. hypotheses --------------------------------------------------------------------
     print("\n== Hypotheses scored alike (CV on 11-30; 11-26 not used for any choice)")

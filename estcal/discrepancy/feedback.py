@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["load_fit", "identified_robot", "simulate_from_fit", "residual_comparison"]
+__all__ = ["load_fit", "identified_robot", "simulate_from_fit", "simulate_like", "residual_comparison"]
 
 
 def load_fit(fit) -> dict:
@@ -148,6 +148,54 @@ def simulate_from_fit(fit, robot=None, readings=None, n_poses: int = 50, strateg
                     temperature=ctx.get("temperature"), payload=ctx.get("payload"), **kw)
 
 
+def simulate_like(fit, data, robot=None, noise=None, seed: int | None = 0):
+    """A copy of the measured ``data`` whose measurements are replaced by the identified robot's
+    prediction plus Gaussian noise — same poses, same time/approach/payload columns.
+
+    Unlike :func:`simulate_from_fit` (which draws approach directions at random), the
+    context of the measurement is kept, so effects driven by recorded columns (backlash by
+    approach direction, drift, thermal expansion) act as they did on the real robot.
+    ``noise``: position σ (m); default as in :func:`simulate_from_fit`.
+    """
+    from estcal.effects import make_effect
+
+    from .geometric import with_effect_context
+
+    d = load_fit(fit)
+    geo, specs = identified_robot(d, robot)
+    rob = geo
+    for sp in specs:
+        rob = rob.add_effect(make_effect(sp["effect"], rob, joints=sp["joints"], **sp["options"]))
+        for n, v in sp["params"].items():
+            rob.params[n] = v
+    if noise is None:
+        nz = d.get("noise") or {}
+        noise = float(nz["position"]) if nz.get("known") else \
+            float(d["model"]["residual"]["rmse_mm"]) * 1e-3 / np.sqrt(3.0)
+    m = d["model"]
+    if m.get("approach_from_order"):
+        from .geometric import derive_approach
+
+        data = derive_approach(data)
+    data_c = with_effect_context(rob, data)
+    if m.get("session_time") and "t" in data_c.context:
+        data_c.context["t"] = data_c.context["t"] - data_c.context["t"].min()
+    kin = rob.kinematics(data_c.readings, context=data_c.context, jacobian=False)
+    rng = np.random.default_rng(seed)
+    out = data.subset(slice(None))
+    if data.kind == "pose":
+        from estcal.kinematics.transforms import so3_exp
+
+        out.p = kin.p + rng.normal(0, noise, kin.p.shape)
+        out.R = so3_exp(rng.normal(0, noise, (data.n, 3))) @ kin.R
+    else:
+        k = data.n_points
+        pred = kin.points[:, :k] if rob.n_markers >= k else kin.p[:, None, :]
+        out.points = pred + rng.normal(0, noise, pred.shape)
+    out.path = f"simulated from fit ({data.where})"
+    return out
+
+
 def residual_comparison(fit, measured, simulated, robot=None, noise=None) -> dict:
     """Geometric-model residual statistics on measured vs simulated data.
 
@@ -168,7 +216,7 @@ def residual_comparison(fit, measured, simulated, robot=None, noise=None) -> dic
                                 if k in ("position", "orientation", "scalar", "known")})
     out = {}
     for label, data in (("measured", measured), ("simulated", simulated)):
-        problem, res, free, _ = fit_geometric(nominal, data, nm)
+        problem, res, free, _ = fit_geometric(nominal, data, nm, level=d["model"].get("geometric_level", "full"))
         dq, _ = partial_joint_residuals(problem, res.theta)
         r, mx = _scores(problem.robot, res.theta, [data])
         out[label] = {"rmse_mm": r, "max_mm": mx, "chi2_per_dof": float(res.chi2 / max(res.dof, 1)),
