@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["GroupedProblem", "resolve_free", "noise_known", "identifiable_free", "finish_result",
-           "default_prior_std"]
+           "default_prior_std", "prior_std_vector"]
 
 
 def resolve_free(problem, free=None):
@@ -45,6 +45,27 @@ def default_prior_std(problem, names, scale: float = 1.0) -> np.ndarray:
     the posterior are defined before the data make every parameter identifiable.
     """
     return np.full(len(names), 0.1 * scale)
+
+
+def prior_std_vector(problem, names, prior_std=None) -> np.ndarray:
+    """Prior stds of the free parameters from ``None`` (defaults), a scalar, an array, or
+    ``{name or pattern: std}`` (others keep their default)."""
+    import fnmatch
+
+    s = default_prior_std(problem, names)
+    if prior_std is None:
+        return s
+    if isinstance(prior_std, dict):
+        for k, v in prior_std.items():
+            hit = [i for i, n in enumerate(names) if fnmatch.fnmatchcase(n, k)]
+            if not hit:
+                raise ValueError(f"prior_std: {k!r} matches no free parameter (free: {names})")
+            s[hit] = float(v)
+        return s
+    out = np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+    if np.any(out <= 0):
+        raise ValueError("prior standard deviations must be positive")
+    return out
 
 
 def identifiable_free(problem, candidates=None, theta=None, use_identify: bool = True) -> list[str]:

@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from ._common import GroupedProblem, default_prior_std, finish_result, noise_known, resolve_free
+from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
 
 __all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise", "rpy_rate_matrix"]
 
@@ -230,14 +230,9 @@ def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
 
 
 def _prior_std(problem, names, prior_std):
-    if prior_std is None or (isinstance(prior_std, str) and prior_std == "default"):
-        return default_prior_std(problem, names)
-    if isinstance(prior_std, dict):
-        s = default_prior_std(problem, names)
-        for k, v in prior_std.items():
-            s[names.index(k)] = v
-        return s
-    return np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+    if isinstance(prior_std, str) and prior_std == "default":
+        prior_std = None
+    return prior_std_vector(problem, names, prior_std)
 
 
 def _check(problem, fidx, names, theta):

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import GroupedProblem, default_prior_std, finish_result, noise_known, resolve_free
+from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
 from .innovation import InnovationMonitor
 
 __all__ = ["ParameterFilter", "calibrate_kalman", "calibrate_ukf", "process_noise", "default_burn_in"]
@@ -188,15 +188,7 @@ def _prior(problem, names, fidx, prior_std, P0):
         if P0.ndim == 1:
             P0 = np.diag(P0 ** 2)
         return P0
-    if prior_std is None:
-        s = default_prior_std(problem, names)
-    elif isinstance(prior_std, dict):
-        s = default_prior_std(problem, names)
-        for k, v in prior_std.items():
-            s[names.index(k)] = v
-    else:
-        s = np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
-    return np.diag(s ** 2)
+    return np.diag(prior_std_vector(problem, names, prior_std) ** 2)
 
 
 def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", prior_std=None, P0=None,

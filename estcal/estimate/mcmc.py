@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._common import default_prior_std, finish_result, noise_known, resolve_free
+from ._common import finish_result, noise_known, prior_std_vector, resolve_free
 from .batcheval import evaluate_many
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
@@ -211,8 +211,7 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     L = np.linalg.cholesky(np.asarray(covariance, float) + 1e-30 * np.eye(len(center)))
     if noise_scale is None:
         noise_scale = not noise_known(problem)
-    s = default_prior_std(problem, names) if prior_std is None else \
-        np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+    s = prior_std_vector(problem, names, prior_std)
     post = LogPosterior(problem, fidx, theta, theta[fidx].copy(), s, center, L, noise_scale)
     d = post.ndim
     nw = int(n_walkers or max(2 * d + 2, 64))
