@@ -26,7 +26,7 @@ Run: ``python experiments/klimchik_2link.py [--quick] [--json PATH] [--reps N]``
 JSON keys: ``table1`` {q20 deg string: numerical optimal ρ0²/σ²}, ``table1_detail``
 {q20: {numerical, closed_form, rho_D2, printed_rho0_2, printed_percent, percent}},
 ``fig2`` / ``fig3`` {a, b, c: ρ0/σ}, ``fig2_mc`` / ``fig3_mc`` {a, b, c: Monte-Carlo
-RMS/σ}, ``fig2_improvement`` / ``fig3_improvement`` {vs_D, vs_nonoptimal} (%),
+RMS/σ}, ``fig2_mc_rel_se`` / ``fig3_mc_rel_se`` (relative standard error of the MC RMS), ``fig2_improvement`` / ``fig3_improvement`` {vs_D, vs_nonoptimal} (%),
 ``fig3_optimum`` {rho0_over_sigma, plan_deg, hypothesis_rho0_over_sigma, mc_rho0_over_sigma},
 ``differences`` (list of text notes), ``settings``.
 """
@@ -107,19 +107,21 @@ def main(argv=None) -> dict:
     # ---------------------------------------------------------- Fig. 2 / Fig. 3
     out = {}
     for fig, plans, model in (("fig2", FIG2, mL), ("fig3", FIG3, m4)):
-        vals, mc = {}, {}
+        vals, mc, se = {}, {}, {}
         for k, pl in plans.items():
             Q = np.array(pl, float) * DEG
             vals[k] = np.sqrt(rho2(model, Q, Q0)) / SIGMA
             r = monte_carlo_test_pose_error(model, Q, Q0, n_reps=reps, rng=100 * int(fig[-1]) + "abc".index(k),
                                             param_std=1e-3, nonlinear=True, planar=True)
             mc[k] = r.rms / SIGMA
+            se[k] = r.rel_se
         imp = {"vs_D": 100 * (1 - vals["c"] / vals["b"]), "vs_nonoptimal": 100 * (1 - vals["c"] / vals["a"])}
         imp_mc = {"vs_D": 100 * (1 - mc["c"] / mc["b"]), "vs_nonoptimal": 100 * (1 - mc["c"] / mc["a"])}
         out[fig], out[fig + "_mc"], out[fig + "_improvement"], out[fig + "_improvement_mc"] = vals, mc, imp, imp_mc
+        out[fig + "_mc_rel_se"] = se
         print(f"\n{fig}: ρ0/σ from eq. (14) [Monte Carlo, {reps} LM calibrations]")
         for k in "abc":
-            print(f"  ({k}) {vals[k]:.4f}   [{mc[k]:.4f}]")
+            print(f"  ({k}) {vals[k]:.4f}   [{mc[k]:.4f} ± {se[k] * mc[k]:.4f}]")
         print(f"  improvement of (c): {imp['vs_D']:.1f} % vs D-optimal (b), {imp['vs_nonoptimal']:.1f} % vs (a) "
               f"[MC: {imp_mc['vs_D']:.1f} %, {imp_mc['vs_nonoptimal']:.1f} %]")
     notes.append("Fig. 2/3 percentages reproduce as 1 − ρ0(c)/ρ0(x) (ratio of RMS errors ρ0): "
