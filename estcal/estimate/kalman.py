@@ -22,6 +22,12 @@ the residual ``e`` of :class:`~estcal.methods.problem.Problem` and
 The UKF's sigma points are evaluated in one vectorised call
 (:func:`estcal.estimate.batcheval.evaluate_many`).
 
+The UKF predicts each measurement as the mean of h over the current Gaussian
+(second-order term ½ tr(∇²h P) included): with a very wide prior that term
+biases the first updates and the final estimate can sit a fraction of a
+standard deviation from the MAP (docs/probabilistic.md gives numbers); give it
+a prior of the size of the expected corrections.
+
 ``passes > 1`` re-runs the filter from the same prior with every group
 linearised at the previous pass's estimate (an iterated — Gauss–Newton — EKF):
 for Q = 0 its fixed point is the MAP / least-squares solution.
