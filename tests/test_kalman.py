@@ -129,6 +129,11 @@ def test_ukf_close_to_lm(puma):
     # single pass with statistical linearisation of the early, wide-prior steps: looser than the EKF
     assert np.abs((uk.estimate - lm.estimate) / lm.std).max() < 1.0
     np.testing.assert_allclose(uk.std, lm.std, rtol=0.1)
+    # with a prior of the size of the corrections the second-order mean term is negligible: ≈ MAP
+    uk2 = calibrate_kalman(sim.problem, filter="ukf", prior_std=3e-3)
+    map2 = calibrate_kalman(sim.problem, prior_std=3e-3, passes=3)
+    assert np.abs((uk2.estimate - map2.estimate) / map2.std).max() < 0.1
+    np.testing.assert_allclose(uk2.std, map2.std, rtol=5e-3)
 
 
 def test_filter_covariance_is_data_independent(puma):
