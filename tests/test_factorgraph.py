@@ -141,3 +141,32 @@ def test_grouped_factors_same_solution(puma):
     assert g.extra["python_factor_calls"] < 40  # one callback per linearisation instead of one per pose
     assert np.abs((g.estimate - lm.estimate) / lm.std).max() < 1e-3
     np.testing.assert_allclose(g.std, lm.std, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["point-link", "distance", "position"])
+def test_multi_row_methods_filter_and_graph_agree_with_lm(method):
+    """Link and distance methods compare rows: a group / pair is one filter step and one factor."""
+    from estcal.estimate._common import GroupedProblem, identifiable_free
+    from estcal.kinematics.robots import puma560
+    from estcal.methods.base import NoiseModel
+    from estcal.methods.generate import generate
+    from estcal.methods.problem import Problem
+
+    rob = puma560()
+    truth = rob.params.values.copy()
+    ds = generate(rob, method, 60, rng=1, theta=truth)
+    prob = Problem(rob, [(method, ds, NoiseModel(1e-4, 1e-3, 1e-4, known=True))])
+    free = identifiable_free(prob, ["d_*", "a_*", "alpha_*", "beta_2", "theta_*"], use_identify=False)
+    rng = np.random.default_rng(2)
+    th0 = truth.copy()
+    idx = prob.params.indices(free)
+    th0[idx] += 1e-3 * rng.standard_normal(idx.size)
+    prob = prob.with_values(th0).with_free(free)
+    gp = GroupedProblem(prob)
+    assert all(g.poses.size == (1 if method == "position" else 2) for g in gp.groups)
+    lm = calibrate_lsq(prob)
+    kf = calibrate_kalman(prob, passes=3)
+    g = calibrate_gtsam(prob)
+    assert np.abs((kf.estimate - lm.estimate) / lm.std).max() < 1e-2
+    assert np.abs((g.estimate - lm.estimate) / lm.std).max() < 1e-3
+    np.testing.assert_allclose(kf.std, lm.std, rtol=1e-2)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GroupedProblem", "resolve_free", "noise_known", "identifiable_free", "finish_result",
+__all__ = ["GroupedProblem", "PER_POSE_METHODS", "resolve_free", "noise_known", "identifiable_free", "finish_result",
            "default_prior_std", "prior_std_vector"]
 
 
@@ -113,14 +113,40 @@ def identifiable_free(problem, candidates=None, theta=None, use_identify: bool =
     return [candidates[j] for j in keep]
 
 
+#: methods whose rows each come from one dataset row alone; others (links, plane normals,
+#: distances) compare rows of a ``group`` / ``pair`` and must be processed together
+PER_POSE_METHODS = ("position", "location", "pose", "points", "plane-known", "plane-unknown")
+
+
+def _units(term, n):
+    """Unit id of every dataset row of a term: the row itself, or its ``group`` / ``pair`` id."""
+    name = getattr(term.method, "name", "")
+    cols = getattr(term.data, "columns", {}) or {}
+    if name not in PER_POSE_METHODS:
+        for c in ("pair", "group"):
+            if c in cols:
+                _, inv = np.unique(np.asarray(cols[c]), return_inverse=True)
+                return inv.reshape(-1)
+    return np.arange(n)
+
+
 @dataclass
 class Group:
     term: int
-    pose: int
+    poses: np.ndarray  # dataset rows of the term that form this measurement unit
+
+    @property
+    def pose(self) -> int:
+        return int(self.poses[0])
 
 
 class GroupedProblem:
-    """A problem split into measurement groups (one per dataset row and term).
+    """A problem split into measurement groups (units processed together).
+
+    A group is one dataset row of one term (``position``, ``location``, ``points``,
+    planes with known/unknown plane), or — for methods comparing rows (``point-link``,
+    ``frame-link``, ``plane-normal-*`` by their ``group`` column, ``distance`` by ``pair``)
+    — all rows of one group / pair, so that a filter step or a factor sees a complete unit.
 
     Parameters
     ----------
@@ -128,8 +154,9 @@ class GroupedProblem:
 
     Attributes
     ----------
-    groups : list of (term index, pose index), ordered term by term, pose by pose
-        (or by the ``t`` context column when every term has one).
+    groups : list of :class:`Group`, ordered term by term, unit by first row (or by the
+        earliest ``t`` when every term has a ``t`` context column).
+    row_group : (M,) group id of every row of ``problem.evaluate()``.
     """
 
     def __init__(self, problem):
@@ -138,15 +165,41 @@ class GroupedProblem:
         self.splittable = bool(terms) and all(hasattr(t.data, "subset") for t in terms)
         rows = problem.evaluate(jacobian=False)
         term = rows.term if rows.term is not None else np.zeros(len(rows.e), int)
-        keys = sorted(set(zip(term.tolist(), rows.pose.tolist())))
-        if self.splittable and all("t" in getattr(t.data, "context", {}) for t in terms):
-            keys.sort(key=lambda k: (terms[k[0]].data.context["t"][k[1]], k))
-        self.groups = [Group(int(a), int(b)) for a, b in keys]
-        self._row_index = {}
-        for i, g in enumerate(self.groups):
-            self._row_index[(g.term, g.pose)] = i
-        self.row_group = np.array([self._row_index[(a, b)] for a, b in zip(term.tolist(), rows.pose.tolist())])
         self.n_rows = len(rows.e)
+        if not self.splittable:
+            keys = sorted(set(zip(term.tolist(), rows.pose.tolist())))
+            self.groups = [Group(int(a), np.array([b])) for a, b in keys]
+            self.unit_of = None
+            index = {(g.term, g.pose): i for i, g in enumerate(self.groups)}
+            self.row_group = np.array([index[(a, b)] for a, b in zip(term.tolist(), rows.pose.tolist())])
+            return
+        groups, self.unit_of = [], []
+        for ti, t in enumerate(terms):
+            u = _units(t, t.data.n)
+            _, first = np.unique(u, return_index=True)
+            order = np.argsort(first)
+            gid = np.empty(u.max() + 1 if u.size else 0, int)
+            for k, uu in enumerate(order):
+                gid[uu] = len(groups) + k
+            for uu in order:
+                groups.append(Group(ti, np.flatnonzero(u == uu)))
+            self.unit_of.append(gid[u])
+        if all("t" in getattr(t.data, "context", {}) for t in terms):
+            tmin = [terms[g.term].data.context["t"][g.poses].min() for g in groups]
+            perm = sorted(range(len(groups)), key=lambda i: (tmin[i], i))
+            remap = np.empty(len(groups), int)
+            remap[perm] = np.arange(len(groups))
+            groups = [groups[i] for i in perm]
+            self.unit_of = [remap[a] for a in self.unit_of]
+        self.groups = groups
+        self.row_group = np.array([self.unit_of[a][b] for a, b in zip(term.tolist(), rows.pose.tolist())], int)
+        used = np.unique(self.row_group)
+        if used.size < len(groups):  # units without rows (a singleton link group): drop them
+            remap = np.full(len(groups), -1)
+            remap[used] = np.arange(used.size)
+            self.groups = [groups[i] for i in used]
+            self.unit_of = [remap[a] for a in self.unit_of]
+            self.row_group = remap[self.row_group]
 
     def __len__(self) -> int:
         return len(self.groups)
@@ -156,24 +209,30 @@ class GroupedProblem:
         return np.flatnonzero(np.isin(self.row_group, np.asarray(ids)))
 
     def subproblem(self, ids):
-        """An object with ``evaluate(theta, jacobian)`` returning exactly the rows of groups ``ids``.
+        """An object with ``evaluate(theta, jacobian)`` returning exactly the rows of groups ``ids``."""
+        return self.subproblem_rows(ids)[0]
 
-        Rows come in the order of the full problem restricted to these groups.
-        """
+    def subproblem_rows(self, ids):
+        """``(sub, row_group)``: the sub-problem of groups ``ids`` and the group id of each of its rows."""
         ids = np.atleast_1d(np.asarray(ids, int))
         if not self.splittable:
-            return _SelectRows(self.problem, self.rows_of(ids))
+            idx = self.rows_of(ids)
+            return _SelectRows(self.problem, idx), self.row_group[idx]
         from estcal.methods.problem import Problem, Term
 
-        terms = []
+        terms, back = [], []
         for ti, t in enumerate(self.problem.terms):
-            poses = sorted(self.groups[i].pose for i in ids if self.groups[i].term == ti)
+            poses = [self.groups[i].poses for i in ids if self.groups[i].term == ti]
             if poses:
-                terms.append(Term(t.method, t.data.subset(np.array(poses, int)), t.noise))
+                poses = np.sort(np.concatenate(poses))
+                terms.append(Term(t.method, t.data.subset(poses), t.noise))
+                back.append(self.unit_of[ti][poses])
         sub = Problem.__new__(Problem)
         sub.robot = self.problem.robot
         sub.terms = terms
-        return sub
+        r = sub.evaluate(jacobian=False)
+        tt = r.term if r.term is not None else np.zeros(len(r.e), int)
+        return sub, np.array([back[a][b] for a, b in zip(tt.tolist(), r.pose.tolist())], int)
 
 
 class _SelectRows:

@@ -101,21 +101,7 @@ class _Block:
 
 def _sub_with_rows(gp: GroupedProblem, ids):
     """Sub-problem of groups ``ids`` and the group id of each of its rows."""
-    ids = list(ids)
-    sub = gp.subproblem(ids)
-    if not gp.splittable:
-        return sub, gp.row_group[gp.rows_of(ids)]
-    r = sub.evaluate(jacobian=False)
-    back = {}
-    ti_new = 0
-    for ti in range(len(gp.problem.terms)):
-        poses = sorted(gp.groups[i].pose for i in ids if gp.groups[i].term == ti)
-        if poses:
-            for local, pose in enumerate(poses):
-                back[(ti_new, local)] = gp._row_index[(ti, pose)]
-            ti_new += 1
-    term = r.term if r.term is not None else np.zeros(len(r.e), int)
-    return sub, np.array([back[(a, b)] for a, b in zip(term.tolist(), r.pose.tolist())])
+    return gp.subproblem_rows(list(ids))
 
 
 def _measurement_factor(block: _Block, g: int, keys, parts, x_template, noise):
@@ -329,6 +315,9 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     if latent_joints:
         if not gp.splittable:
             raise ValueError("latent joints need a Problem whose terms have datasets")
+        if any(g.poses.size > 1 for g in gp.groups):
+            raise ValueError("latent joints are implemented for per-pose methods (position, location, points, "
+                             "planes); link and distance methods compare several rows per factor")
         robot = problem.robot
         n = robot.n_joints
         es = np.broadcast_to(np.asarray(1e-4 if encoder_std is None else encoder_std, float), (n,))
