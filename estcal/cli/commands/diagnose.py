@@ -49,6 +49,11 @@ def register(app: typer.Typer) -> None:
         urdf_masses: bool = typer.Option(True, "--urdf-chain-masses/--no-urdf-chain-masses",
                                          help="For URDF robots, count the links after the last actuated "
                                               "joint (tool, sensor, gripper) in its mass."),
+        geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
+                                      "parameter) | aic (those Akaike's criterion supports) | joint_offset."),
+        approach_from_order: bool = typer.Option(False, "--approach-from-order",
+                                                 help="Infer approach_<joint> columns from the posture order "
+                                                      "(backlash by approach direction)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
@@ -95,7 +100,8 @@ def register(app: typer.Typer) -> None:
         spec = robot if not (root or tip) else None
         try:
             res = diagnose(rob, ds, validate=vals, candidates=cands, k_folds=k_folds, noise=noise_pos, alpha=alpha,
-                           max_effects=max_effects, report=report, rng=seed, robot_spec=spec)
+                           max_effects=max_effects, report=report, rng=seed, robot_spec=spec, geometric=geometric,
+                           approach_from_order=approach_from_order)
         except ValueError as exc:
             _fail(str(exc))
         res.model["robot_spec"] = robot
