@@ -147,6 +147,11 @@ def register(app: typer.Typer) -> None:
         except ValueError as exc:
             fail(exc)
         meth = get_method(method) if method else None
+        from estcal.estimate._common import PER_POSE_METHODS
+
+        if meth is not None and meth.name not in PER_POSE_METHODS:
+            fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
+                 f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
         lines = _lines(data)
         where = "<stdin>" if data == "-" else data
         try:
