@@ -116,6 +116,15 @@ def register(app: typer.Typer) -> None:
         except (ValueError, KeyError, FileNotFoundError) as exc:
             fail(exc)
         noise = NoiseModel(sigma_p, sigma_r, known=True)
+        from estcal.estimate._common import PER_POSE_METHODS
+
+        try:
+            meth = get_method(method) if method else None
+        except ValueError as exc:
+            fail(exc)
+        if meth is not None and meth.name not in PER_POSE_METHODS:
+            fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
+                 f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
         if free:
             names_pat = [s.strip() for s in free.split(",") if s.strip()]
         elif data != "-":
@@ -124,10 +133,10 @@ def register(app: typer.Typer) -> None:
 
             try:
                 ds_all = load_dataset(data, rb)
+                prob_all = Problem(rb, [(meth, ds_all, noise)])
+                names_pat = identifiable_free(prob_all)
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
-            prob_all = Problem(rb, [(method, ds_all, noise)])
-            names_pat = identifiable_free(prob_all)
         else:
             names_pat = rb.params.free_names
         try:
@@ -146,12 +155,6 @@ def register(app: typer.Typer) -> None:
             flt = ParameterFilter(pv.values, fidx, P0, Q, kind=filter_kind, names=names)
         except ValueError as exc:
             fail(exc)
-        meth = get_method(method) if method else None
-        from estcal.estimate._common import PER_POSE_METHODS
-
-        if meth is not None and meth.name not in PER_POSE_METHODS:
-            fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
-                 f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
         lines = _lines(data)
         where = "<stdin>" if data == "-" else data
         try:
