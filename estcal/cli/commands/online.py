@@ -11,7 +11,7 @@ import typer
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
-def _row_dataset(header, values, joint_names, where):
+def _row_dataset(header, values, joint_names, where, allow_none: bool = False):
     """One CSV row as a one-pose Dataset (pose, k points or one point, by the header's columns)."""
     import numpy as np
 
@@ -48,6 +48,9 @@ def _row_dataset(header, values, joint_names, where):
         pts = np.array([[[num(f"{c}{i + 1}") for c in "xyz"] for i in range(k)]])
     elif all(c in col for c in "xyz"):
         pts = np.array([[[num(c) for c in "xyz"]]])
+    elif allow_none:  # encoder-only row for a method that needs no measured point (plane-known, …)
+        extra = {c: np.array([num(c)]) for c in col if c not in joint_names and c not in ctx}
+        return dataset_from_arrays(joint_names, r, context=ctx, columns=extra, path=where)
     else:
         raise DatasetError(f"{where}: no measurement columns (x,y,z / x1..zk / x,y,z,qw,qx,qy,qz)")
     return dataset_from_arrays(joint_names, r, points=pts, context=ctx, path=where)
@@ -174,7 +177,8 @@ def register(app: typer.Typer) -> None:
             if len(vals) != len(header):
                 fail(f"{where}, line {ln}: {len(vals)} fields but the header has {len(header)}")
             try:
-                ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}")
+                ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}",
+                                  allow_none=meth is not None)
                 m = meth or method_for_dataset(ds, rb)
                 sub = Problem.__new__(Problem)
                 sub.robot = rb
