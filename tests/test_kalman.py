@@ -207,3 +207,26 @@ def test_drift_tracked_with_q_not_with_q0():
     assert abs(errq) < 3.5
     assert abs(err0) > 6
     assert k0.extra["innovation"]["fires"]
+
+
+def test_recursion_equals_information_form_property():
+    """Q = 0: the recursion's P_K equals (P0⁻¹ + Σ Hᵀ R⁻¹ H)⁻¹ (4.70) for random problems."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=25, deadline=None)
+    @given(st.integers(1, 6), st.integers(1, 4), st.integers(1, 12), st.integers(0, 10_000))
+    def check(p, m, K, seed):
+        rng = np.random.default_rng(seed)
+        Hs = [rng.standard_normal((m, p)) for _ in range(K)]
+        Rs = [np.diag(rng.uniform(0.1, 2.0, m)) for _ in range(K)]
+        A = rng.standard_normal((p, p))
+        P0 = A @ A.T + 0.5 * np.eye(p)
+        P = covariance_sequence(Hs, Rs, P0)[-1]
+        info = np.linalg.inv(P0) + information_matrix(Hs, Rs)
+        np.testing.assert_allclose(P, np.linalg.inv(info), rtol=1e-8, atol=1e-10)
+        # and the repetition formula for K copies of the first measurement
+        Pj = repetition_covariance(information_matrix(Hs[:1], Rs[:1]), P0, K)
+        np.testing.assert_allclose(Pj, covariance_sequence(Hs[:1] * K, Rs[:1] * K, P0)[-1], rtol=1e-7, atol=1e-10)
+
+    check()
