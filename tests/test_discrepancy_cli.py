@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from estcal.cli.main import app
 from estcal.discrepancy import diagnose
-from estcal.discrepancy.feedback import identified_robot, residual_comparison, simulate_from_fit
+from estcal.discrepancy.feedback import identified_robot, residual_comparison, simulate_from_fit, simulate_like
 from estcal.discrepancy.hidden import simulate_hidden
 from estcal.io import write_dataset
 from estcal.io.robotfile import load_robot
@@ -84,6 +84,9 @@ def test_simulate_from_fit_reproduces_the_identified_robot(hidden_case, tmp_path
     m, s = cmp["measured"], cmp["simulated"]
     assert s["rmse_mm"] == pytest.approx(m["rmse_mm"], rel=0.15)
     assert s["partial_rms"]["j3"] == pytest.approx(m["partial_rms"]["j3"], rel=0.25)
+    sl = simulate_like(path, sim.dataset, noise=0.0)
+    np.testing.assert_allclose(sl.points, pred, atol=1e-12)
+    np.testing.assert_array_equal(sl.readings, sim.dataset.readings)
     geo, specs = identified_robot(path, geometric_only=True)
     assert specs == [] and not geo.effects
 

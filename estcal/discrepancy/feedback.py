@@ -143,6 +143,10 @@ def simulate_from_fit(fit, robot=None, readings=None, n_poses: int = 50, strateg
     elif isinstance(noise, (int, float)):
         noise = NoiseModel(position=float(noise), orientation=float(noise))
     ctx = dict(context or {})
+    if d["model"].get("approach_from_order") and any(sp["effect"] == "backlash" for sp in specs):
+        # the backlash was identified against the approach direction: keep that meaning
+        # (directions drawn at random; see simulate_like for the recorded ones)
+        kw["record_approach"] = True
     return simulate(geo, n_poses=n_poses, strategy=strategy, measure=measure, errors=None, effects=specs,
                     noise=noise, seed=seed, readings=readings, t=ctx.get("t"),
                     temperature=ctx.get("temperature"), payload=ctx.get("payload"), **kw)
