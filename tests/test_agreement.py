@@ -112,6 +112,10 @@ def test_cli_online_file_and_stdin(tmp_path):
                              "--json", str(tmp_path / "s.json")], input=path.read_text())
     assert r2.exit_code == 0, r2.output
     assert json.loads((tmp_path / "s.json").read_text())["innovation"]["fires"]
+    r_live = runner.invoke(app, ["online", str(path), "--robot", "puma560", "--free", ",".join(sim.free), "--live",
+                                 "--every", "20"])
+    assert r_live.exit_code == 0, r_live.output
+    assert "theta_2" in r_live.output
     # clear errors
     r3 = runner.invoke(app, ["online", str(path), "--robot", "puma560", "--free", "nonsense_9"])
     assert r3.exit_code == 2 and "nonsense_9" in r3.output

@@ -79,7 +79,8 @@ def register(app: typer.Typer) -> None:
         sigma_p: float = typer.Option(1e-4, "--sigma-p", help="Position noise std, m."),
         sigma_r: float = typer.Option(1e-3, "--sigma-r", help="Orientation noise std, rad."),
         prior_std: float = typer.Option(0.1, "--prior-std", help="Prior std of every free parameter (m / rad)."),
-        every: int = typer.Option(10, "--every", help="Print a status line every N rows."),
+        every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows."),
+        live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
         show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
@@ -103,7 +104,11 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=False)
         err = Console(stderr=True)
 
+        live_holder = []
+
         def fail(msg):
+            for lv in live_holder:  # leave the terminal clean before the message
+                lv.stop()
             err.print("[red]error:[/red] " + escape(str(msg)), soft_wrap=True)
             raise typer.Exit(2)
 
@@ -167,6 +172,25 @@ def register(app: typer.Typer) -> None:
         header = [h.strip() for h in header]
         history = []
         shown = list(range(min(show, len(names))))
+
+        def live_table():
+            run = flt.monitor.running(burn or flt.n_steps)
+            tb = Table(title=f"{rb.name}: {flt.n_steps} rows, NIS/row {run['nis_per_row']:.3f}, "
+                             f"trace P {np.trace(flt.f.P):.3g}")
+            for c in ("parameter", "estimate", "std", "Δ from nominal"):
+                tb.add_column(c, justify="right" if c != "parameter" else "left")
+            x, sd = flt.x, flt.std
+            for i, n in enumerate(names):
+                tb.add_row(n, f"{x[i]:.6g}", f"{sd[i]:.3g}", f"{x[i] - pv.values[fidx[i]]:.3g}")
+            return tb
+
+        live_ctx = None
+        if live:
+            from rich.live import Live
+
+            live_ctx = Live(Table(title="waiting for rows"), console=console, refresh_per_second=4)
+            live_ctx.start()
+            live_holder.append(live_ctx)
         console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
                       f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}")
         burn = None
@@ -194,9 +218,14 @@ def register(app: typer.Typer) -> None:
                 x, s = flt.x, flt.std
                 history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
                                 "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(), "std": s.tolist()})
-                par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
-                console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
-                              f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                if live_ctx is not None:
+                    live_ctx.update(live_table())
+                else:
+                    par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
+                    console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
+                                  f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+        if live_ctx is not None:
+            live_ctx.stop()
         if flt.n_steps == 0:
             fail(f"{where}: no data rows")
         x, s = flt.x, flt.std
