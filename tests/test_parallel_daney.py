@@ -124,3 +124,13 @@ def test_noise_error_decreases_with_n(robot):
     assert e[0] > e[1] > e[2]
     # uniform noise of amplitude 1e-4 m: the error is of that order, not 0
     assert 1e-5 < e[2] < 1e-3
+
+
+def test_generator_reports_an_infeasible_workspace(robot):
+    from estcal.parallel.daney import generate_random_poses
+    from estcal.parallel.gough import Workspace
+
+    bad = robot.with_theta(robot.theta)
+    bad.workspace = Workspace([-1.0, -1.0, 1.0], [1.0, 1.0, 2.0], np.radians(20))  # metres away: legs too short
+    with pytest.raises(RuntimeError, match="leg-length limits"):
+        generate_random_poses(bad, 10, np.random.default_rng(0))

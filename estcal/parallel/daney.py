@@ -209,10 +209,15 @@ def generate_random_poses(robot: GoughPlatform, n: int, rng: np.random.Generator
     if ws is None:
         raise ValueError(f"robot {robot.name!r} has no workspace; pose generation needs one")
     out = np.empty((0, 4, 4))
+    tried = 0
     while len(out) < n:
-        m = max(2 * (n - len(out)), 16)
+        m = min(max(4 * (n - len(out)), 64), 200_000)
         T = make_T(rng.uniform(ws.position_min, ws.position_max, (m, 3)), _random_rotations(rng, (m,), ws.max_angle))
         out = np.concatenate([out, T[robot.in_workspace(T)]])
+        tried += m
+        if tried > 1000 * n + 100_000 and len(out) < 0.001 * tried:
+            raise RuntimeError(f"robot {robot.name!r}: fewer than 0.1 % of the poses drawn in the workspace box "
+                               f"respect the leg-length limits ({len(out)} of {tried}); shrink the workspace box")
     return out[:n]
 
 
