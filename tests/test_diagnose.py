@@ -125,3 +125,20 @@ def test_report_folder_and_plots(puma, tmp_path):
         assert (tmp_path / "rep" / f).stat().st_size > 0, f
     d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
     assert d["causes"][0]["joints"] == ["j2"]
+
+
+def test_identifiable_subset_agrees_with_identify_module(puma):
+    """Same priority-ordered base set as estcal.identify.identifiable (GECARO App. III) on a
+    PUMA points problem, when both use the same numerical zero."""
+    from estcal.discrepancy import geometric_candidates
+    from estcal.discrepancy.geometric import weighted_system
+    from estcal.identify import identifiable
+
+    sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=30, measure="points", seed=2)
+    robot = sim.nominal_robot
+    problem = Problem(robot, [(None, sim.dataset, NoiseModel(position=SIGMA, known=True))])
+    names = geometric_candidates(robot)
+    _, A, _ = weighted_system(problem, robot.params.values, names)
+    keep, _ = identifiable_subset(A, names, tol=1e-8)
+    ref = identifiable(A, names, tau_floor=1e-8)
+    assert keep == ref.identifiable

@@ -33,6 +33,11 @@ def test_tiago_arm6_backlash_and_compliance(tiago_dir):
     assert sorted(res.named) == [("backlash", ("arm_6_joint",)), ("joint_compliance", ("arm_6_joint",))]
     b = res.causes[[c.effect for c in res.causes].index("backlash")].parameters["backlash_arm_6_joint"]
     assert b["estimate"] > 5 * b["std"]  # positive: the link lags the motor, as backlash does
+    # the torso lift carries every link: its compliance times the constant weight is a
+    # constant vertical shift, i.e. it regroups into base_tz with β = −(total weight)
+    rel = res.steps[0]["regroups"]["joint_compliance(torso_lift_joint)"]["compliance_torso_lift_joint"]
+    weight = 9.81 * sum(lk.mass for lk in robot.links)
+    assert rel["base_tz"] == pytest.approx(-weight, rel=1e-3)
     g, x = res.rmse_mm["geometric"], res.rmse_mm["extended"]
     assert x["cv"] < g["cv"] and x["validation"] < g["validation"] - 0.5
     # FIGAROH's metric (BL point on 11-26; full_params 3.07 mm)

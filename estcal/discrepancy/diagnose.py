@@ -307,6 +307,26 @@ def _test(rss0, rss1, k, M, p1, known):
     return "nested F", F, float(stats.f.sf(F, k, d2))
 
 
+def _regrouping(A, names_a, E, names_e) -> dict:
+    """How a regrouped effect's columns are absorbed: ``{effect parameter: {model parameter: β}}``
+    from :func:`estcal.identify.identifiable` (GECARO eq. [36]-[37]) with the model's parameters first."""
+    try:
+        from estcal.identify import identifiable
+    except ImportError:  # pragma: no cover - the identification module is optional here
+        return {}
+    W = np.c_[A, E]
+    names = list(names_a) + list(names_e)
+    prio = np.r_[np.full(len(names_a), 2), np.ones(len(names_e), int)]
+    try:
+        res = identifiable(W, names, prio, tau_floor=1e-3)
+    except Exception:  # noqa: BLE001 - reporting only
+        return {}
+    out = {r["parameter"]: {k: float(v) for k, v in sorted(r["relation"].items(), key=lambda kv: -abs(kv[1]))[:4]}
+           for r in res.regrouped if r["parameter"] in names_e}
+    out.update({n: {} for n in res.no_effect if n in names_e})
+    return out
+
+
 def _fit(problem, theta, free, max_iter=100):
     return calibrate_lsq(problem.with_values(theta), "lm", free=free, check=False, max_iter=max_iter)
 
@@ -433,13 +453,11 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
             En = np.linalg.norm(E, axis=0)
             Ep = E - Q @ (Q.T @ E)
             rel = np.linalg.norm(Ep, axis=0) / np.maximum(En, 1e-300)
-            if np.any(En == 0) or rel.min() < regroup_tol:
-                entry.update(status="regroups", orthogonal_fraction=float(rel.min() if En.all() else 0.0))
-                table.append(entry)
-                continue
-            sv = np.linalg.svd(Ep / En, compute_uv=False)
-            if sv.min() < regroup_tol * sv.max():
-                entry.update(status="regroups", orthogonal_fraction=float(sv.min() / sv.max()))
+            sv = np.linalg.svd(Ep / np.maximum(En, 1e-300), compute_uv=False)
+            if np.any(En == 0) or rel.min() < regroup_tol or sv.min() < regroup_tol * sv.max():
+                entry.update(status="regroups", orthogonal_fraction=float(min(rel.min(), sv.min() / sv.max())
+                                                                          if En.all() else 0.0),
+                             relation=_regrouping(A, cur_free, E, names))
                 table.append(entry)
                 continue
             x, *_ = np.linalg.lstsq(Ep, b_perp, rcond=None)
@@ -494,7 +512,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                       "n_tested": len(ok), "alpha_per_test": alpha / n_tested,
                       "table": [{k: _plain(v) for k, v in e.items() if not k.startswith("_")}
                                 for e in sorted(table, key=lambda e: e.get("delta_bic_linear", np.inf))[:12]],
-                      "regroups": [e["candidate"] for e in table if e["status"] == "regroups"],
+                      "regroups": {e["candidate"]: _plain(e.get("relation", {})) for e in table
+                                   if e["status"] == "regroups"},
                       "accepted": accepted[0]["candidate"] if accepted else None})
         if verbose:
             print(f"step {step + 1}: " + ", ".join(f"{e['candidate']} ΔBIC {e['delta_bic']:.1f} "
