@@ -230,3 +230,20 @@ def test_recursion_equals_information_form_property():
         np.testing.assert_allclose(Pj, covariance_sequence(Hs[:1] * K, Rs[:1] * K, P0)[-1], rtol=1e-7, atol=1e-10)
 
     check()
+
+
+def test_plan_calibration_predicts_the_filter(puma):
+    from estcal.estimate.riccati import plan_calibration
+
+    sim, _ = puma
+    readings = sim.problem.terms[0].data.readings
+    plan = plan_calibration(sim.problem.robot, readings, "location", free=sim.free, sigma_p=1e-4, sigma_r=1e-4,
+                            prior_std=0.1, eps=1e-6)
+    kf = calibrate_kalman(sim.problem, prior_std=0.1)
+    np.testing.assert_allclose(plan.std[-1], kf.std, rtol=2e-2)
+    assert 1 <= plan.stop <= len(readings) and "4.220" in plan.rule
+    cyc = np.tile(readings[:25], (8, 1))  # a 25-pose cycle measured 8 times
+    planq = plan_calibration(sim.problem.robot, cyc, "location", free=sim.free, sigma_p=1e-4, sigma_r=1e-4,
+                             q=1e-5, cycle=25)
+    assert np.all(planq.floor_std > 0) and planq.stop % 25 == 0
+    assert "stop after" in str(planq) and planq.to_dict()["stop"] == planq.stop

@@ -22,16 +22,20 @@ experiment:
   lower bound M1 from ‖(I + j F P0)⁻¹‖ ≤ ε (4.223–4.224);
   :func:`stopping_index_sequence` — rule 4.114 ‖P_k − P∞‖ ≤ δ for all k ≥ M on a sequence;
 * :func:`planned_jacobians` — the H_k of a planned pose list for a robot and a
-  measurement method, at the nominal parameters (no measurement needed).
+  measurement method, at the nominal parameters (no measurement needed);
+* :func:`plan_calibration` — all of the above for a planned pose list: predicted stds after
+  every pose, the floor and the stopping index (:class:`CalibrationPlan`).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
 
 __all__ = ["covariance_sequence", "steady_state", "riccati_residual", "periodic_steady_state",
            "repetition_covariance", "stopping_index", "stopping_index_sequence", "information_matrix",
-           "planned_jacobians", "matrix_norm"]
+           "planned_jacobians", "matrix_norm", "plan_calibration", "CalibrationPlan"]
 
 
 def matrix_norm(A, norm=2) -> float:
@@ -250,3 +254,66 @@ def planned_jacobians(robot, readings, method: str = "location", free=None, thet
     H = rows.H[:, fidx].reshape(N, m, -1)
     s = rows.sigma.reshape(N, m)
     return H, s, [prob.params.names[i] for i in fidx]
+
+
+@dataclass
+class CalibrationPlan:
+    """Predicted accuracy of a planned pose sequence (no measurement needed).
+
+    Attributes
+    ----------
+    names : free parameter names.
+    std : (K, p) predicted standard deviations after each pose (√diag P_k).
+    trace : (K,) tr P_k.
+    floor_std : (p,) √diag P∞ (end-of-cycle periodic floor; zeros when Q = 0).
+    stop : stopping index (1-based pose count): rule 4.114 ‖P_k − P∞‖₂ ≤ δ‖P∞‖₂ at cycle ends
+        when Q > 0, rule 4.220 ‖P_k‖₂ ≤ ε‖P0‖₂ when Q = 0; −1 if not reached.
+    rule : which rule gave ``stop``.
+    """
+
+    names: list
+    std: np.ndarray
+    trace: np.ndarray
+    floor_std: np.ndarray
+    stop: int
+    rule: str
+
+    def to_dict(self) -> dict:
+        return {"names": list(self.names), "std_final": self.std[-1].tolist(), "trace": self.trace.tolist(),
+                "floor_std": self.floor_std.tolist(), "stop": int(self.stop), "rule": self.rule}
+
+    def __str__(self) -> str:
+        return (f"CalibrationPlan({len(self.names)} parameters, {len(self.trace)} poses: max std "
+                f"{self.std[-1].max():.3g} at the end, floor {self.floor_std.max():.3g}; stop after {self.stop} "
+                f"poses by {self.rule})")
+
+
+def plan_calibration(robot, readings, method: str = "location", free=None, sigma_p: float = 1e-4,
+                     sigma_r: float = 1e-3, prior_std: float = 0.1, q=0.0, cycle: int | None = None,
+                     delta: float = 0.1, eps: float = 1e-4, theta=None) -> CalibrationPlan:
+    """Offline analysis of a planned pose list measured in order (and, with ``cycle``, repeated).
+
+    ``q`` is the process-noise std per pose (scalar or per free parameter). With Q > 0 the floor is
+    the periodic solution of the first ``cycle`` poses (default: all) and the stop is rule 4.114
+    applied at cycle ends; with Q = 0 it is rule 4.220 with ``eps``.
+    """
+    H, s, names = planned_jacobians(robot, readings, method, free, theta, sigma_p, sigma_r)
+    p = len(names)
+    P0 = np.eye(p) * prior_std ** 2
+    qv = np.broadcast_to(np.asarray(q, float), (p,))
+    Q = np.diag(qv ** 2)
+    Ps = covariance_sequence(list(H), list(s), P0, Q)
+    K = len(Ps)
+    if np.any(qv > 0):
+        c = cycle or K
+        P_inf, _ = periodic_steady_state(list(H[:c]), list(s[:c]), Q, P0=Ps[c - 1])
+        Mc = stopping_index_sequence(Ps[c - 1::c], P_inf, delta * matrix_norm(P_inf))
+        stop, rule = (Mc * c if Mc > 0 else -1), f"4.114 (δ = {delta} ‖P∞‖, at cycle ends of {c})"
+        floor = np.sqrt(np.clip(np.diag(P_inf), 0, None))
+    else:
+        target = eps * matrix_norm(P0)
+        ok = np.array([matrix_norm(P) <= target for P in Ps])
+        stop = int(np.argmax(ok) + 1) if ok.any() else -1
+        rule, floor = f"4.220 (ε = {eps})", np.zeros(p)
+    return CalibrationPlan(names, np.sqrt(np.clip(np.diagonal(Ps, axis1=1, axis2=2), 0, None)),
+                           np.trace(Ps, axis1=1, axis2=2), floor, stop, rule)
