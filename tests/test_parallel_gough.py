@@ -139,3 +139,14 @@ def test_robot_file_units_mapping_like_serial_files(robot, tmp_path):
     p = tmp_path / "u.yaml"
     p.write_text(yaml.safe_dump(d))
     np.testing.assert_allclose(load_gough(p).theta, robot.theta, atol=1e-15)
+
+
+def test_minimal_robot_file_defaults(robot):
+    """Only the attachment points: default home above the base, FK works from it."""
+    d = {"type": "gough", "base_points": robot.a.tolist(), "platform_points": robot.b.tolist()}
+    r = load_gough(d)
+    assert r.home[2, 3] > 0.05 and np.all(r.drho == 0)
+    T = robot.home.copy()
+    fk = r.forward_kinematics(r.leg_lengths(T))
+    assert fk.success[0]
+    np.testing.assert_allclose(fk.T[0], T, atol=1e-8)

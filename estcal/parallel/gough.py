@@ -435,10 +435,15 @@ class GoughPlatform:
         lim = np.asarray(d.get("leg_length_limits", [0.0, np.inf]), float) * s
         home_d = d.get("home")
         if home_d is None:
-            # default home: platform centred above the base at a mid-stroke height
-            mid = float(np.mean(lim[..., 0] + np.where(np.isfinite(lim[..., 1]), lim[..., 1], lim[..., 0] * 1.5)) / 2)
-            r_off = np.linalg.norm((a - b)[:, :2], axis=1).mean()
-            h = np.sqrt(max(mid**2 - r_off**2, mid**2 * 0.25))
+            # default home: platform centred above the base, legs at mid-stroke
+            # (or twice the base radius when the limits are open)
+            lim2 = np.broadcast_to(lim, (6, 2)) if lim.shape == (2,) else lim
+            if np.all(np.isfinite(lim2)):
+                mid = float(np.mean(lim2))
+            else:
+                mid = 2.0 * float(np.max(np.linalg.norm(a, axis=1)))
+            r_off = float(np.linalg.norm((a - b)[:, :2], axis=1).mean())
+            h = np.sqrt(max(mid**2 - r_off**2, 0.25 * mid**2))
             home = make_T(np.array([0, 0, h]), np.eye(3))
         else:
             pos = np.asarray(home_d.get("position"), float) * s
