@@ -242,7 +242,8 @@ def test_shared_probabilistic_estimators_run_on_gough(true_robot, residual, meth
     assert np.abs((res.theta - lm.theta)[14:21] / s).max() < tol
     s2 = np.array([v["std"] for v in res.parameters.values()])
     # posterior std from ~100 effective samples: relative s.e. ≈ 1/sqrt(2·100) ≈ 7 %
-    np.testing.assert_allclose(s2, s, rtol={"ukf": 0.1, "mcmc": 0.3}.get(method, 0.02))
+    # the single-pass UKF is not the MAP: its std departs from LM by the nonlinearity over the prior spread
+    np.testing.assert_allclose(s2, s, rtol={"ukf": 0.25, "mcmc": 0.3}.get(method, 0.02))
 
 
 @pytest.mark.parametrize("residual,R", [("ik", 120), ("fk", 30)])
