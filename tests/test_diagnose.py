@@ -125,6 +125,12 @@ def test_report_folder_and_plots(puma, tmp_path):
         assert (tmp_path / "rep" / f).stat().st_size > 0, f
     d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
     assert d["causes"][0]["joints"] == ["j2"]
+    # the linearised screen (projection orthogonal to the geometric columns) predicts the
+    # residual of the nonlinear refit of every parameter: the effect is linear in its parameter
+    # and the geometry barely moves
+    e = next(x for x in d["steps"][0]["table"] if x["candidate"] == "encoder_gain(j2)")
+    assert e["rss_linear"] == pytest.approx(e["rss"], rel=0.02)
+    assert e["rss"] < 0.05 * d["steps"][0]["rss_before"]
 
 
 def test_identifiable_subset_agrees_with_identify_module(puma):
