@@ -148,3 +148,19 @@ def test_identifiable_subset_agrees_with_identify_module(puma):
     keep, _ = identifiable_subset(A, names, tol=1e-8)
     ref = identifiable(A, names, tau_floor=1e-8)
     assert keep == ref.identifiable
+
+
+@pytest.mark.parametrize("hidden, kw, expect", [
+    (("thermal_expansion", None, 8.0), {"temperature": (20.0, 35.0)}, ("thermal_expansion", ())),
+    (("drift", ["j2"], 6.0), {"dt": 30.0}, ("drift", ("j2",))),
+    (("backlash", ["j1"], 6.0), {"record_approach": True}, ("backlash", ("j1",))),
+])
+def test_context_driven_effects(puma, hidden, kw, expect):
+    """Effects driven by recorded columns: temperature, time, approach direction (j1's axis is
+    vertical, so its backlash is only visible through the approach column)."""
+    sim, truth = simulate_hidden(puma, [hidden], SIGMA, n_poses=50, measure="points", seed=8, **kw)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    assert res.named == [expect]
+    for name, v in truth[0]["params"].items():
+        p = res.causes[0].parameters[name]
+        assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * abs(v)
