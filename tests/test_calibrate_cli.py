@@ -229,3 +229,21 @@ def test_gough_platform_is_dispatched(tmp_path):
     assert d["converged"] and len(d["parameters"]) == 42
     est = np.array([v["estimate"] for v in d["parameters"].values()])
     np.testing.assert_allclose(est, true_robot.theta, atol=1e-9)
+
+
+def test_gough_options_residual_and_model(tmp_path):
+    """--residual fk and --model 36 reach calibrate_gough: 36 parameters, exact on noise-free data."""
+    from estcal.parallel.calibration import simulate_gough_data
+    from estcal.parallel.gough import left_hand
+
+    nominal = left_hand()
+    rng = np.random.default_rng(1)
+    true_robot = nominal.with_theta(nominal.theta + rng.normal(0, 1e-3, nominal.theta.size))
+    path = tmp_path / "gough.json"
+    path.write_text(json.dumps(simulate_gough_data(true_robot, 40, 2).to_dict()))
+    out = tmp_path / "g.json"
+    r = _run([str(path), "--robot", "left_hand", "--residual", "fk", "--model", "36", "--noise-leg", "1e-5",
+              "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(out.read_text())
+    assert d["converged"] and len(d["parameters"]) == 36

@@ -424,6 +424,12 @@ def register(app: typer.Typer) -> None:
         noise_rot: float = typer.Option(1e-3, "--noise-rot", help="Orientation noise std (rad)."),
         known_noise: bool = typer.Option(False, "--known-noise", help="Trust the noise values (covariance not "
                                                                       "rescaled by σ0²)."),
+        noise_leg: Optional[float] = typer.Option(None, "--noise-leg", help="Gough platforms: leg-length "
+                                                                            "noise std (m)."),
+        residual: str = typer.Option("ik", "--residual", help="Gough platforms: ik (leg lengths from the "
+                                                              "measured pose) or fk (pose from the legs)."),
+        gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
+                                                            "offsets) or 36 (offsets known)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
@@ -476,7 +482,9 @@ def register(app: typer.Typer) -> None:
 
             free_list = [s.strip() for s in free.split(",") if s.strip()] if free else None
             try:
-                gres = calibrate_gough(robot, data, method=estimator, free=free_list)
+                gres = calibrate_gough(robot, data, method=estimator, free=free_list, residual=residual,
+                                       model=gough_model, sigma_p=noise_pos, sigma_r=noise_rot,
+                                       sigma_rho=noise_leg)
             except (ValueError, KeyError) as exc:
                 _fail(str(exc))
             console.print(str(gres))
