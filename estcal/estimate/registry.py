@@ -17,6 +17,7 @@ ESTIMATORS: dict[str, str] = {
     "scipy-lm": "estcal.estimate.lsq:calibrate_lsq",
     "gtsam": "estcal.estimate.factorgraph:calibrate_gtsam",
     "isam2": "estcal.estimate.factorgraph:calibrate_isam2",
+    "gtsam-timevarying": "estcal.estimate.factorgraph:calibrate_timevarying",
     "kalman": "estcal.estimate.kalman:calibrate_kalman",
     "ukf": "estcal.estimate.kalman:calibrate_ukf",
     "mcmc": "estcal.estimate.mcmc:calibrate_mcmc",

@@ -30,7 +30,7 @@ experiments) goes through five steps:
    App. III; relative tolerance 1e-8 on unit-norm columns). Dropped columns are
    reported as *no effect* or *regrouped* with the relation ``a_j = Σ β_k a_k``
    (``β = R1⁻¹ R2``), i.e. the kept parameter ``k`` absorbs ``β_k Δη_j``.
-   With ``--selection aic`` (default for ``full``) an identifiable candidate is
+   With ``--selection aic`` (opt-in; the default is ``structural``) an identifiable candidate is
    also required to lower Akaike's criterion on the calibration data
    (``M ln(RSS/M) + 2p``, or ``χ² + 2p`` with known noise), linearised at the
    registration solution: structurally identifiable but practically
@@ -296,7 +296,10 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         problem = problem.with_values(theta0)
     start = problem
     if free is None:
-        crit = selection or ("aic" if level == "full" else "structural")
+        # Default: the full structural identifiable set (QR). Information-criterion
+        # pruning (aic/bic) is greedy and can drop parameters whose effect only shows
+        # jointly with others, so it is opt-in.
+        crit = selection or "structural"
         exclude = _structural_no_effect(robot, problem, level, data) if method is not None else []
         sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
         free = sel.identifiable
@@ -391,6 +394,19 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
 
 
+def _parse_options(items) -> dict:
+    """``KEY=VALUE`` strings -> dict; values parsed as YAML scalars (numbers, booleans, strings)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        if "=" not in item:
+            _fail(f"--option {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
 def _fail(msg: str, code: int = 2):
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
@@ -416,8 +432,8 @@ def register(app: typer.Typer) -> None:
         level: Optional[str] = typer.Option(None, "--level", help="registration | joint_offset | full "
                                                                   "(default full when --free is not given)."),
         selection: Optional[str] = typer.Option(None, "--selection",
-                                                help="structural | aic | bic (default: aic for full, else "
-                                                     "structural)."),
+                                                help="structural (default: every identifiable parameter, QR) | "
+                                                     "aic | bic (greedy pruning by an information criterion)."),
         validate: list[Path] = typer.Option([], "--validate", help="Validation dataset; repeat the option for several, scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
         noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
@@ -430,6 +446,10 @@ def register(app: typer.Typer) -> None:
                                                               "measured pose) or fk (pose from the legs)."),
         gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
                                                             "offsets) or 36 (offsets known)."),
+        robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel for the factor-graph "
+                                                                     "estimators: huber | cauchy."),
+        option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
+                                                              "--option q=1e-5 --option optimizer=dogleg."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
@@ -526,10 +546,17 @@ def register(app: typer.Typer) -> None:
             free_list = [s.strip() for s in free.split(",") if s.strip()]
             if not free_list:
                 _fail("--free is empty")
+        options = _parse_options(option)
+        if robust is not None:
+            if robust not in ("huber", "cauchy"):
+                _fail(f"--robust must be huber or cauchy, got {robust!r}")
+            if estimator not in ("gtsam", "isam2", "gtsam-timevarying"):
+                _fail(f"--robust needs a factor-graph estimator (gtsam, isam2, gtsam-timevarying), not {estimator!r}")
+            options["robust"] = robust
         try:
             res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
                                                 level=level or "full", selection=selection, validate=vals,
-                                                noise=noise)
+                                                noise=noise, options=options)
         except ParameterError as exc:
             _fail(f"--free: {exc}")
         except UnidentifiableError as exc:
