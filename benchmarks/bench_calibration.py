@@ -36,7 +36,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from estcal.cli.commands.calibrate import select_free  # noqa: E402
+from estcal.estimate.levels import select_free  # noqa: E402
 from estcal.estimate import calibrate_lsq  # noqa: E402
 from estcal.estimate.lsq import single_thread_blas  # noqa: E402
 from estcal.io.dataset import dataset_from_arrays  # noqa: E402
@@ -176,7 +176,7 @@ def figaroh_compare(repeat, data_dir=None):
     from figaroh.calibration.calibration_tools import calc_updated_fkm
     from scipy.optimize import least_squares
 
-    from estcal.cli.commands.calibrate import run_calibration
+    from estcal.estimate.levels import run_calibration
     from estcal.io import load_dataset
     from estcal.io.robotfile import load_robot
 

@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estcal.cli.commands.calibrate import select_free  # noqa: E402
+from estcal.estimate.levels import select_free  # noqa: E402
 from estcal.estimate import calibrate_lsq  # noqa: E402
 from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import stanford  # noqa: E402

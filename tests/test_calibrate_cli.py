@@ -145,7 +145,7 @@ def test_tiago_registration_level_reproduces_published(tiago_dir, tmp_path):
 def test_selection_agrees_with_identify_module(tmp_path):
     """The level selection's structural step equals estcal.identify's sequential QR with the same priorities."""
     identify = pytest.importorskip("estcal.identify")
-    from estcal.cli.commands.calibrate import level_candidates, select_free
+    from estcal.estimate.levels import level_candidates, select_free
     from estcal.io import load_dataset
     from estcal.methods import NoiseModel, Problem
 

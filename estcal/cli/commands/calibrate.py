@@ -1,7 +1,7 @@
 """``estcal calibrate``: batch estimation of a robot's parameters from a measurement file.
 
-The command (and the Python functions it is built on, reused by the
-experiments) goes through five steps:
+The command is a thin shell around :func:`estcal.estimate.levels.run_calibration`
+(reused by the experiments); it goes through five steps:
 
 1. **Robot** — :func:`estcal.io.robotfile.load_robot` (built-in name, robot
    file, URDF with ``--root/--tip``), with as many unknown markers as measured
@@ -20,24 +20,9 @@ experiments) goes through five steps:
    * ``joint_offset``: + joint offsets;
    * ``full``: + geometric and tool parameters.
 
-   Every level is reduced to an identifiable set by :func:`select_free` on the
-   calibration data only (never the validation files): columns of the weighted
-   observation matrix are taken in priority order — markers and method
-   unknowns, base, offsets, geometric, tool (GECARO's priority rule "offsets
-   before geometry before base/tool", with the registration set nested first
-   because the data frame is unknown) — and a column is kept when its
-   component orthogonal to the kept ones is not numerically zero (GECARO
-   App. III; relative tolerance 1e-8 on unit-norm columns). Dropped columns are
-   reported as *no effect* or *regrouped* with the relation ``a_j = Σ β_k a_k``
-   (``β = R1⁻¹ R2``), i.e. the kept parameter ``k`` absorbs ``β_k Δη_j``.
-   With ``--selection aic`` (opt-in; the default is ``structural``) an identifiable candidate is
-   also required to lower Akaike's criterion on the calibration data
-   (``M ln(RSS/M) + 2p``, or ``χ² + 2p`` with known noise), linearised at the
-   registration solution: structurally identifiable but practically
-   unsupported parameters are left at their nominal values (``--selection bic``:
-   Schwarz's penalty ln M instead of 2). For constraint methods (links, planes,
-   distance) the parameters GECARO's analysis on consistent simulated data finds
-   without effect (:func:`estcal.identify.identify`) are removed first.
+   Every level is reduced to an identifiable set on the calibration data only
+   (never the validation files) by :func:`estcal.estimate.levels.select_free`
+   (QR in GECARO priority order; ``--selection aic|bic`` adds greedy pruning).
 5. **Estimation** — any estimator of :mod:`estcal.estimate.registry`
    (``lm``, ``gauss-newton``, ``iterated-lls``, ``scipy-lm``, ``gtsam``, ``kalman``,
    ``mcmc`` …), then a report: parameter table (estimate ± std, regrouped
@@ -54,193 +39,18 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
+from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
+
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
            "count_point_columns", "LEVELS"]
 
-LEVELS = ("registration", "joint_offset", "full")
 _ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
-_REL_TOL = 1e-8
-
-
-# --------------------------------------------------------------------------- selection
-@dataclass
-class Selection:
-    """Outcome of :func:`select_free`.
-
-    identifiable : chosen free parameters (estimation order)
-    no_effect : candidates whose column is zero on these data
-    regrouped : {dropped name: {kept name: β}} — the kept parameter absorbs β·Δη_dropped
-    rejected : identifiable candidates not supported by the information criterion
-    condition_number : of the column-scaled weighted observation matrix of the chosen set
-    """
-
-    level: str
-    criterion: str
-    identifiable: list
-    no_effect: list = field(default_factory=list)
-    regrouped: dict = field(default_factory=dict)
-    rejected: list = field(default_factory=list)
-    condition_number: float = float("nan")
-    theta: np.ndarray | None = field(default=None, repr=False)  # linearisation point (full vector)
-
-    def to_dict(self) -> dict:
-        return {"level": self.level, "criterion": self.criterion, "n_identifiable": len(self.identifiable),
-                "identifiable": list(self.identifiable), "no_effect": list(self.no_effect),
-                "regrouped": {k: dict(v) for k, v in self.regrouped.items()}, "rejected": list(self.rejected),
-                "condition_number": float(self.condition_number)}
-
-    def regroup_label(self, name: str) -> str:
-        """``name`` followed by the dropped parameters it absorbs (readable regrouping)."""
-        terms = [(d, b) for d, rel in self.regrouped.items() for k, b in rel.items() if k == name]
-        terms.sort(key=lambda t: -abs(t[1]))
-        parts = [f"{b:+.3g}·{d}" for d, b in terms]
-        if not parts:
-            return name
-        shown = " ".join(parts[:3]) + (" …" if len(parts) > 3 else "")
-        return f"{name} [{shown}]"
-
-
-def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]:
-    """Candidate groups of a level, in priority order (the first group is the registration set)."""
-    if level not in LEVELS:
-        raise ValueError(f"unknown level {level!r}; choose one of {LEVELS}")
-    kinds = dict(zip(pv.names, pv.kinds))
-    markers = [n for n in pv.names if kinds[n] == "marker"]
-    other = [n for n in pv.names if kinds[n] == "other"]  # unknowns added by the methods
-    base = [n for n in pv.names if kinds[n] == "base"]
-    tool = [n for n in pv.names if kinds[n] == "tool"]
-    if markers:
-        reg_tool = []
-    else:
-        reg_tool = [n for n in tool if n.startswith("tool_t") or pose_data]
-    groups = [markers + other + base + reg_tool]
-    if level in ("joint_offset", "full"):
-        groups.append([n for n in pv.names if kinds[n] == "offset"])
-    if level == "full":
-        groups.append([n for n in pv.names if kinds[n] == "geometric"])
-        groups.append([n for n in tool if n not in reg_tool])
-    return groups
-
-
-def _weighted_matrix(problem, theta):
-    rows = problem.evaluate(theta)
-    w = 1.0 / rows.sigma
-    return rows.H * w[:, None], rows.e * w
-
-
-def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
-                groups: list[list[str]] | None = None, known_noise: bool | None = None,
-                refine_registration: bool = True, exclude=()) -> Selection:
-    """Identifiable free set of a level on the problem's (calibration) data.
-
-    Parameters
-    ----------
-    problem : :class:`estcal.methods.Problem` (its data: the calibration file only)
-    level : ``registration``, ``joint_offset`` or ``full`` (ignored when ``groups`` is given)
-    criterion : ``structural`` (QR rank only), ``aic`` (+ Akaike's criterion, see module docstring)
-        or ``bic`` (Schwarz: penalty ln M per parameter instead of 2)
-    theta : linearisation point (default: the problem's values)
-    groups : explicit candidate groups in priority order (first group = always-kept set)
-    known_noise : AIC with absolute weights (default: from the problem's noise models)
-    refine_registration : linearise at the fit of the first group (registration) for higher levels
-    exclude : names reported as *no effect* without looking at their columns (e.g. the
-        parameters a structural analysis on consistent simulated data found without effect)
-
-    The ordered Gram–Schmidt below is QR without pivoting on the priority-sorted,
-    unit-norm columns: ``|R_jj| ≤ 1e-8`` marks a dependent column (GECARO App. III,
-    with the priority order of §1.5 deciding which of dependent columns is kept).
-    """
-    if criterion not in ("structural", "aic", "bic"):
-        raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural', 'aic' or 'bic'")
-    pv = problem.params
-    pose = any(t.data.kind == "pose" for t in problem.terms)
-    if groups is None:
-        groups = level_candidates(pv, level, pose)
-    exclude = set(exclude)
-    if exclude:
-        groups = [[n for n in g if n not in exclude] for g in groups]
-    theta = pv.values.copy() if theta is None else np.asarray(theta, float)
-    A, b = _weighted_matrix(problem, theta)
-    norms = np.linalg.norm(A, axis=0)
-    scale = max(float(norms.max()), 1e-300)
-    M = A.shape[0]
-    kept: list[int] = []
-    Q = np.zeros((M, 0))
-    no_effect, regrouped_idx = [], []
-    first = set(pv.indices(groups[0])) if groups and groups[0] else set()
-    order = [pv.index(n) for g in groups for n in g]
-    if known_noise is None:
-        known_noise = all(t.noise.known for t in problem.terms)
-    if refine_registration and len(groups) > 1 and first:
-        # Linearise where the registration set fits the data: at the nominal point the
-        # unknown markers sit at the tool origin, which creates dependencies (marker vs
-        # last-joint placement) that vanish once the markers are located.
-        from estcal.estimate.lsq import calibrate_lsq
-
-        reg_sel = select_free(problem, groups=[groups[0]], theta=theta)
-        if reg_sel.identifiable:
-            try:
-                r0 = calibrate_lsq(problem.with_values(theta), "lm", free=reg_sel.identifiable, check=False)
-                theta = r0.theta
-                A, b = _weighted_matrix(problem, theta)
-                norms = np.linalg.norm(A, axis=0)
-                scale = max(float(norms.max()), 1e-300)
-            except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
-                pass
-    rejected = []
-    rss = float(b @ b)
-
-    pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
-
-    def aic(r, p):
-        return r + pen * p if known_noise else M * np.log(max(r, 1e-300) / M) + pen * p
-
-    for i in order:
-        if norms[i] <= 1e-12 * scale:
-            no_effect.append(pv.names[i])
-            continue
-        a = A[:, i] / norms[i]
-        v = a - Q @ (Q.T @ a)
-        v -= Q @ (Q.T @ v)  # re-orthogonalise (classical Gram–Schmidt twice is stable)
-        nv = float(np.linalg.norm(v))
-        if nv <= _REL_TOL:
-            regrouped_idx.append(i)
-            continue
-        u = v / nv
-        if criterion != "structural" and i not in first:
-            r_new = rss - float(u @ b) ** 2
-            if not aic(r_new, len(kept) + 1) < aic(rss, len(kept)):
-                rejected.append(pv.names[i])
-                continue
-            rss = r_new
-        elif criterion != "structural":
-            rss -= float(u @ b) ** 2
-        kept.append(i)
-        Q = np.column_stack([Q, u])
-    regrouped = {}
-    if kept and regrouped_idx:
-        Ak = A[:, kept] / norms[kept]
-        for j in regrouped_idx:
-            beta, *_ = np.linalg.lstsq(Ak, A[:, j] / norms[j], rcond=None)
-            coef = beta * norms[j] / norms[kept]  # unscaled: a_j = Σ coef_k a_k
-            rel = {pv.names[kept[m]]: float(c) for m, c in enumerate(coef) if abs(beta[m]) > 1e-6}
-            regrouped[pv.names[j]] = rel
-    cond = float("nan")
-    if kept:
-        s = np.linalg.svd(A[:, kept] / norms[kept], compute_uv=False)
-        cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    no_effect = [n for n in pv.names if n in exclude] + no_effect
-    # estimation order: the vector's own order (stable, readable tables)
-    names = [pv.names[i] for i in sorted(kept)]
-    return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
-
 
 # --------------------------------------------------------------------------- helpers
 def count_point_columns(path) -> tuple[int, bool, bool]:
@@ -265,85 +75,6 @@ def _unit(name: str, robot) -> tuple[str, float]:
             if robot.params.names[li] == name:
                 return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
     return "mm", 1e3
-
-
-def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
-                    free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
-                    validate=(), noise=None, register: bool = True, options: dict | None = None):
-    """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
-
-    Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
-    """
-    from estcal.estimate import register_base
-    from estcal.estimate.registry import get_estimator
-    from estcal.methods import NoiseModel, Problem, get_method
-
-    noise = noise or NoiseModel()
-    method = get_method(measure) if measure else None
-    problem = Problem(robot, [(method, data, noise)], noise)
-    pv = problem.params
-    theta0 = pv.values.copy()
-    base_free = True
-    sel = None
-    if free is not None:
-        problem.with_free(free)  # raises ParameterError naming an unknown parameter / pattern
-        # register only when the whole base frame is estimated: Kabsch moves all six
-        # base parameters, and a fixed one must keep its given value
-        fn = set(problem.with_free(free).params.free_names)
-        base_free = all(f"base_{c}" in fn for c in ("tx", "ty", "tz", "rx", "ry", "rz"))
-    if register and base_free and data.kind in ("position", "points", "pose") and "base_tx" in pv:
-        theta0 = register_base(problem.robot, data, theta0)
-        problem = problem.with_values(theta0)
-    start = problem
-    if free is None:
-        # Default: the full structural identifiable set (QR). Information-criterion
-        # pruning (aic/bic) is greedy and can drop parameters whose effect only shows
-        # jointly with others, so it is opt-in.
-        crit = selection or "structural"
-        exclude = _structural_no_effect(robot, problem, level, data) if method is not None else []
-        sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
-        free = sel.identifiable
-        start = problem.with_values(sel.theta)  # staged: start from the registration fit
-    est = get_estimator(estimator)
-    res = est(start, free=free, validation=list(validate), **(options or {}))
-    if start is not problem:
-        from estcal.estimate.lsq import score
-
-        res.accuracy = score(problem, theta0, res.theta, list(validate))
-        res.nominal = theta0[problem.params.indices(res.names)]
-    if sel is not None:
-        res.extra["selection"] = sel.to_dict()
-    res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
-                                                                           data.kind != "none") else "nominal"
-    return res, sel, problem
-
-
-_DIRECT = ("position", "location", "pose", "points")
-
-
-def _structural_no_effect(robot, problem, level, data) -> list[str]:
-    """Parameters without effect for a constraint method (links, planes, distance).
-
-    Their observation matrix on real data is evaluated where the constraints do not
-    hold exactly, so columns that vanish at consistency (the base orientation for a
-    point link, …) are small but not zero there. GECARO's analysis on simulated,
-    consistent configurations (:func:`estcal.identify.identify`) finds them; they are
-    removed from the candidates. Direct measures (position, location, points) need no
-    such step.
-    """
-    mname = problem.terms[0].method.name
-    if mname in _DIRECT or data.kind != "none":
-        return []
-    try:
-        from estcal.identify import identify
-    except ImportError:  # pragma: no cover - identify is part of the package
-        return []
-    cands = [n for g in level_candidates(problem.params, level) for n in g if n in robot.params]
-    try:
-        ref = identify(robot, mname, None, candidates=cands, check_excitation=False)
-    except (ValueError, RuntimeError, np.linalg.LinAlgError):
-        return []
-    return [n for n in ref.no_effect if n in cands]
 
 
 def _fmt(v, nd=3):

@@ -18,7 +18,7 @@ import typer
 def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos: float = 5e-5,
              sigma_rot: float = 5e-4, estimator: str = "lm") -> dict:
     """Simulate → calibrate → validate. Returns a JSON-ready summary (mm / mrad)."""
-    from estcal.cli.commands.calibrate import run_calibration
+    from estcal.estimate.levels import run_calibration
     from estcal.io.robotfile import load_robot
     from estcal.methods import NoiseModel
     from estcal.simulate import simulate
