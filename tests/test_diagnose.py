@@ -164,3 +164,50 @@ def test_context_driven_effects(puma, hidden, kw, expect):
     for name, v in truth[0]["params"].items():
         p = res.causes[0].parameters[name]
         assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * abs(v)
+
+
+class _Quadratic:
+    """A user effect outside the library: δq_j = a_j (r_j − c_j)², c_j the middle of the range."""
+
+    @staticmethod
+    def make():
+        from estcal.effects import JointEffect
+
+        class Quadratic(JointEffect):
+            """Quadratic joint error δq_j = a_j (r_j − c_j)²."""
+
+            name = "quadratic_error"
+            prefixes = ("quad",)
+
+            def features(self, robot, readings, q, theta, context):
+                c = robot.limits[self.joint_index].mean(1)
+                return ((readings[:, self.joint_index] - c) ** 2)[:, None, :]
+
+        return Quadratic
+
+
+@pytest.fixture
+def quadratic_effect():
+    from estcal.effects import EFFECTS, register_effect
+
+    register_effect("quadratic_error", _Quadratic.make())
+    yield "quadratic_error"
+    EFFECTS.pop("quadratic_error", None)
+
+
+def test_quadratic_joint_error_located_not_misnamed(puma, quadratic_effect):
+    """A quadratic joint error is outside the library: the harmonics fit it only as a series of
+    several orders, so the joint is *located* but no mechanism is named ("not explained");
+    once the user registers the effect, it is named."""
+    sim, truth = simulate_hidden(puma, [(quadratic_effect, ["j3"], 10.0)], SIGMA, n_poses=50, measure="points",
+                                 seed=0)
+    library = ["joint_compliance", "backlash", "gear_harmonic", "encoder_gain"]
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, candidates=library, plots=False)
+    assert res.causes == []
+    assert "not explained" in res.verdict
+    assert [d["joints"] for d in res.located] == [["j3"]]
+    # the user's own effect joins the candidates through the registry
+    res2 = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    assert res2.named == [("quadratic_error", ("j3",))]
+    p = res2.causes[0].parameters["quad_j3"]
+    assert abs(p["estimate"] - truth[0]["params"]["quad_j3"]) < 5 * p["std"]

@@ -213,6 +213,7 @@ class DiagnosisResult:
     geometric_model: dict
     lumped_masses: bool
     report_files: list = field(default_factory=list)
+    located: list = field(default_factory=list)  # structure located on a joint but not named
     robot: object = field(default=None, repr=False)  # the extended robot at the estimate
     geometric_robot: object = field(default=None, repr=False)
 
@@ -225,7 +226,7 @@ class DiagnosisResult:
                        "rmse_mm": self.rmse_mm, "max_mm": self.max_mm, "noise": self.noise,
                        "geometric_free": self.geometric_free, "geometric_dropped": self.geometric_dropped,
                        "lumped_masses": self.lumped_masses, "steps": self.steps, "analysis": self.analysis,
-                       "model": self.model, "geometric_model": self.geometric_model,
+                       "model": self.model, "geometric_model": self.geometric_model, "located": self.located,
                        "report_files": self.report_files})
 
     def to_json(self, path) -> Path:
@@ -241,6 +242,9 @@ class DiagnosisResult:
         lines = [f"Diagnosis: {self.verdict}"]
         for c in self.causes:
             lines.append("  cause: " + c.describe())
+        for d in self.located:
+            lines.append(f"  located, not named: {d['shape']} of {', '.join(d['joints'])} "
+                         f"({100 * d['explained_fraction']:.0f}% of the geometric residual)")
         lines.append(f"  {'RMSE (mm)':<12}{'train':>8}{'CV':>8}{'valid':>8}   max: train / valid")
         for k in ("geometric", "extended"):
             r, m = self.rmse_mm[k], self.max_mm[k]
@@ -542,6 +546,24 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
             c.parameters = {n: {"estimate": float(cur_res.parameter(n)[0]), "std": float(cur_res.parameter(n)[1])}
                             for n in c.parameters}
 
+    # A gear harmonic is one order of the joint angle. When several orders of the same joint
+    # are selected, the data describe a smooth function of that angle that the harmonics only
+    # approximate term by term (a Fourier series of, e.g., a quadratic error): the joint is
+    # located, but no library mechanism is named for it.
+    located = []
+    groups: dict = {}
+    for c in causes:
+        if c.effect == "gear_harmonic":
+            groups.setdefault(tuple(c.joints), []).append(c)
+    for joints, cs in groups.items():
+        if len(cs) > 1:
+            orders = sorted(k for c in cs for k in c.options.get("orders", []))
+            located.append({"joints": list(joints), "shape": f"smooth function of the joint angle (harmonic "
+                                                             f"orders {', '.join(map(str, orders))} all needed)",
+                            "explained_fraction": float(sum(c.explained_fraction for c in cs)),
+                            "terms": [c.to_dict() for c in cs]})
+            causes = [c for c in causes if c not in cs]
+
     # 5. output ---------------------------------------------------------------
     gr = problem.robot
     xr = cur_problem.robot
@@ -559,7 +581,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                                    "paths": [d.where for d in validate]}
     final_floor = residual_analysis(cur_problem, cur_theta, known, cur_p)["noise_floor"]
     analysis["noise_floor_extended"] = final_floor
-    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, known)
+    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, known, located)
     model = {"robot": getattr(robot, "name", None), "robot_spec": robot_spec, "n_markers": int(robot.n_markers),
              "gravity": gr.gravity.tolist(), "lumped_masses": lumped,
              "effects": [e.to_dict() for e in xr.effects],
@@ -573,6 +595,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
                              gmodel, lumped, robot=xr.with_values(cur_theta),
                              geometric_robot=gr.with_values(theta_g))
+    result.located = located
     if report is not None:
         folder = Path(report)
         folder.mkdir(parents=True, exist_ok=True)
@@ -586,7 +609,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     return result
 
 
-def _verdict(causes, floor_g, floor_x, steps, rmse, known) -> str:
+def _verdict(causes, floor_g, floor_x, steps, rmse, known, located=()) -> str:
     def gain():
         g, x = rmse["geometric"], rmse["extended"]
         s = f"RMSE train {g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm"
@@ -594,6 +617,14 @@ def _verdict(causes, floor_g, floor_x, steps, rmse, known) -> str:
             s += f", validation {g['validation']:.3g} → {x['validation']:.3g} mm"
         return s
 
+    loc = ""
+    if located:
+        loc = " " + " ".join(
+            f"A {d['shape']} of {', '.join(d['joints'])} is located (explains "
+            f"{100 * d['explained_fraction']:.0f}% of the geometric residual) but no library mechanism fits it: "
+            f"that part of the residual is not explained by the modelled effects." for d in located)
+    if not causes and located:
+        return f"No cause named. {gain()} with an empirical joint-angle correction.{loc}"
     if not causes:
         if known and floor_g.get("at_noise_floor"):
             return (f"No significant non-geometric effect: the geometric model fits at the noise floor "
@@ -611,7 +642,7 @@ def _verdict(causes, floor_g, floor_x, steps, rmse, known) -> str:
                   f"{'; '.join(best.get('rejected', [])) or 'not significant'}")
         return s + ". The residual is not explained by the modelled effects."
     names = "; ".join(f"{c.effect} of {', '.join(c.joints) if c.joints else 'the arm'}" for c in causes)
-    s = f"Named cause(s): {names}. {gain()}."
+    s = f"Named cause(s): {names}. {gain()}.{loc}"
     if known:
         if floor_x.get("at_noise_floor"):
             s += f" The extended model fits at the noise floor (χ²/dof = {floor_x['chi2_per_dof']:.3g})."
