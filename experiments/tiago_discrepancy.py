@@ -27,6 +27,7 @@ Run::
 JSON keys: ``levels`` ({level: {n_params, train, loo}}), ``chosen_level``,
 ``diagnosis`` (the :class:`DiagnosisResult` dict: ``causes``, ``verdict``,
 ``rmse_mm`` …), ``bl_point_mm`` ({geometric, extended} × {train, validation}),
+``validation_inside_training_ranges`` ({n, of, geometric/extended: {all_points, bl}}),
 ``hypotheses`` (list of {model, n_params, bic, train, cv, validation, train_bl,
 validation_bl, parameters}), ``feedback`` (geometric-fit residual statistics of the
 measured 11-30 data and of data simulated at the same postures from the identified
@@ -142,6 +143,20 @@ def main(argv=None) -> dict:
     print(f"\n  BL point only (FIGAROH's metric): geometric {bl['geometric']['train']:.3f} / "
           f"{bl['geometric']['validation']:.3f} mm -> extended {bl['extended']['train']:.3f} / "
           f"{bl['extended']['validation']:.3f} mm (train / 11-26); FIGAROH full_params 1.64 / 3.07 mm")
+    # 11-26 postures inside the joint ranges of 11-30 (the others are extrapolations)
+    from estcal.estimate.result import pose_errors
+
+    lo, hi = train.readings.min(0), train.readings.max(0)
+    inside = np.all((valid.readings >= lo - 0.05) & (valid.readings <= hi + 0.05), axis=1)
+    ins = {}
+    for lab, r in (("geometric", res.geometric_robot), ("extended", res.robot)):
+        pos, _ = pose_errors(r, r.params.values, valid.subset(inside))
+        ins[lab] = {"all_points": float(np.sqrt(np.mean(pos ** 2)) * 1e3),
+                    "bl": float(np.sqrt(np.mean(pos[:, 0] ** 2)) * 1e3)}
+    out["validation_inside_training_ranges"] = {"n": int(inside.sum()), "of": int(valid.n), **ins}
+    print(f"  11-26 postures inside the 11-30 joint ranges (±0.05): {inside.sum()} of {valid.n}; on them "
+          f"geometric {ins['geometric']['all_points']:.3f} (BL {ins['geometric']['bl']:.3f}) -> extended "
+          f"{ins['extended']['all_points']:.3f} (BL {ins['extended']['bl']:.3f}) mm")
     st = res.steps[0]["table"] if res.steps else []
     print("\n  step-1 candidate ranking on 11-30 (linearised ΔBIC; regrouped: "
           f"{', '.join(res.steps[0]['regroups']) if res.steps else '-'})")
