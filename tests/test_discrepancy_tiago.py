@@ -54,3 +54,21 @@ def test_tiago_experiment_quick(tiago_dir, tmp_path):
     d = json.loads(out.read_text())
     assert d["chosen_level"] in ("joint_offset", "aic", "full")
     assert d["diagnosis"]["causes"] and "verdict" in d["diagnosis"]
+
+
+def test_tiago_cli_auto_level(tiago_dir, tmp_path):
+    """`estcal diagnose --geometric auto --approach-from-order` reproduces the experiment's choices."""
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+
+    out = tmp_path / "fit.json"
+    r = CliRunner().invoke(app, ["diagnose", str(tiago_dir / "qualisys_2021-11-30_static_postures.csv"),
+                                 "--robot", "tiago", "--geometric", "auto", "--approach-from-order",
+                                 "--validate", str(tiago_dir / "qualisys_2021-11-26_static_postures.csv"),
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(out.read_text())
+    assert d["analysis"]["geometric_level"] == "aic"
+    assert sorted((c["effect"], c["joints"][0]) for c in d["causes"]) == [("backlash", "arm_6_joint"),
+                                                                          ("joint_compliance", "arm_6_joint")]

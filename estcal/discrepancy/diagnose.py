@@ -363,7 +363,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     ident_tol : relative numerical zero of the geometric identifiable set.
     geometric : ``full`` (every identifiable geometric parameter, default), ``aic``
         (those an Akaike criterion supports) or ``joint_offset``; see
-        :func:`~estcal.discrepancy.geometric.fit_geometric`.
+        :func:`~estcal.discrepancy.geometric.fit_geometric`. ``auto``: the one of the
+        three with the lowest cross-validated RMSE on ``data``.
     approach_from_order : infer ``approach_<joint>`` columns from the posture order
         (:func:`~estcal.discrepancy.geometric.derive_approach`) for data and validation
         data, so that backlash is tested against the approach direction.
@@ -403,6 +404,14 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                 d.context["t"] = d.context["t"] - d.context["t"].min()
 
     # 1. geometric model ------------------------------------------------------
+    folds = _folds(data.n, k_folds, rng)
+    level_cv = {}
+    if geometric == "auto":
+        # the level with the lowest cross-validated RMSE on these data
+        for lv in ("joint_offset", "aic", "full"):
+            pb_l, res_l, free_l, _ = fit_geometric(robot, data, nm, tol=ident_tol, level=lv)
+            level_cv[lv] = cross_validate(pb_l, res_l.theta, free_l, folds, cv_max_iter)[0]
+        geometric = min(level_cv, key=level_cv.get)
     problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
     theta_g = gres.theta.copy()
     grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
@@ -411,13 +420,15 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     M = len(b)
     rss_g = float(b @ b)
     p_g = len(gfree)
-    folds = _folds(data.n, k_folds, rng)
     cv_g = cross_validate(problem, theta_g, gfree, folds, cv_max_iter)
 
     # 2. residual analysis -----------------------------------------------------
     tau = grobot.gravity_torques(data.readings, theta_g, data.context)
     analysis = residual_analysis(problem, theta_g, known, p_g, {"tau": tau})
     analysis["lumped_masses"] = lumped
+    analysis["geometric_level"] = geometric
+    if level_cv:
+        analysis["geometric_level_cv_mm"] = level_cv
 
     # 3.-4. forward selection ---------------------------------------------------
     if candidates is None:

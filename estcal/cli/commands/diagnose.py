@@ -50,7 +50,8 @@ def register(app: typer.Typer) -> None:
                                          help="For URDF robots, count the links after the last actuated "
                                               "joint (tool, sensor, gripper) in its mass."),
         geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
-                                      "parameter) | aic (those Akaike's criterion supports) | joint_offset."),
+                                      "parameter) | aic (those Akaike's criterion supports) | joint_offset | "
+                                      "auto (lowest cross-validated RMSE)."),
         approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                                  help="Infer approach_<joint> columns from the posture order "
                                                       "(backlash by approach direction)."),
