@@ -25,7 +25,6 @@ figaroh_ms, ratio, ...}), ``environment``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -43,6 +42,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import puma560  # noqa: E402
 from estcal.kinematics.transforms import so3_exp  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 
 CPU_MS = {}  # last CPU-time median per call site (process time: robust to other processes' load)
@@ -288,9 +288,7 @@ def main(argv=None):
                   f"(target >= 10x: {'met' if f['ratio'] >= 10 else 'NOT met'}); train RMSE estcal "
                   f"{f['estcal_rmse_mm']:.3f} mm, FIGAROH {f['figaroh_rmse_mm']:.3f} mm")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2))
-        print(f"wrote {a.json}")
+        write_json(a.json, out, announce=True)
     return out
 
 

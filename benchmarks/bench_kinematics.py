@@ -24,7 +24,6 @@ depend on the machine.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -37,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estcal.io.robotfile import load_robot  # noqa: E402
 from estcal.kinematics.transforms import so3_log  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 
 def _times(fn, repeats: int) -> np.ndarray:
@@ -109,8 +109,7 @@ def main(argv=None) -> dict:
     print(f"  finite-diff Jacobian    {r['fd_jac_ms']:9.2f} ms   ({r['fd_over_analytic']:.1f}x the analytic time)")
     print(f"  max |analytic - FD|     {r['max_abs_diff']:.2e}")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(r, indent=2))
+        write_json(a.json, r)
     return r
 
 

@@ -24,13 +24,13 @@ solve_plus_marginals_s, python_callback_s, callbacks}), ``isam2`` (list of {k, i
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from estcal.io.jsonio import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -203,8 +203,7 @@ def main(argv=None):
               f"converged {r['converged']})")
     print(f"(load average {res['machine']['loadavg'][0]:.1f} on {res['machine']['nproc']} cores)")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(res, indent=2))
+        write_json(a.json, res)
     return res
 
 

@@ -32,7 +32,6 @@ JSON keys: ``n`` (0…max), ``curves`` {strategy: {predicted_mm, true_error_mm}}
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -45,6 +44,7 @@ from estcal.design.model import DesignModel, identifiable_subset  # noqa: E402
 from estcal.design.plans import greedy, optimise_discrete  # noqa: E402
 from estcal.design.sequential import CalibrationState, active_calibration  # noqa: E402
 from estcal.kinematics.robots import puma560  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 Q_TEST = np.array([[10, -60, 120, 0, 30, 0], [-40, -90, 150, 20, -40, 10], [60, -30, 60, -30, 60, 0]]) * DEG
@@ -138,9 +138,7 @@ def main(argv=None) -> dict:
                         "test_poses_deg": np.degrees(Q_TEST).tolist(), "quick": args.quick},
            "runtime_s": time.time() - t0}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, res, announce=True)
     return res
 
 

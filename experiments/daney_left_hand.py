@@ -42,7 +42,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -66,6 +65,7 @@ from estcal.parallel.daney import (  # noqa: E402
     solve_type3,
 )
 from estcal.parallel.gough import GoughPlatform, Workspace, left_hand  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 CM = 0.01
 K = 2  # leg 3, 0-based
@@ -419,8 +419,7 @@ def main(argv=None) -> int:
     print(text)
     print(f"\n(run time {out['config']['runtime_s']} s)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1))
+        write_json(args.json, out)
     if args.png:
         args.png.parent.mkdir(parents=True, exist_ok=True)
         plot(out, args.png)

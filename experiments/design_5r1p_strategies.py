@@ -30,7 +30,6 @@ drms_angle_deg, drms_length_in, book_drms}}}, ``table47`` {S: {range: {...}}},
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -44,6 +43,7 @@ from estcal.design.model import DesignModel  # noqa: E402
 from estcal.design.plans import optimise_discrete  # noqa: E402
 from estcal.kinematics.robots import INCH, robot_5r1p  # noqa: E402
 from estcal.simulate.strategies import generate_poses  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 PARAMS = ["theta_1", "d_1", "a_1", "alpha_1", "theta_2", "d_2", "a_2", "alpha_2", "theta_3", "d_3", "alpha_3",
@@ -172,9 +172,7 @@ def main(argv=None) -> dict:
            "settings": {"seeds": seeds, "sigma_in": SIGMA_IN, "units": "inches, radians (kappa); deg, in (drms)",
                         "quick": args.quick}, "runtime_s": time.time() - t0}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, res, announce=True)
     return res
 
 

@@ -27,7 +27,6 @@ spread_over_std_median, n}}), ``outliers`` ({method: rms_error_over_std}),
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -42,6 +41,7 @@ from estcal.estimate.kalman import calibrate_kalman  # noqa: E402
 from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
 from estcal.estimate.mcmc import calibrate_mcmc  # noqa: E402
 from estcal.estimate.testproblems import simulated_problem  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 SIG = 1e-4
 
@@ -154,8 +154,7 @@ def main(argv=None) -> dict:
                         "target_ess": ess},
            "agreement": agreement, "monte_carlo": out_mc, "outliers": outliers, "unmodelled": unmodelled}
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(res, indent=2))
+        write_json(a.json, res)
     return res
 
 

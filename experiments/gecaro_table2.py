@@ -43,7 +43,6 @@ Run: ``python experiments/gecaro_table2.py [--quick] [--json out.json]``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -54,6 +53,7 @@ from estcal.identify import gecaro_table2_priorities, identify  # noqa: E402
 from estcal.kinematics.robots import stanford  # noqa: E402
 from estcal.methods.generate import branch_report, link_data  # noqa: E402
 from estcal.methods.links import GECARO_METHODS  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 PARAMS = (["theta_0", "r_0"] + [f"{p}_{j}" for j in range(1, 8) for p in ("alpha", "d", "theta", "r", "beta")]
           + [f"gain_{j}" for j in range(1, 7)])
@@ -212,9 +212,7 @@ def main(argv=None) -> dict:
                         "robot": "stanford (GECARO Table 1)", "seconds": time.perf_counter() - t0}}
     print(f"\n{time.perf_counter() - t0:.1f} s")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1))
-        print(f"wrote {args.json}")
+        write_json(args.json, out, announce=True)
     return out
 
 

@@ -33,7 +33,6 @@ RMS/σ}, ``fig2_mc_rel_se`` / ``fig3_mc_rel_se`` (relative standard error of the
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -47,6 +46,7 @@ from estcal.design.model import DesignModel  # noqa: E402
 from estcal.design.montecarlo import monte_carlo_test_pose_error  # noqa: E402
 from estcal.design.plans import optimise_continuous  # noqa: E402
 from estcal.kinematics.robots import planar2  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 SIGMA = 1e-3
@@ -158,9 +158,7 @@ def main(argv=None) -> dict:
                         "mc_param_std": 1e-3, "starts": starts, "quick": args.quick},
            "runtime_s": time.time() - t0}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, res, announce=True)
     return res
 
 

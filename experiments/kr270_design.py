@@ -47,7 +47,6 @@ rel_se}}, ``improvement_vs_random_mean_pct``, ``robot``, ``free`` (14 used), ``f
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -60,6 +59,7 @@ from estcal.design.model import DesignModel, ToolBox, identifiable_subset  # noq
 from estcal.design.montecarlo import monte_carlo_test_pose_error  # noqa: E402
 from estcal.design.plans import optimise_continuous, optimise_discrete, random_baseline, replicate  # noqa: E402
 from estcal.kinematics.builder import build_robot  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 SIGMA = 0.03e-3
@@ -110,7 +110,6 @@ def main(argv=None) -> dict:
     opt = {}
     for m in (3, 4, 12):
         ts = time.time()
-        cand = None
         disc = optimise_discrete(model, m, "test-pose", n_candidates=300 if args.quick else 3000,
                                  restarts=1 if args.quick else 4, rng=m, q_test=Q0, constraint=floor)
         opt[m] = disc
@@ -157,9 +156,7 @@ def main(argv=None) -> dict:
                         "mc_reps": reps, "starts": starts, "workspace": "TCP z >= 0.3 m", "quick": args.quick},
            "runtime_s": time.time() - t0}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, res, announce=True)
     return res
 
 

@@ -22,7 +22,6 @@ JSON keys: ``n_free``, ``planned_stop`` (M), ``pool`` (poses available),
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ from estcal.estimate.kalman import ParameterFilter, process_noise  # noqa: E402
 from estcal.estimate.riccati import (covariance_sequence, periodic_steady_state, planned_jacobians,  # noqa: E402
                                      stopping_index_sequence)
 from estcal.estimate.testproblems import simulated_problem  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -102,8 +102,7 @@ def main(argv=None) -> dict:
     out = {"n_free": p, "planned_stop": M, "pool": pool, "q": a.q, "floor_std_max": float(np.sqrt(np.diag(P_inf)).max()),
            "at_stop": at_stop, "at_end": at_end, "trace": trace, "plan_time_s": plan_s}
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2))
+        write_json(a.json, out)
     return out
 
 

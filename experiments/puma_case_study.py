@@ -44,7 +44,6 @@ floor (≈ 0.002 in / 0.03°), far below the book's 0.02 in (unmodelled effects)
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -57,6 +56,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import puma560  # noqa: E402
 from estcal.kinematics.transforms import matrix_to_rpy, pose_error, rot_x, rot_y, rot_z, so3_exp  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 IN = 0.0254
 DEG = np.pi / 180
@@ -253,9 +253,7 @@ def main(argv=None):
     print(f"parameters not involved in a regrouping: max |estimate − truth|/std = {out['parameter_errors']['max_z']:.2f} "
           f"({out['parameter_errors']['worst']}, {out['parameter_errors']['n']} parameters)")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2))
-        print(f"wrote {a.json}")
+        write_json(a.json, out, announce=True)
     return out
 
 

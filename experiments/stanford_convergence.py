@@ -32,7 +32,6 @@ estimators: {name: {n_iterations, converged, final_rmse_mm, max_param_z, success
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -46,6 +45,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import stanford  # noqa: E402
 from estcal.kinematics.transforms import so3_exp  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 ESTIMATORS = ("iterated-lls", "gauss-newton", "lm")
 ANGLE = ("alpha", "theta", "beta", "base_rx", "base_ry", "base_rz", "tool_rx", "tool_ry", "tool_rz")
@@ -158,9 +158,7 @@ def main(argv=None):
         print(f"  {e:>13}: median {s['median_iterations']:.1f}, max {s['max_iterations']}, "
               f"success {100 * s['success_rate']:.0f}%")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2))
-        print(f"wrote {a.json}")
+        write_json(a.json, out, announce=True)
     return out
 
 

@@ -28,7 +28,6 @@ selection}), ``target_full_1pt`` ({validation_rmse_mm, published, met}).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -42,6 +41,7 @@ from estcal.estimate.levels import run_calibration  # noqa: E402
 from estcal.io import load_dataset  # noqa: E402
 from estcal.io.robotfile import load_robot  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data" / "tiago"
 TRAIN = "qualisys_2021-11-30_static_postures.csv"
@@ -141,9 +141,7 @@ def main(argv=None):
     out = {"published": {k: {"train": v[0], "validation": v[1]} for k, v in PUBLISHED.items()}, "runs": runs,
            "target_full_1pt": target}
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2, default=float))
-        print(f"wrote {a.json}")
+        write_json(a.json, out, announce=True)
     return out
 
 

@@ -10,7 +10,6 @@ from typer.testing import CliRunner
 from estcal.cli.main import app
 from estcal.io.dataset import dataset_from_arrays, write_dataset
 from estcal.kinematics import puma560
-from estcal.kinematics.transforms import pose_error
 
 runner = CliRunner()
 

@@ -79,7 +79,7 @@ def batched_kinematics(robot, readings, TH):
     """Tool rotation (W, N, 3, 3), position (W, N, 3) and markers (W, N, k, 3) for W parameter vectors."""
     TH = np.atleast_2d(np.asarray(TH, float))
     r = np.asarray(readings, float)
-    W, (N, n) = TH.shape[0], r.shape
+    W, N = TH.shape[0], r.shape[0]
     K = TH[:, robot.gain_idx][:, None, :]
     off = TH[:, robot.offset_idx][:, None, :]
     if robot.coupling is None:

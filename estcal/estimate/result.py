@@ -9,11 +9,12 @@ serialise to the same JSON::
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from estcal.io.jsonio import to_jsonable, write_json
 
 __all__ = ["CalibrationResult", "accuracy", "pose_errors"]
 
@@ -125,14 +126,11 @@ class CalibrationResult:
             rm["validation"] = [v.get("after", {}).get("rmse_mm") for v in acc["validation"]]
         d["rmse_mm"] = rm
         d["accuracy"] = acc
-        d.update({k: _jsonable(v) for k, v in self.extra.items()})
+        d.update({k: to_jsonable(v) for k, v in self.extra.items()})
         return d
 
     def to_json(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        return write_json(path, self.to_dict())
 
     def table(self) -> str:
         w = max([len(n) for n in self.names] + [9])
@@ -155,15 +153,3 @@ class CalibrationResult:
             lines.append(f"validation[{i}] {v.get('path', '')}: RMSE {v.get('before', {}).get('rmse_mm', float('nan')):.3f}"
                          f" mm -> {v.get('after', {}).get('rmse_mm', float('nan')):.3f} mm")
         return "\n".join(lines)
-
-
-def _jsonable(v):
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, dict):
-        return {k: _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    return v

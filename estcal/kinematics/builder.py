@@ -22,7 +22,6 @@ import numpy as np
 
 from .chain import Elementary, Link, SerialRobot
 from .parameters import ParameterVector
-from .transforms import make_transform, rpy_to_matrix
 
 __all__ = ["build_robot", "frame_labels", "KHALIL_PARAMS", "DH_PARAMS", "URDF_PARAMS", "FRAME6_PARAMS"]
 

@@ -41,12 +41,12 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from .parameters import ParameterVector
-from .transforms import rot_axis, rot_x, rot_y, rot_z, rpy_to_matrix
+from .transforms import rot_axis
 
 __all__ = ["Elementary", "Link", "SerialRobot", "Kinematics"]
 

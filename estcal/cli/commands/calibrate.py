@@ -38,13 +38,13 @@ condition_number), ``robot``, ``data``, ``validate``, ``measure``, ``estimator``
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
+from estcal.cli.common import fail, write_json
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
@@ -138,9 +138,7 @@ def _parse_options(items) -> dict:
     return out
 
 
-def _fail(msg: str, code: int = 2):
-    typer.echo(f"error: {msg}", err=True)
-    raise typer.Exit(code)
+_fail = fail
 
 
 # --------------------------------------------------------------------------- command
@@ -244,8 +242,7 @@ def register(app: typer.Typer) -> None:
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)
-                Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-                Path(json_path).write_text(json.dumps(_jsonable(out), indent=2))
+                write_json(json_path, out)
                 console.print(f"wrote {json_path}")
             return
 
@@ -307,15 +304,3 @@ def register(app: typer.Typer) -> None:
                              noise=noise.to_dict(), points=n_markers)
             res.to_json(json_path)
             console.print(f"wrote {json_path}")
-
-
-def _jsonable(v):
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    return v

@@ -8,11 +8,11 @@ command, with nothing to download.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import typer
+from estcal.io.jsonio import write_json
 
 
 def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos: float = 5e-5,
@@ -92,5 +92,4 @@ def register(app: typer.Typer) -> None:
                   f"{__import__('scipy.stats').stats.chi2.ppf(0.95, out['nees_dof']):.1f})")
         if json_path:
             out["parameters"] = res.to_dict()["parameters"]
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(out, indent=2, default=float))
+            write_json(json_path, out)

@@ -15,11 +15,11 @@ JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.io.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -129,6 +129,5 @@ def register(app: typer.Typer) -> None:
                    "test_poses_rad": None if q_test is None else q_test.tolist(),
                    "baseline": base.to_dict(), "beats_random": bool(better),
                    "accuracy_map": None if amap is None else amap.to_dict()}
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(out, indent=2, default=float))
+            write_json(json_path, out)
             console.print(f"wrote {json_path}")

@@ -19,11 +19,11 @@ A Gough-platform robot file (``type: gough``) is dispatched to
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.io.jsonio import write_json
 
 METHOD_HELP = ("position, location, point-link, frame-link, plane-known, plane-unknown, plane-normal-known, "
                "plane-normal-unknown, distance (default with --data: from the columns)")
@@ -180,6 +180,5 @@ def register(app: typer.Typer) -> None:
         _print(console, res)
         if json_path is not None:
             d = res if isinstance(res, dict) else res.to_dict()
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(d, indent=1, default=float))
+            write_json(json_path, d)
             console.print(f"wrote {json_path}")

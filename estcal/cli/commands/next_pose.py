@@ -13,11 +13,11 @@ JSON keys: ``robot``, ``method``, ``criterion``, ``next`` (:meth:`NextPose.to_di
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.io.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -76,6 +76,5 @@ def register(app: typer.Typer) -> None:
         if json_path is not None:
             out = {"robot": rb.name, "method": method, "criterion": crit, "next": nxt.to_dict(),
                    "test_poses_rad": None if q_test is None else q_test.tolist()}
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(out, indent=2))
+            write_json(json_path, out)
             console.print(f"wrote {json_path}")

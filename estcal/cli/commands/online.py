@@ -1,12 +1,12 @@
 """``estcal online``: recursive (Kalman) calibration of a dataset streamed row by row."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
@@ -250,6 +250,5 @@ def register(app: typer.Typer) -> None:
                                                              "nominal": float(pv.values[fidx[i]])}
                                                          for i, n in enumerate(names)},
                    "covariance": flt.P.tolist(), "innovation": tests, "history": history}
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(out, indent=2))
+            write_json(json_path, out)
             console.print(f"JSON -> {json_path}")

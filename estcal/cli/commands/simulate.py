@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.io.jsonio import write_json
 
 
 def _floats(text: str | None, what: str):
@@ -164,6 +165,5 @@ def register(app: typer.Typer) -> None:
             out = res.summary.to_dict()
             out["dataset"] = str(csv_path) if csv_path else None
             out["truth"] = str(truth_path) if truth_path else None
-            json_path.parent.mkdir(parents=True, exist_ok=True)
-            json_path.write_text(json.dumps(out, indent=2))
+            write_json(json_path, out)
 
