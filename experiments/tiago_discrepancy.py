@@ -33,7 +33,8 @@ validation_bl, parameters}), ``feedback`` (geometric-fit residual statistics of 
 measured 11-30 data and of data simulated at the same postures from the identified
 robot, and from the geometric-only robot), ``figaroh`` (published figures),
 ``approach_from_order``, ``approach_permutation`` ({observed_delta_bic,
-null_delta_bic, p_value}), ``decisions``.
+null_delta_bic, p_value}), ``one_point`` (the diagnosis with the BL point only),
+``decisions``.
 """
 from __future__ import annotations
 
@@ -232,6 +233,19 @@ def main(argv=None) -> dict:
         print(f"  {label:<32} p={len(free + en):3d} BIC {bic:8.1f}  train {at:.3f}  CV {cv[0]:.3f}  | 11-26 "
               f"{av:.3f} (BL {bv:.3f})  {ps}")
     out["hypotheses"] = rows
+
+    # 8. with one point only (FIGAROH's measurement) -------------------------------------
+    if not args.quick:
+        r1 = tiago(n_markers=1)
+        rob1 = with_urdf_masses(r1)
+        t1 = load_dataset(folder / "qualisys_2021-11-30_static_postures.csv", rob1, points=1)
+        v1 = load_dataset(folder / "qualisys_2021-11-26_static_postures.csv", rob1, points=1)
+        one = diagnose(rob1, t1, validate=[v1], k_folds=k, geometric="auto", approach_from_order=approach,
+                       plots=False, robot_spec="tiago")
+        out["one_point"] = {"causes": [c.to_dict() for c in one.causes], "verdict": one.verdict,
+                            "rmse_mm": one.rmse_mm, "geometric_level": one.analysis["geometric_level"]}
+        print("\n== The same diagnosis with the BL point only (FIGAROH's measurement: 3 coordinates per pose)")
+        print(one)
 
     # 7. is the approach direction real? permutation test on 11-30 ----------------------
     # Under the null "backlash does not follow the inferred approach", permuting the
