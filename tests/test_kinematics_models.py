@@ -109,3 +109,27 @@ def test_gravity_torque_planar_closed_form():
     g = 9.81
     np.testing.assert_allclose(tau[:, 0], -g * (2.0 * 0.5 * c1 + 1.0 * (c1 + 0.4 * c12)), atol=1e-12)
     np.testing.assert_allclose(tau[:, 1], -g * (1.0 * 0.4 * c12), atol=1e-12)
+
+
+def test_tiago_urdf_link_masses_include_everything_attached(tiago_dir):
+    """Every inertial below the torso lift (hand, F/T sensor, fingers included) is carried by some
+    actuated link: the masses sum to the total URDF mass of the torso_lift_link subtree."""
+    import yourdfpy
+
+    from estcal.kinematics import tiago
+
+    robot = tiago(1)
+    urdf = yourdfpy.URDF.load(str(tiago_dir / "tiago_48_schunk.urdf"), build_scene_graph=False, load_meshes=False)
+    children = {}
+    for j in urdf.robot.joints:
+        children.setdefault(j.parent, []).append(j.child)
+    mass = {lk.name: (lk.inertial.mass if lk.inertial is not None and lk.inertial.mass else 0.0)
+            for lk in urdf.robot.links}
+    stack, total = ["torso_lift_link"], 0.0
+    while stack:
+        name = stack.pop()
+        total += mass[name]
+        stack += children.get(name, [])
+    assert sum(lk.mass for lk in robot.links) == pytest.approx(total, rel=1e-12)
+    # the hand (> 1 kg) hangs from arm_7
+    assert robot.links[robot._joint_link[7]].mass > 1.0

@@ -102,7 +102,10 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links")
         tip = leaves.pop()
     chain = _chain(urdf, root, tip)
-    chain_names = {j.name for j in chain}
+    # A link carries everything rigidly attached to it, including the fixed chain
+    # links after the last actuated joint (tool flange, sensor, hand): only the next
+    # actuated chain joint ends its subtree.
+    actuated = {j.name for j in chain if j.type != "fixed"}
     frames, pending = [], np.eye(4)
     for j in chain:
         if j.type == "fixed":
@@ -111,7 +114,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
         if j.type not in ("revolute", "continuous", "prismatic"):
             raise ValueError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
         lo, hi = (-np.pi, np.pi) if j.type == "continuous" else (j.limit.lower, j.limit.upper)
-        mass, com = _subtree_mass(urdf, j.child, chain_names)
+        mass, com = _subtree_mass(urdf, j.child, actuated)
         frames.append({"name": j.name, "label": j.name, "convention": "urdf",
                        "type": "prismatic" if j.type == "prismatic" else "revolute",
                        "origin": pending @ _origin(j), "axis": np.asarray(j.axis, float),
@@ -122,5 +125,4 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
     robot = build_robot(name or f"{urdf.robot.name}:{root}->{tip}", frames, markers=markers,
                         convention="urdf", tool_const=pending,
                         meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip})
-    # Masses rigidly attached after the last actuated joint were counted in its subtree.
     return robot
