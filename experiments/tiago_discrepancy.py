@@ -126,6 +126,7 @@ def main(argv=None) -> dict:
         print(r)
     approach = runs[True].rmse_mm["extended"]["cv"] < runs[False].rmse_mm["extended"]["cv"]
     res = runs[approach]
+    raw_train, raw_valid = train, valid
     out["approach_from_order"] = approach
     out["diagnosis_other"] = {"approach_from_order": not approach, "causes": [c.to_dict() for c in runs[not approach].causes],
                               "rmse_mm": runs[not approach].rmse_mm, "verdict": runs[not approach].verdict}
@@ -137,9 +138,9 @@ def main(argv=None) -> dict:
     out["diagnosis"] = res.to_dict()
     out["decisions"].append("named causes: " + (", ".join(f"{c.effect}({','.join(c.joints)})" for c in res.causes)
                                                 or "none") + " — selected on 11-30 (BIC, F test, CV)")
-    bl = {}
-    for lab, r in (("geometric", res.geometric_robot), ("extended", res.robot)):
-        bl[lab] = {"train": _bl(r, r.params.values, train)[0], "validation": _bl(r, r.params.values, valid)[0]}
+    sc_t, sc_v = res.score(raw_train), res.score(raw_valid)
+    bl = {lab: {"train": sc_t[lab]["rmse_mm_per_point"][0], "validation": sc_v[lab]["rmse_mm_per_point"][0]}
+          for lab in ("geometric", "extended")}
     out["bl_point_mm"] = bl
     print(f"\n  BL point only (FIGAROH's metric): geometric {bl['geometric']['train']:.3f} / "
           f"{bl['geometric']['validation']:.3f} mm -> extended {bl['extended']['train']:.3f} / "

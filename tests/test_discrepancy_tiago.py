@@ -44,6 +44,10 @@ def test_tiago_arm6_backlash_and_compliance(tiago_dir):
     v = with_effect_context(robot, derive_approach(valid))
     pos, _ = pose_errors(res.robot, res.robot.params.values, v)
     assert np.sqrt(np.mean(pos[:, 0] ** 2)) * 1e3 < 2.8
+    # res.score prepares new data the same way (approach columns, session time)
+    sc = res.score(valid)
+    assert sc["extended"]["rmse_mm"] == pytest.approx(x["validation"], rel=1e-12)
+    assert sc["extended"]["rmse_mm_per_point"][0] == pytest.approx(np.sqrt(np.mean(pos[:, 0] ** 2)) * 1e3)
 
 
 def test_tiago_experiment_quick(tiago_dir, tmp_path):

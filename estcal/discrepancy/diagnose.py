@@ -217,6 +217,30 @@ class DiagnosisResult:
     robot: object = field(default=None, repr=False)  # the extended robot at the estimate
     geometric_robot: object = field(default=None, repr=False)
 
+    def prepare(self, data):
+        """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
+        order (if used), effect columns moved into the context, session time. Score new data
+        with ``self.robot`` (extended) or ``self.geometric_robot`` after this."""
+        from .geometric import derive_approach
+
+        d = derive_approach(data) if self.model.get("approach_from_order") else data
+        d = with_effect_context(self.robot, d)
+        if self.model.get("session_time") and "t" in d.context:
+            d.columns["t_abs"] = d.context["t"].copy()
+            d.context["t"] = d.context["t"] - d.context["t"].min()
+        return d
+
+    def score(self, data) -> dict:
+        """RMSE / max (mm) of the geometric and extended models on ``data`` (prepared first),
+        every measured point, plus the RMSE of each point separately."""
+        d = self.prepare(data)
+        out = {}
+        for lab, r in (("geometric", self.geometric_robot), ("extended", self.robot)):
+            pos, _ = pose_errors(r, r.params.values, d)
+            out[lab] = {"rmse_mm": float(np.sqrt(np.mean(pos ** 2)) * 1e3), "max_mm": float(pos.max() * 1e3),
+                        "rmse_mm_per_point": (np.sqrt(np.mean(pos ** 2, axis=0)) * 1e3).tolist()}
+        return out
+
     @property
     def named(self) -> list[tuple[str, tuple]]:
         return [(c.effect, tuple(c.joints)) for c in self.causes]
