@@ -211,3 +211,27 @@ def test_quadratic_joint_error_located_not_misnamed(puma, quadratic_effect):
     assert res2.named == [("quadratic_error", ("j3",))]
     p = res2.causes[0].parameters["quad_j3"]
     assert abs(p["estimate"] - truth[0]["params"]["quad_j3"]) < 5 * p["std"]
+
+
+def test_gravity_ready_lumped_masses_and_measurement_frame():
+    """No masses -> 1 kg at the end of every moving link; gravity follows the registration
+    correction of the base rotation (g_meas = R_fit R_nomᵀ g)."""
+    from estcal.discrepancy import gravity_ready
+    from estcal.kinematics.transforms import rpy_to_matrix
+
+    robot = load_robot("stanford")
+    assert not any(lk.mass for lk in robot.links)
+    theta = robot.params.values.copy()
+    idx = robot.params.indices(["base_rx", "base_ry", "base_rz"])
+    theta[idx] += [0.1, -0.05, 0.3]
+    g_robot, lumped = gravity_ready(robot, theta, robot.params.values)
+    assert lumped
+    moving = [lk for lk in g_robot.links if lk.joint is not None]
+    assert all(lk.mass == 1.0 for lk in moving)
+    R = rpy_to_matrix(theta[idx]) @ rpy_to_matrix(robot.params.values[idx]).T
+    np.testing.assert_allclose(g_robot.gravity, R @ robot.gravity, atol=1e-15)
+    tau = g_robot.gravity_torques(robot.random_readings(5, 0), theta)
+    assert np.abs(tau[:, 1]).max() > 0.1  # the shoulder now carries the lumped masses
+    # a robot with masses keeps them
+    r2, l2 = gravity_ready(puma_masses := load_robot("puma560_masses"))
+    assert not l2 and [lk.mass for lk in r2.links] == [lk.mass for lk in puma_masses.links]
