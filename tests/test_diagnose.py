@@ -74,6 +74,8 @@ def test_clean_data_names_nothing(puma, seed):
     assert res.causes == []
     assert "no cause named" in res.verdict
     assert res.rmse_mm["extended"] == res.rmse_mm["geometric"]
+    # χ² of the geometric fit ~ χ²_dof with the true noise: fails with probability 1e-4
+    assert res.analysis["noise_floor"]["p_value"] > 1e-4
 
 
 def test_out_of_library_distortion_is_not_misnamed(puma):
