@@ -7,8 +7,8 @@ Protocol (every decision on 11-30 only; 11-26 is only scored):
 
 1. Robot: the URDF chain base_footprint → wrist_ft_tool_link with four unknown
    points; link masses from the URDF *including* the links after arm_7 (tool
-   flange, F/T sensor, gripper: :func:`estcal.discrepancy.masses.with_urdf_masses`;
-   the stock loader leaves them out).
+   flange, F/T sensor, gripper: :func:`estcal.discrepancy.masses.with_urdf_masses`,
+   an independent computation; the loader includes them since commit 6ff85cc).
 2. Geometric model: the level (joint_offset / aic / full) with the lowest
    leave-one-out (LOO) cross-validated RMSE on 11-30.
 3. :func:`estcal.discrepancy.diagnose` with that level: residual analysis,
@@ -92,7 +92,7 @@ def main(argv=None) -> dict:
     masses = urdf_chain_masses(robot.meta["urdf"], robot.joint_names)
     stock_m = {stock.joint_names[lk.joint]: lk.mass for lk in stock.links if lk.joint is not None}
     for j in robot.joint_names:
-        print(f"  {j:<18} stock loader {stock_m[j]:7.3f}   with tip links {masses[j][0]:7.3f}")
+        print(f"  {j:<18} URDF loader {stock_m[j]:7.3f}   recomputed with the tip links {masses[j][0]:7.3f}")
     out["masses_kg"] = {j: {"stock": stock_m[j], "with_tip_links": masses[j][0]} for j in robot.joint_names}
 
     # 2. geometric level by LOO on 11-30 ------------------------------------------

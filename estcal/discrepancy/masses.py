@@ -1,11 +1,13 @@
 """Link masses of a URDF chain including the links after the last actuated joint.
 
 Gravity-driven effects (joint compliance, backlash by the sign of the load)
-need the mass each actuated joint carries. :func:`estcal.kinematics.urdf.robot_from_urdf`
-merges every off-chain subtree into the link of its actuated joint but skips
-the *fixed chain joints* — so the links between the last actuated joint and
-the tip (for TIAGo: ``arm_tool_link``, ``wrist_ft_link``, ``wrist_ft_tool_link``
-and the gripper hanging from them, 1.06 kg in total) carry no mass.
+need the mass each actuated joint carries. Until commit 6ff85cc,
+:func:`estcal.kinematics.urdf.robot_from_urdf` skipped the *fixed chain joints*
+when merging subtrees, so the links between the last actuated joint and the tip
+(for TIAGo: ``arm_tool_link``, ``wrist_ft_link``, ``wrist_ft_tool_link`` and the
+gripper hanging from them, 1.065 kg in total) carried no mass; the loader now
+includes them, and this module is an independent computation of the same
+masses (used by the diagnosis on URDF robots, and as a check).
 :func:`urdf_chain_masses` recomputes each actuated joint's link mass and centre
 of mass as the total of its child link and everything rigidly attached to it up
 to the next actuated chain joint (off-chain movable joints at zero).
