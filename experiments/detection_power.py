@@ -26,13 +26,13 @@ rate, ci95}); ``false_positive`` ({robot: {n, named, rate, ci95}}); ``misnamed_c
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from estcal.io.jsonio import write_json
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -159,9 +159,7 @@ def main(argv=None) -> dict:
            "power": power, "false_positive": fp, "misnamed_cases": mis, "time_s": time.time() - t0}
     print(f"({out['time_s']:.1f} s)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, out, announce=True)
     return out
 
 

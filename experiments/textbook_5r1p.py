@@ -34,7 +34,6 @@ kappa, failures}, book: {angle, length, kappa}}]}), ``checks`` ({name: bool}).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import zlib
 from pathlib import Path
@@ -49,6 +48,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import robot_5r1p  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
 from estcal.simulate.strategies import generate_poses  # noqa: E402
+from estcal.io.jsonio import write_json  # noqa: E402
 
 IN = 0.0254
 DEG = np.pi / 180
@@ -269,9 +269,7 @@ def main(argv=None):
     for k, v in out["checks"].items():
         print(f"  [{'ok' if v else ('--' if v is None else 'NO')}] {k}")
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=2, default=str))
-        print(f"wrote {a.json}")
+        write_json(a.json, out, announce=True)
     return out
 
 

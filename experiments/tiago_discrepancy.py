@@ -39,12 +39,12 @@ null_delta_bic, p_value}), ``one_point`` (the diagnosis with the BL point only),
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from estcal.io.jsonio import write_json
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -278,9 +278,7 @@ def main(argv=None) -> dict:
     print("\nDecisions: " + "; ".join(out["decisions"]))
     print(f"({out['time_s']:.1f} s)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2, default=float))
-        print(f"wrote {args.json}")
+        write_json(args.json, out, announce=True)
     return out
 
 

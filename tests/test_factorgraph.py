@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from estcal.estimate.factorgraph import calibrate_gtsam, calibrate_isam2, calibrate_timevarying  # noqa: E402
+from estcal.estimate.factorgraph import calibrate_gtsam, calibrate_timevarying  # noqa: E402
 from estcal.estimate.kalman import calibrate_kalman  # noqa: E402
 from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
 from estcal.estimate.registry import get_estimator  # noqa: E402

@@ -201,7 +201,7 @@ def fit_geometric(robot, data, noise, free=None, tol: float = 1e-4, register: bo
     _, A, _ = weighted_system(problem, theta, cands)
     keep, dropped = identifiable_subset(A, cands, tol)
     if free is None and level == "aic":
-        from estcal.cli.commands.calibrate import select_free
+        from estcal.estimate.levels import select_free
 
         # Linearise at the joint-offset solution (offsets before geometry, GECARO's priority),
         # then keep the link/tool parameters that lower AIC.

@@ -83,7 +83,6 @@ def simulate_hidden(robot, hidden, sigma, n_poses=60, measure="points", seed=0, 
 
     Returns ``(SimulationResult, truth)`` with ``truth = [{effect, joints, params}]``.
     """
-    from estcal.effects import make_effect
     from estcal.simulate import NoiseModel, simulate
 
     rng = np.random.default_rng(seed)

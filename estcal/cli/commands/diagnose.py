@@ -20,13 +20,12 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.cli.common import fail
 
 __all__ = ["register"]
 
 
-def _fail(msg: str, code: int = 2):
-    typer.echo(f"error: {msg}", err=True)
-    raise typer.Exit(code)
+_fail = fail
 
 
 def register(app: typer.Typer) -> None:
