@@ -37,14 +37,13 @@ condition_number), ``robot``, ``data``, ``validate``, ``measure``, ``estimator``
 """
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
-from estcal.cli.common import fail, write_json
+from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
@@ -53,16 +52,6 @@ __all__ = ["register", "Selection", "select_free", "level_candidates", "run_cali
 _ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
 
 # --------------------------------------------------------------------------- helpers
-def count_point_columns(path) -> tuple[int, bool, bool]:
-    """(k points x1..zk, has x,y,z, has quaternion) from a CSV header."""
-    with Path(path).open(newline="") as fh:
-        header = [h.strip() for h in next(csv.reader(fh), [])]
-    k = 0
-    while all(f"{c}{k + 1}" in header for c in "xyz"):
-        k += 1
-    return k, all(c in header for c in "xyz"), all(c in header for c in ("qw", "qx", "qy", "qz"))
-
-
 def _unit(name: str, robot) -> tuple[str, float]:
     """Display unit and factor from SI for a parameter name."""
     head = name.split("_")[0]
@@ -246,23 +235,10 @@ def register(app: typer.Typer) -> None:
                 console.print(f"wrote {json_path}")
             return
 
-        from estcal.io.robotfile import load_robot
-
-        k, has_xyz, has_quat = count_point_columns(data)
-        n_markers = None
-        if k and not has_quat:
-            n_markers = points if points is not None else k
-            if n_markers > k:
-                _fail(f"{data}: --points {points} but the file has {k} points (x1..z{k})")
-        elif points is not None:
-            _fail(f"{data}: --points needs x1,y1,z1 … columns")
+        rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
         try:
-            rob = load_robot(robot, root=root, tip=tip, n_markers=n_markers)
-        except (ValueError, FileNotFoundError, KeyError) as exc:
-            _fail(str(exc))
-        try:
-            ds = load_dataset(data, rob, points=n_markers if k else None)
-            vals = [load_dataset(v, rob, points=n_markers if k else None) for v in validate]
+            ds = load_dataset(data, rob, points=n_markers)
+            vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
         for d in [ds] + vals:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import fail
+from estcal.cli.common import fail, robot_for_data
 
 __all__ = ["register"]
 
@@ -60,33 +60,20 @@ def register(app: typer.Typer) -> None:
                                                                      "summary.txt."),
     ) -> None:
         """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
-        from estcal.cli.commands.calibrate import count_point_columns
         from estcal.discrepancy import diagnose
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
-        from estcal.io.robotfile import load_robot
 
         if not data.exists():
             _fail(f"{data}: file not found")
-        k, _, has_quat = count_point_columns(data)
-        n_markers = None
-        if k and not has_quat:
-            n_markers = points if points is not None else k
-            if n_markers > k:
-                _fail(f"{data}: --points {points} but the file has {k} points (x1..z{k})")
-        elif points is not None:
-            _fail(f"{data}: --points needs x1,y1,z1 … columns")
-        try:
-            rob = load_robot(robot, root=root, tip=tip, n_markers=n_markers)
-        except (ValueError, FileNotFoundError, KeyError) as exc:
-            _fail(str(exc))
+        rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
         if urdf_masses and rob.meta.get("urdf"):
             from estcal.discrepancy.masses import with_urdf_masses
 
             rob = with_urdf_masses(rob)
         try:
-            ds = load_dataset(data, rob, points=n_markers if k else None)
-            vals = [load_dataset(v, rob, points=n_markers if k else None) for v in validate]
+            ds = load_dataset(data, rob, points=n_markers)
+            vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
         cands = None
