@@ -92,7 +92,7 @@ def test_parameter_vector_names_and_errors():
     full = sub.from_flat(x)
     assert np.allclose(full[sub.free_indices], x) and np.allclose(np.delete(full, sub.free_indices),
                                                                    np.delete(pv.values, sub.free_indices))
-    with pytest.raises(ParameterError, match="unknown parameter 'ofset_2'"):
+    with pytest.raises(ParameterError, match="unknown parameter 'ofset_2'. Did you mean 'offset_2'"):
         pv.index("ofset_2")
 
 

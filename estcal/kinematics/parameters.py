@@ -103,8 +103,10 @@ class ParameterVector:
         try:
             return self._index[name]
         except KeyError:
-            close = [n for n in self.names if n.split("_")[0] == name.split("_")[0]][:12]
-            hint = f" Did you mean one of {close}?" if close else ""
+            import difflib
+
+            close = difflib.get_close_matches(name, self.names, n=5, cutoff=0.6)
+            hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
             raise ParameterError(
                 f"unknown parameter {name!r}.{hint} This model has {len(self.names)} parameters "
                 f"(see `ParameterVector.names`)."
