@@ -32,6 +32,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
+from ._common import noise_known, resolve_free
 from .result import CalibrationResult, accuracy
 
 __all__ = ["calibrate_lsq", "UnidentifiableError", "check_identifiable", "LSQ_METHODS", "single_thread_blas"]
@@ -197,13 +198,8 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
 def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose):
     if method not in LSQ_METHODS:
         raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
-    if free is not None:
-        problem = problem.with_free(free)
+    problem, fidx, names = resolve_free(problem, free)
     pv = problem.params
-    fidx = pv.free_indices
-    if fidx.size == 0:
-        raise ValueError("no free parameter to estimate")
-    names = [pv.names[i] for i in fidx]
     theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     t0 = time.perf_counter()
@@ -291,7 +287,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     _, R = np.linalg.qr(A / s)
     Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
     cov = (Rinv @ Rinv.T) / np.outer(s, s)
-    known = all(t.noise.known for t in problem.terms)
+    known = noise_known(problem)
     if not known and dof > 0:
         cov = cov * (chi2 / dof)
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
