@@ -135,13 +135,19 @@ def test_strategies_within_limits_and_structure(strategy):
             np.testing.assert_allclose(blk[:, others], np.tile(mid[others], (m, 1)), atol=1e-12)
             assert np.all(np.diff(blk[:, j]) > 0)
             start += m
-    elif strategy == "S3":  # one joint held per block, the others move
+    elif strategy == "S3":  # S2's complement: joint j held at home, the others step together
+        mid = (lo + hi) / 2
         start = 0
         for j, m in enumerate(block_sizes(N, n)):
-            blk = q[start:start + m]
-            assert np.ptp(blk[:, j]) == 0
-            assert np.all(np.ptp(np.delete(blk, j, 1), axis=0) > 0)
+            blk, fblk = q[start:start + m], frac[start:start + m]
+            np.testing.assert_allclose(blk[:, j], mid[j], atol=1e-12)
+            others = np.delete(np.arange(n), j)
+            # every moving joint at the same fraction of its range, fractions (i + 1/2)/m
+            np.testing.assert_allclose(fblk[:, others], np.tile(fblk[:, others[:1]], (1, n - 1)), atol=1e-12)
+            np.testing.assert_allclose(fblk[:, others[0]], np.linspace(0.5 / m, 1 - 0.5 / m, m), atol=1e-12)
             start += m
+        # deterministic: no use of the generator
+        np.testing.assert_array_equal(q, generate_poses(robot, N, strategy, np.random.default_rng(99), margin=margin))
     else:  # independent uniform: Kolmogorov–Smirnov per joint
         for j in range(n):
             assert stats.kstest(frac[:, j], "uniform").pvalue > P_TAIL
