@@ -203,8 +203,15 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
 
 def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
                     free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
-                    validate=(), noise=None, register: bool = True, options: dict | None = None):
+                    validate=(), noise=None, register: bool = True, options: dict | None = None,
+                    regularize=None):
     """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
+
+    ``regularize``: ``None`` (plain least squares), ``"loo"`` (Gaussian prior toward the
+    nominal values on the joint-model parameters — geometric placements, offsets, gains,
+    tool — with the width τ chosen by leave-one-pose-out CV on ``data``:
+    :mod:`estcal.estimate.regularize`), or a fixed τ (SI). Base frame and unknown points are
+    never penalised. Needs a least-squares estimator.
 
     Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
     """
@@ -239,7 +246,30 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         free = sel.identifiable
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
     est = get_estimator(estimator)
-    res = est(start, free=free, validation=list(validate), **(options or {}))
+    options = dict(options or {})
+    reg_choice = None
+    if regularize is not None:
+        from estcal.estimate.lsq import LSQ_METHODS
+        from estcal.estimate.regularize import choose_prior_std
+
+        if estimator not in LSQ_METHODS:
+            raise ValueError(f"regularize needs a least-squares estimator ({', '.join(LSQ_METHODS)}), "
+                             f"not {estimator!r}")
+        kinds = dict(zip(pv.names, pv.kinds))
+        penalised = [n for n in free if kinds.get(n) not in ("base", "marker", "other")]
+        if isinstance(regularize, str):
+            if regularize != "loo":
+                raise ValueError(f"unknown regularize {regularize!r}; use 'loo' or a prior std in SI units")
+            reg_choice = choose_prior_std(start, free, penalised, theta=start.params.values)
+            options["prior_std"] = reg_choice.prior_std
+        else:
+            tau = float(regularize)
+            if not tau > 0:
+                raise ValueError(f"regularize: the prior std must be > 0, got {regularize}")
+            options["prior_std"] = {n: tau for n in penalised}
+    res = est(start, free=free, validation=list(validate), **options)
+    if reg_choice is not None:
+        res.extra["regularization"] = reg_choice.to_dict()
     if start is not problem:
         from estcal.estimate.lsq import score
 

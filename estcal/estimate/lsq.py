@@ -174,7 +174,7 @@ def single_thread_blas(enabled: bool = True):
 
 def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, tol: float = 1e-10,
                   theta0=None, validation=(), check: bool = True, verbose: bool = False,
-                  single_thread: bool = True) -> CalibrationResult:
+                  single_thread: bool = True, prior_std=None, prior_mean=None) -> CalibrationResult:
     """Estimate the free parameters of ``problem`` by nonlinear least squares.
 
     Parameters
@@ -186,16 +186,54 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
     theta0 : full initial parameter vector (default: the problem's current values)
     validation : datasets scored with the estimate (accuracy before/after)
     single_thread : run BLAS single-threaded (see :func:`single_thread_blas`)
+    prior_std : optional Gaussian prior (MAP / Tikhonov-regularised estimate): ``{name or
+        pattern: std}`` (SI units; parameters not matched are not penalised) or an array aligned
+        with the free names (``inf`` = not penalised). Adds the rows ``(μ_j − θ_j)/τ_j`` to the
+        weighted system, so the estimate minimises ``‖W^{1/2}(e − HΔθ)‖² + Σ_j ((θ_j − μ_j)/τ_j)²``
+        and ``Σ = (HᵀWH + T⁻¹)⁻¹`` (the Gaussian posterior of the linearised model). ``chi2`` is the
+        data part; ``dof = M − p_eff`` with ``p_eff = tr((HᵀWH + T⁻¹)⁻¹ HᵀWH)`` the effective
+        number of parameters. See :mod:`estcal.estimate.regularize` for choosing τ.
+    prior_mean : ``{name: value}`` or array aligned with the free names (default: the initial values)
 
     Returns
     -------
     CalibrationResult
     """
     with single_thread_blas(single_thread):
-        return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose)
+        return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
+                              prior_std, prior_mean)
 
 
-def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose):
+def prior_arrays(names, prior_std, prior_mean, start) -> tuple[np.ndarray, np.ndarray]:
+    """``(1/τ, μ)`` aligned with ``names`` from the ``prior_std`` / ``prior_mean`` forms of
+    :func:`calibrate_lsq` (``1/τ = 0``: not penalised)."""
+    import fnmatch
+
+    names = list(names)
+    if isinstance(prior_std, dict):
+        tau = np.full(len(names), np.inf)
+        for k, v in prior_std.items():
+            hit = [i for i, n in enumerate(names) if fnmatch.fnmatchcase(n, k)]
+            if not hit:
+                raise ValueError(f"prior_std: {k!r} matches no free parameter (free: {names})")
+            tau[hit] = float(v)
+    else:
+        tau = np.broadcast_to(np.asarray(prior_std, float), (len(names),)).copy()
+    if np.any(~(tau > 0)):
+        raise ValueError("prior standard deviations must be positive (use inf for 'not penalised')")
+    mu = np.asarray(start, float).copy()
+    if isinstance(prior_mean, dict):
+        for k, v in prior_mean.items():
+            if k not in names:
+                raise ValueError(f"prior_mean: {k!r} is not a free parameter (free: {names})")
+            mu[names.index(k)] = float(v)
+    elif prior_mean is not None:
+        mu = np.broadcast_to(np.asarray(prior_mean, float), (len(names),)).copy()
+    return 1.0 / tau, mu
+
+
+def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
+                   prior_std=None, prior_mean=None):
     if method not in LSQ_METHODS:
         raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
     problem, fidx, names = resolve_free(problem, free)
@@ -203,9 +241,30 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     t0 = time.perf_counter()
+    if prior_std is not None:
+        winv, mu_p = prior_arrays(names, prior_std, prior_mean, nominal)
+        pk = np.flatnonzero(winv > 0)
+        P = np.zeros((pk.size, fidx.size))
+        P[np.arange(pk.size), pk] = winv[pk]
+    else:
+        pk = np.zeros(0, int)
+
+    def weighted(rows, th):
+        """Data rows, then the prior rows (μ − θ)/τ of the penalised parameters."""
+        A_, b_ = _weighted(rows, fidx)
+        if pk.size:
+            A_ = np.vstack([A_, P])
+            b_ = np.concatenate([b_, (mu_p[pk] - th[fidx][pk]) * winv[pk]])
+        return A_, b_
+
+    def total_cost(rows, th):
+        c = float(np.sum((rows.e / rows.sigma) ** 2))
+        if pk.size:
+            c += float(np.sum(((th[fidx][pk] - mu_p[pk]) * winv[pk]) ** 2))
+        return c
 
     rows = problem.evaluate(theta)
-    A, b = _weighted(rows, fidx)
+    A, b = weighted(rows, theta)
     if check:
         check_identifiable(A, names)
     cost = float(b @ b)
@@ -218,13 +277,15 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
             th = theta.copy()
             th[fidx] = x
             r = problem.evaluate(th, jacobian=False)
-            return -r.e / r.sigma
+            out = -r.e / r.sigma
+            return np.concatenate([out, (x[pk] - mu_p[pk]) * winv[pk]]) if pk.size else out
 
         def jac(x):
             th = theta.copy()
             th[fidx] = x
             r = problem.evaluate(th)
-            return r.H[:, fidx] / r.sigma[:, None]
+            out = r.H[:, fidx] / r.sigma[:, None]
+            return np.vstack([out, P]) if pk.size else out
 
         sol = least_squares(fun, theta[fidx], jac=jac, method="lm", x_scale="jac", xtol=tol, ftol=tol,
                             gtol=tol, max_nfev=max_iter * 10)
@@ -242,7 +303,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                     # Jacobian computed with the trial residuals: an accepted step (the
                     # common case) then needs no second forward-kinematics pass
                     r_t = problem.evaluate(trial, jacobian=True)
-                    c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
+                    c_t = total_cost(r_t, trial)
                     if c_t <= cost or mu > 1e12:
                         break
                     mu *= nu
@@ -256,7 +317,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                 if method == "gauss-newton":
                     while True:
                         r_t = problem.evaluate(trial, jacobian=step == 1.0)
-                        c_t = float(np.sum((r_t.e / r_t.sigma) ** 2))
+                        c_t = total_cost(r_t, trial)
                         if c_t <= cost or step < 1e-6:
                             break
                         step *= 0.5
@@ -265,7 +326,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                     dx = step * dx
             theta = trial
             rows = r_t if (r_t is not None and r_t.H is not None) else problem.evaluate(theta)
-            A, b = _weighted(rows, fidx)
+            A, b = weighted(rows, theta)
             new_cost = float(b @ b)
             scale = np.maximum(np.abs(theta[fidx]), 1e-3)
             small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
@@ -278,23 +339,35 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                 break
     if method == "scipy-lm":  # the loop above leaves rows/A/b at the final theta otherwise
         rows = problem.evaluate(theta)
-        A, b = _weighted(rows, fidx)
-    chi2 = float(b @ b)
-    dof = int(A.shape[0] - fidx.size)
+        A, b = weighted(rows, theta)
+    m_data = rows.e.size
+    chi2 = float(b[:m_data] @ b[:m_data])  # the data part (the prior rows are not measurements)
+    dof = int(m_data - fidx.size)
     # Σ = (HᵀWH)⁻¹ via the scaled QR factor (stable for poorly scaled columns)
     s = np.linalg.norm(A, axis=0)
     s[s == 0] = 1.0
     _, R = np.linalg.qr(A / s)
     Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
     cov = (Rinv @ Rinv.T) / np.outer(s, s)
+    p_eff = float(fidx.size)
+    if pk.size:  # effective number of parameters tr(Σ HᵀWH) of the regularised fit
+        Ad = A[:m_data]
+        p_eff = float(np.einsum("ij,ji->", cov, Ad.T @ Ad))
+        dof_eff = m_data - p_eff
+    else:
+        dof_eff = dof
     known = noise_known(problem)
-    if not known and dof > 0:
-        cov = cov * (chi2 / dof)
+    if not known and dof_eff > 0:
+        cov = cov * (chi2 / dof_eff)
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
                             std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
                             all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
                             covariance_source="model" if known else "scaled by sigma0^2")
     res.extra["time_s"] = time.perf_counter() - t0
+    if pk.size:
+        res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},
+                              "mean": {names[k]: float(mu_p[k]) for k in pk},
+                              "effective_parameters": p_eff, "dof_effective": dof_eff}
     res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
     return res
 
