@@ -95,6 +95,19 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
         if sel.rejected:
             msg += f"\n  identifiable but not supported by AIC (kept nominal): {', '.join(sel.rejected)}"
         console.print(msg)
+    reg = res.extra.get("regularization")
+    prior = res.extra.get("prior")
+    if prior:
+        taus = sorted(set(prior["std"].values()))
+        line = (f"prior (MAP): std {', '.join(f'{t * 1e3:.3g}' for t in taus)} mm / mrad on {len(prior['std'])} "
+                f"parameters, effective number of parameters {prior['effective_parameters']:.1f}")
+        if reg:
+            line += (f"\n  width chosen by leave-one-pose-out CV on the calibration file: RMSE "
+                     f"{reg['loo_rmse_mm']:.3f} mm (unregularised {reg['loo_rmse_unregularised_mm']:.3f} mm)")
+        console.print(line)
+    elif reg:
+        console.print(f"regularization: leave-one-pose-out CV prefers no prior (unregularised "
+                      f"{reg['loo_rmse_unregularised_mm']:.3f} mm)")
     acc = res.accuracy or {}
     a = Table(title="accuracy (position mm, orientation mrad)", title_justify="left")
     for c in ("data", "poses", "RMSE before", "RMSE after", "mean after", "max after", "rot RMSE before",
@@ -112,6 +125,19 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+
+
+def _regularize(value):
+    """``--regularize`` value: None, 'loo', or a positive prior std (SI)."""
+    if value is None or value == "loo":
+        return value
+    try:
+        tau = float(value)
+    except ValueError:
+        _fail(f"--regularize must be 'loo' or a prior std in SI units (e.g. 0.002), got {value!r}")
+    if not tau > 0:
+        _fail(f"--regularize: the prior std must be > 0, got {value}")
+    return tau
 
 
 def _parse_options(items) -> dict:
@@ -152,6 +178,10 @@ def register(app: typer.Typer) -> None:
         selection: Optional[str] = typer.Option(None, "--selection",
                                                 help="structural (default: every identifiable parameter, QR) | "
                                                      "aic | bic (greedy pruning by an information criterion)."),
+        regularize: Optional[str] = typer.Option(
+            None, "--regularize", help="Gaussian prior toward the nominal joint-model parameters (MAP): "
+                                       "'loo' (width chosen by leave-one-pose-out CV on the calibration file) "
+                                       "or a prior std in SI units (m / rad). Base frame and points stay free."),
         validate: list[Path] = typer.Option([], "--validate", help="Validation dataset; repeat the option for several, scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
         noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
@@ -251,6 +281,7 @@ def register(app: typer.Typer) -> None:
             if not free_list:
                 _fail("--free is empty")
         options = _parse_options(option)
+        reg_value = _regularize(regularize)
         if robust is not None:
             if robust not in ("huber", "cauchy"):
                 _fail(f"--robust must be huber or cauchy, got {robust!r}")
@@ -260,7 +291,7 @@ def register(app: typer.Typer) -> None:
         try:
             res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
                                                 level=level or "full", selection=selection, validate=vals,
-                                                noise=noise, options=options)
+                                                noise=noise, options=options, regularize=reg_value)
         except ParameterError as exc:
             _fail(f"--free: {exc}")
         except UnidentifiableError as exc:
