@@ -33,7 +33,7 @@ def test_klimchik_2link_quick(tmp_path):
 def test_5r1p_strategies_quick(tmp_path):
     d = _run("design_5r1p_strategies", tmp_path)
     assert d["rank"] == 21
-    assert d["ranking_46"][-1] == "S1" and d["ranking_46"][0] in ("S3", "S4")
+    assert d["ranking_46"] == ["S4", "S3", "S2", "S1"]  # the book's ranking by κ at m = 36 (Table 4.6)
 
 
 def test_kr270_quick(tmp_path):
