@@ -153,7 +153,8 @@ def figaroh_procedure(data_dir: Path = DATA, seeds=range(6)) -> dict | None:
         import io
 
         import pinocchio as pin
-        from figaroh.calibration.calibration_tools import calculate_base_kinematics_regressor
+        from figaroh.calibration.calibration_tools import (calculate_base_kinematics_regressor,
+                                                           select_identifiable_parameters)
     except Exception as exc:  # noqa: BLE001 - optional peer; record why it is absent
         return {"available": False, "error": f"{type(exc).__name__}: {exc}"}
     from estcal.estimate import calibrate_lsq, register_base
@@ -191,17 +192,9 @@ def figaroh_procedure(data_dir: Path = DATA, seeds=range(6)) -> dict | None:
         with contextlib.redirect_stdout(io.StringIO()):
             calculate_base_kinematics_regressor([], model, pdata, cfg, tol_qr=1e-6)
         joint = [ours(n) for n in cfg["param_name"][6:]]  # the first six become the base frame
-        basis, kept = np.zeros((A.shape[0], 0)), []
-        for n in frames + joint:
-            r = A[:, robot.params.index(n)]
-            r = r / np.linalg.norm(r)
-            for _ in range(2):
-                r = r - basis @ (basis.T @ r)
-            res_n = float(np.linalg.norm(r))
-            if n in frames or res_n > 1e-4:
-                kept.append(n)
-                if res_n > 1e-4:
-                    basis = np.column_stack([basis, r / res_n])
+        names = frames + joint
+        # FIGAROH's data-level elimination on estcal's (analytic) Jacobian at the registration fit
+        kept, _ = select_identifiable_parameters(A[:, robot.params.indices(names)], names, frames, tol=1e-4)
         fit = calibrate_lsq(prob.with_values(th1), "lm", free=kept, check=False)
         acc = score(prob, th1, fit.theta, [valid])
         out["runs"].append({"random_seed": int(seed), "n_parameters": len(kept),

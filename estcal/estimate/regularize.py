@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._common import resolve_free
+from .lsq import _weighted
 
 __all__ = ["loo_curve", "choose_prior_std", "RegularizationChoice", "DEFAULT_GRID"]
 
@@ -110,9 +111,7 @@ def loo_curve(problem, free, penalised, taus, theta=None) -> np.ndarray:
     problem, fidx, names = resolve_free(problem, free)
     theta = problem.params.values if theta is None else np.asarray(theta, float)
     rows = problem.evaluate(theta)
-    w = 1.0 / rows.sigma
-    A = rows.H[:, fidx] * w[:, None]
-    b = rows.e * w
+    A, b = _weighted(rows, fidx)
     pen = np.isin(names, list(penalised))
     blocks = _pose_blocks(rows)
     Ab, bb = A[blocks], b[blocks]  # (n, r, p), (n, r)
