@@ -364,31 +364,38 @@ def _detmax_idx(F, B, M0, idx, scorer, max_excursion=4, max_iter=200, rtol=1e-10
 def fedorov_exchange(model: DesignModel, candidates, m: int, criterion: str = "D", q_test=None,
                      J_test=None, start=None, rng=None, max_iter: int = 100) -> Plan:
     """Modified Fedorov exchange from ``start`` indices (default: greedy plan)."""
-    J_test = _check_test(model, criterion, J_test, q_test)
-    cand = np.asarray(candidates, float)
-    F, B = _blocks(model, cand)
-    sc = _Scorer(criterion, m, J_test, _ridge(F))
-    if start is None:
-        start = _greedy_idx(F, B, _prior(model), m, sc)
-    idx, _, swaps = _fedorov_idx(F, B, _prior(model), start, sc, max_iter)
-    Q = cand[idx]
-    return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), "fedorov",
-                model.robot.joint_names, {"candidate_indices": idx, "swaps": swaps})
+    def run(F, B, M0, start, sc):
+        idx, _, swaps = _fedorov_idx(F, B, M0, start, sc, max_iter)
+        return idx, {"swaps": swaps}
+
+    return _exchange(model, candidates, m, criterion, q_test, J_test, start, "fedorov", run)
 
 
 def detmax(model: DesignModel, candidates, m: int, criterion: str = "D", q_test=None, J_test=None,
            start=None, max_excursion: int = 4) -> Plan:
     """Mitchell's DETMAX (generalised to any criterion) from ``start`` (default greedy)."""
+    def run(F, B, M0, start, sc):
+        return _detmax_idx(F, B, M0, start, sc, max_excursion)[0], {}
+
+    return _exchange(model, candidates, m, criterion, q_test, J_test, start, "detmax", run)
+
+
+def _exchange(model, candidates, m, criterion, q_test, J_test, start, name, run) -> Plan:
+    """Shared frame of the exchange algorithms: blocks, scorer, greedy start, the plan.
+
+    ``run(F, B, M0, start, scorer) -> (indices, extra details)`` is the algorithm itself.
+    """
     J_test = _check_test(model, criterion, J_test, q_test)
     cand = np.asarray(candidates, float)
     F, B = _blocks(model, cand)
+    M0 = _prior(model)
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     if start is None:
-        start = _greedy_idx(F, B, _prior(model), m, sc)
-    idx, _ = _detmax_idx(F, B, _prior(model), start, sc, max_excursion)
+        start = _greedy_idx(F, B, M0, m, sc)
+    idx, extra = run(F, B, M0, start, sc)
     Q = cand[idx]
-    return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), "detmax",
-                model.robot.joint_names, {"candidate_indices": idx})
+    return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), name,
+                model.robot.joint_names, {"candidate_indices": idx, **extra})
 
 
 def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidates=None,
