@@ -215,6 +215,14 @@ def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
     return gtsam.CustomFactor(noise, keys, error)
 
 
+def _fit_statistics(problem, theta, fidx, x):
+    """The full parameter vector with the free values ``x``, its χ² and dof = M − p."""
+    theta_full = theta.copy()
+    theta_full[fidx] = x
+    rows = problem.evaluate(theta_full, jacobian=False)
+    return theta_full, float(np.sum((rows.e / rows.sigma) ** 2)), len(rows.e) - len(fidx)
+
+
 def _prior_std(problem, names, prior_std):
     if isinstance(prior_std, str) and prior_std == "default":
         prior_std = None
@@ -407,11 +415,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     else:
         marg_s = 0.0
         cov = np.full((p, p), np.nan)
-    theta_full = theta.copy()
-    theta_full[fidx] = x
-    rows = problem.evaluate(theta_full, jacobian=False)
-    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
-    dof = len(rows.e) - p
+    theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
     src = "gtsam marginals"
     if not noise_known(problem) and dof > 0 and robust is None:
         cov = cov * (chi2 / dof)
@@ -478,11 +482,7 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
     est = isam.calculateEstimate()
     x = np.asarray(est.atVector(X), float)
     cov = np.asarray(isam.marginalCovariance(X))
-    theta_full = theta.copy()
-    theta_full[fidx] = x
-    rows = problem.evaluate(theta_full, jacobian=False)
-    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
-    dof = len(rows.e) - p
+    theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
     src = "iSAM2 marginal"
     if not noise_known(problem) and dof > 0:
         cov = cov * (chi2 / dof)
