@@ -88,9 +88,9 @@ def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]
 
 
 def _weighted_matrix(problem, theta):
-    rows = problem.evaluate(theta)
-    w = 1.0 / rows.sigma
-    return rows.H * w[:, None], rows.e * w
+    from estcal.estimate.lsq import _weighted
+
+    return _weighted(problem.evaluate(theta), slice(None))
 
 
 def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
