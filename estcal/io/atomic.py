@@ -1,0 +1,71 @@
+"""Atomic output files: never leave a truncated result behind.
+
+Every file estcal writes goes through :func:`atomic_write`: the content is
+written to a temporary file in the *target's own directory* (so the final
+``os.replace`` is a same-filesystem rename, atomic on POSIX and Windows),
+flushed and fsync'ed, then renamed over the target. A process killed at any
+moment leaves either the old file or the complete new one — never a partial
+file that a later command would accept — plus at worst a hidden
+``.<name>.*.tmp`` file, which the next successful write of the same target
+does not depend on.
+
+Example
+-------
+>>> with atomic_write("out.csv") as fh:          # doctest: +SKIP
+...     fh.write("a,b\\n1,2\\n")
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["atomic_write", "atomic_write_text", "atomic_write_bytes"]
+
+
+@contextlib.contextmanager
+def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline: str | None = None):
+    """Context manager yielding a file object whose content replaces ``path`` on success.
+
+    Parameters
+    ----------
+    path : str or Path
+        Final destination. Its parent folders are created.
+    mode : {'w', 'wb'}
+        Text or binary.
+    encoding, newline : passed to :func:`open` in text mode.
+
+    On an exception inside the ``with`` block the temporary file is removed and
+    ``path`` is left untouched.
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_write: mode must be 'w' or 'wb', got {mode!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        kw = {} if "b" in mode else {"encoding": encoding, "newline": newline}
+        with os.fdopen(fd, mode, **kw) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
+    """Write ``text`` to ``path`` atomically; returns the path."""
+    with atomic_write(path, "w", encoding=encoding) as fh:
+        fh.write(text)
+    return Path(path)
+
+
+def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_write(path, "wb") as fh:
+        fh.write(data)
+    return Path(path)

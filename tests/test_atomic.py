@@ -1,0 +1,53 @@
+"""Atomic output files (estcal.io.atomic): complete file or the old one, never a partial one."""
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from estcal.io.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+
+
+def test_replaces_content_and_leaves_no_temporary(tmp_path):
+    p = tmp_path / "sub" / "out.txt"
+    atomic_write_text(p, "old")
+    atomic_write_text(p, "new")
+    assert p.read_text() == "new"
+    assert os.listdir(p.parent) == ["out.txt"]
+    atomic_write_bytes(p, b"\x00\x01")
+    assert p.read_bytes() == b"\x00\x01"
+
+
+def test_exception_keeps_old_file(tmp_path):
+    p = tmp_path / "out.txt"
+    atomic_write_text(p, "old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(p) as fh:
+            fh.write("half")
+            raise RuntimeError("boom")
+    assert p.read_text() == "old"
+    assert os.listdir(tmp_path) == ["out.txt"]
+
+
+def test_killed_writer_leaves_old_file(tmp_path):
+    """SIGKILL in the middle of a large write: the target still holds the old content."""
+    p = tmp_path / "out.txt"
+    atomic_write_text(p, "old")
+    code = textwrap.dedent(f"""
+        import os, signal
+        from estcal.io.atomic import atomic_write
+        with atomic_write({str(p)!r}) as fh:
+            fh.write("x" * 1_000_000)
+            fh.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    r = subprocess.run([sys.executable, "-c", code])
+    assert r.returncode == -9
+    assert p.read_text() == "old"
+
+
+def test_bad_mode():
+    with pytest.raises(ValueError, match="mode"):
+        with atomic_write("x", "a"):
+            pass
