@@ -62,8 +62,20 @@ class CalibrationState:
         if self.estimate.shape != (p,) or self.covariance.shape != (p, p):
             raise ValueError(f"state: {p} parameter names but estimate {self.estimate.shape} and covariance "
                              f"{self.covariance.shape}")
-        if not np.allclose(self.covariance, self.covariance.T, rtol=1e-8, atol=0):
-            raise ValueError("state: covariance is not symmetric")
+        if not np.all(np.isfinite(self.covariance)) or not np.all(np.isfinite(self.estimate)):
+            raise ValueError("state: estimate and covariance must be finite numbers")
+        # Symmetry is judged on the correlation scale: a filter's covariance is symmetric
+        # only to round-off (Joseph-form updates leave |P - Pᵀ| ~ 1e-19 on entries of
+        # ~1e-12), and an absolute or element-relative test rejects near-zero
+        # correlations. Accepted states are then symmetrised exactly.
+        d = np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+        scale = np.outer(d, d) + np.finfo(float).tiny
+        asym = np.abs(self.covariance - self.covariance.T) / scale
+        if asym.size and asym.max() > 1e-6:
+            i, j = np.unravel_index(np.argmax(asym), asym.shape)
+            raise ValueError(f"state: covariance is not symmetric (entries [{self.parameters[i]}, "
+                             f"{self.parameters[j]}] differ by {asym[i, j]:.2g} on the correlation scale)")
+        self.covariance = 0.5 * (self.covariance + self.covariance.T)
 
     @property
     def std(self) -> np.ndarray:
