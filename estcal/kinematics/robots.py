@@ -28,7 +28,7 @@ from .chain import SerialRobot
 from .transforms import matrix_to_rpy, rot_x, rot_z
 
 __all__ = ["stanford", "puma560", "puma560_fu", "robot_5r1p", "planar2", "tiago", "BUILTIN",
-           "get_builtin", "shared_dir", "INCH"]
+           "get_builtin", "shared_dir", "shared_candidates", "INCH"]
 
 INCH = 0.0254
 D = np.pi / 180.0
@@ -120,14 +120,34 @@ def planar2(l1: float = 1.0, l2: float = 0.8) -> SerialRobot:
     return build_robot("planar2", frames, convention="dh", meta={"source": "Klimchik 2012, eq. 16"})
 
 
-def shared_dir() -> Path:
-    """``<repo>/../shared`` (overridable with the ``ESTCAL_SHARED`` environment variable)."""
+def shared_candidates() -> list[Path]:
+    """Folders searched for the shared data, in order (see :func:`shared_dir`)."""
     import os
 
     env = os.environ.get("ESTCAL_SHARED")
     if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[3] / "shared"
+        return [Path(env).expanduser()]
+    here = Path(__file__).resolve()
+    # a source checkout keeps shared/ beside the repository; a non-editable install lives
+    # in site-packages, where parents[3] is meaningless — so also look from the working folder
+    cwd = Path.cwd()
+    out = [here.parents[3] / "shared", cwd / "shared", cwd.parent / "shared"]
+    return list(dict.fromkeys(out))
+
+
+def shared_dir() -> Path:
+    """The shared data folder (real measurements and reference robots, never copied into the repository).
+
+    Resolution order: the ``ESTCAL_SHARED`` environment variable (used as given); otherwise the first of
+    ``<repository>/../shared``, ``./shared`` and ``../shared`` (relative to the working folder) that
+    exists. When none exists the first candidate is returned, so error messages name a definite path.
+    Documented in docs/dataset.md ("Where the data live").
+    """
+    cands = shared_candidates()
+    for c in cands:
+        if c.is_dir():
+            return c
+    return cands[0]
 
 
 def tiago(n_markers: int = 1) -> SerialRobot:
@@ -141,8 +161,10 @@ def tiago(n_markers: int = 1) -> SerialRobot:
 
     path = shared_dir() / "data" / "tiago" / "tiago_48_schunk.urdf"
     if not path.exists():
-        raise FileNotFoundError(f"TIAGo URDF not found at {path}; it lives in the shared data folder "
-                                f"next to the repository (../shared/data/tiago) and is not copied here")
+        tried = ", ".join(str(c) for c in shared_candidates())
+        raise FileNotFoundError(f"TIAGo URDF not found at {path}: the built-in 'tiago' reads the shared data "
+                                f"folder (searched: {tried}); set ESTCAL_SHARED=/path/to/shared, or load a "
+                                f"saved model (estcal calibrate --save-model), which carries its robot")
     return robot_from_urdf(path, root="base_footprint", tip="wrist_ft_tool_link",
                            markers=np.zeros((n_markers, 3)) if n_markers else None, name="tiago")
 
