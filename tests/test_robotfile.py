@@ -269,3 +269,29 @@ def test_roundtrip_random_robots(tmp_path_factory, robot):
     # rpy of constant (URDF) origins is re-evaluated: exact up to rounding
     _same_robot(robot, back, atol=1e-12)
     assert back.payload_mass == robot.payload_mass
+
+
+def test_calibration_block_round_trips_and_is_checked(tmp_path):
+    """A saved model's ``calibration:`` block (provenance + covariance of the free
+    parameters) survives save → load, and an inconsistent covariance is refused
+    naming the key."""
+    import numpy as np
+    import pytest
+
+    from estcal.io.robotfile import RobotFileError, calibration_covariance, load_robot, save_robot
+
+    robot = load_robot("puma560")
+    free = ["d_1", "a_2"] if "a_2" in robot.params.names else list(robot.params.names[:2])
+    C = np.array([[4e-8, 1e-9], [1e-9, 9e-8]])
+    robot.meta["calibration"] = {"estimator": "lm", "free": free, "covariance": C, "n": np.int64(5)}
+    path = save_robot(robot, tmp_path / "m.yaml")
+    back = load_robot(str(path))
+    names, C2 = calibration_covariance(back)
+    assert names == free and np.array_equal(C2, C)
+    assert back.meta["calibration"]["estimator"] == "lm" and back.meta["calibration"]["n"] == 5
+    assert calibration_covariance(load_robot("puma560")) is None
+    text = path.read_text().replace("covariance: [[", "covariance: [[1.0, ")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(RobotFileError, match="calibration.covariance"):
+        load_robot(str(bad))

@@ -41,14 +41,14 @@ from estcal.kinematics.chain import SerialRobot
 from estcal.kinematics.transforms import make_transform, matrix_to_rpy, rpy_to_matrix
 
 __all__ = ["RobotFileError", "load_robot", "save_robot", "robot_from_dict", "robot_to_dict",
-           "read_robot_file", "FORMAT_VERSION", "LENGTH_UNITS", "ANGLE_UNITS"]
+           "read_robot_file", "calibration_covariance", "FORMAT_VERSION", "LENGTH_UNITS", "ANGLE_UNITS"]
 
 FORMAT_VERSION = 1
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
 
 _TOP_KEYS = ("estcal_robot", "name", "description", "convention", "units", "base", "tool", "tool_origin",
-             "joints", "markers", "payload", "gravity", "coupling", "effects")
+             "joints", "markers", "payload", "gravity", "coupling", "effects", "calibration")
 _JOINT_COMMON = ("name", "type", "convention", "label", "offset", "gain", "limits", "mass", "com", "gear_ratio")
 _CONV_KEYS = {"khalil": KHALIL_PARAMS, "dh": DH_PARAMS, "urdf": ("origin", "axis") + URDF_PARAMS}
 # which convention parameters are angles (the others are lengths)
@@ -239,6 +239,10 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
         meta["source"] = str(d["description"])
     if gear:
         meta["gear_ratio"] = gear
+    if d.get("calibration") is not None:
+        if not isinstance(d["calibration"], dict):
+            raise ctx.err("calibration", "expected a mapping (provenance of a saved model)")
+        meta["calibration"] = _calibration_block(ctx, d["calibration"])
     try:
         robot = build_robot(name, frames, base=_frame6(ctx, d.get("base"), "base", lu, au),
                             tool=_frame6(ctx, d.get("tool"), "tool", lu, au), markers=markers,
@@ -251,6 +255,43 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
     if d.get("effects"):
         robot = _attach_effects(ctx, robot, d["effects"])
     return robot
+
+
+def _calibration_block(ctx, c: dict) -> dict:
+    """Check the ``calibration:`` block of a saved model: ``free`` (names) and
+    ``covariance`` (square, SI units, in the order of ``free``) must agree."""
+    free, cov = c.get("free"), c.get("covariance")
+    if (free is None) != (cov is None):
+        raise ctx.err("calibration", "'free' and 'covariance' must be given together")
+    if free is not None:
+        if not isinstance(free, list) or not all(isinstance(n, str) for n in free):
+            raise ctx.err("calibration.free", "expected a list of parameter names")
+        try:
+            C = np.array(cov, dtype=float)
+        except (TypeError, ValueError):
+            raise ctx.err("calibration.covariance", "expected a square matrix of numbers") from None
+        if C.shape != (len(free), len(free)):
+            raise ctx.err("calibration.covariance",
+                          f"expected {len(free)}x{len(free)} (one row per name of 'free'), got shape {C.shape}")
+        if not np.all(np.isfinite(C)):
+            raise ctx.err("calibration.covariance", "contains NaN or infinite values")
+    return dict(c)
+
+
+def calibration_covariance(robot: SerialRobot):
+    """``(names, C)`` of a saved model's ``calibration:`` block (SI units), or ``None``.
+
+    ``C`` is the covariance of the free parameters ``names`` as estimated by the
+    calibration that produced the file (see docs/robot-file.md, "Saved models").
+    """
+    c = robot.meta.get("calibration") or {}
+    if c.get("free") is None:
+        return None
+    names = list(c["free"])
+    missing = [n for n in names if n not in robot.params.names]
+    if missing:
+        raise RobotFileError(f"{robot.name}: calibration.free names unknown parameters {missing[:5]}")
+    return names, np.array(c["covariance"], dtype=float)
 
 
 def _tool_const(ctx, d, lu, au):
@@ -465,7 +506,22 @@ def robot_to_dict(robot: SerialRobot) -> dict:
         effs.append(e)
     if effs:
         out["effects"] = effs
+    if robot.meta.get("calibration"):
+        out["calibration"] = _plain(robot.meta["calibration"])
     return out
+
+
+def _plain(x):
+    """YAML-safe plain data (numpy arrays and scalars to lists and floats)."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def save_robot(robot: SerialRobot, path) -> Path:
@@ -490,5 +546,8 @@ def save_robot(robot: SerialRobot, path) -> Path:
     _Dumper.add_representer(list, _flow_list)
     header = (f"# estcal robot file (SI units: metres, radians, kg); see docs/robot-file.md\n"
               f"# written by estcal.io.robotfile.save_robot from robot {robot.name!r}\n")
-    path.write_text(header + yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=110))
+    from estcal.io.atomic import atomic_write_text
+
+    atomic_write_text(path, header + yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False,
+                                               width=110))
     return path
