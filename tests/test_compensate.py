@@ -272,3 +272,21 @@ def test_cli_errors_exit_2_and_no_covariance_column(cli_case, tmp_path):
                             "--allow-unreachable"])
     assert r.exit_code == 0 and "predicted_std_mm omitted" in r.output
     assert "predicted_std_mm" not in (tmp / "o.csv").read_text().splitlines()[0]
+
+
+def test_experiment_quick_headline(tmp_path):
+    """experiments/compensation.py (one repetition): held-out targets planned on the nominal model."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "compensation.py"
+    spec = importlib.util.spec_from_file_location("exp_compensation", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.main(["--quick", "--reps", "1", "--targets", "30", "--json", str(tmp_path / "c.json")])
+    assert json.loads((tmp_path / "c.json").read_text())["results"] == out["results"]
+    assert out["diagnosis"][0] and all(d["effect"] == "joint_compliance" for d in out["diagnosis"][0])
+    r = out["results"]["file payload 2 kg"]
+    assert r["nominal"]["rmse_mm"] > 2.0                      # several mm without compensation
+    assert r["extended"]["rmse_mm"] < out["noise_floor_mm"]   # at the measurement-noise floor
+    assert r["geometric"]["rmse_mm"] > 5 * r["extended"]["rmse_mm"]  # compliance matters

@@ -139,10 +139,12 @@ def register(app: typer.Typer) -> None:
 
         n, ok = len(res.reachable), int(res.reachable.sum())
         shift = np.abs(res.readings - ds.readings)
+        jmax = int(np.argmax(shift.max(axis=0)))
+        unit = "mm" if rb.joint_types[jmax] == "prismatic" else "mrad"
         msg = (f"{n} rows -> {output}: {ok} reachable within {tol_mm:g} mm"
                + (f" / {tol_mrad:g} mrad" if res.rot_error_mrad is not None else "")
                + f" (task point: {'marker 1' if res.task_point == 'marker1' else 'tool origin'}); "
-               f"largest command change {shift.max() * 1e3:.4g} mrad|mm")
+               f"largest command change {shift[:, jmax].max() * 1e3:.4g} {unit} ({rb.joint_names[jmax]})")
         console.print(msg, soft_wrap=True)
         if res.std_mm is not None:
             console.print(f"predicted position std from the saved covariance ({len(res.covariance_names)} "
@@ -196,4 +198,4 @@ def _context_notes(robot, ctx) -> list[str]:
                              f"sign(τ) is used")
         if name == "joint_compliance" and "payload" not in ctx:
             notes.append(f"joint_compliance: payload {robot.payload_mass:g} kg from the robot file")
-    return notes
+    return list(dict.fromkeys(notes))  # one note per kind (an effect may be added once per joint)
