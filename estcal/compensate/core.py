@@ -33,7 +33,8 @@ class CompensationResult:
     error_mm : (N,) position residual of the solve (mm); ``rot_error_mrad`` likewise (or None).
     std_mm : (N,) predicted RMS position error of the reached point from the saved covariance
         (mm), or None when the model has no calibration block; ``rot_std_mrad`` likewise.
-    joint_std : (N, n) std of the compensated readings through the implicit function (rad / m) or None.
+    joint_std : (N, n) std of the compensated readings through the implicit function (rad / m; NaN on
+        unreachable rows) or None.
     at_limit : (N, n) bool — reading on a joint limit at the solution.
     start_outside : (N,) bool — the starting readings were outside the limits (projected first).
     iterations : (N,) LM steps.
@@ -84,9 +85,11 @@ class CompensationResult:
             "std_mm": lst(self.std_mm), "rot_std_mrad": lst(self.rot_std_mrad),
             "covariance_parameters": list(self.covariance_names),
         }
-        if self.joint_std is not None:
-            out["joint_std_rms"] = {j: float(v) for j, v in
-                                    zip(self.joint_names, np.sqrt(np.mean(self.joint_std ** 2, axis=0)))}
+        if self.joint_std is not None and self.reachable.any():
+            # median over the reachable rows: a row near a singularity has a large, legitimate std
+            # on the nearly parallel axes that would dominate a mean
+            out["joint_std_median"] = {j: float(v) for j, v in
+                                       zip(self.joint_names, np.median(self.joint_std[self.reachable], axis=0))}
         return out
 
 
@@ -178,7 +181,8 @@ def compensate(robot, targets, q_start, orientations=None, context: dict | None 
         prop = propagate(Jt, C, sol.J_r, rot_weight_m)
         std = prop["position_std"] * 1e3
         rot_std = prop["rotation_std"] * 1e3 if "rotation_std" in prop else None
-        jstd = prop["joint_std"]
+        # the implicit derivative assumes the target is met; at a best-effort row it is meaningless
+        jstd = np.where(reachable[:, None], prop["joint_std"], np.nan)
     return CompensationResult(list(robot.joint_names), sol.readings, reachable, err_mm, rot_mrad, std, rot_std,
                               jstd, sol.at_limit, start_outside, sol.iterations, lines,
                               "marker1" if use_marker else "tool", tol_mm, tol_mrad, names)
