@@ -81,8 +81,9 @@ def register(app: typer.Typer) -> None:
             rb = load_robot(robot)
         except (ValueError, KeyError, FileNotFoundError) as exc:
             fail(str(exc).strip("'\""))
-        if _same_file(output, Path(robot)):
-            fail(f"-o {output} is the robot file; choose another output path")
+        for p, opt in ((output, "-o"), (json_path, "--json")):
+            if p is not None and _same_file(p, Path(robot)):
+                fail(f"{opt} {p} is the robot file; choose another output path (inputs are never overwritten)")
         header, raw = _read_raw(targets)
         for h in header:
             if h.startswith("approach_") and h[len("approach_"):] not in rb.joint_names:
