@@ -290,3 +290,41 @@ def test_experiment_quick_headline(tmp_path):
     assert r["nominal"]["rmse_mm"] > 2.0                      # several mm without compensation
     assert r["extended"]["rmse_mm"] < out["noise_floor_mm"]   # at the measurement-noise floor
     assert r["geometric"]["rmse_mm"] > 5 * r["extended"]["rmse_mm"]  # compliance matters
+
+
+def test_gains_coupling_and_prismatic_joint_inverted():
+    """Readings, not joint values: gains ≠ 1, a wrist coupling (GECARO eq. 4) and the Stanford
+    arm's prismatic joint; the compensated readings drive the chain onto the target."""
+    d = robot_to_dict(load_robot("stanford"))
+    n = len([j for j in d["joints"] if j["type"] != "fixed"])
+    Cm = np.eye(n)
+    Cm[5, 4] = 0.3  # motor 5 drags joint 6 (wrist coupling)
+    d["coupling"] = {"joint": np.eye(n).tolist(), "motor": Cm.tolist()}
+    nominal = robot_from_dict(d, "stanford_coupled")
+    model = nominal.copy()
+    rng = np.random.default_rng(3)
+    model.params.values[model.gain_idx] = 1 + rng.normal(0, 0.01, n)
+    model.params.values[model.offset_idx] += rng.normal(0, 2e-3, n)
+    r0, kin = planned(nominal, 30, seed=5, margin=0.2)
+    keep = well_conditioned(nominal, r0, kin, floor=0.01)
+    r0, T = r0[keep], np.c_[kin.p[keep], matrix_to_quat(kin.R[keep])]
+    assert len(r0) >= 10
+    res = compensate(model, T, r0, covariance=None)
+    assert res.reachable.all()
+    k = model.kinematics(res.readings, jacobian=False)
+    assert np.abs(k.p - T[:, :3]).max() < 1e-9
+    assert np.abs(k.R - kin.R[keep]).max() < 1e-9
+    assert np.abs(res.readings - r0)[:, 2].max() > 1e-4  # the prismatic reading moved (m)
+    # the solver's reading Jacobian (J_q · C_j diag(K) C_m) against central differences, at the
+    # solution (zero rotation residual: there the log map's own Jacobian is the identity)
+    th = model.params.values
+    r0 = res.readings
+    e, J = task_residual(model, r0[:5], th, {}, T[:5, :3], kin.R[keep][:5], 0.1)
+    Jfd = np.empty_like(J)
+    for c in range(n):
+        dr = np.zeros(n)
+        dr[c] = 1e-6
+        ep, _ = task_residual(model, r0[:5] + dr, th, {}, T[:5, :3], kin.R[keep][:5], 0.1)
+        em, _ = task_residual(model, r0[:5] - dr, th, {}, T[:5, :3], kin.R[keep][:5], 0.1)
+        Jfd[..., c] = -(ep - em) / 2e-6
+    assert np.abs(J - Jfd).max() < 1e-7 * np.abs(J).max()
