@@ -283,7 +283,7 @@ def test_experiment_quick_headline(tmp_path):
     spec = importlib.util.spec_from_file_location("exp_compensation", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    out = mod.main(["--quick", "--reps", "1", "--targets", "30", "--json", str(tmp_path / "c.json")])
+    out = mod.main(["--quick", "--reps", "1", "--poses", "30", "--targets", "20", "--json", str(tmp_path / "c.json")])
     assert json.loads((tmp_path / "c.json").read_text())["results"] == out["results"]
     assert out["diagnosis"][0] and all(d["effect"] == "joint_compliance" for d in out["diagnosis"][0])
     r = out["results"]["file payload 2 kg"]
