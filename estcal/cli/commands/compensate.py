@@ -169,7 +169,8 @@ def register(app: typer.Typer) -> None:
             worst = float(res.error_mm[~res.reachable].max())
             level, rows = ("warning" if allow_unreachable else "error"), ("rows" if n - ok > 1 else "row")
             typer.echo(f"{level}: {targets}: {n - ok} {rows} not reachable within tolerance (flagged "
-                       f"reachable=0, best-effort joints written), lines {_lines(bad)}; largest residual {worst:.4g} mm", err=True)
+                       f"reachable=0, best-effort joints written), lines {_lines(bad)}; largest residual "
+                       f"{worst:.4g} mm", err=True)
             if not allow_unreachable:
                 raise typer.Exit(3)
 
