@@ -191,7 +191,10 @@ def _context_notes(robot, ctx) -> list[str]:
     notes = []
     for eff in robot.effects:
         name = getattr(eff, "name", type(eff).__name__)
-        if name == "thermal_expansion" and "temperature" not in ctx and "t" not in ctx:
+        if name == "thermal_expansion" and not robot.n_markers:
+            notes.append("thermal_expansion acts on marker points; this model has no markers, so the tool "
+                         "origin is compensated without it")
+        elif name == "thermal_expansion" and "temperature" not in ctx and "t" not in ctx:
             notes.append("thermal_expansion: no temperature column, ΔT = 0 (the reference temperature)")
         if name == "backlash":
             miss = [j for j in eff.joints if f"approach_{j}" not in ctx]
