@@ -158,12 +158,15 @@ def register(app: typer.Typer) -> None:
             console.print(f"[yellow]warning:[/yellow] starting joints outside the limits (projected) on lines "
                           f"{_lines(res.lines[res.start_outside])}")
         if json_path is not None:
-            from estcal.cli.common import write_json
+            import json
+
+            from estcal.io.atomic import atomic_write_text
+            from estcal.io.jsonio import to_jsonable
 
             d = res.to_dict()
             d.update(input=str(targets), output=str(output), robot=str(robot), notes=notes,
                      readings_changed_max=float(shift.max()))
-            write_json(json_path, d)
+            atomic_write_text(json_path, json.dumps(to_jsonable(d), indent=2))
         if ok < n:
             bad = res.unreachable_lines
             worst = float(res.error_mm[~res.reachable].max())
