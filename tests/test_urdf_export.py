@@ -178,15 +178,17 @@ def test_effects_coupling_markers_are_named(tmp_path):
     rb = load_robot("puma560_masses", n_markers=2)
     rb = rb.add_effect(make_effect("joint_compliance", rb, joints=["j2", "j3"]))
     rb.coupling = (np.eye(6), np.eye(6))
-    rb.meta["calibration"] = {"estimator": "lm", "data": "train.csv", "free": ["offset_1"],
-                              "covariance": [[1e-8]]}
+    rb.meta["calibration"] = {"estimator": "lm", "date": "2026-11-25", "free": ["offset_1"],
+                              "covariance": [[1e-8]],
+                              "data": [{"file": "train.csv", "sha256": "ab12", "n_poses": 50, "role": "train"}]}
     path = save_robot(rb, tmp_path / "M.yaml")
     out, r = _export(tmp_path, path)
     err = r.output
     assert "effect 'joint_compliance' on j2, j3" in err and "compliance_j2" in err
     assert "coupling" in err and "marker1, marker2" in err
     text = out.read_text()
-    assert "estimator: lm" in text and "data: train.csv" in text and "1 free parameters" in text
+    assert "estimator: lm; date: 2026-11-25" in text and "1 free parameters" in text
+    assert "calibration data (train): train.csv, 50 poses, sha256 ab12" in text
 
 
 def test_masses_survive_as_inertials(tmp_path):
@@ -283,6 +285,20 @@ def test_tiago_original_root_and_tip_without_base_tool(tmp_path, tiago_dir):
     q = model.random_readings(30, rng=2)
     assert np.abs(back.fk(q) - model.fk(q)).max() < 1e-9
     assert len(load_urdf(out).robot.links) == len(load_urdf(original).robot.links)
+
+
+def test_base_frame_below_a_parent_link_is_named(tmp_path, tiago_dir):
+    """A chain rooted below the URDF's root cannot take a world parent: warned, not dropped silently."""
+    original = tiago_dir / "tiago_48_schunk.urdf"
+    model = _calibrated(robot_from_urdf(original, root="torso_fixed_link", tip="wrist_ft_tool_link"), seed=9)
+    res = export_urdf(model, tmp_path / "t.urdf", from_urdf=original, warn=False)
+    assert res.root == "torso_fixed_link" and res.tip == "tool"
+    assert any("base frame" in w and "'torso_fixed_link' has a parent" in w for w in res.warnings)
+    back = robot_from_urdf(tmp_path / "t.urdf", root=res.root, tip=res.tip)
+    q = model.random_readings(10, rng=1)
+    # without the base frame, the URDF's chain is the model's frame 0 → tool
+    T_base = model.fk(np.zeros((1, model.n_joints)))[0] @ np.linalg.inv(back.fk(np.zeros((1, model.n_joints)))[0])
+    assert np.abs(T_base @ back.fk(q) - model.fk(q)).max() < 1e-9
 
 
 # ---------------------------------------------------------------- random robots

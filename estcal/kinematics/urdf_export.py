@@ -163,6 +163,12 @@ def _provenance(robot: SerialRobot, source) -> list[str]:
         if cal.get("free") is not None:
             items.append(f"{len(cal['free'])} free parameters with their covariance (in the robot file)")
         lines.append("calibration: " + "; ".join(items) if items else "calibration: (no provenance given)")
+        for d in cal.get("data") or []:  # data files of a saved model (docs/robot-file.md, "Saved models")
+            if isinstance(d, dict):
+                sha = d.get("sha256")
+                lines.append(f"calibration data ({d.get('role', 'data')}): {d.get('file')}"
+                             + (f", {d['n_poses']} poses" if d.get("n_poses") is not None else "")
+                             + (f", sha256 {sha}" if sha else ""))
     return lines
 
 
