@@ -169,7 +169,7 @@ def test_deprecated_si_options_convert_and_warn(tmp_path):
                                "--noise-pos-mm", "0.3"])
     assert both.exit_code == 2 and "not both" in both.output
     # design's old names were already mm / mrad: same value, renamed
-    r = runner.invoke(app, ["design", "--robot", "planar2", "--n", "3", "--sigma", "0.5", "--random-plans", "5",
+    r = runner.invoke(app, ["design", "--robot", "planar2", "--n", "4", "--sigma", "0.5", "--random-plans", "5",
                             "--n-candidates", "50", "--restarts", "1"])
     assert r.exit_code == 0 and "use --noise-pos-mm 0.5" in r.output and "σ = 0.5 mm" in r.output
 

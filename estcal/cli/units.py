@@ -95,3 +95,19 @@ def display_unit(name: str, robot) -> tuple[str, float]:
     if kinds.get(name) == "effect":
         return "SI", 1.0
     return "mm", 1e3
+
+
+# The same declaration in every subcommand, so the name, unit and help cannot drift apart.
+def noise_pos_option(default, extra: str = ""):
+    """``--noise-pos-mm``: measurement position noise std per coordinate (mm)."""
+    return typer.Option(default, "--noise-pos-mm", help=f"Position noise std per coordinate (mm){extra}.")
+
+
+def noise_rot_option(default, extra: str = ""):
+    """``--noise-rot-mrad``: measurement orientation noise std (mrad)."""
+    return typer.Option(default, "--noise-rot-mrad", help=f"Orientation noise std (mrad){extra}.")
+
+
+def deprecated_option(old: str):
+    """A renamed option, still accepted (hidden) in its old unit; see :func:`resolve`."""
+    return typer.Option(None, old, hidden=True)

@@ -429,7 +429,8 @@ def export_urdf(robot: SerialRobot, path, from_urdf=None, root: str | None = Non
         urdf = yourdfpy.URDF(robot=urobot, build_scene_graph=False, load_meshes=False)
         changed = list(robot.joint_names)
         header.append(f"chain from root link {r!r} to tip link {t!r}; the joint origins carry the identified "
-                      f"geometry and joint offsets")
+                      f"geometry and joint offsets; effort and velocity limits are not part of the model "
+                      f"(written as 0)")
         _write(urdf, path, header, notes)
     else:
         from_urdf = Path(from_urdf)

@@ -44,6 +44,8 @@ import numpy as np
 import typer
 
 from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
+from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
@@ -52,7 +54,6 @@ __all__ = ["register", "Selection", "select_free", "level_candidates", "run_cali
 _ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
 
 # --------------------------------------------------------------------------- helpers
-from estcal.cli.units import display_unit as _unit  # noqa: E402  (display unit and factor from SI)
 
 
 def _fmt(v, nd=3):
@@ -181,15 +182,15 @@ def register(app: typer.Typer) -> None:
                                        "for gains). Base frame and points stay free."),
         validate: list[Path] = typer.Option([], "--validate", help="Validation dataset; repeat the option for several, scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
-        noise_pos_mm: float = typer.Option(0.1, "--noise-pos-mm", help="Position noise std (mm)."),
-        noise_rot_mrad: float = typer.Option(1.0, "--noise-rot-mrad", help="Orientation noise std (mrad)."),
-        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),
-        old_noise_rot: Optional[float] = typer.Option(None, "--noise-rot", hidden=True),
+        noise_pos_mm: float = noise_pos_option(0.1),
+        noise_rot_mrad: float = noise_rot_option(1.0),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
         known_noise: bool = typer.Option(False, "--known-noise", help="Trust the noise values (covariance not "
                                                                       "rescaled by σ0²)."),
         noise_leg_mm: Optional[float] = typer.Option(None, "--noise-leg-mm", help="Gough platforms: leg-length "
                                                                                   "noise std (mm)."),
-        old_noise_leg: Optional[float] = typer.Option(None, "--noise-leg", hidden=True),
+        old_noise_leg: Optional[float] = deprecated_option("--noise-leg"),
         residual: str = typer.Option("ik", "--residual", help="Gough platforms: ik (leg lengths from the "
                                                               "measured pose) or fk (pose from the legs)."),
         gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "

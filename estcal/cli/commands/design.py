@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -40,11 +41,10 @@ def register(app: typer.Typer) -> None:
                                       help="greedy, fedorov, detmax (discrete) or continuous."),
         n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidates when no CSV is given."),
         restarts: int = typer.Option(4, "--restarts", help="Restarts (discrete) / starts (continuous)."),
-        sigma_mm: float = typer.Option(0.1, "--noise-pos-mm", help="Position noise std per coordinate (mm)."),
-        sigma_rot_mrad: float = typer.Option(1.0, "--noise-rot-mrad", help="Orientation noise std (mrad), pose "
-                                                                         "method."),
-        old_sigma: Optional[float] = typer.Option(None, "--sigma", hidden=True),
-        old_sigma_rot: Optional[float] = typer.Option(None, "--sigma-rot", hidden=True),
+        sigma_mm: float = noise_pos_option(0.1),
+        sigma_rot_mrad: float = noise_rot_option(1.0, ", pose method"),
+        old_sigma: Optional[float] = deprecated_option("--sigma"),
+        old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
         free: Optional[str] = typer.Option(None, "--free",
                                            help="Free parameters (comma-separated names/patterns); "
                                                 "default: an identifiable subset (offsets first)."),

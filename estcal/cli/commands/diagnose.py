@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
                                                                       "(default: every registered effect)."),
         noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Known position noise std (mm); "
                                                   "default unknown (F tests, no noise-floor test)."),
-        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),
+        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),  # deprecated (m)
         k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
         alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
         max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),

@@ -49,7 +49,7 @@ def register(app: typer.Typer) -> None:
         except (ValueError, FileNotFoundError) as exc:
             fail(f"{from_urdf or robot}: {exc}")
         what = (f"origins of {len(res.changed)} joints changed, every other element of {from_urdf.name} kept"
-                if from_urdf is not None else f"{model.n_joints} joints")
+                if from_urdf is not None else f"{model.n_joints} joints, origins carry the calibration")
         typer.echo(f"wrote {urdf} ({what}); tool frame: --root {res.root} --tip {res.tip}")
         for w in res.warnings:
             typer.echo(f"warning: {w}", err=True)

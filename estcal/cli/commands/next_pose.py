@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -35,10 +36,10 @@ def register(app: typer.Typer) -> None:
         degrees: bool = typer.Option(False, "--degrees", help="Candidate CSV revolute columns are in degrees."),
         n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidate poses when no CSV is "
                                                                       "given."),
-        sigma_mm: float = typer.Option(0.1, "--noise-pos-mm", help="Position noise std per coordinate (mm)."),
-        sigma_rot_mrad: float = typer.Option(1.0, "--noise-rot-mrad", help="Orientation noise std (mrad)."),
-        old_sigma: Optional[float] = typer.Option(None, "--sigma", hidden=True),
-        old_sigma_rot: Optional[float] = typer.Option(None, "--sigma-rot", hidden=True),
+        sigma_mm: float = noise_pos_option(0.1),
+        sigma_rot_mrad: float = noise_rot_option(1.0, ", pose method"),
+        old_sigma: Optional[float] = deprecated_option("--sigma"),
+        old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
         refine: bool = typer.Option(True, "--refine/--no-refine", help="Polish the best candidate locally."),
         seed: int = typer.Option(0, "--seed"),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the proposal as JSON."),

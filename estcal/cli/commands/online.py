@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -76,14 +77,14 @@ def register(app: typer.Typer) -> None:
         q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q-mm only to these names/patterns."),
         filter_kind: str = typer.Option("ekf", "--filter", help="ekf or ukf (filterpy)."),
         method: Optional[str] = typer.Option(None, "--method", help="Measurement method (default: from the columns)."),
-        sigma_p_mm: float = typer.Option(0.1, "--noise-pos-mm", help="Position noise std (mm)."),
-        sigma_r_mrad: float = typer.Option(1.0, "--noise-rot-mrad", help="Orientation noise std (mrad)."),
+        sigma_p_mm: float = noise_pos_option(0.1),
+        sigma_r_mrad: float = noise_rot_option(1.0),
         prior_std_mm: float = typer.Option(100.0, "--prior-std-mm", help="Prior std of every free parameter, in its "
                                            "milli-unit (mm, mrad, 10⁻³ for gains)."),
-        old_q: Optional[float] = typer.Option(None, "--q", hidden=True),
-        old_sigma_p: Optional[float] = typer.Option(None, "--sigma-p", hidden=True),
-        old_sigma_r: Optional[float] = typer.Option(None, "--sigma-r", hidden=True),
-        old_prior_std: Optional[float] = typer.Option(None, "--prior-std", hidden=True),
+        old_q: Optional[float] = deprecated_option("--q"),
+        old_sigma_p: Optional[float] = deprecated_option("--sigma-p"),
+        old_sigma_r: Optional[float] = deprecated_option("--sigma-r"),
+        old_prior_std: Optional[float] = deprecated_option("--prior-std"),
         every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows."),
         live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
         show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -50,10 +51,8 @@ def register(app: typer.Typer) -> None:
         strategy: str = typer.Option("S4", help="Pose strategy: S1 (together), S2 (one joint at a time), "
                                                 "S3 (one held), S4 (uniform random)."),
         measure: str = typer.Option("position", help="position | points | pose."),
-        noise_pos_mm: float = typer.Option(0.0, "--noise-pos-mm", help="Position noise σ (mm); half-width if "
-                                                                       "uniform."),
-        noise_rot_mrad: float = typer.Option(0.0, "--noise-rot-mrad", help="Orientation noise σ (mrad); half-width "
-                                                                           "if uniform."),
+        noise_pos_mm: float = noise_pos_option(0.0, "; half-width if uniform"),
+        noise_rot_mrad: float = noise_rot_option(0.0, "; half-width if uniform"),
         noise_joint_mrad: float = typer.Option(0.0, "--noise-joint-mrad", help="Joint-reading noise σ (mrad; mm "
                                                                                "for prismatic joints)."),
         resolution_mrad: float = typer.Option(0.0, "--resolution-mrad", help="Encoder resolution (mrad; mm for "
@@ -84,13 +83,13 @@ def register(app: typer.Typer) -> None:
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="Dataset CSV to write."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth JSON to write."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON."),
-        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),
-        old_noise_rot: Optional[float] = typer.Option(None, "--noise-rot", hidden=True),
-        old_noise_joint: Optional[float] = typer.Option(None, "--noise-joint", hidden=True),
-        old_resolution: Optional[float] = typer.Option(None, "--resolution", hidden=True),
-        old_error_angle: Optional[float] = typer.Option(None, "--error-angle", hidden=True),
-        old_error_length: Optional[float] = typer.Option(None, "--error-length", hidden=True),
-        old_error_offset: Optional[float] = typer.Option(None, "--error-offset", hidden=True),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
+        old_noise_joint: Optional[float] = deprecated_option("--noise-joint"),
+        old_resolution: Optional[float] = deprecated_option("--resolution"),
+        old_error_angle: Optional[float] = deprecated_option("--error-angle"),
+        old_error_length: Optional[float] = deprecated_option("--error-length"),
+        old_error_offset: Optional[float] = deprecated_option("--error-offset"),
         from_fit: Optional[Path] = typer.Option(
             None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
                                      "(geometric + named effects); --errors/--effects are ignored, the noise "
