@@ -134,6 +134,11 @@ class Kinematics:
         return make_transform(self.R, self.p)
 
 
+def _frames_kw(eff, link_p) -> dict:
+    """``link_p`` (N, L, 3) for Cartesian effects that ask for the link frames."""
+    return {"link_p": link_p} if "link_p" in inspect.signature(eff.point_correction).parameters else {}
+
+
 def _screw_at(w, o, rot, x):
     """Velocity of point x (3, 1, N) for unit motions about (rot) / along axes w through o (3, C, N)."""
     d0, d1, d2 = x[0] - o[0], x[1] - o[1], x[2] - o[2]
@@ -271,7 +276,9 @@ class SerialRobot:
           ``(dq (N, n), d(dq)/d(θ_effect) (N, n, m) or None)``: added to the joint values.
         * and/or ``point_correction(robot, readings, points, theta, context,
           derivatives, J_points=None)`` -> ``(dx (N, k, 3), d(dx)/d(θ_effect) (N, k, 3, m) or None)``:
-          added to the marker points (e.g. thermal expansion).
+          added to every measured point — the tool origin and the markers — (e.g.
+          thermal expansion); effects whose signature has ``link_p`` also receive the
+          link frame origins (N, L, 3).
 
         Jacobian columns of effect parameters are exact; the dependence of an
         effect's correction on the geometric parameters (e.g. of a gravity torque
@@ -414,10 +421,19 @@ class SerialRobot:
         m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
         pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
         points = pts.transpose(2, 1, 0).copy()
-        for eff in self.effects:
-            if hasattr(eff, "point_correction"):
-                d, _ = eff.point_correction(self, readings, points, theta, context or {}, derivatives=False)
-                points = points + d
+        # Cartesian effects (thermal expansion) move every measured point: the tool
+        # origin (row 0 of ``allp``) and the markers, so they act on tool positions,
+        # full poses, markers and the link/plane/distance methods alike.
+        cart = [eff for eff in self.effects if hasattr(eff, "point_correction")]
+        if cart:
+            link_pn = link_p.transpose(2, 0, 1)
+            allp = np.concatenate([p.T[:, None, :], points], 1)
+            for eff in cart:
+                d, _ = eff.point_correction(self, readings, allp, theta, context or {}, derivatives=False,
+                                            **_frames_kw(eff, link_pn))
+                allp = allp + d
+            p = np.ascontiguousarray(allp[:, 0].T)
+            points = allp[:, 1:].copy()
         Rn = np.ascontiguousarray(R.transpose(2, 0, 1))
         pn = np.ascontiguousarray(p.T)
 
@@ -443,17 +459,21 @@ class SerialRobot:
                 _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
                 JpT[i][:, self.marker_idx[i]] += R  # d(p + R m)/dm = R, R[a, c] per pose
             J_points = JpT.transpose(3, 0, 1, 2)
-            for eff in self.effects:
-                if hasattr(eff, "point_correction") and self.n_markers:
+            if cart:
+                # the tool origin's position rows are corrected like a marker's
+                Jall = np.concatenate([J[:, None, :3, :], J_points], 1)
+                for eff in cart:
                     # Effects that scale the whole point (thermal) also need the pose
                     # Jacobian to correct the other columns; older effects may not take it.
-                    kw = {"J_points": J_points}
+                    kw = {"J_points": Jall, **_frames_kw(eff, link_pn)}
                     if "J" in inspect.signature(eff.point_correction).parameters:
                         kw["J"] = J
-                    _, dd = eff.point_correction(self, readings, points, theta, context or {},
+                    _, dd = eff.point_correction(self, readings, allp, theta, context or {},
                                                  derivatives=True, **kw)
                     if dd is not None:
-                        J_points[..., eff.indices] += dd
+                        Jall[..., eff.indices] += dd
+                JT[:3] = Jall[:, 0].transpose(1, 2, 0)
+                J_points = Jall[:, 1:]
         R, p = Rn, pn
         link_R = link_R.transpose(3, 0, 1, 2)
         link_p = link_p.transpose(2, 0, 1)
