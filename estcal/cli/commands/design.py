@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -40,8 +41,10 @@ def register(app: typer.Typer) -> None:
                                       help="greedy, fedorov, detmax (discrete) or continuous."),
         n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidates when no CSV is given."),
         restarts: int = typer.Option(4, "--restarts", help="Restarts (discrete) / starts (continuous)."),
-        sigma_mm: float = typer.Option(0.1, "--sigma", help="Position noise std per coordinate (mm)."),
-        sigma_rot_mrad: float = typer.Option(1.0, "--sigma-rot", help="Orientation noise std (mrad), pose method."),
+        sigma_mm: float = noise_pos_option(0.1),
+        sigma_rot_mrad: float = noise_rot_option(1.0, ", pose method"),
+        old_sigma: Optional[float] = deprecated_option("--sigma"),
+        old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
         free: Optional[str] = typer.Option(None, "--free",
                                            help="Free parameters (comma-separated names/patterns); "
                                                 "default: an identifiable subset (offsets first)."),
@@ -65,6 +68,11 @@ def register(app: typer.Typer) -> None:
         from estcal.design.plans import (evaluate_plan, load_candidates, optimise_continuous,
                                          optimise_discrete, random_baseline)
 
+        from estcal.cli.units import resolve
+
+        sigma_mm = resolve(sigma_mm, 1.0, old_sigma, "--sigma", "--noise-pos-mm", "mm", 1.0, 0.1)
+        sigma_rot_mrad = resolve(sigma_rot_mrad, 1.0, old_sigma_rot, "--sigma-rot", "--noise-rot-mrad", "mrad", 1.0,
+                                 1.0)
         console = Console()
         try:
             crit = normalise_criterion(criterion)
@@ -114,9 +122,12 @@ def register(app: typer.Typer) -> None:
             rho = np.sqrt(np.einsum("tap,pq,taq->t", J0, C, J0)) * 1e3
             console.print("predicted RMS position error at the test pose(s) (mm): "
                           + ", ".join(f"{v:.5g}" for v in rho))
-        console.print("predicted parameter std (m / rad):")
+        from estcal.cli.units import display_unit
+
+        console.print("predicted parameter std:")
         for k, v in crits.param_std.items():
-            console.print(f"  {k:<14}{v:.4g}")
+            u, f = display_unit(k, rb)
+            console.print(f"  {k:<14}{v * f:.4g} {u}")
         console.print(escape(str(base)))
         if amap is not None:
             console.print(escape(str(amap)))

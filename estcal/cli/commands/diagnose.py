@@ -40,8 +40,9 @@ def register(app: typer.Typer) -> None:
                                                                   "for decisions)."),
         effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
                                                                       "(default: every registered effect)."),
-        noise_pos: Optional[float] = typer.Option(None, "--noise-pos", help="Known position noise std (m); "
+        noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Known position noise std (mm); "
                                                   "default unknown (F tests, no noise-floor test)."),
+        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),  # deprecated (m)
         k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
         alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
         max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
@@ -64,6 +65,10 @@ def register(app: typer.Typer) -> None:
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
+            resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
         if not data.exists():
             _fail(f"{data}: file not found")
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)

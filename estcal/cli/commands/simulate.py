@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -50,21 +51,25 @@ def register(app: typer.Typer) -> None:
         strategy: str = typer.Option("S4", help="Pose strategy: S1 (together), S2 (one joint at a time), "
                                                 "S3 (one held), S4 (uniform random)."),
         measure: str = typer.Option("position", help="position | points | pose."),
-        noise_pos: float = typer.Option(0.0, "--noise-pos", help="Position noise σ (m); half-width if uniform."),
-        noise_rot: float = typer.Option(0.0, "--noise-rot", help="Orientation noise σ (rad); half-width if uniform."),
-        noise_joint: float = typer.Option(0.0, "--noise-joint", help="Joint-reading noise σ (rad or m)."),
-        resolution: float = typer.Option(0.0, "--resolution", help="Encoder resolution (rad or m); 0 = none."),
+        noise_pos_mm: float = noise_pos_option(0.0, "; half-width if uniform"),
+        noise_rot_mrad: float = noise_rot_option(0.0, "; half-width if uniform"),
+        noise_joint_mrad: float = typer.Option(0.0, "--noise-joint-mrad", help="Joint-reading noise σ (mrad; mm "
+                                                                               "for prismatic joints)."),
+        resolution_mrad: float = typer.Option(0.0, "--resolution-mrad", help="Encoder resolution (mrad; mm for "
+                                                                             "prismatic joints); 0 = none."),
         noise_dist: str = typer.Option("gaussian", "--noise-dist", help="gaussian | uniform."),
         errors: str = typer.Option("random", help="random | none | JSON/YAML file {parameter: error}."),
-        error_angle: float = typer.Option(1e-3, "--error-angle", help="σ of random angle errors (rad)."),
-        error_length: float = typer.Option(1e-3, "--error-length", help="σ of random length errors (m)."),
-        error_offset: float = typer.Option(1e-3, "--error-offset", help="σ of random joint-offset errors."),
+        error_angle_mrad: float = typer.Option(1.0, "--error-angle-mrad", help="σ of random angle errors (mrad)."),
+        error_length_mm: float = typer.Option(1.0, "--error-length-mm", help="σ of random length errors (mm)."),
+        error_offset_mrad: float = typer.Option(1.0, "--error-offset-mrad", help="σ of random joint-offset errors "
+                                                                                 "(mrad; mm for prismatic joints)."),
         error_gain: float = typer.Option(0.0, "--error-gain", help="σ of random joint-gain errors."),
         effects: Optional[List[str]] = typer.Option(
             None, "--effects", "-e",
             help="Effect NAME[:JOINT,JOINT] (repeat, or separate with ';'), e.g. joint_compliance:j2,j3."),
         effect_param: Optional[List[str]] = typer.Option(
-            None, "--effect-param", help="NAME=VALUE for an effect parameter, e.g. compliance_j2=2e-6 (repeat)."),
+            None, "--effect-param", help="NAME=VALUE for an effect parameter in SI units like the robot file, "
+                                         "e.g. compliance_j2=2e-6 (rad/(N·m)) (repeat)."),
         seed: int = typer.Option(0, help="Random seed."),
         margin: float = typer.Option(0.0, help="Fraction of each joint range left out at both ends."),
         dt: Optional[float] = typer.Option(None, "--dt", help="Seconds between poses (writes a t column)."),
@@ -78,6 +83,13 @@ def register(app: typer.Typer) -> None:
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="Dataset CSV to write."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth JSON to write."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON."),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
+        old_noise_joint: Optional[float] = deprecated_option("--noise-joint"),
+        old_resolution: Optional[float] = deprecated_option("--resolution"),
+        old_error_angle: Optional[float] = deprecated_option("--error-angle"),
+        old_error_length: Optional[float] = deprecated_option("--error-length"),
+        old_error_offset: Optional[float] = deprecated_option("--error-offset"),
         from_fit: Optional[Path] = typer.Option(
             None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
                                      "(geometric + named effects); --errors/--effects are ignored, the noise "
@@ -95,6 +107,20 @@ def register(app: typer.Typer) -> None:
         from estcal.io.robotfile import load_robot
         from estcal.simulate import ErrorModel, NoiseModel, simulate
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
+        noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 0.0)
+        noise_joint = resolve(noise_joint_mrad, MILLI, old_noise_joint, "--noise-joint", "--noise-joint-mrad",
+                              "rad or m", 1.0, 0.0)
+        resolution = resolve(resolution_mrad, MILLI, old_resolution, "--resolution", "--resolution-mrad", "rad or m",
+                             1.0, 0.0)
+        error_angle = resolve(error_angle_mrad, MILLI, old_error_angle, "--error-angle", "--error-angle-mrad", "rad",
+                              1.0, 1.0)
+        error_length = resolve(error_length_mm, MILLI, old_error_length, "--error-length", "--error-length-mm", "m",
+                               1.0, 1.0)
+        error_offset = resolve(error_offset_mrad, MILLI, old_error_offset, "--error-offset", "--error-offset-mrad",
+                               "rad or m", 1.0, 1.0)
         console = Console()
         try:
             nominal = load_robot(robot, root=root, tip=tip)
