@@ -441,9 +441,11 @@ def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: st
     cols.update(ds.context)
     cols.update(ds.columns)
     cols.update(extra or {})
+    from estcal.io.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     names = list(cols)
     M = np.column_stack([np.asarray(cols[n], float) for n in names])
-    np.savetxt(path, M, delimiter=",", header=",".join(names), comments="", fmt=float_format)
+    with atomic_write(path) as fh:
+        np.savetxt(fh, M, delimiter=",", header=",".join(names), comments="", fmt=float_format)
     return path

@@ -26,7 +26,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["InputError", "check_input_file", "read_text", "read_csv", "parse_csv_text", "CsvTable",
+__all__ = ["InputError", "check_input_file", "read_text", "read_csv", "read_json", "parse_csv_text", "CsvTable",
            "DELIMITERS"]
 
 # spreadsheet exports: comma, semicolon (locales with a decimal comma), tab
@@ -162,3 +162,17 @@ def read_csv(path, what: str = "dataset", error=InputError) -> CsvTable:
     """:func:`read_text` then :func:`parse_csv_text`."""
     p = Path(path)
     return parse_csv_text(read_text(p, what, error), str(p), what, error)
+
+
+def read_json(path, what: str = "JSON", error=InputError):
+    """Parse the JSON file ``path``; a syntax error names its line and column."""
+    import json
+
+    p = Path(path)
+    text = read_text(p, what, error)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{p}, line {exc.lineno}, column {exc.colno}: not valid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise error(f"{p}: not valid JSON (nested too deeply)") from None
