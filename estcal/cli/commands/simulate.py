@@ -150,8 +150,9 @@ def register(app: typer.Typer) -> None:
         except typer.BadParameter:
             raise
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)
