@@ -265,6 +265,9 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
 
     rows = problem.evaluate(theta)
     A, b = weighted(rows, theta)
+    if A.shape[0] < A.shape[1]:  # fewer equations than unknowns: singular whatever the data
+        raise UnidentifiableError(f"{A.shape[0]} equations for {A.shape[1]} free parameters — measure more poses "
+                                  f"or estimate fewer parameters")
     if check:
         check_identifiable(A, names)
     cost = float(b @ b)

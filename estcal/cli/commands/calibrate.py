@@ -43,7 +43,8 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
+from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data, warn,
+                               write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
@@ -280,7 +281,8 @@ def register(app: typer.Typer) -> None:
             _fail(str(exc))
         for d in [ds] + vals:
             for w in d.warnings:
-                console.print(f"warning: {d.where}: {w}")
+                warn(f"{d.where}: {w}")
+        check_distinct_poses(ds)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:
@@ -310,6 +312,7 @@ def register(app: typer.Typer) -> None:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
+        check_dof(res, data, known_noise)
         measure_name = problem.terms[0].method.name
         _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
         if json_path:

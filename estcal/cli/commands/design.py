@@ -80,6 +80,13 @@ def register(app: typer.Typer) -> None:
             names = parse_free(free, rb, method)
             model = DesignModel(rb, method, names, sigma=sigma_mm * 1e-3,
                                 sigma_rot=sigma_rot_mrad * 1e-3 if method == "pose" else None)
+            need = -(-model.p // model.rows_per_pose)  # ceil: poses for as many equations as parameters
+            if n < need and model.prior_information is None:
+                from estcal.cli.common import refuse
+
+                refuse(f"--n {n}: a plan of {n} poses gives {n * model.rows_per_pose} equations for {model.p} free "
+                       f"parameters — the information matrix is singular (every criterion infinite or zero); use "
+                       f"--n {need} or more, or fewer --free parameters")
             q_test = parse_poses(test_pose, rb)
             if q_test is None and CRITERIA[crit][1]:
                 q_test = default_test_pose(rb)
@@ -106,8 +113,9 @@ def register(app: typer.Typer) -> None:
                     box = ToolBox(rb, v[:3], v[3:])
                 amap = model.accuracy_map(model.covariance(plan.readings), n=map_n, rng=seed + 2, constraint=box)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         better = plan.value > base.max if larger_is_better(crit) else plan.value < base.min
         console.print(f"robot {rb.name}, method {method}, σ = {sigma_mm} mm, {model.p} free parameters")
         console.print(f"plan ({plan.method}, m = {plan.m}): {crit} = {plan.value:.6g}   [{CRITERIA[crit][2]}]")

@@ -47,7 +47,6 @@ def register(app: typer.Typer) -> None:
         """Propose the next measurement pose from the current estimate and covariance."""
         import numpy as np
         from rich.console import Console
-        from rich.markup import escape
 
         from estcal.design._cli import default_test_pose, format_readings, parse_poses
         from estcal.design.criteria import CRITERIA, normalise_criterion
@@ -74,8 +73,9 @@ def register(app: typer.Typer) -> None:
             nxt = propose_next_pose(model, st, crit, q_test=q_test, candidates=cand, n_candidates=n_candidates,
                                     rng=seed, refine=refine)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         console.print(f"robot {rb.name}, method {method}, {len(st.parameters)} parameters in the state")
         console.print("next pose (" + ", ".join(rb.joint_names) + "):")
         console.print("  " + format_readings(nxt.readings, rb)[0])

@@ -1,7 +1,6 @@
 """``estcal simulate``: a simulated calibration dataset with its ground truth."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
@@ -29,17 +28,27 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
+    from estcal.io.textinput import read_json, read_text
+
     if p.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        d = yaml.safe_load(p.read_text())
+        try:
+            d = yaml.safe_load(read_text(p, "errors", ValueError))
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{p}: invalid YAML ({' '.join(str(exc).split())})") from None
     else:
-        d = json.loads(p.read_text())
+        d = read_json(p, "errors JSON", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
         d = d["errors"]  # a truth JSON from an earlier run
     if not isinstance(d, dict):
         raise typer.BadParameter(f"{p}: expected a mapping {{parameter name: error}}")
-    return {str(k): float(v) for k, v in d.items()}
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or abs(v) == float("inf"):
+            raise ValueError(f"{p}: error of {k!r} must be a finite number (SI), got {v!r}")
+        out[str(k)] = float(v)
+    return out
 
 
 def register(app: typer.Typer) -> None:
@@ -167,13 +176,14 @@ def register(app: typer.Typer) -> None:
         except typer.BadParameter:
             raise
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)
         elif truth is not None:
-            truth.write_text(json.dumps(res.truth, indent=2))
+            write_json(truth, res.truth)
             truth_path = truth
         table = Table(title=f"estcal simulate — {res.summary.robot}", show_header=False)
         table.add_column("item", style="bold")
