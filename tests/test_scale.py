@@ -169,3 +169,16 @@ def test_fleet_discovery_errors(tmp_path):
     assert res.exit_code == 2 and "no robot file" in res.output  # every robot failed
     res = CliRunner().invoke(app, ["fleet", str(tmp_path), "--scheduler", "threads"])
     assert res.exit_code == 2 and "--scheduler" in res.output
+
+
+def test_design_restarts_identical_on_dask(client):
+    from estcal.design import DesignModel
+    from estcal.design.plans import optimise_continuous
+    from estcal.kinematics.robots import planar2
+
+    model = DesignModel(planar2(), "position", ["a_1", "a_2", "offset_1", "offset_2"], sigma=1e-3)
+    q0 = np.array([[-0.8, 0.35]])
+    a = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler="serial")
+    b = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler=client)
+    np.testing.assert_array_equal(a.readings, b.readings)
+    assert a.info == b.info and a.value == b.value and not a.info["failed_starts"]
