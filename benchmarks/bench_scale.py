@@ -73,6 +73,14 @@ def rss_mb() -> float:
     return psutil.Process().memory_info().rss / 2 ** 20
 
 
+def cpu_s() -> float:
+    return time.process_time()
+
+
+def worker_cpu(client) -> float:
+    return float(sum(client.run(cpu_s).values()))
+
+
 def timed(fn, *a, **k):
     l0 = load()
     t = time.perf_counter()
@@ -112,13 +120,16 @@ def bench_calibrations(client, n, workers):
     ser, ts, cs, ls = timed(run_tasks, calibrate, tasks, progress=False)
     prc, tp, _, lp = timed(run_tasks, calibrate, tasks, scheduler="processes", n_workers=workers, progress=False)
     run_tasks(calibrate, tasks[: 2 * workers], scheduler=client, chunksize=1, progress=False)  # worker warm-up
+    w0 = worker_cpu(client)
     dsk, td, _, ld = timed(run_tasks, calibrate, tasks, scheduler=client, progress=False)
+    wcpu = worker_cpu(client) - w0
     dsk1, td1, _, ld1 = timed(run_tasks, calibrate, tasks, scheduler=client, chunksize=1, progress=False)
     same = all(np.array_equal(a, b) for r in (prc, dsk, dsk1) for a, b in zip(ser.values(), r.values()))
     return {"n": n, "poses": 50, "n_parameters": len(tasks[0][1]), "build_s": build,
             "serial_s": ts, "serial_cpu_s": cs, "serial_ms_per_task": 1e3 * ts / n, "load_serial": ls,
             "processes_s": tp, "processes_speedup": ts / tp, "load_processes": lp,
-            "dask_s": td, "dask_speedup": ts / td, "load_dask": ld,
+            "dask_s": td, "dask_speedup": ts / td, "load_dask": ld, "dask_worker_cpu_s": wcpu,
+            "dask_cpu_efficiency": cs / wcpu,
             "dask_chunksize1_s": td1, "dask_chunksize1_speedup": ts / td1, "load_dask_chunksize1": ld1,
             "identical_to_serial": bool(same), "workers": workers}
 
@@ -162,7 +173,8 @@ def bench_fleet(client, n, tmp):
                          progress=False)
     out = _folder_bytes(Path(tmp) / "m1") / max(1, s.n_ok)
     return {"n": n, "ok": s.n_ok, "serial_s": ts, "serial_ms_per_robot": 1e3 * ts / n, "load_serial": ls,
-            "dask_s": td, "dask_speedup": ts / td, "load_dask": ld, "input_kb_per_robot": inp / 1024,
+            "dask_s": td, "dask_speedup": ts / td, "load_dask": ld, "dask_worker_cpu_s": wcpu,
+            "dask_cpu_efficiency": cs / wcpu, "input_kb_per_robot": inp / 1024,
             "model_kb_per_robot": out / 1024, "files_per_robot": 4}
 
 
@@ -203,8 +215,11 @@ def main(argv=None) -> dict:
     out = {"environment": {"python": platform.python_version(), "cpus": os.cpu_count(),
                            "machine": platform.machine(), "load_start": list(os.getloadavg())}}
     t = time.perf_counter()
-    with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+    import dask
+
+    with dask.config.set({"distributed.worker.profile.enabled": False}), \
+            LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                         dashboard_address=None) as cluster, Client(cluster) as client:
         out["cluster_start_s"] = time.perf_counter() - t
         out["calibrations"] = bench_calibrations(client, args.n, args.workers)
         c = out["calibrations"]
@@ -213,7 +228,9 @@ def main(argv=None) -> dict:
               f"{c['processes_s']:.2f} s = {c['processes_speedup']:.2f}× (load {c['load_processes']}); Dask "
               f"LocalCluster×{args.workers} {c['dask_s']:.2f} s = {c['dask_speedup']:.2f}× (load {c['load_dask']}), "
               f"one task per job {c['dask_chunksize1_speedup']:.2f}×; identical to serial: "
-              f"{c['identical_to_serial']}; cluster start {out['cluster_start_s']:.1f} s")
+              f"{c['identical_to_serial']}; cluster start {out['cluster_start_s']:.1f} s; CPU: serial "
+              f"{c['serial_cpu_s']:.2f} s, Dask workers {c['dask_worker_cpu_s']:.2f} s (efficiency "
+              f"{c['dask_cpu_efficiency']:.2f})")
         out["overhead"] = o = bench_overhead(client, args.noop)
         print(f"per-task overhead ({o['n']} empty tasks): Dask one task per job {o['dask_ms_per_task_chunksize1']:.2f} ms "
               f"(load {o['load_dask_chunksize1']}), chunked {o['dask_ms_per_task_chunked']:.3f} ms; processes "

@@ -269,9 +269,14 @@ def _dask_client(scheduler: str, n_workers):
     except ImportError:  # pragma: no cover - the test extra installs it
         raise ValueError(f"scheduler {scheduler!r} needs dask.distributed: pip install 'estcal[dask]'") from None
     if scheduler == "local":
-        # one thread per process: the work is GIL-bound Python + small numpy calls
-        cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
-                               processes=True, dashboard_address=None)
+        import dask
+
+        # one thread per process: the work is GIL-bound Python + small numpy calls; no
+        # statistical profiler (a thread sampling the task's stack every 10 ms, half of
+        # an idle worker's CPU — docs/scaling.md)
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
+                                   processes=True, dashboard_address=None)
         client = Client(cluster)
         return client, _OwnCluster(cluster, client)
     client = Client(scheduler, timeout="10s")
