@@ -55,6 +55,9 @@ def register(app: typer.Typer) -> None:
                                               help="Restrict the map to a tool-position box "
                                                    "'xmin,ymin,zmin,xmax,ymax,zmax' (mm)."),
         seed: int = typer.Option(0, "--seed"),
+        scheduler: str = typer.Option("processes", "--scheduler", help="Where the continuous starts run: "
+                                      "serial | processes | local (Dask LocalCluster) | tcp://host:8786."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (processes / local)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON."),
     ) -> None:
         """Optimise which poses to measure (plan of m poses) and compare with random plans."""
@@ -95,7 +98,8 @@ def register(app: typer.Typer) -> None:
                 if cand is not None:
                     raise ValueError("--candidates applies to the discrete algorithms, not 'continuous'")
                 plan = optimise_continuous(model, n, crit, n_starts=restarts, rng=seed, q_test=q_test,
-                                           executor="serial" if restarts <= 1 else None, prescreen=200)
+                                           scheduler=scheduler if restarts > 1 else "serial", n_workers=workers,
+                                           prescreen=200)
             else:
                 plan = optimise_discrete(model, n, crit, candidates=cand, n_candidates=n_candidates,
                                          algorithm=algorithm, restarts=restarts, rng=seed, q_test=q_test)

@@ -51,6 +51,42 @@ def _load_errors(errors: str):
     return out
 
 
+def _simulate_fleet(console, n_robots, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler, json_path):
+    from estcal.cli.common import fail
+    from estcal.scale.runner import check_scheduler
+    from estcal.scale.simfleet import simulate_fleet
+
+    if out is None:
+        fail("--fleet needs --out DIR (the fleet folder to write)")
+    if n_robots < 1:
+        fail(f"--fleet: the number of robots must be ≥ 1, got {n_robots}")
+    try:
+        check_scheduler(scheduler)
+    except ValueError as exc:
+        fail(f"--scheduler: {exc}")
+    if measure == "position":  # a fleet is measured as full poses unless asked otherwise
+        measure = "pose"
+    try:
+        rr = simulate_fleet(n_robots, out, robot=robot, n_poses=n, n_validate=n, measure=measure,
+                            noise_pos=noise_pos or 5e-5, noise_rot=noise_rot or 5e-4, seed=seed,
+                            scheduler=scheduler)
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        fail(str(exc))
+    for f in rr.failures:
+        console.print(f"[red]failed:[/red] {f}")
+    rows = [r for r in rr.results if r is not None]
+    with_eff = [r for r in rows if r["effects"]]
+    console.print(f"fleet of {len(rows)} robots in {out}/ ({n} calibration + {n} validation poses each, "
+                  f"{measure}, noise {1e3 * (noise_pos or 5e-5):.3g} mm / {1e3 * (noise_rot or 5e-4):.3g} mrad); "
+                  f"{len(with_eff)} with an effect: " + (", ".join(f"{r['robot']} {r['effects'][0]}"
+                                                                   for r in with_eff[:6]) or "none")
+                  + (" …" if len(with_eff) > 6 else ""), soft_wrap=True)
+    if json_path is not None:
+        write_json(json_path, {"fleet": str(out), "robots": rows, "failures": [f.to_dict() for f in rr.failures]})
+    if rr.failures:
+        raise typer.Exit(2)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("simulate")
     def simulate_cmd(
@@ -103,6 +139,14 @@ def register(app: typer.Typer) -> None:
             None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
                                      "(geometric + named effects); --errors/--effects are ignored, the noise "
                                      "defaults to the fit's, --measure position means the fit's kind."),
+        fleet: Optional[int] = typer.Option(
+            None, "--fleet", help="Simulate a fleet of N robots into --out DIR (one folder per robot: data.csv, "
+                                  "validate.csv with --n new poses, truth.json; shared DIR/robot.yaml) with "
+                                  "random errors and, for half of them, one random effect. Noise defaults to "
+                                  "0.05 mm / 0.5 mrad. Input of estcal fleet."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Fleet folder to write (with --fleet)."),
+        scheduler: str = typer.Option("serial", "--scheduler", help="With --fleet: serial | processes | local | "
+                                                                    "tcp://host:8786."),
     ) -> None:
         """Simulate a calibration dataset: true robot = nominal + parameter errors + effects.
 
@@ -131,6 +175,10 @@ def register(app: typer.Typer) -> None:
         error_offset = resolve(error_offset_mrad, MILLI, old_error_offset, "--error-offset", "--error-offset-mrad",
                                "rad or m", 1.0, 1.0)
         console = Console()
+        if fleet is not None:
+            _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
+                            json_path)
+            return
         try:
             nominal = load_robot(robot, root=root, tip=tip)
             eff_specs = []
