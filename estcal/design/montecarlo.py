@@ -107,7 +107,9 @@ def monte_carlo_test_pose_error(model: DesignModel, readings, q_test, n_reps: in
         noise_model = NoiseModel(position=model.sigma, orientation=model.sigma_rot or 1.0, known=True)
         meth = {"position": "position", "pose": "pose", "points": "points"}[model.method]
         p_nom_theta = model.theta
-        for k in range(n_reps):
+        from estcal.progress import progress
+
+        for k in progress(range(n_reps), desc="Monte Carlo calibrations", unit="rep"):
             th = p_nom_theta.copy()
             th[idx] += rng.normal(0, 1, model.p) * std
             truth = robot.with_values(th)

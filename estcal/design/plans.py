@@ -417,21 +417,26 @@ def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidat
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     best_idx, best = None, np.inf
     history = []
-    for r in range(max(1, restarts)):
-        start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
-        if algorithm == "greedy":
-            if r > 0:
-                break
-            idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
-        elif algorithm == "fedorov":
-            idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
-        elif algorithm == "detmax":
-            idx, loss = _detmax_idx(F, B, M0, start, sc)
-        else:
-            raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
-        history.append(loss)
-        if loss < best:
-            best, best_idx = loss, idx
+    from estcal.progress import progress
+
+    n_runs = 1 if algorithm == "greedy" else max(1, restarts)
+    with progress(total=n_runs, desc=f"design ({algorithm}, m={m})", unit="restart") as bar:
+        for r in range(max(1, restarts)):
+            start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
+            if algorithm == "greedy":
+                if r > 0:
+                    break
+                idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
+            elif algorithm == "fedorov":
+                idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
+            elif algorithm == "detmax":
+                idx, loss = _detmax_idx(F, B, M0, start, sc)
+            else:
+                raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
+            history.append(loss)
+            if loss < best:
+                best, best_idx = loss, idx
+            bar.update(1)
     Q = cand[best_idx]
     return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), algorithm,
                 model.robot.joint_names, {"candidate_indices": best_idx, "restart_losses": history,
@@ -514,17 +519,26 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
         S += list(Qs[:need])
     tasks = [(model, s.ravel(), m, crit, J_test, constraint, maxiter) for s in S]
     own = None
-    if executor == "serial" or (executor is None and len(tasks) == 1):
-        results = [_local_continuous(t) for t in tasks]
-    else:
-        if executor is None:
-            own = executor = ProcessPoolExecutor(max_workers=max_workers)
-        try:
-            futs = [executor.submit(_local_continuous, t) for t in tasks]
-            results = [f.result() for f in futs]
-        finally:
-            if own is not None:
-                own.shutdown()
+    from estcal.progress import progress
+
+    with progress(total=len(tasks), desc=f"design (continuous, m={m})", unit="start") as bar:
+        if executor == "serial" or (executor is None and len(tasks) == 1):
+            results = []
+            for t in tasks:
+                results.append(_local_continuous(t))
+                bar.update(1)
+        else:
+            if executor is None:
+                own = executor = ProcessPoolExecutor(max_workers=max_workers)
+            try:
+                futs = [executor.submit(_local_continuous, t) for t in tasks]
+                results = []
+                for f in futs:  # in submission order (the result order is part of the plan's info)
+                    results.append(f.result())
+                    bar.update(1)
+            finally:
+                if own is not None:
+                    own.shutdown()
     feas = [r for r in results if r[3]] or results
     best = min(feas, key=lambda r: r[1])
     Q = best[0]

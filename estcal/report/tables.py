@@ -65,9 +65,9 @@ def mcmc_table(res, unit) -> Table | None:
         # two significant digits of the interval's width, whatever the parameter's magnitude
         decimals.append(int(np.clip(1 - np.floor(np.log10(w)), 0, 12)) if w > 0 and np.isfinite(w) else 3)
 
-    def fmt(i, j, v, digits):
+    def fmt(i, j, v, digits):  # terminal (5 digits): 2 significant digits of the width; reports: 4 more
         if j in (1, 2, 3):
-            return f"{v:.{decimals[i] + max(digits - 5, 0)}f}"
+            return f"{v:.{decimals[i] + (4 if digits > 5 else 0)}f}"
         return f"{v:.{digits}g}"
 
     note = (f"{ex.get('n_walkers')} walkers × {ex.get('n_steps')} steps, burn-in {ex.get('burn_in')}, "
