@@ -106,15 +106,19 @@ def calibration_report(folder, res, problem, validation=(), *, unit, label=None,
             from estcal.plots.posterior import corner_figure
 
             try:
-                fig = corner_figure((np.asarray(samples) - res.nominal) * [f for _, f in units],
-                                    [f"{n} − initial ({u or '—'})" for n, (u, _) in zip(res.names, units)])
+                # joint-model parameters first: the base frame and markers are registration
+                order = sorted(range(len(res.names)), key=lambda i: res.names[i].startswith(("base_", "marker")))
+                fac = np.array([f for _, f in units])
+                X = (np.asarray(samples) - res.nominal) * fac
+                fig = corner_figure(X[:, order], [f"{res.names[i]} − initial ({units[i][0] or '—'})" for i in order])
             except ImportError:
                 rep.text("corner plot skipped: the optional 'corner' package is not installed "
                          "(pip install estcal[mcmc])")
             else:
                 rep.figure("posterior_corner.png", fig,
-                           "Posterior corner plot of the change from the initial value (first 8 "
-                           "parameters, display units), 2.5 / 50 / 97.5 % quantiles dashed.")
+                           "Posterior corner plot of the change from the initial value (up to 8 "
+                           "parameters, joint-model ones before the base frame and markers; display units), "
+                           "2.5 / 50 / 97.5 % quantiles dashed.")
     if result_dict is not None:
         import json
 
