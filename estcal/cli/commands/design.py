@@ -11,7 +11,7 @@ JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
 ``rho0_mm`` (predicted RMS position error at each test pose), ``test_poses_rad``,
 ``baseline`` (:meth:`BaselineStats.to_dict`: min/mean/max/percentiles),
 ``beats_random`` (plan better than the best random plan), ``accuracy_map`` (with ``--map N``:
-``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``).
+``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``; ``--report DIR`` implies ``--map 500``).
 """
 from __future__ import annotations
 

@@ -9,7 +9,8 @@ measuring a candidate pose is the Kalman / MAP update
 
 JSON keys: ``robot``, ``method``, ``criterion``, ``next`` (:meth:`NextPose.to_dict`:
 ``readings_rad``, ``readings_deg``, ``value_before``, ``value_after``, ``reduction``,
-``predicted_std``), ``test_poses_rad``.
+``predicted_std``), ``test_poses_rad``; with ``--report DIR``: ``accuracy_map`` (``before``, ``after``:
+predicted position-error std on the same ``--map N`` random poses, see :mod:`estcal.report.design`).
 """
 from __future__ import annotations
 
