@@ -51,6 +51,7 @@ from scipy import stats
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
+from estcal.progress import progress
 
 from .analysis import residual_analysis, save_plots
 from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
@@ -500,7 +501,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         Q = orthonormal_basis(A)
         b_perp = b - Q @ (Q.T @ b)
         table = []
-        for c in cands:
+        for c in progress(cands, desc=f"diagnose: step {step + 1}, candidate effects", unit="effect"):
             if c.label in used:
                 continue
             have = set(cur_problem.robot.params.names)

@@ -11,7 +11,7 @@ JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
 ``rho0_mm`` (predicted RMS position error at each test pose), ``test_poses_rad``,
 ``baseline`` (:meth:`BaselineStats.to_dict`: min/mean/max/percentiles),
 ``beats_random`` (plan better than the best random plan), ``accuracy_map`` (with ``--map N``:
-``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``).
+``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``; ``--report DIR`` implies ``--map 500``).
 """
 from __future__ import annotations
 
@@ -59,6 +59,9 @@ def register(app: typer.Typer) -> None:
                                       "serial | processes | local (Dask LocalCluster) | tcp://host:8786."),
         workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (processes / local)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: plan, criteria, "
+                                              "random-plan histogram, predicted error over the workspace (PNG) "
+                                              "and index.html. Implies --map 500 unless --map is given."),
     ) -> None:
         """Optimise which poses to measure (plan of m poses) and compare with random plans."""
         import numpy as np
@@ -77,6 +80,8 @@ def register(app: typer.Typer) -> None:
         sigma_rot_mrad = resolve(sigma_rot_mrad, 1.0, old_sigma_rot, "--sigma-rot", "--noise-rot-mrad", "mrad", 1.0,
                                  1.0)
         console = Console()
+        if report is not None and map_n <= 0:
+            map_n = 500  # the report's workspace figure needs an accuracy map
         try:
             crit = normalise_criterion(criterion)
             rb = resolve_robot(robot)
@@ -104,7 +109,8 @@ def register(app: typer.Typer) -> None:
                 plan = optimise_discrete(model, n, crit, candidates=cand, n_candidates=n_candidates,
                                          algorithm=algorithm, restarts=restarts, rng=seed, q_test=q_test)
             crits = evaluate_plan(model, plan.readings, q_test=q_test)
-            base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test)
+            base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test,
+                                   keep_values=report is not None)
             amap = None
             if map_n > 0:
                 from estcal.design.model import ToolBox
@@ -145,12 +151,20 @@ def register(app: typer.Typer) -> None:
             console.print(escape(str(amap)))
         console.print(f"optimised plan {'beats' if better else 'does NOT beat'} the best of "
                       f"{base.n_plans} random plans")
+        out = {"robot": rb.name, "method": method, "sigma_mm": sigma_mm, "free": names, "criterion": crit,
+               "plan": plan.to_dict(), "criteria": crits.to_dict(),
+               "rho0_mm": None if rho is None else rho.tolist(),
+               "test_poses_rad": None if q_test is None else q_test.tolist(),
+               "baseline": base.to_dict(), "beats_random": bool(better),
+               "accuracy_map": None if amap is None else amap.to_dict()}
         if json_path is not None:
-            out = {"robot": rb.name, "method": method, "sigma_mm": sigma_mm, "free": names, "criterion": crit,
-                   "plan": plan.to_dict(), "criteria": crits.to_dict(),
-                   "rho0_mm": None if rho is None else rho.tolist(),
-                   "test_poses_rad": None if q_test is None else q_test.tolist(),
-                   "baseline": base.to_dict(), "beats_random": bool(better),
-                   "accuracy_map": None if amap is None else amap.to_dict()}
             write_json(json_path, out)
             console.print(f"wrote {json_path}")
+        if report is not None:
+            from estcal.report.design import design_report
+            from estcal.report.units import display_unit
+
+            design_report(report, model, plan, crits, base, amap, rho, q_test, larger_is_better=larger_is_better(crit),
+                          unit=lambda nm: display_unit(nm, rb), title=f"estcal design — {rb.name}",
+                          result_dict=out)
+            console.print(f"report: {report}/index.html")

@@ -57,8 +57,8 @@ def register(app: typer.Typer) -> None:
                                                       "(backlash by approach direction)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
-        report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
-                                                                     "summary.txt."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: residual figures "
+                                              "(PNG), diagnosis.json, summary.txt and index.html with the tables."),
     ) -> None:
         """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
         from estcal.discrepancy import diagnose
@@ -109,8 +109,11 @@ def register(app: typer.Typer) -> None:
         res.model["urdf_chain_masses"] = bool(urdf_masses and rob.meta.get("urdf"))
         typer.echo(str(res))
         if report is not None:
+            from estcal.report.diagnose import diagnose_report
+
             res.to_json(Path(report) / "diagnosis.json")
-            typer.echo(f"report: {report}/ ({', '.join(res.report_files)})")
+            diagnose_report(report, res, title=f"estcal diagnose — {rob.name}, {data}")
+            typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")

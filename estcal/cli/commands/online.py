@@ -63,6 +63,9 @@ def register(app: typer.Typer) -> None:
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
                                                  "tests and the printed history as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: estimate ± σ after "
+                                              "every row, NIS per row with the innovation tests (PNG), tables and "
+                                              "index.html."),
     ) -> None:
         """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
         are printed as the rows arrive (mm, mrad; the JSON is SI)."""
@@ -187,6 +190,7 @@ def register(app: typer.Typer) -> None:
         delim = sniff_delimiter(first)
         header = [h.strip() for h in next(csv.reader([first], delimiter=delim))]
         history = []
+        trace_x, trace_s = [], []  # every row's estimate and std, for --report
         shown = list(range(min(show, len(names))))
 
         def live_table():
@@ -228,6 +232,9 @@ def register(app: typer.Typer) -> None:
                 step = flt.step(sub)
             except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
                 fail(exc)
+            if report is not None:
+                trace_x.append(flt.x)
+                trace_s.append(flt.std)
             if burn is None and flt.n_rows >= 2 * len(names):
                 burn = flt.n_steps
             k = flt.n_steps
@@ -264,11 +271,19 @@ def register(app: typer.Typer) -> None:
         except ValueError as exc:
             tests = {"error": str(exc)}
             console.print(f"innovation tests: {exc}")
+        out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
+               "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
+                                                         "nominal": float(pv.values[fidx[i]])}
+                                                     for i, n in enumerate(names)},
+               "covariance": flt.P.tolist(), "innovation": tests, "history": history}
         if json_path is not None:
-            out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
-                   "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
-                                                             "nominal": float(pv.values[fidx[i]])}
-                                                         for i, n in enumerate(names)},
-                   "covariance": flt.P.tolist(), "innovation": tests, "history": history}
             write_json(json_path, out)
             console.print(f"JSON -> {json_path}")
+        if report is not None:
+            from estcal.report.online import online_report
+            from estcal.report.units import display_unit
+
+            online_report(report, names, pv.values[fidx], trace_x, trace_s, flt.monitor.nis, flt.monitor.dims, tests,
+                          unit=lambda n: display_unit(n, rb), title=f"estcal online — {rb.name}, {where}",
+                          result_dict=out)
+            console.print(f"report -> {report}/index.html")
