@@ -95,7 +95,11 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
     markers : (k, 3) points in the tip frame (metres), optional.
     """
     urdf = load_urdf(path)
-    root = root or urdf.base_link
+    if root is None:  # the link that is no joint's child (yourdfpy's base_link needs the scene graph)
+        roots = sorted({lk.name for lk in urdf.robot.links} - {j.child for j in urdf.robot.joints})
+        root = urdf.base_link or (roots[0] if len(roots) == 1 else None)
+        if root is None:
+            raise ValueError(f"{path}: give --root; the URDF has {len(roots)} root links {roots[:5]}")
     if tip is None:
         leaves = {lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints}
         if len(leaves) != 1:

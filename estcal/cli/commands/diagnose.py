@@ -56,6 +56,9 @@ def register(app: typer.Typer) -> None:
                                                       "(backlash by approach direction)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the identified robot (geometry + named effects) as a robot file "
+                                       "(.yaml) with a 'calibration:' block; reload it with --robot."),
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
                                                                      "summary.txt."),
     ) -> None:
@@ -101,3 +104,9 @@ def register(app: typer.Typer) -> None:
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
