@@ -100,7 +100,7 @@ def _check_block(block, files_roles, fit):
 def puma_pose(tmp_path_factory):
     d = tmp_path_factory.mktemp("puma")
     kw = dict(measure="pose", noise={"position": 5e-5, "orientation": 5e-4})
-    tr = simulate("puma560", n_poses=40, seed=1, **kw)
+    tr = simulate("puma560", n_poses=40, seed=1, errors="random", **kw)
     va = simulate("puma560", n_poses=15, seed=2, errors=tr.truth["errors"], **kw)
     return write_dataset(d / "train.csv", tr.dataset), write_dataset(d / "valid.csv", va.dataset)
 

@@ -101,6 +101,9 @@ class CalibrationResult:
         return float(np.sqrt(self.chi2 / self.dof)) if self.dof > 0 else float("nan")
 
     def parameter(self, name: str) -> tuple[float, float]:
+        """``(estimate, std)`` of a free parameter (SI units)."""
+        if name not in self.names:
+            raise ValueError(f"{name!r} is not an estimated parameter; estimated: {', '.join(self.names)}")
         i = self.names.index(name)
         return float(self.estimate[i]), float(self.std[i])
 
