@@ -129,6 +129,8 @@ def test_calibrate_saved_model_reproduces_the_fit_through_fk(puma_pose, tmp_path
     assert block["rmse_mm"]["validation"][0]["after"] == pytest.approx(fit["rmse_mm"]["validation"][0], rel=1e-12)
     names, C = calibration_covariance(load_robot(model))
     assert names == list(fit["parameters"]) and C.shape == (len(names), len(names))
+    if estimator != "lm":
+        return
     # the saved model is accepted wherever a robot is: calibrating it again on the same data moves nothing
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", str(model), "--json", str(tmp_path / "again.json")])
     assert r.exit_code == 0, r.output
