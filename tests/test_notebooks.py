@@ -25,7 +25,7 @@ NOTEBOOKS = sorted(NB_DIR.glob("*.ipynb"))
 
 def test_notebooks_found():
     names = {p.name for p in NOTEBOOKS}
-    assert {"uncertainty.ipynb"} <= names, names
+    assert {"uncertainty.ipynb", "experiment_design.ipynb"} <= names, names
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
