@@ -3,8 +3,9 @@
 Every fenced block whose info string is exactly ``python`` is executed; the blocks of a page
 share one namespace, so a page reads as one script (docs/api.md, "Documentation snippets").
 Blocks meant as illustration only are fenced ``python no-run`` (or ``pycon`` for an interactive
-session) and are skipped. A ```` ```text output ```` block that is the next fenced block after a code
-block is its printed output and is compared with what the block prints. Tracebacks give the page and its line: ``File "docs/api.md", line 42``.
+session) and are skipped. A ```` ```text output ```` block that is the next fenced block after a
+code block is its printed output and is compared with what the block prints. Tracebacks give the
+page and its line: ``File "docs/api.md", line 42``.
 
 Usage (also what the tests do, one subprocess per page so that pages cannot leak state —
 registered effects, matplotlib figures — into each other or into the test process)::

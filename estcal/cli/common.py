@@ -8,7 +8,7 @@ import typer
 
 from estcal.io.jsonio import write_json
 
-__all__ = ["fail", "write_json", "count_point_columns", "robot_for_data"]
+__all__ = ["fail", "write_json", "count_point_columns", "robot_for_data", "save_model_or_fail"]
 
 
 def fail(msg: str, code: int = 2):
@@ -46,3 +46,13 @@ def robot_for_data(spec, data, root=None, tip=None, points=None):
         return load_robot(spec, root=root, tip=tip, n_markers=n_markers), n_markers
     except (ValueError, FileNotFoundError, KeyError) as exc:
         fail(str(exc))
+
+
+def save_model_or_fail(result, path, robot_spec) -> str:
+    """``result.save_model(path)`` (calibration or diagnosis) with the robot spec in the
+    provenance; a clear error on failure. Returns the line to print."""
+    try:
+        result.save_model(path, {"robot": robot_spec})
+    except (ValueError, OSError) as exc:
+        fail(f"--save-model {path}: {exc}")
+    return f"wrote {path} (load it with --robot {path})"

@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
+from estcal.cli.common import count_point_columns, fail, robot_for_data, save_model_or_fail, write_json
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
@@ -319,8 +319,4 @@ def register(app: typer.Typer) -> None:
             res.to_json(json_path)
             console.print(f"wrote {json_path}")
         if save_model:
-            try:
-                res.save_model(save_model, {"robot": robot})
-            except (ValueError, OSError) as exc:
-                _fail(f"--save-model {save_model}: {exc}")
-            console.print(f"wrote {save_model} (load it with --robot {save_model})")
+            console.print(save_model_or_fail(res, save_model, robot))
