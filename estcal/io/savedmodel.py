@@ -142,10 +142,19 @@ def save_calibration(result, path, provenance: dict | None = None) -> Path:
         extra.setdefault("selection_criterion", sel.get("criterion"))
     extra["covariance_source"] = result.covariance_source
     extra["converged"] = bool(result.converged)
+    # Unknowns of the measurement method (a plane, a sphere centre …) are not robot parameters:
+    # the block keeps the robot's part of the covariance (its marginal) and lists those apart.
+    kinds = dict(zip(problem.params.names, problem.params.kinds))
+    keep = [i for i, n in enumerate(result.names) if kinds.get(n) != "other"]
+    other = [i for i in range(len(result.names)) if i not in keep]
+    if other:
+        extra["method_unknowns"] = {result.names[i]: {"estimate": float(result.estimate[i]),
+                                                      "std": float(result.std[i])} for i in other}
+    C = np.asarray(result.covariance, float)[np.ix_(keep, keep)]
     extra.update(provenance or {})
     block = calibration_block(estimator=result.method, train=[t.data for t in problem.terms],
-                              validation=result.validation_data, free=result.names,
-                              covariance=result.covariance, noise=problem.terms[0].noise,
+                              validation=result.validation_data, free=[result.names[i] for i in keep],
+                              covariance=C, noise=problem.terms[0].noise,
                               sigma0=result.sigma0, rmse_mm=rm, **extra)
     return _write(robot, block, path)
 
