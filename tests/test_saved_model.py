@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 from estcal.cli.main import app
 from estcal.io import load_dataset, write_dataset
 from estcal.io.robotfile import calibration_covariance, load_robot
+from estcal.kinematics.transforms import matrix_to_quat
 from estcal.simulate import simulate
 
 RUN = CliRunner()
@@ -121,6 +122,8 @@ def test_calibrate_saved_model_reproduces_the_fit_through_fk(puma_pose, tmp_path
         out = _fk(tmp_path, data, model)
         p = np.column_stack([out["x"], out["y"], out["z"]])
         assert np.abs(p - kin.p).max() < 1e-12
+        quat = np.column_stack([out[c] for c in ("qw", "qx", "qy", "qz")])
+        assert np.abs(quat - matrix_to_quat(kin.R)).max() < 1e-12  # orientation too (rad-level 1e-12)
     block = yaml.safe_load(model.read_text())["calibration"]
     _check_block(block, [(train, "train"), (valid, "validation")], fit)
     assert block["estimator"] == estimator and block["noise"]["position"] == 5e-5
