@@ -40,7 +40,6 @@ References: Schwarz (1978) for BIC; the nested F test (e.g. Seber & Lee,
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +51,7 @@ from scipy import stats
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
+from estcal.progress import progress
 
 from .analysis import residual_analysis, save_plots
 from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
@@ -278,10 +278,9 @@ class DiagnosisResult:
                        "report_files": self.report_files})
 
     def to_json(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        from estcal.io.jsonio import write_json
+
+        return write_json(path, self.to_dict())
 
     def __str__(self) -> str:
         def f(x):
@@ -502,7 +501,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         Q = orthonormal_basis(A)
         b_perp = b - Q @ (Q.T @ b)
         table = []
-        for c in cands:
+        for c in progress(cands, desc=f"diagnose: step {step + 1}, candidate effects", unit="effect"):
             if c.label in used:
                 continue
             have = set(cur_problem.robot.params.names)
@@ -686,7 +685,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                                extended=(cur_problem, cur_theta) if causes else None)
         result.report_files = files + ["diagnosis.json", "summary.txt"]
         result.to_json(folder / "diagnosis.json")
-        (folder / "summary.txt").write_text(str(result) + "\n")
+        from estcal.io.atomic import atomic_write_text
+
+        atomic_write_text(folder / "summary.txt", str(result) + "\n")
     return result
 
 

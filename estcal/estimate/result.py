@@ -74,6 +74,8 @@ class CalibrationResult:
     sigma0 : posterior standard deviation of unit weight √(χ²/dof)
     accuracy : {"train": accuracy dict before/after, "validation": [...]} (mm / mrad)
     extra : estimator-specific fields (e.g. credible intervals, innovation statistics)
+    samples : (n_draws, p) posterior draws of the free parameters (MCMC only; kept in memory
+        for plots, not serialised)
     """
 
     method: str
@@ -91,6 +93,7 @@ class CalibrationResult:
     covariance_source: str = "model"
     accuracy: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    samples: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def sigma0(self) -> float:

@@ -18,7 +18,6 @@ half-widths, as in the textbook's ε/2 (Mooring–Roth–Driels §4.6).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -234,11 +233,11 @@ class SimulationResult:
         p = write_dataset(csv_path, self.dataset, float_format=float_format)
         t = None
         if truth_path is not None:
-            t = Path(truth_path)
-            t.parent.mkdir(parents=True, exist_ok=True)
+            from estcal.io.jsonio import write_json
+
             truth = dict(self.truth)
             truth["dataset"] = str(p)
-            t.write_text(json.dumps(truth, indent=2))
+            t = write_json(truth_path, truth)
         return p, t
 
     def to_dict(self) -> dict:

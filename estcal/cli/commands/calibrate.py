@@ -43,15 +43,14 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
+from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data, warn,
+                               write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
            "count_point_columns", "LEVELS"]
-
-_ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
 
 # --------------------------------------------------------------------------- helpers
 
@@ -115,6 +114,12 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+    from estcal.report.tables import mcmc_table, rich_table
+
+    mt = mcmc_table(res, lambda n: _unit(n, robot))  # MCMC: credible intervals, ESS and τ per parameter
+    if mt is not None:
+        console.print(rich_table(mt))
+        console.print(mt.note)
 
 
 def _regularize(value):
@@ -200,6 +205,9 @@ def register(app: typer.Typer) -> None:
         option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
                                                               "--option q=1e-5 --option optimizer=dogleg."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: PNG figures (errors "
+                                              "before/after, residual vs joints, parameters ±2σ, correlation, "
+                                              "MCMC corner plot) and index.html with the tables."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
@@ -280,7 +288,8 @@ def register(app: typer.Typer) -> None:
             _fail(str(exc))
         for d in [ds] + vals:
             for w in d.warnings:
-                console.print(f"warning: {d.where}: {w}")
+                warn(f"{d.where}: {w}")
+        check_distinct_poses(ds)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:
@@ -310,11 +319,19 @@ def register(app: typer.Typer) -> None:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
+        check_dof(res, data, known_noise)
         measure_name = problem.terms[0].method.name
         _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
+        res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
+                         measure=measure_name, estimator=estimator, noise=noise.to_dict(), points=n_markers)
         if json_path:
-            res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
-                             measure=measure_name, estimator=estimator,
-                             noise=noise.to_dict(), points=n_markers)
             res.to_json(json_path)
             console.print(f"wrote {json_path}")
+        if report is not None:
+            from estcal.report.calibration import calibration_report
+
+            rep = calibration_report(report, res, problem, vals, unit=lambda n: _unit(n, rob),
+                                     label=sel.regroup_label if sel is not None else None, data_path=str(data),
+                                     validate_paths=[str(v) for v in validate], result_dict=res.to_dict(),
+                                     title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
+            console.print(f"report: {report}/index.html ({len(rep.files)} figures)")

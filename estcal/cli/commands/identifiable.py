@@ -168,7 +168,6 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Identifiable, no-effect and regrouped parameters (GECARO App. III) for a measurement method."""
         from rich.console import Console
-        from rich.markup import escape
 
         console = Console()
         try:
@@ -176,8 +175,9 @@ def register(app: typer.Typer) -> None:
                                    points, root, tip, tau_floor)
         except (ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
             msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
-            console.print("[red]error:[/red] " + escape(msg), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(msg)
         _print(console, res)
         if json_path is not None:
             d = res if isinstance(res, dict) else res.to_dict()

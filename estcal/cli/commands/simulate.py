@@ -1,7 +1,6 @@
 """``estcal simulate``: a simulated calibration dataset with its ground truth."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
@@ -29,17 +28,63 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
+    from estcal.io.textinput import read_json, read_text
+
     if p.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        d = yaml.safe_load(p.read_text())
+        try:
+            d = yaml.safe_load(read_text(p, "errors", ValueError))
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{p}: invalid YAML ({' '.join(str(exc).split())})") from None
     else:
-        d = json.loads(p.read_text())
+        d = read_json(p, "errors JSON", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
         d = d["errors"]  # a truth JSON from an earlier run
     if not isinstance(d, dict):
         raise typer.BadParameter(f"{p}: expected a mapping {{parameter name: error}}")
-    return {str(k): float(v) for k, v in d.items()}
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or abs(v) == float("inf"):
+            raise ValueError(f"{p}: error of {k!r} must be a finite number (SI), got {v!r}")
+        out[str(k)] = float(v)
+    return out
+
+
+def _simulate_fleet(console, n_robots, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler, json_path):
+    from estcal.cli.common import fail
+    from estcal.scale.runner import check_scheduler
+    from estcal.scale.simfleet import simulate_fleet
+
+    if out is None:
+        fail("--fleet needs --out DIR (the fleet folder to write)")
+    if n_robots < 1:
+        fail(f"--fleet: the number of robots must be ≥ 1, got {n_robots}")
+    try:
+        check_scheduler(scheduler)
+    except ValueError as exc:
+        fail(f"--scheduler: {exc}")
+    if measure == "position":  # a fleet is measured as full poses unless asked otherwise
+        measure = "pose"
+    try:
+        rr = simulate_fleet(n_robots, out, robot=robot, n_poses=n, n_validate=n, measure=measure,
+                            noise_pos=noise_pos or 5e-5, noise_rot=noise_rot or 5e-4, seed=seed,
+                            scheduler=scheduler)
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        fail(str(exc))
+    for f in rr.failures:
+        console.print(f"[red]failed:[/red] {f}")
+    rows = [r for r in rr.results if r is not None]
+    with_eff = [r for r in rows if r["effects"]]
+    console.print(f"fleet of {len(rows)} robots in {out}/ ({n} calibration + {n} validation poses each, "
+                  f"{measure}, noise {1e3 * (noise_pos or 5e-5):.3g} mm / {1e3 * (noise_rot or 5e-4):.3g} mrad); "
+                  f"{len(with_eff)} with an effect: " + (", ".join(f"{r['robot']} {r['effects'][0]}"
+                                                                   for r in with_eff[:6]) or "none")
+                  + (" …" if len(with_eff) > 6 else ""), soft_wrap=True)
+    if json_path is not None:
+        write_json(json_path, {"fleet": str(out), "robots": rows, "failures": [f.to_dict() for f in rr.failures]})
+    if rr.failures:
+        raise typer.Exit(2)
 
 
 def register(app: typer.Typer) -> None:
@@ -94,6 +139,14 @@ def register(app: typer.Typer) -> None:
             None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
                                      "(geometric + named effects); --errors/--effects are ignored, the noise "
                                      "defaults to the fit's, --measure position means the fit's kind."),
+        fleet: Optional[int] = typer.Option(
+            None, "--fleet", help="Simulate a fleet of N robots into --out DIR (one folder per robot: data.csv, "
+                                  "validate.csv with --n new poses, truth.json; shared DIR/robot.yaml) with "
+                                  "random errors and, for half of them, one random effect. Noise defaults to "
+                                  "0.05 mm / 0.5 mrad. Input of estcal fleet."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Fleet folder to write (with --fleet)."),
+        scheduler: str = typer.Option("serial", "--scheduler", help="With --fleet: serial | processes | local | "
+                                                                    "tcp://host:8786."),
     ) -> None:
         """Simulate a calibration dataset: true robot = nominal + parameter errors + effects.
 
@@ -122,6 +175,10 @@ def register(app: typer.Typer) -> None:
         error_offset = resolve(error_offset_mrad, MILLI, old_error_offset, "--error-offset", "--error-offset-mrad",
                                "rad or m", 1.0, 1.0)
         console = Console()
+        if fleet is not None:
+            _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
+                            json_path)
+            return
         try:
             nominal = load_robot(robot, root=root, tip=tip)
             eff_specs = []
@@ -167,13 +224,14 @@ def register(app: typer.Typer) -> None:
         except typer.BadParameter:
             raise
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)
         elif truth is not None:
-            truth.write_text(json.dumps(res.truth, indent=2))
+            write_json(truth, res.truth)
             truth_path = truth
         table = Table(title=f"estcal simulate — {res.summary.robot}", show_header=False)
         table.add_column("item", style="bold")
