@@ -240,6 +240,19 @@ class DiagnosisResult:
     located: list = field(default_factory=list)  # structure located on a joint but not named
     robot: object = field(default=None, repr=False)  # the extended robot at the estimate
     geometric_robot: object = field(default=None, repr=False)
+    # the final joint fit, for save_model: covariance (SI) of ``covariance_names``, σ0, the data
+    covariance: object = field(default=None, repr=False)
+    covariance_names: list = field(default_factory=list, repr=False)
+    sigma0: float = float("nan")
+    train_data: object = field(default=None, repr=False)
+    validation_data: list = field(default_factory=list, repr=False)
+
+    def save_model(self, path, provenance: dict | None = None):
+        """Write the identified robot (geometry + named effects at the joint estimate) as a
+        robot file with a ``calibration:`` block (docs/robot-file.md, "Saved models")."""
+        from estcal.io.savedmodel import save_diagnosis
+
+        return save_diagnosis(self, path, provenance)
 
     def prepare(self, data):
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
@@ -496,6 +509,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     cur_problem, cur_theta, cur_free = problem, theta_g, list(gfree)
     cur_rss, cur_p, cur_cv = rss_g, p_g, cv_g
     causes, steps, used = [], [], set()
+    cur_res = gres
     for step in range(max_effects):
         b, A, _ = weighted_system(cur_problem, cur_theta, cur_free)
         Q = orthonormal_basis(A)
@@ -672,9 +686,18 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     gmodel = {"theta": dict(zip(gr.params.names, map(float, theta_g))), "free": gfree,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],
                            "chi2_per_dof": analysis["noise_floor"]["chi2_per_dof"]}}
+    try:  # the nominal robot itself, so the fit needs no robot file to be simulated again
+        from estcal.io.robotfile import robot_to_dict
+
+        model["robot_dict"] = robot_to_dict(robot)
+    except ValueError:  # a robot the file format cannot express: the fit names it by robot_spec
+        pass
+    final = cur_res  # the last accepted joint fit (the geometric fit when nothing was named)
     result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
                              gmodel, lumped, robot=xr.with_values(cur_theta),
-                             geometric_robot=gr.with_values(theta_g))
+                             geometric_robot=gr.with_values(theta_g), covariance=np.asarray(final.covariance),
+                             covariance_names=list(final.names), sigma0=float(final.sigma0), train_data=data,
+                             validation_data=list(validate))
     result.located = located
     if report is not None:
         folder = Path(report)

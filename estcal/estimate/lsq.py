@@ -370,7 +370,8 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
                             std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
                             all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
-                            covariance_source="model" if known else "scaled by sigma0^2")
+                            covariance_source="model" if known else "scaled by sigma0^2",
+                            problem=problem, validation_data=list(validation))
     res.extra["time_s"] = time.perf_counter() - t0
     if pk.size:
         res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},

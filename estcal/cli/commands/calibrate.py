@@ -202,12 +202,17 @@ def register(app: typer.Typer) -> None:
                                                             "offsets) or 36 (offsets known)."),
         robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel for the factor-graph "
                                                                      "estimators: huber | cauchy."),
-        option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
-                                                              "--option q=1e-5 --option optimizer=dogleg."),
+        option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable; values "
+                                         "in SI units, parsed as YAML scalars), e.g. --option max_iter=50, "
+                                         "--option q=1e-5 (kalman), --option optimizer=dogleg (gtsam). The keys "
+                                         "of every estimator: `estcal estimators`; docs/calibration.md."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: PNG figures (errors "
                                               "before/after, residual vs joints, parameters ±2σ, correlation, "
                                               "MCMC corner plot) and index.html with the tables."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the calibrated robot as a robot file (.yaml) with a "
+                                       "'calibration:' block (provenance, covariance); reload it with --robot."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
@@ -271,6 +276,8 @@ def register(app: typer.Typer) -> None:
             except (ValueError, KeyError) as exc:
                 _fail(str(exc))
             console.print(str(gres))
+            if save_model:
+                _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
                 console.print("note: --validate is not supported for Gough platforms (ignored)")
             if json_path:
@@ -335,3 +342,9 @@ def register(app: typer.Typer) -> None:
                                      validate_paths=[str(v) for v in validate], result_dict=res.to_dict(),
                                      title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
             console.print(f"report: {report}/index.html ({len(rep.files)} figures)")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            console.print(f"wrote {save_model} (load it with --robot {save_model})")

@@ -59,6 +59,9 @@ def register(app: typer.Typer) -> None:
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: residual figures "
                                               "(PNG), diagnosis.json, summary.txt and index.html with the tables."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the identified robot (geometry + named effects) as a robot file "
+                                       "(.yaml) with a 'calibration:' block; reload it with --robot."),
     ) -> None:
         """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
         from estcal.discrepancy import diagnose
@@ -117,3 +120,9 @@ def register(app: typer.Typer) -> None:
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
