@@ -110,7 +110,7 @@ def test_calibrate_saved_model_reproduces_the_fit_through_fk(puma_pose, tmp_path
     train, valid = puma_pose
     model, js = tmp_path / "M.yaml", tmp_path / "fit.json"
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--estimator", estimator,
-                         "--validate", str(valid), "--noise-pos", "5e-5", "--noise-rot", "5e-4",
+                         "--validate", str(valid), "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5",
                          "--json", str(js), "--save-model", str(model)])
     assert r.exit_code == 0, r.output
     fit = json.loads(js.read_text())
@@ -180,7 +180,7 @@ def test_diagnosed_model_with_effects_reads_its_columns_in_fk(tmp_path):
                    t=t, record_approach=True)
     data = write_dataset(tmp_path / "data.csv", sim.dataset)
     model, js = tmp_path / "diag.yaml", tmp_path / "fit.json"
-    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--noise-pos", str(sigma),
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3),
                          "--effects", "backlash,drift", "--folds", "3", "--json", str(js),
                          "--save-model", str(model)])
     assert r.exit_code == 0, r.output
@@ -215,7 +215,7 @@ def test_fit_json_is_self_contained(tmp_path, monkeypatch):
                    seed=4, noise={"position": 1e-4})
     data = write_dataset(tmp_path / "mocap.csv", sim.dataset)
     js = tmp_path / "fit.json"
-    r = RUN.invoke(app, ["diagnose", str(data), "--robot", str(urdf), "--noise-pos", "1e-4",
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", str(urdf), "--noise-pos-mm", "0.1",
                          "--effects", "joint_compliance", "--folds", "3", "--json", str(js)])
     assert r.exit_code == 0, r.output
     urdf.unlink()
