@@ -367,3 +367,12 @@ def test_saved_model_provenance_and_note(tmp_path):
     tiago_like = save_robot(_calibrated(robot_from_urdf(out, root="world", tip="tool")), tmp_path / "u.yaml")
     _, r = _export(tmp_path, tiago_like)
     assert "--from-urdf ORIGINAL.urdf" in r.output
+
+
+def test_nominal_model_from_urdf_changes_nothing(tmp_path, tiago_dir):
+    original = tiago_dir / "tiago_48_schunk.urdf"
+    res = export_urdf(load_robot("tiago", n_markers=0), tmp_path / "n.urdf", from_urdf=original, warn=False)
+    assert res.changed == [] and (res.root, res.tip) == ("base_footprint", "wrist_ft_tool_link")
+    j0 = {j.name: j.origin for j in load_urdf(original).robot.joints}
+    j1 = {j.name: j.origin for j in load_urdf(tmp_path / "n.urdf").robot.joints}
+    assert j0.keys() == j1.keys() and all(np.allclose(j0[n], j1[n], atol=1e-15) for n in j0)
