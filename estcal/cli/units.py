@@ -55,6 +55,7 @@ DIMENSIONLESS = {
     "--walkers": "number of MCMC walkers",
     "--steps": "number of MCMC steps",
     "--max-iter": "number of iterations",
+    "--recalibrate": "number of re-measured poses",
 }
 
 # A unit written in an option's name (suffix) or help: "(mm)", "mrad", "deg", "°C", "kg", "s" …
