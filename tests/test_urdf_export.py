@@ -336,7 +336,7 @@ def random_robots(draw):
     return rb.with_values(v)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(random_robots())
 def test_random_robot_round_trip(tmp_path, robot):
     path = save_robot(robot, tmp_path / "R.yaml")
