@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from test_calibrate_cli import TRUE_DELTA, _simulate  # the same simulated PUMA 560 pose data
+
 from estcal.cli.main import app
-from estcal.io.dataset import dataset_from_arrays, write_dataset
+from estcal.io.dataset import write_dataset
 from estcal.kinematics import puma560
 from estcal.report.units import display_unit
 
-FREE = "offset_2,offset_3,a_2,d_3,base_tx"
-DELTA = {"offset_2": 2e-3, "offset_3": -1.5e-3, "a_2": 1e-3, "d_3": -8e-4, "base_tx": 2e-3}
+FREE = ",".join(TRUE_DELTA)  # every perturbed parameter of the simulated truth
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -116,25 +117,10 @@ def captured():
         yield figs
 
 
-def _simulate(folder, n, seed, name):
-    robot = puma560()
-    theta = robot.params.values.copy()
-    for k, v in DELTA.items():
-        theta[robot.params.index(k)] += v
-    rng = np.random.default_rng(seed)
-    q = robot.random_readings(n, rng)
-    kin = robot.kinematics(q, theta, jacobian=False)
-    from estcal.kinematics.transforms import so3_exp
-
-    R = so3_exp(rng.normal(0, 1e-4, (n, 3))) @ kin.R
-    p = kin.p + rng.normal(0, 1e-5, (n, 3))
-    return write_dataset(folder / name, dataset_from_arrays(robot.joint_names, q, R=R, p=p))
-
-
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("reports")
-    return d, _simulate(d, 30, 1, "train.csv"), _simulate(d, 15, 2, "val.csv")
+    return d, _simulate(d, 30, 1, "train.csv")[0], _simulate(d, 15, 2, "val.csv")[0]
 
 
 def _invoke(args):

@@ -6,7 +6,9 @@ both the terminal tables of ``estcal calibrate`` and the reports.
 """
 from __future__ import annotations
 
-__all__ = ["display_unit"]
+import numpy as np
+
+__all__ = ["display_unit", "joint_display"]
 
 _ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
 
@@ -23,3 +25,12 @@ def display_unit(name: str, robot) -> tuple[str, float]:
             if robot.params.names[li] == name:
                 return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
     return "mm", 1e3
+
+
+def joint_display(robot, readings):
+    """Readings (N, n) in display units (revolute: degrees, prismatic: mm) and each joint's unit."""
+    rev = np.array([t == "revolute" for t in robot.joint_types])
+    q = np.atleast_2d(np.asarray(readings, float)).copy()
+    q[:, rev] = np.degrees(q[:, rev])
+    q[:, ~rev] *= 1e3
+    return q, ["deg" if r else "mm" for r in rev]
