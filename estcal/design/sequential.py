@@ -26,7 +26,6 @@ the equations above.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -102,12 +101,10 @@ class CalibrationState:
 
     @classmethod
     def from_json(cls, path) -> "CalibrationState":
+        from estcal.io.textinput import read_json
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(d, str(path))
+        return cls.from_dict(read_json(path, "state JSON", ValueError), str(path))
 
     @classmethod
     def from_result(cls, result) -> "CalibrationState":
@@ -129,10 +126,9 @@ class CalibrationState:
                 "covariance": self.covariance.tolist(), "std": self.std.tolist()}
 
     def to_json(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        from estcal.io.jsonio import write_json
+
+        return write_json(path, self.to_dict())
 
 
 def model_for_state(model: DesignModel, state: CalibrationState) -> DesignModel:

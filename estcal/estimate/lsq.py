@@ -265,6 +265,9 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
 
     rows = problem.evaluate(theta)
     A, b = weighted(rows, theta)
+    if A.shape[0] < A.shape[1]:  # fewer equations than unknowns: singular whatever the data
+        raise UnidentifiableError(f"{A.shape[0]} equations for {A.shape[1]} free parameters — measure more poses "
+                                  f"or estimate fewer parameters")
     if check:
         check_identifiable(A, names)
     cost = float(b @ b)
@@ -367,7 +370,8 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
                             std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
                             all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
-                            covariance_source="model" if known else "scaled by sigma0^2")
+                            covariance_source="model" if known else "scaled by sigma0^2",
+                            problem=problem, validation_data=list(validation))
     res.extra["time_s"] = time.perf_counter() - t0
     if pk.size:
         res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},

@@ -1,30 +1,16 @@
-"""Display units of parameters: mm for lengths, mrad for angles, dimensionless gains.
+"""Display units of parameters (mm for lengths, mrad for angles, dimensionless gains) and of
+joint readings (degrees, mm).
 
-Everything inside estcal is SI (m, rad); printed tables and report figures use
-mm / mrad (``docs/conventions.md``). :func:`display_unit` is the one rule for
-both the terminal tables of ``estcal calibrate`` and the reports.
+The one rule for parameters lives in :func:`estcal.cli.units.display_unit`
+(``docs/conventions.md``, "Units on the command line"); the reports use the same function.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from estcal.cli.units import display_unit
+
 __all__ = ["display_unit", "joint_display"]
-
-_ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
-
-
-def display_unit(name: str, robot) -> tuple[str, float]:
-    """Display unit and factor from SI for a parameter name of ``robot``."""
-    head = name.split("_")[0]
-    if name.startswith(("base_r", "tool_r")) or head in _ANGLE_PREFIX:
-        return "mrad", 1e3
-    if head == "gain":
-        return "", 1.0
-    if head == "offset":
-        for j, li in enumerate(robot.offset_idx):
-            if robot.params.names[li] == name:
-                return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
-    return "mm", 1e3
 
 
 def joint_display(robot, readings):
