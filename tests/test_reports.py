@@ -140,7 +140,8 @@ def calib(data, captured):
     d, train, val = data
     folder = d / "rep_lm"
     r = _invoke(["calibrate", str(train), "-r", "puma560", "--free", FREE, "--validate", str(val),
-                 "--noise-pos", "1e-5", "--noise-rot", "1e-4", "--json", str(d / "lm.json"), "--report", str(folder)])
+                 "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1", "--json", str(d / "lm.json"),
+                 "--report", str(folder)])
     figs = {k: captured[k] for k in ("pose_errors.png", "pose_errors_rotation.png", "residual_vs_joints.png",
                                      "parameters.png", "correlation.png")}
     return folder, json.loads((d / "lm.json").read_text()), figs, r.output
@@ -285,7 +286,7 @@ def test_mcmc_report_table_and_corner_quantiles(mcmc):
 def test_online_report(data, captured):
     d, train, _ = data
     folder = d / "rep_online"
-    _invoke(["online", str(train), "-r", "puma560", "--free", FREE, "--sigma-p", "1e-5", "--sigma-r", "1e-4",
+    _invoke(["online", str(train), "-r", "puma560", "--free", FREE, "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1",
              "--json", str(d / "online.json"), "--report", str(folder)])
     js = json.loads((d / "online.json").read_text())
     page = _check_folder(folder)
@@ -314,8 +315,11 @@ def test_online_report(data, captured):
 
     nis = np.asarray(lines["nis"].get_ydata())
     m = 6  # a pose row: 3 position + 3 orientation components
+    burn = js["innovation"]["burn_in"]
     out = (nis < stats.chi2.ppf(0.025, m)) | (nis > stats.chi2.ppf(0.975, m))
-    assert len(lines["nis_outside"].get_xdata()) == int(out.sum())
+    assert len(lines["nis_outside"].get_xdata()) == int(out[burn:].sum())
+    # … and their fraction is the JSON's (the innovation tests count the same rows)
+    assert out[burn:].mean() == pytest.approx(js["innovation"]["nis_outside_95"], rel=1e-12)
 
 
 # ------------------------------------------------------------------ design / next-pose
@@ -384,7 +388,7 @@ def test_diagnose_report(tmp_path, captured):
                              n_poses=30, measure="position", seed=4)
     csv = write_dataset(tmp_path / "data.csv", sim.dataset)
     folder = tmp_path / "rep"
-    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos", str(sigma), "--effects",
+    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3), "--effects",
              "joint_compliance,encoder_gain", "--folds", "3", "--max-effects", "1", "--json", str(tmp_path / "d.json"),
              "--report", str(folder)])
     js = json.loads((tmp_path / "d.json").read_text())

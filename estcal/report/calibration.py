@@ -98,7 +98,8 @@ def calibration_report(folder, res, problem, validation=(), *, unit, label=None,
                 order = sorted(range(len(res.names)), key=lambda i: res.names[i].startswith(("base_", "marker")))
                 fac = np.array([f for _, f in units])
                 X = (np.asarray(samples) - res.nominal) * fac
-                fig = corner_figure(X[:, order], [f"{res.names[i]} − initial ({units[i][0] or '—'})" for i in order])
+                labels = [f"{res.names[i]} − initial ({units[i][0] or '—'})" for i in order]
+                fig = corner_figure(X[:, order], labels)
             except ImportError:
                 rep.text("corner plot skipped: the optional 'corner' package is not installed "
                          "(pip install estcal[mcmc])")
