@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -144,19 +143,22 @@ def _run_one(fn, index, task, seed):
 
 
 def _run_chunk(fn, chunk):
-    """Run a chunk ``[(index, task, seed), …]``; module level so that every pool can pickle it."""
-    return [(i,) + _run_one(fn, i, t, s) for i, t, s in chunk]
+    """Run a chunk ``[(index, task, seed), …]``; module level so that every pool can pickle it.
+    Progress bars inside a task stay quiet (the runner's own bar counts the tasks)."""
+    from estcal.progress import nested
+
+    with nested():
+        return [(i,) + _run_one(fn, i, t, s) for i, t, s in chunk]
 
 
 # ----------------------------------------------------------------- client side
 def _progress(total, desc, progress):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from estcal.progress import progress as bar
 
-    # disable=None: tqdm stays quiet when stderr is not a terminal (logs, CI)
-    return tqdm(total=total, desc=desc, unit="task", disable=None if progress == "auto" else False,
-                file=sys.stderr, leave=False)
+    # "auto": only on a terminal's stderr, not in CI, not inside another bar (estcal.progress)
+    return bar(total=total, desc=desc or "tasks", unit="task", enabled=None if progress == "auto" else True)
 
 
 def _default_workers(scheduler) -> int:

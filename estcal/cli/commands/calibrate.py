@@ -280,6 +280,8 @@ def register(app: typer.Typer) -> None:
                 _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
                 console.print("note: --validate is not supported for Gough platforms (ignored)")
+            if report is not None:
+                console.print("note: --report is not supported for Gough platforms (ignored)")
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)
