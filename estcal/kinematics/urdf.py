@@ -12,7 +12,9 @@ joints, and off-chain branches evaluated at their zero position).
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +28,6 @@ __all__ = ["robot_from_urdf", "load_urdf", "root_links"]
 def load_urdf(path):
     """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
     :func:`estcal.io.textinput.read_text` first (folder, binary, encoding)."""
-    import io
-
     import yourdfpy
 
     from estcal.io.robotfile import RobotFileError
@@ -35,14 +35,51 @@ def load_urdf(path):
 
     path = Path(path)
     text = read_text(path, "URDF", RobotFileError)
+    _check_xml(text, path)
     try:
-        urdf = yourdfpy.URDF.load(io.BytesIO(text.encode("utf-8")), build_scene_graph=False, build_collision_scene_graph=False,
-                                  load_meshes=False, load_collision_meshes=False)
+        # yourdfpy prints its parser's complaints and retries; the checks above already
+        # named the problems users make, so its chatter is kept off the terminal
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            urdf = yourdfpy.URDF.load(io.BytesIO(text.encode("utf-8")), build_scene_graph=False,
+                                      build_collision_scene_graph=False, load_meshes=False,
+                                      load_collision_meshes=False)
     except Exception as exc:  # yourdfpy / lxml raise many error types on bad XML  # noqa: BLE001
         msg = " ".join(str(exc).split()) or type(exc).__name__
         raise RobotFileError(f"{path}: cannot parse URDF ({msg})") from None
     _check_tree(urdf, path)
     return urdf
+
+
+def _check_xml(text: str, path) -> None:
+    """Strict XML parse with the position of the first error, and the elements a
+    kinematic chain needs (a <robot> with named links; joints with name, type,
+    parent and child)."""
+    import xml.etree.ElementTree as ET
+
+    from estcal.io.robotfile import RobotFileError
+
+    try:
+        root = ET.fromstring(text.encode("utf-8"))
+    except ET.ParseError as exc:
+        line, col = exc.position
+        msg = str(exc).split(":")[0]
+        raise RobotFileError(f"{path}, line {line}, column {col + 1}: not valid XML ({msg})") from None
+    if root.tag != "robot":
+        raise RobotFileError(f"{path}: the top element is <{root.tag}>, a URDF's is <robot>")
+    for i, lk in enumerate(root.findall("link")):
+        if not lk.get("name"):
+            raise RobotFileError(f"{path}: <link> number {i + 1} has no name attribute")
+    for i, j in enumerate(root.findall("joint")):
+        name = j.get("name")
+        where = f"joint {name!r}" if name else f"<joint> number {i + 1}"
+        if not name:
+            raise RobotFileError(f"{path}: {where} has no name attribute")
+        if not j.get("type"):
+            raise RobotFileError(f"{path}: {where} has no type attribute (revolute, continuous, prismatic, fixed …)")
+        for tag in ("parent", "child"):
+            el = j.find(tag)
+            if el is None or not el.get("link"):
+                raise RobotFileError(f"{path}: {where} has no <{tag} link=\"…\"/>")
 
 
 def _check_tree(urdf, path) -> None:
@@ -71,20 +108,20 @@ def root_links(urdf) -> list[str]:
     return sorted(lk.name for lk in urdf.robot.links if lk.name not in children)
 
 
-def _chain(urdf, root: str, tip: str):
+def _chain(urdf, root: str, tip: str, path=""):
     parent_joint = {j.child: j for j in urdf.robot.joints}
     links = {lk.name for lk in urdf.robot.links}
     for name, what in ((root, "root"), (tip, "tip")):
         if name not in links:
             close = difflib.get_close_matches(str(name), sorted(links), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ValueError(f"{what} link {name!r} is not in the URDF{hint}; links include "
+            raise ValueError(f"{path}: {what} link {name!r} is not in the URDF{hint}; links include "
                              f"{sorted(links)[:20]}{'…' if len(links) > 20 else ''}")
     joints, seen = [], set()
     cur = tip
     while cur != root:
         if cur not in parent_joint or cur in seen:
-            raise ValueError(f"link {tip!r} is not below {root!r} in the URDF tree")
+            raise ValueError(f"{path}: link {tip!r} is not below {root!r} in the URDF tree")
         seen.add(cur)
         j = parent_joint[cur]
         joints.append(j)
@@ -146,7 +183,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
                              f"({', '.join(leaves[:10])}{'…' if len(leaves) > 10 else ''})")
         tip = leaves[0]
-    chain = _chain(urdf, root, tip)
+    chain = _chain(urdf, root, tip, path)
     # A link carries everything rigidly attached to it, including the fixed chain
     # links after the last actuated joint (tool flange, sensor, hand): only the next
     # actuated chain joint ends its subtree.

@@ -239,7 +239,7 @@ def register(app: typer.Typer) -> None:
         if level is not None and level not in LEVELS:
             _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
         if not data.exists():
-            _fail(f"{data}: file not found")
+            _fail(f"{data}: dataset file not found")
 
         # Gough platforms have their own calibration entry point
         try:

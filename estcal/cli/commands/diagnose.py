@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
         from estcal.io.dataset import DatasetError
 
         if not data.exists():
-            _fail(f"{data}: file not found")
+            _fail(f"{data}: dataset file not found")
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
         if urdf_masses and rob.meta.get("urdf"):
             from estcal.discrepancy.masses import with_urdf_masses

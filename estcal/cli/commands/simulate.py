@@ -5,6 +5,8 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+
+from estcal.cli.common import fail, message
 from estcal.io.jsonio import write_json
 
 
@@ -147,12 +149,10 @@ def register(app: typer.Typer) -> None:
                                                 resolution=resolution, distribution=noise_dist),
                                seed=seed, margin=margin, dt=dt, temperature=temp, payload=pay,
                                record_approach=approach, n_points=n_points, effect_params=eparams)
-        except typer.BadParameter:
-            raise
+        except typer.BadParameter as exc:
+            fail(exc.format_message())
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            from estcal.cli.common import fail
-
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)
