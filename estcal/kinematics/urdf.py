@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.io.robotfile import RobotFileError
+
 from .builder import build_robot
 from .chain import SerialRobot
 
@@ -30,7 +32,6 @@ def load_urdf(path):
     :func:`estcal.io.textinput.read_text` first (folder, binary, encoding)."""
     import yourdfpy
 
-    from estcal.io.robotfile import RobotFileError
     from estcal.io.textinput import read_text
 
     path = Path(path)
@@ -55,8 +56,6 @@ def _check_xml(text: str, path) -> None:
     kinematic chain needs (a <robot> with named links; joints with name, type,
     parent and child)."""
     import xml.etree.ElementTree as ET
-
-    from estcal.io.robotfile import RobotFileError
 
     try:
         root = ET.fromstring(text.encode("utf-8"))
@@ -86,8 +85,6 @@ def _check_tree(urdf, path) -> None:
     """The joints must form a tree over the declared links: every joint names
     existing links, and no link has two parents (a chain would be silently
     re-routed through one of them)."""
-    from estcal.io.robotfile import RobotFileError
-
     if urdf.robot is None or not urdf.robot.links:
         raise RobotFileError(f"{path}: the URDF has no <link>")
     links = {lk.name for lk in urdf.robot.links}
@@ -115,13 +112,13 @@ def _chain(urdf, root: str, tip: str, path=""):
         if name not in links:
             close = difflib.get_close_matches(str(name), sorted(links), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ValueError(f"{path}: {what} link {name!r} is not in the URDF{hint}; links include "
+            raise RobotFileError(f"{path}: {what} link {name!r} is not in the URDF{hint}; links include "
                              f"{sorted(links)[:20]}{'…' if len(links) > 20 else ''}")
     joints, seen = [], set()
     cur = tip
     while cur != root:
         if cur not in parent_joint or cur in seen:
-            raise ValueError(f"{path}: link {tip!r} is not below {root!r} in the URDF tree")
+            raise RobotFileError(f"{path}: link {tip!r} is not below {root!r} in the URDF tree")
         seen.add(cur)
         j = parent_joint[cur]
         joints.append(j)
@@ -174,13 +171,13 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
         # yourdfpy's base_link is only set when it builds a scene graph (not done here)
         roots = root_links(urdf)
         if len(roots) != 1:
-            raise ValueError(f"{path}: the URDF has {len(roots)} root links ({', '.join(roots[:10]) or 'none: a cycle'})"
+            raise RobotFileError(f"{path}: the URDF has {len(roots)} root links ({', '.join(roots[:10]) or 'none: a cycle'})"
                              f" — give --root")
         root = roots[0]
     if tip is None:
         leaves = sorted({lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints})
         if len(leaves) != 1:
-            raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
+            raise RobotFileError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
                              f"({', '.join(leaves[:10])}{'…' if len(leaves) > 10 else ''})")
         tip = leaves[0]
     chain = _chain(urdf, root, tip, path)
@@ -194,19 +191,19 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             pending = pending @ _origin(j)
             continue
         if j.type not in ("revolute", "continuous", "prismatic"):
-            raise ValueError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
+            raise RobotFileError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
         if j.type == "continuous":
             lo, hi = -np.pi, np.pi
         elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
-            raise ValueError(f"{path}: joint {j.name!r} ({j.type}) has no <limit lower=… upper=…> — add its "
+            raise RobotFileError(f"{path}: joint {j.name!r} ({j.type}) has no <limit lower=… upper=…> — add its "
                              f"range ({'rad' if j.type == 'revolute' else 'm'})")
         else:
             lo, hi = float(j.limit.lower), float(j.limit.upper)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-                raise ValueError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
+                raise RobotFileError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], float)
         if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
-            raise ValueError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
+            raise RobotFileError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
         mass, com = _subtree_mass(urdf, j.child, actuated)
         frames.append({"name": j.name, "label": j.name, "convention": "urdf",
                        "type": "prismatic" if j.type == "prismatic" else "revolute",
@@ -214,7 +211,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
                        "limits": [float(lo), float(hi)], "mass": mass, "com": com})
         pending = np.eye(4)
     if not frames:
-        raise ValueError(f"{path}: no actuated joint between {root!r} and {tip!r}")
+        raise RobotFileError(f"{path}: no actuated joint between {root!r} and {tip!r}")
     robot = build_robot(name or f"{urdf.robot.name}:{root}->{tip}", frames, markers=markers,
                         convention="urdf", tool_const=pending,
                         meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip})
