@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from estcal.io.atomic import atomic_savefig
+
 __all__ = ["residual_analysis", "partial_joint_residuals", "save_plots", "r2_line"]
 
 
@@ -200,7 +202,7 @@ def save_plots(folder, problem, theta, analysis: dict, tau=None, title: str = ""
             ax.tick_params(labelsize=6)
         fig.suptitle(ttl, fontsize=9)
         fig.tight_layout()
-        fig.savefig(folder / fname, dpi=90)
+        atomic_savefig(fig, folder / fname, dpi=90)
         plt.close(fig)
         out.append(fname)
 
@@ -228,7 +230,7 @@ def save_plots(folder, problem, theta, analysis: dict, tau=None, title: str = ""
         ax.tick_params(labelsize=6)
     fig.suptitle(f"{title} residual norm vs time and workspace position", fontsize=9)
     fig.tight_layout()
-    fig.savefig(folder / "residual_norm.png", dpi=90)
+    atomic_savefig(fig, folder / "residual_norm.png", dpi=90)
     plt.close(fig)
     out.append("residual_norm.png")
     spec = analysis.get("spectrum", {})
@@ -246,7 +248,7 @@ def save_plots(folder, problem, theta, analysis: dict, tau=None, title: str = ""
         ax.legend(fontsize=6)
         ax.set_title(f"{title} harmonics of the partial joint residuals", fontsize=9)
         fig.tight_layout()
-        fig.savefig(folder / "spectrum.png", dpi=90)
+        atomic_savefig(fig, folder / "spectrum.png", dpi=90)
         plt.close(fig)
         out.append("spectrum.png")
     return out

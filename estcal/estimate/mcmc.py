@@ -147,7 +147,9 @@ class PosteriorSamples:
         idx = list(range(min(8, len(self.names)))) if params is None else [self.names.index(p) for p in params]
         fig = corner.corner(self.flat[:, idx], labels=[self.names[i] for i in idx],
                             truths=None if truths is None else np.asarray(truths)[idx], quantiles=[0.025, 0.5, 0.975])
-        fig.savefig(path, dpi=80)
+        from estcal.io.atomic import atomic_savefig
+
+        atomic_savefig(fig, path, dpi=80)
         import matplotlib.pyplot as plt
 
         plt.close(fig)
