@@ -77,7 +77,7 @@ def decode_text(data: bytes, where: str, what: str = "input", error=InputError) 
     if nul >= 0:
         line = data.count(b"\n", 0, nul) + 1
         raise error(f"{where}: binary file (NUL byte at line {line}), not a {what} text file — "
-                    f"give the text file (CSV / YAML / URDF)")
+                    f"export the {what} as a text file")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
