@@ -550,6 +550,7 @@ OPTION_CASES = {
     "diagnose-effects": ("diagnose", ["--effects", "magic"], r"--effects: unknown effect\(s\) \['magic'\]"),
     "diagnose-noise-zero": ("diagnose", ["--noise-pos", "0"], r"--noise-pos 0: must be a number > 0"),
     "diagnose-json-folder": ("diagnose", ["--json", "{folder}"], r"--json .*folder: is a folder"),
+    "diagnose-report-is-file": ("diagnose", ["--report", "{pos}"], r"--report .*pos\.csv: is a file — give a folder"),
     "design-n-zero": ("design", ["--n", "0"], r"--n 0: must be an integer ≥ 1"),
     "design-restarts-zero": ("design", ["--restarts", "0"], r"--restarts 0: must be an integer ≥ 1"),
     "design-sigma-zero": ("design", ["--sigma", "0"], r"--sigma 0: must be a number > 0"),
@@ -563,6 +564,12 @@ OPTION_CASES = {
     "identifiable-plane": ("identifiable", ["--plane", "a,b"], r"--plane expects three numbers"),
     "identifiable-method": ("identifiable", ["--method", "magic"], r"magic"),
     "identifiable-seed": ("identifiable", ["--seed", "-3"], r"--seed -3: must be an integer ≥ 0"),
+    "identifiable-plane-zero": ("identifiable", ["--method", "plane-known", "--plane", "0,0,0"],
+                                r"--plane 0,0,0: a, b, c must be finite and not all zero"),
+    "identifiable-priority-folder": ("identifiable", ["--priority", "{folder}"],
+                                     r"folder: is a folder, not a priority file"),
+    "identifiable-priority-yaml": ("identifiable", ["--priority", "{badjson}"],
+                                   r"bad\.json, line 1, column \d+: invalid YAML in the priority file"),
     "simulate-n-zero": ("simulate", ["--n", "0"], r"--n 0: must be an integer ≥ 1"),
     "simulate-noise-negative": ("simulate", ["--noise-pos", "-1"], r"--noise-pos -1: must be a number ≥ 0"),
     "simulate-margin": ("simulate", ["--margin", "0.7"], r"--margin 0\.7: must be a number in \[0, 0\.5\)"),
@@ -681,6 +688,11 @@ def test_subprocess_online_stdin(base):
     r = _run("online", "-", "--robot", "puma560", "--free", "base_*", stdin=csv_from(bad[:6]))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert re.search(r"<stdin>, line 5, column 'j2': 57\.3 rad is beyond ±4π", r.stderr), r.stderr
+
+
+def test_online_stdin_binary():
+    r = runner.invoke(app, ["online", "-", "--robot", "puma560"], input="j1,j2\n\x01\x02,3\n")
+    check(r, 2, r"<stdin>, line 2, column 1: control character 0x01 — binary data")
 
 
 def test_online_stdin_header_checked(base):

@@ -46,6 +46,7 @@ NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)
+OUTPUT_FOLDER_OPTIONS = ("--report", "--out-dir", "--output-dir")
 OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
                   "--html")
 
@@ -96,8 +97,18 @@ def _existing_ancestor(p: Path) -> Path:
     return a
 
 
-def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
-    """``outputs`` {option: path}: refuse folders, unwritable places, inputs and duplicates."""
+def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[str, Path] | None = None) -> None:
+    """``outputs`` {option: path}: refuse folders, unwritable places, inputs and duplicates;
+    ``folders`` {option: path} are output folders: refuse an existing file."""
+    for opt, p in (folders or {}).items():
+        p = Path(p)
+        if p.exists() and not p.is_dir():
+            fail(f"{opt} {p}: is a file — give a folder (it is created if missing)")
+        anc = p if p.is_dir() else _existing_ancestor(p)
+        if not anc.is_dir():
+            fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
+        if not os.access(anc, os.W_OK | os.X_OK):
+            fail(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
     seen: dict[str, str] = {}
     ins = {}
     for p in inputs:
@@ -129,7 +140,7 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
 
 
 def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
-    """{python parameter: (long option name or '', is an output)}"""
+    """{python parameter: (long option name or '', 'file' / 'folder' output or '')}"""
     from typer.models import ArgumentInfo, OptionInfo
 
     out = {}
@@ -138,9 +149,9 @@ def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
         if isinstance(d, OptionInfo):
             decls = [s for dcl in (d.param_decls or ()) for s in dcl.split("/") if s.startswith("--")]
             opt = decls[0] if decls else "--" + name.replace("_", "-")
-            out[name] = (opt, opt in OUTPUT_OPTIONS)
+            out[name] = (opt, "file" if opt in OUTPUT_OPTIONS else "folder" if opt in OUTPUT_FOLDER_OPTIONS else "")
         elif isinstance(d, ArgumentInfo):
-            out[name] = ("", False)
+            out[name] = ("", "")
     return out
 
 
@@ -152,18 +163,20 @@ def guard(command: str, func):
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         bound = sig.bind_partial(*args, **kwargs)
-        outputs, inputs = {}, []
+        outputs, folders, inputs = {}, {}, []
         for pname, value in bound.arguments.items():
-            opt, is_out = names.get(pname, ("", False))
+            opt, kind = names.get(pname, ("", ""))
             if opt:
                 check_number(opt, value, command)
             values = value if isinstance(value, (list, tuple)) else [value]
             for v in values:
-                if is_out and v is not None:
+                if kind == "file" and v is not None:
                     outputs[opt] = Path(v)
+                elif kind == "folder" and v is not None:
+                    folders[opt] = Path(v)
                 elif isinstance(v, (str, Path)) and v and str(v) != "-":
                     inputs.append(Path(v))
-        check_outputs(outputs, inputs)
+        check_outputs(outputs, inputs, folders)
         return func(*args, **kwargs)
 
     return wrapper

@@ -112,9 +112,14 @@ def load_priorities(path) -> dict:
 
     path = Path(path)
     try:
-        d = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read priority file ({exc})") from exc
+        from estcal.io.textinput import read_text
+
+        d = yaml.safe_load(read_text(path, "priority", ValueError))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ValueError(f"{path}{at}: invalid YAML in the priority file "
+                         f"({' '.join(str(getattr(exc, 'problem', None) or exc).split())})") from None
     if not isinstance(d, dict):
         raise ValueError(f"{path}: expected a mapping {{parameter or pattern: priority}} or {{matrix: [...]}}")
     if "matrix" in d:
