@@ -87,6 +87,13 @@ def _nominal(m: dict, robot=None):
     from estcal.io.robotfile import load_robot
     from estcal.kinematics.chain import SerialRobot
 
+    if robot is None and m.get("robot_dict"):
+        # the fit carries its nominal robot (masses included): no robot file needed
+        from estcal.io.robotfile import robot_from_dict
+
+        base = robot_from_dict(m["robot_dict"], source=f"fit model ({m.get('robot')})")
+        nm = int(m.get("n_markers") or 0)
+        return load_robot(base, n_markers=nm) if nm and base.n_markers != nm else base
     spec = robot if robot is not None else (m.get("robot_spec") or m.get("robot"))
     if spec is None:
         raise ValueError("the fit names no robot; pass robot=")

@@ -253,15 +253,29 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
         if not isinstance(d["calibration"], dict):
             raise ctx.err("calibration", "expected a mapping (provenance of a saved model)")
         meta["calibration"] = _calibration_block(ctx, d["calibration"])
+    tool_d, tool_mass = d.get("tool"), None
+    if isinstance(tool_d, Mapping) and ("mass" in tool_d or "com" in tool_d):
+        # mass carried by the tool link itself (e.g. the lumped mass model of a diagnosed robot)
+        ctx.check_keys(tool_d, ("xyz", "rpy", "mass", "com"), "tool")
+        tool_mass = (ctx.number(tool_d.get("mass", 0.0), "tool", "mass"),
+                     ctx.vector(tool_d.get("com", [0, 0, 0]), 3, "tool", "com") * lu)
+        if tool_mass[0] < 0:
+            raise ctx.err("tool", f"'mass' must be >= 0 kg, got {tool_mass[0]}")
+        tool_d = {k: v for k, v in tool_d.items() if k in ("xyz", "rpy")}
     try:
         robot = build_robot(name, frames, base=_frame6(ctx, d.get("base"), "base", lu, au),
-                            tool=_frame6(ctx, d.get("tool"), "tool", lu, au), markers=markers,
+                            tool=_frame6(ctx, tool_d, "tool", lu, au), markers=markers,
                             gravity=gravity, payload=payload, coupling=coupling, convention=convention,
                             tool_const=_tool_const(ctx, d.get("tool_origin"), lu, au), meta=meta)
     except ValueError as exc:
         raise ctx.err("", str(exc)) from exc
     for pname, v in extra_values.items():
         robot.params[pname] = v
+    if tool_mass is not None:
+        import dataclasses
+
+        robot.links = list(robot.links[:-1]) + [dataclasses.replace(robot.links[-1], mass=tool_mass[0],
+                                                                   com=tool_mass[1])]
     if d.get("effects"):
         robot = _attach_effects(ctx, robot, d["effects"])
     return robot
@@ -479,6 +493,8 @@ def robot_to_dict(robot: SerialRobot) -> dict:
         out["description"] = str(robot.meta["source"])
     out["base"] = _frame6_out(group("base"))
     out["tool"] = _frame6_out(group("tool"))
+    if links[-1].mass:
+        out["tool"].update(mass=float(links[-1].mass), com=_f(links[-1].com))
     tc = links[-1].const
     if not np.allclose(tc, np.eye(4), atol=0, rtol=0):
         out["tool_origin"] = {"xyz": _f(tc[:3, 3]), "rpy": _f(matrix_to_rpy(tc[:3, :3]))}
@@ -582,12 +598,15 @@ def save_robot(robot: SerialRobot, path) -> Path:
     path = Path(path)
     d = robot_to_dict(robot)
 
-    class _Dumper(yaml.SafeDumper):
+    # libyaml's emitter when available: same text, ~5× faster on a saved model's covariance
+    # (it dominated the per-robot cost of `estcal fleet`, docs/scaling.md)
+    class _Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):
         pass
 
     def _flow_list(dumper, data):
         flow = all(isinstance(x, (int, float)) for x in data) or all(isinstance(x, list) for x in data) and \
-            all(all(isinstance(y, (int, float)) for y in x) for x in data)
+            all(all(isinstance(y, (int, float)) for y in x) for x in data) and sum(map(len, data)) <= 40
+        # (a large matrix — a saved model's covariance — is written one flow row per line)
         return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
     _Dumper.add_representer(list, _flow_list)

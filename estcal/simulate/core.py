@@ -340,11 +340,6 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         m = default[:k] if k <= 6 else r_pose.normal(0, 0.1, (k, 3))
         nominal = _with_markers(nominal, m)
         notes.append(f"added {k} markers on the tool (m): {np.round(m, 4).tolist()}")
-    if measure == "position" and "thermal_expansion" in names and nominal.n_markers == 0:
-        nominal = _with_markers(nominal, [[0.0, 0.0, 0.0]])
-        notes.append("thermal_expansion acts on measured points: added marker 1 at the tool origin")
-    if measure == "pose" and "thermal_expansion" in names:
-        notes.append("thermal_expansion corrects measured points only; it has no effect on pose data")
 
     # ---- true robot: nominal + errors + effects
     true = nominal.copy()

@@ -40,8 +40,9 @@ def register(app: typer.Typer) -> None:
                                                                   "for decisions)."),
         effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
                                                                       "(default: every registered effect)."),
-        noise_pos: Optional[float] = typer.Option(None, "--noise-pos", help="Known position noise std (m); "
+        noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Known position noise std (mm); "
                                                   "default unknown (F tests, no noise-floor test)."),
+        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),  # deprecated (m)
         k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
         alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
         max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
@@ -56,8 +57,11 @@ def register(app: typer.Typer) -> None:
                                                       "(backlash by approach direction)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
-        report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
-                                                                     "summary.txt."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: residual figures "
+                                              "(PNG), diagnosis.json, summary.txt and index.html with the tables."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the identified robot (geometry + named effects) as a robot file "
+                                       "(.yaml) with a 'calibration:' block; reload it with --robot."),
     ) -> None:
         """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
         from estcal.discrepancy import diagnose
@@ -65,6 +69,10 @@ def register(app: typer.Typer) -> None:
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
+            resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
         if not data.exists():
             _fail(f"{data}: dataset file not found")
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
@@ -104,8 +112,17 @@ def register(app: typer.Typer) -> None:
         res.model["urdf_chain_masses"] = bool(urdf_masses and rob.meta.get("urdf"))
         typer.echo(str(res))
         if report is not None:
+            from estcal.report.diagnose import diagnose_report
+
             res.to_json(Path(report) / "diagnosis.json")
-            typer.echo(f"report: {report}/ ({', '.join(res.report_files)})")
+            diagnose_report(report, res, title=f"estcal diagnose — {rob.name}, {data}")
+            typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")

@@ -25,7 +25,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Tool frame in the world (x,y,z in m; quaternion qw,qx,qy,qz) for every row's joint readings.
 
-        Effects in the robot file are evaluated with the row's t / temperature / payload columns.
+        Effects in the robot file are evaluated with the row's t / temperature / payload / approach_<joint>
+        columns; a model saved by `estcal diagnose --save-model` re-applies its data preparation (t from the
+        file's first row, approach directions from the posture order) as recorded in its calibration block.
         """
         import numpy as np
         from rich.console import Console
@@ -33,12 +35,16 @@ def register(app: typer.Typer) -> None:
         from estcal.effects import effect_context
         from estcal.io.dataset import load_dataset
         from estcal.io.robotfile import load_robot
+        from estcal.io.savedmodel import prepare_data
         from estcal.kinematics.transforms import matrix_to_quat
 
         console = Console()
         try:
             rb = load_robot(robot, root=root, tip=tip)
             ds = load_dataset(data, rb)
+            # a saved diagnosis model re-applies the data preparation of its fit (session time, approach
+            # directions from the posture order); effect columns become the effects' context
+            ds = prepare_data(rb, ds)
             kin = rb.kinematics(ds.readings, context=effect_context(rb, ds), jacobian=False)
         except (ValueError, KeyError, FileNotFoundError) as exc:
             fail(message(exc))

@@ -158,8 +158,9 @@ def register(app: typer.Typer) -> None:
         rules: str = typer.Option("gecaro", "--rules", help="Default priorities: gecaro (GECARO §1.5) or order "
                                                             "(parameter-vector order)."),
         pivoting: bool = typer.Option(False, "--pivoting", help="QR with column pivoting (ignores priorities)."),
-        plane: Optional[str] = typer.Option(None, "--plane", help="a,b,c of a x + b y + c z + 1 = 0 (plane-known, "
-                                                                  "plane-normal-known)."),
+        plane: Optional[str] = typer.Option(None, "--plane", help="a,b,c of a x + b y + c z + 1 = 0 in 1/m (x, y, z in "
+                                                                  "metres as in the dataset; SI like the files) "
+                                                                  "(plane-known, plane-normal-known)."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),

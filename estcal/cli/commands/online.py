@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -44,14 +45,19 @@ def register(app: typer.Typer) -> None:
         robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
         free: Optional[str] = typer.Option(None, "--free", help="Comma-separated names/patterns to estimate "
                                            "(default: an identifiable set for a file, the robot's free mask for stdin)."),
-        q: float = typer.Option(0.0, "--q", help="Process-noise std per row (SI; 0 = constant parameters, "
-                                "> 0 = random walk / drift)."),
-        q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q only to these names/patterns."),
+        q_mm: float = typer.Option(0.0, "--q-mm", help="Process-noise std per row, in each parameter's milli-unit "
+                                   "(mm, mrad, 10⁻³ for gains); 0 = constant parameters, > 0 = random walk / drift."),
+        q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q-mm only to these names/patterns."),
         filter_kind: str = typer.Option("ekf", "--filter", help="ekf or ukf (filterpy)."),
         method: Optional[str] = typer.Option(None, "--method", help="Measurement method (default: from the columns)."),
-        sigma_p: float = typer.Option(1e-4, "--sigma-p", help="Position noise std, m."),
-        sigma_r: float = typer.Option(1e-3, "--sigma-r", help="Orientation noise std, rad."),
-        prior_std: float = typer.Option(0.1, "--prior-std", help="Prior std of every free parameter (m / rad)."),
+        sigma_p_mm: float = noise_pos_option(0.1),
+        sigma_r_mrad: float = noise_rot_option(1.0),
+        prior_std_mm: float = typer.Option(100.0, "--prior-std-mm", help="Prior std of every free parameter, in its "
+                                           "milli-unit (mm, mrad, 10⁻³ for gains)."),
+        old_q: Optional[float] = deprecated_option("--q"),
+        old_sigma_p: Optional[float] = deprecated_option("--sigma-p"),
+        old_sigma_r: Optional[float] = deprecated_option("--sigma-r"),
+        old_prior_std: Optional[float] = deprecated_option("--prior-std"),
         every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows."),
         live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
         show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
@@ -59,10 +65,20 @@ def register(app: typer.Typer) -> None:
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
                                                  "tests and the printed history as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: estimate ± σ after "
+                                              "every row, NIS per row with the innovation tests (PNG), tables and "
+                                              "index.html."),
     ) -> None:
         """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
-        are printed as the rows arrive (units: m, rad)."""
+        are printed as the rows arrive (mm, mrad; the JSON is SI)."""
         import csv
+
+        from estcal.cli.units import MILLI, display_unit, resolve
+
+        q = resolve(q_mm, MILLI, old_q, "--q", "--q-mm", "SI", 1.0, 0.0)
+        sigma_p = resolve(sigma_p_mm, MILLI, old_sigma_p, "--sigma-p", "--noise-pos-mm", "m", 1.0, 0.1)
+        sigma_r = resolve(sigma_r_mrad, MILLI, old_sigma_r, "--sigma-r", "--noise-rot-mrad", "rad", 1.0, 1.0)
+        prior_std = resolve(prior_std_mm, MILLI, old_prior_std, "--prior-std", "--prior-std-mm", "SI", 1.0, 100.0)
 
         import numpy as np
         from rich.console import Console
@@ -137,6 +153,7 @@ def register(app: typer.Typer) -> None:
         pv = rb.params
         fidx = pv.free_indices
         names = pv.free_names
+        units = [display_unit(n, rb) for n in names]  # printed in mm / mrad (SI in the JSON)
         try:
             Q = process_noise(names, {p.strip(): q for p in q_params.split(",")} if q_params else q)
         except ValueError as exc:
@@ -180,17 +197,19 @@ def register(app: typer.Typer) -> None:
         delim = sniff_delimiter(first)
         header = [h.strip() for h in next(csv.reader([first], delimiter=delim))]
         history = []
+        trace_x, trace_s = [], []  # every row's estimate and std, for --report
         shown = list(range(min(show, len(names))))
 
         def live_table():
             run = flt.monitor.running(burn or flt.n_steps)
             tb = Table(title=f"{rb.name}: {flt.n_steps} rows, NIS/row {run['nis_per_row']:.3f}, "
                              f"trace P {np.trace(flt.f.P):.3g}")
-            for c in ("parameter", "estimate", "std", "Δ from nominal"):
-                tb.add_column(c, justify="right" if c != "parameter" else "left")
+            for c in ("parameter", "estimate", "std", "Δ from nominal", "unit"):
+                tb.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
             x, sd = flt.x, flt.std
             for i, n in enumerate(names):
-                tb.add_row(n, f"{x[i]:.6g}", f"{sd[i]:.3g}", f"{x[i] - pv.values[fidx[i]]:.3g}")
+                u, f = units[i]
+                tb.add_row(n, f"{x[i] * f:.6g}", f"{sd[i] * f:.3g}", f"{(x[i] - pv.values[fidx[i]]) * f:.3g}", u)
             return tb
 
         live_ctx = None
@@ -201,7 +220,7 @@ def register(app: typer.Typer) -> None:
             live_ctx.start()
             live_holder.append(live_ctx)
         console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
-                      f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}")
+                      f"q = {q / MILLI:g} mm / mrad{' on ' + q_params if q_params else ''}; reading {where}")
         burn = None
         for ln, line in rows:
             if not line.strip():
@@ -220,6 +239,9 @@ def register(app: typer.Typer) -> None:
                 step = flt.step(sub)
             except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
                 fail(exc)
+            if report is not None:
+                trace_x.append(flt.x)
+                trace_s.append(flt.std)
             if burn is None and flt.n_rows >= 2 * len(names):
                 burn = flt.n_steps
             k = flt.n_steps
@@ -231,7 +253,8 @@ def register(app: typer.Typer) -> None:
                 if live_ctx is not None:
                     live_ctx.update(live_table())
                 else:
-                    par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
+                    par = "  ".join(f"{names[i]}={x[i] * units[i][1]:.6g}±{s[i] * units[i][1]:.2g}"
+                                    f"{(' ' + units[i][0]) if units[i][0] else ''}" for i in shown)
                     console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
                                   f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
         if live_ctx is not None:
@@ -240,10 +263,11 @@ def register(app: typer.Typer) -> None:
             fail(f"{where}: no data rows")
         x, s = flt.x, flt.std
         table = Table(title=f"estimate after {flt.n_steps} rows")
-        for c in ("parameter", "nominal", "estimate", "std"):
-            table.add_column(c, justify="right" if c != "parameter" else "left")
+        for c in ("parameter", "nominal", "estimate", "std", "unit"):
+            table.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
         for i, n in enumerate(names):
-            table.add_row(n, f"{pv.values[fidx[i]]:.6g}", f"{x[i]:.6g}", f"{s[i]:.3g}")
+            u, f = units[i]
+            table.add_row(n, f"{pv.values[fidx[i]] * f:.6g}", f"{x[i] * f:.6g}", f"{s[i] * f:.3g}", u)
         console.print(table)
         bi = default_burn_in(flt.monitor.dims, len(names))
         try:
@@ -254,11 +278,19 @@ def register(app: typer.Typer) -> None:
         except ValueError as exc:
             tests = {"error": str(exc)}
             console.print(f"innovation tests: {exc}")
+        out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
+               "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
+                                                         "nominal": float(pv.values[fidx[i]])}
+                                                     for i, n in enumerate(names)},
+               "covariance": flt.P.tolist(), "innovation": tests, "history": history}
         if json_path is not None:
-            out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
-                   "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
-                                                             "nominal": float(pv.values[fidx[i]])}
-                                                         for i, n in enumerate(names)},
-                   "covariance": flt.P.tolist(), "innovation": tests, "history": history}
             write_json(json_path, out)
             console.print(f"JSON -> {json_path}")
+        if report is not None:
+            from estcal.report.online import online_report
+            from estcal.report.units import display_unit
+
+            online_report(report, names, pv.values[fidx], trace_x, trace_s, flt.monitor.nis, flt.monitor.dims, tests,
+                          unit=lambda n: display_unit(n, rb), title=f"estcal online — {rb.name}, {where}",
+                          result_dict=out)
+            console.print(f"report -> {report}/index.html")
