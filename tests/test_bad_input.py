@@ -625,6 +625,25 @@ def test_bad_other_file(tmp_path, case):
     check(r, 2, pattern)
 
 
+@pytest.mark.parametrize("args,pattern", [
+    (["compensate", "{folder}", "-r", "puma560", "-o", "{tmp}/c.csv"], r"folder: is a folder, not a targets file"),
+    (["compensate", "{bin}", "-r", "puma560", "-o", "{tmp}/c.csv"], r"bin\.csv: binary file"),
+    (["compensate", "{pos}", "-r", "puma560", "-o", "{pos}"], r"--output .*pos\.csv: is also an input"),
+    (["compensate", "{pos}", "-r", "puma560", "-o", "{tmp}/c.csv", "--tol-mm", "0"], r"--tol-mm 0: must be a number > 0"),
+    (["export", "-r", "puma560", "--urdf", "{folder}"], r"--urdf .*folder: is a folder — give a file name \(e\.g\. "
+                                                         r".*robot\.urdf\)"),
+    (["export", "-r", "{folder}", "--urdf", "{tmp}/r.urdf"], r"folder: is a folder, not a robot"),
+    (["simulate", "--fleet", "2", "--out", "{pos}"], r"--out .*pos\.csv: is a file — give a folder"),
+], ids=["compensate-folder", "compensate-binary", "compensate-output-is-input", "compensate-tol", "export-urdf-folder",
+        "export-robot-folder", "fleet-out-is-file"])
+def test_other_commands_share_the_checks(base, tmp_path, args, pattern):
+    """Commands of other work packages get the same input layer and option checks."""
+    (tmp_path / "bin.csv").write_bytes(b"\x00" * 30)
+    fill = {"folder": str(base / "folder"), "pos": str(base / "pos.csv"), "tmp": str(tmp_path),
+            "bin": str(tmp_path / "bin.csv")}
+    check(runner.invoke(app, [a.format(**fill) for a in args]), 2, pattern)
+
+
 # ------------------------------------------------------------------ outputs
 def _strict(text):
     def no(c):

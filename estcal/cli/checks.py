@@ -34,7 +34,7 @@ __all__ = ["guard", "check_number", "check_outputs", "NUMBER_RULES", "OUTPUT_OPT
 #        ("halfopen", lo, hi) lo <= x < hi
 NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
     (r"--(n|n-poses|n-candidates|restarts|random-plans|every|max-effects|points|walkers|steps|n-jobs|"
-     r"workers|chunk|n-samples|samples)$", None, ("int", 1)),
+     r"workers|chunk|n-samples|samples|max-iter|fleet)$", None, ("int", 1)),
     (r"--folds$", None, ("int", 2)),
     (r"--(show|map|burn-in|seed)$", None, ("int", 0)),
     (r"--(noise|sigma|prior-std|error)[a-z-]*$", ("simulate",), ("ge", 0.0)),
@@ -42,13 +42,17 @@ NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
     (r"--(q|q-[a-z]+|resolution[a-z-]*|error-[a-z-]+|tau-floor)$", None, ("ge", 0.0)),
     (r"--alpha$", None, ("open", 0.0, 1.0)),
     (r"--margin$", None, ("halfopen", 0.0, 0.5)),
-    (r"--dt[a-z-]*$", None, ("gt", 0.0)),
+    (r"--(dt|tol)[a-z-]*$", None, ("gt", 0.0)),
+    (r"--rot-weight[a-z-]*$", None, ("ge", 0.0)),
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)
-OUTPUT_FOLDER_OPTIONS = ("--report", "--out-dir", "--output-dir")
+OUTPUT_FOLDER_OPTIONS = ("--report", "--out", "--out-dir", "--output-dir")
 OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
-                  "--html")
+                  "--html", "--urdf")
+
+
+_EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml"}
 
 
 def _describe(rule) -> str:
@@ -122,7 +126,8 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[st
             continue
         p = Path(p)
         if p.is_dir():
-            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / ('result.json' if opt == '--json' else 'out.csv')})")
+            example = _EXAMPLE_NAME.get(opt, "out.csv")
+            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / example})")
         anc = _existing_ancestor(p)
         if not anc.is_dir():
             fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")

@@ -24,9 +24,14 @@ def _same_file(a: Path, b: Path) -> bool:
 def _read_raw(path: Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows as text (blank lines dropped, as load_dataset does), so that the
     columns other than the joints are written back unchanged."""
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not (len(r) == 1 and not r[0].strip())]
-    return [h.strip() for h in rows[0]], rows[1:]
+    from estcal.io.dataset import DatasetError
+    from estcal.io.textinput import read_csv
+
+    try:  # the input layer: folder, binary, encoding, delimiter (docs/reliability.md)
+        table = read_csv(path, "targets", DatasetError)
+    except DatasetError as exc:
+        fail(str(exc))
+    return table.header, table.rows
 
 
 def register(app: typer.Typer) -> None:
