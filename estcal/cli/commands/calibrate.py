@@ -279,7 +279,7 @@ def register(app: typer.Typer) -> None:
             if save_model:
                 _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
-                console.print("note: --validate is not supported for Gough platforms (ignored)")
+                warn("--validate is not supported for Gough platforms (ignored)")
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)
