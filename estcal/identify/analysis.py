@@ -108,18 +108,10 @@ def priorities_from_matrix(robot, matrix) -> dict:
 def load_priorities(path) -> dict:
     """Read a priority file (YAML): a mapping ``{name or pattern: priority}``, or
     ``{matrix: [[α, d, θ, r, β, K], …]}`` (returned as ``{"__matrix__": array}``)."""
-    import yaml
+    from estcal.io.textinput import read_yaml
 
     path = Path(path)
-    try:
-        from estcal.io.textinput import read_text
-
-        d = yaml.safe_load(read_text(path, "priority", ValueError))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ValueError(f"{path}{at}: invalid YAML in the priority file "
-                         f"({' '.join(str(getattr(exc, 'problem', None) or exc).split())})") from None
+    d = read_yaml(path, "priority", ValueError)
     if not isinstance(d, dict):
         raise ValueError(f"{path}: expected a mapping {{parameter or pattern: priority}} or {{matrix: [...]}}")
     if "matrix" in d:

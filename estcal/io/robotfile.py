@@ -351,21 +351,9 @@ def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
 
 def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
-    import yaml
+    from estcal.io.textinput import read_yaml
 
-    from estcal.io.textinput import read_text
-
-    path = Path(path)
-    text = read_text(path, "robot", RobotFileError)
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = " ".join(str(getattr(exc, "problem", None) or exc).split())
-        raise RobotFileError(f"{path}{at}: invalid YAML ({what})") from None
-    except RecursionError:
-        raise RobotFileError(f"{path}: invalid YAML (nested too deeply)") from None
+    return read_yaml(path, "robot", RobotFileError)
 
 
 def _is_gough(spec: str) -> bool:

@@ -30,15 +30,10 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
-    from estcal.io.textinput import read_json, read_text
+    from estcal.io.textinput import read_json, read_yaml
 
     if p.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            d = yaml.safe_load(read_text(p, "errors", ValueError))
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{p}: invalid YAML ({' '.join(str(exc).split())})") from None
+        d = read_yaml(p, "errors", ValueError)
     else:
         d = read_json(p, "errors JSON", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
