@@ -269,8 +269,8 @@ DATA_CASES = {
     "12.8-rad": (_d_12_8_rad, r"big\.csv, line 5, column 'j2': 12\.8 rad is beyond ±4π \(two turns\) — not a "
                               r"plausible joint angle", 2),
     "millimetres": (_d_mm, r"mm\.csv, line \d+, column '[xyz]': measured coordinate .* looks like millimetres", 2),
-    "ten-times": (_d_ten_times, r"x10\.csv: the measured positions spread .* \(10×\) — wrong unit", 2),
-    "tenth": (_d_tenth, r"x01\.csv: the measured positions spread .* \(0\.1×\) — wrong unit", 2),
+    "ten-times": (_d_ten_times, r"x10\.csv: the measured positions are .* m apart .* \(10×\) — wrong unit", 2),
+    "tenth": (_d_tenth, r"x01\.csv: the measured positions are .* m apart .* \(0\.1×\) — wrong unit", 2),
     "xy-only": (_d_xy_only, r"xy\.csv, line 1: column\(s\) x, y without z", 2),
     "partial-quaternion": (_d_partial_quat, r"quat3\.csv, line 1: quaternion column\(s\) qw, qx, qy without qz", 2),
     "quaternion-norm": (_d_bad_quat, r"quatn\.csv, line 4: quaternion \(qw,qx,qy,qz\) has norm", 2),
@@ -529,7 +529,7 @@ OPTION_CASES = {
     "calibrate-json-folder": ("calibrate", ["--json", "{folder}"], r"--json .*folder: is a folder — give a file name"),
     "calibrate-json-under-file": ("calibrate", ["--json", "{pos}/r.json"], r"--json .*pos\.csv/r\.json: .*pos\.csv is a "
                                                                            r"file, not a folder"),
-    "calibrate-json-is-input": ("calibrate", ["--json", "{pos}"], r"--json .*pos\.csv: is also an input of this command"),
+    "calibrate-json-is-input": ("calibrate", ["--json", "{pos}"], r"--json .*pos\.csv: is also an input file of this command"),
     "calibrate-level": ("calibrate", ["--level", "everything"], r"unknown --level 'everything'"),
     "calibrate-estimator": ("calibrate", ["--estimator", "magic"], r"unknown estimator 'magic'"),
     "calibrate-method": ("calibrate", ["--method", "magic"], r"unknown --method 'magic'"),
@@ -540,7 +540,7 @@ OPTION_CASES = {
     "calibrate-robust": ("calibrate", ["--robust", "huber"], r"--robust needs a factor-graph estimator"),
     "calibrate-validate-missing": ("calibrate", ["--validate", "{tmp}/nope.csv"], r"nope\.csv: dataset file not found"),
     "calibrate-validate-folder": ("calibrate", ["--validate", "{folder}"], r"folder: is a folder, not a dataset file"),
-    "fk-output-is-input": ("fk", ["-o", "{pos}"], r"--output .*pos\.csv: is also an input of this command"),
+    "fk-output-is-input": ("fk", ["-o", "{pos}"], r"--output .*pos\.csv: is also an input file of this command"),
     "fk-output-folder": ("fk", ["-o", "{folder}"], r"--output .*folder: is a folder"),
     "fk-json-folder": ("fk", ["--json", "{folder}"], r"--json .*folder: is a folder"),
     "fk-json-same-as-output": ("fk", ["--json", "{tmp}/o.csv"], r"the same file as --output"),

@@ -137,8 +137,8 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[st
             fail(f"{opt} {p}: the file exists and is read-only — choose another name")
         real = os.path.realpath(p)
         if real in ins:
-            fail(f"{opt} {p}: is also an input of this command ({ins[real]}) — write the output to another "
-                 f"file (estcal never overwrites its inputs)")
+            fail(f"{opt} {p}: is also an input file of this command ({ins[real]}) — write the output to another "
+                 f"file (inputs are never overwritten)")
         if real in seen:
             fail(f"{opt} {p}: the same file as {seen[real]} — give each output its own file")
         seen[real] = opt
