@@ -258,14 +258,10 @@ class DiagnosisResult:
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
         order (if used), effect columns moved into the context, session time. Score new data
         with ``self.robot`` (extended) or ``self.geometric_robot`` after this."""
-        from .geometric import derive_approach
+        from estcal.io.savedmodel import prepare_data
 
-        d = derive_approach(data) if self.model.get("approach_from_order") else data
-        d = with_effect_context(self.robot, d)
-        if self.model.get("session_time") and "t" in d.context:
-            d.columns["t_abs"] = d.context["t"].copy()
-            d.context["t"] = d.context["t"] - d.context["t"].min()
-        return d
+        return prepare_data(self.robot, data, {k: self.model.get(k) for k in ("approach_from_order",
+                                                                                "session_time")})
 
     def score(self, data) -> dict:
         """RMSE / max (mm) of the geometric and extended models on ``data`` (prepared first),

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, warn
+from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, save_model_or_fail, warn
 
 __all__ = ["register"]
 
@@ -121,8 +121,4 @@ def register(app: typer.Typer) -> None:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
         if save_model:
-            try:
-                res.save_model(save_model, {"robot": robot})
-            except (ValueError, OSError) as exc:
-                _fail(f"--save-model {save_model}: {exc}")
-            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
+            typer.echo(save_model_or_fail(res, save_model, robot))
