@@ -258,7 +258,7 @@ def register(app: typer.Typer) -> None:
         if level is not None and level not in LEVELS:
             _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
         if not data.exists():
-            _fail(f"{data}: file not found")
+            _fail(f"{data}: dataset file not found")
 
         # Gough platforms have their own calibration entry point
         try:
@@ -279,9 +279,9 @@ def register(app: typer.Typer) -> None:
             if save_model:
                 _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
-                console.print("note: --validate is not supported for Gough platforms (ignored)")
+                warn("--validate is not supported for Gough platforms (ignored)")
             if report is not None:
-                console.print("note: --report is not supported for Gough platforms (ignored)")
+                warn("--report is not supported for Gough platforms (ignored)")
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)

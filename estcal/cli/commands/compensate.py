@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail
+from estcal.cli.common import fail, warn
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -24,9 +24,14 @@ def _same_file(a: Path, b: Path) -> bool:
 def _read_raw(path: Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows as text (blank lines dropped, as load_dataset does), so that the
     columns other than the joints are written back unchanged."""
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not (len(r) == 1 and not r[0].strip())]
-    return [h.strip() for h in rows[0]], rows[1:]
+    from estcal.io.dataset import DatasetError
+    from estcal.io.textinput import read_csv
+
+    try:  # the input layer: folder, binary, encoding, delimiter (docs/reliability.md)
+        table = read_csv(path, "targets", DatasetError)
+    except DatasetError as exc:
+        fail(str(exc))
+    return table.header, table.rows
 
 
 def register(app: typer.Typer) -> None:
@@ -98,7 +103,7 @@ def register(app: typer.Typer) -> None:
         except (DatasetError, FileNotFoundError) as exc:
             fail(str(exc))
         for w in ds.warnings:
-            console.print("[yellow]warning:[/yellow] " + escape(w))
+            warn(f"{targets}: {w}")
         if ds.kind == "pose" and not position_only:
             tgt = np.c_[ds.p, _quat(ds.R)]
         else:
@@ -155,18 +160,14 @@ def register(app: typer.Typer) -> None:
         for note in notes:
             console.print("note: " + escape(note))
         if res.start_outside.any():
-            console.print(f"[yellow]warning:[/yellow] starting joints outside the limits (projected) on lines "
-                          f"{_lines(res.lines[res.start_outside])}")
+            warn(f"starting joints outside the limits (projected) on lines {_lines(res.lines[res.start_outside])}")
         if json_path is not None:
-            import json
-
-            from estcal.io.atomic import atomic_write_text
-            from estcal.io.jsonio import to_jsonable
+            from estcal.io.jsonio import write_json
 
             d = res.to_dict()
             d.update(input=str(targets), output=str(output), robot=str(robot), notes=notes,
                      readings_changed_max=float(shift.max()))
-            atomic_write_text(json_path, json.dumps(to_jsonable(d), indent=2))
+            write_json(json_path, d)  # strict JSON, atomic
         if ok < n:
             bad = res.unreachable_lines
             worst = float(res.error_mm[~res.reachable].max())

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail
+from estcal.cli.common import fail, message
 from estcal.io.atomic import atomic_write
 from estcal.io.jsonio import write_json
 
@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
             ds = prepare_data(rb, ds)
             kin = rb.kinematics(ds.readings, context=effect_context(rb, ds), jacobian=False)
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         cols, names = [], []
         if with_joints:
             cols.append(ds.readings)
