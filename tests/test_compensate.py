@@ -1,4 +1,4 @@
-"""Compensation (estcal.compensate, `estcal compensate`): independent checks of the solve,
+"""Compensation (estcal.compensation, `estcal compensate`): independent checks of the solve,
 the limits, the effects, the covariance propagation and the command-line contract."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from estcal.cli.main import app
-from estcal.compensate import compensate
-from estcal.compensate.solve import task_residual
+from estcal.compensation import compensate
+from estcal.compensation.solve import task_residual
 from estcal.effects import make_effect
 from estcal.io.robotfile import load_robot, robot_from_dict, robot_to_dict, save_robot
 from estcal.kinematics.transforms import matrix_to_quat, so3_log
@@ -212,7 +212,9 @@ def cli_case(tmp_path):
     r0, kin = planned(nominal, 12, seed=2)
     keep = well_conditioned(nominal, r0, kin)
     r0, p, R = r0[keep][:6], kin.p[keep][:6].copy(), kin.R[keep][:6]
-    p[3] += [5.0, 0.0, 0.0]  # 5 m away: outside the workspace (CSV line 5)
+    # 1 m further from the shoulder than the arm reaches (≈ 0.86 m): outside the workspace (CSV line 5)
+    o2 = nominal.kinematics(r0[3:4], jacobian=False).joint_origin[0, 1]
+    p[3] += (p[3] - o2) / np.linalg.norm(p[3] - o2)
     appr = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
     write_targets(tmp_path / "targets.csv", nominal, r0, p, matrix_to_quat(R), {"approach_j2": appr})
     return tmp_path, model, r0, p, R, appr
@@ -248,7 +250,7 @@ def test_cli_errors_exit_2_and_no_covariance_column(cli_case, tmp_path):
     tmp, model, r0, p, R, appr = cli_case
     t = str(tmp / "targets.csv")
     r = runner.invoke(app, ["compensate", t, "--robot", str(tmp / "model.yaml"), "-o", t])
-    assert r.exit_code == 2 and "input file" in r.output
+    assert r.exit_code == 2 and "input" in r.output
     nominal = load_robot("puma560_masses")
     write_targets(tmp / "nox.csv", nominal, r0, np.zeros((len(r0), 0)))
     r = runner.invoke(app, ["compensate", str(tmp / "nox.csv"), "--robot", str(tmp / "model.yaml"), "-o",

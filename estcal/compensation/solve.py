@@ -1,6 +1,6 @@
 """Numerical core of compensation: joint readings that make a model reach given targets.
 
-Pure functions on arrays; no file handling (see :mod:`estcal.compensate.core`).
+Pure functions on arrays; no file handling (see :mod:`estcal.compensation.core`).
 
 Task
 ----

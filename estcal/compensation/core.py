@@ -8,7 +8,7 @@ thermal expansion with ``temperature`` …) reaches the target, starting from
 ``q_start`` (which fixes the inverse-kinematics branch), plus the residual of
 the solve and, when the model carries a ``calibration:`` block, the predicted
 position uncertainty of the reached point. The numerical core is
-:mod:`estcal.compensate.solve`; the method is documented in docs/compensation.md.
+:mod:`estcal.compensation.solve`; the method is documented in docs/compensation.md.
 """
 from __future__ import annotations
 
