@@ -18,7 +18,7 @@ checks it).
 
 Examples::
 
-    python online_stream.py puma560 stream.csv --sigma-p 1e-4 --sigma-r 1e-4 --free 'theta_*,d_*'
+    python online_stream.py puma560 stream.csv --sigma-p 1e-4 --sigma-r 1e-4 --free 'theta_*,d_1,d_4,d_5,d_6'
     measurement_source | python online_stream.py my_robot.yaml - --sigma-p 5e-5 --q 1e-6 --json state.json
 
 Exit codes: 0 done, 2 bad arguments / header / input (or a malformed row with ``--strict``).
