@@ -219,7 +219,7 @@ def main(argv=None) -> dict:
 
     with dask.config.set({"distributed.worker.profile.enabled": False}), \
             LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                         dashboard_address=None) as cluster, Client(cluster) as client:
+                         dashboard_address=":0") as cluster, Client(cluster) as client:
         out["cluster_start_s"] = time.perf_counter() - t
         out["calibrations"] = bench_calibrations(client, args.n, args.workers)
         c = out["calibrations"]

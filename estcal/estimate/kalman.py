@@ -20,7 +20,7 @@ the residual ``e`` of :class:`~estcal.methods.problem.Problem` and
 :class:`~filterpy.kalman.ExtendedKalmanFilter` and
 :class:`~filterpy.kalman.UnscentedKalmanFilter`, not hand-written ones.
 The UKF's sigma points are evaluated in one vectorised call
-(:func:`estcal.estimate.batcheval.evaluate_many`).
+(:meth:`estcal.methods.problem.Problem.evaluate_many`).
 
 The UKF predicts each measurement as the mean of h over the current Gaussian
 (second-order term ½ tr(∇²h P) included): with a very wide prior that term
@@ -169,13 +169,11 @@ class ParameterFilter:
             f.update(z, lambda x: H, lambda x: hx, R=R)
             y, S = np.asarray(f.y, float), np.asarray(f.S, float)
         else:
-            from .batcheval import evaluate_many
-
             f.predict()
             sig = f.sigmas_f
             TH = np.broadcast_to(self.theta0, (sig.shape[0], self.theta0.size)).copy()
             TH[:, self.fidx] = sig
-            E = evaluate_many(sub, TH)
+            E = sub.evaluate_many(TH)
             lookup = {s.tobytes(): -E[i] for i, s in enumerate(sig)}
             rows = sub.evaluate(self.full(f.x), jacobian=False)
             R = np.diag(rows.sigma ** 2)

@@ -21,7 +21,7 @@ Sampler
 -------
 emcee's ensemble sampler with ``vectorize=True``: the log-posterior receives
 all walkers at once and evaluates their residuals in one vectorised forward
-kinematics (:func:`estcal.estimate.batcheval.evaluate_many`). Walkers start in
+kinematics (:meth:`estcal.methods.problem.Problem.evaluate_many`, effects included). Walkers start in
 a small ball drawn from the Laplace approximation around the least-squares
 optimum, and the sampler works in the coordinates that whiten it
 (θ = θ̂ + L z, L Lᵀ = Σ_LS). Default moves (``moves="laplace"``): 70 %
@@ -47,7 +47,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._common import finish_result, noise_known, prior_std_vector, resolve_free
-from .batcheval import evaluate_many
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
 
@@ -81,7 +80,7 @@ class LogPosterior:
         X = self.to_theta(Z)
         TH = np.broadcast_to(self.theta, (X.shape[0], self.theta.size)).copy()
         TH[:, self.fidx] = X
-        E = evaluate_many(self.problem, TH) / self.sigma
+        E = self.problem.evaluate_many(TH) / self.sigma
         self.n_evals += X.shape[0]
         chi2 = np.einsum("wm,wm->w", E, E)
         lp = -0.5 * np.sum(((X - self.mu) / self.s) ** 2, axis=1)

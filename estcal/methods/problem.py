@@ -76,6 +76,16 @@ class Problem:
         return Rows.concatenate([t.method.rows(self.robot, theta, t.data, t.noise, jacobian)
                                  for t in self.terms])
 
+    def evaluate_many(self, thetas) -> np.ndarray:
+        """Residuals ``e`` (W, M) at every row of ``thetas`` (W, P), rows ordered as :meth:`evaluate`.
+
+        The classical methods (position, pose, points) use one batched kinematics
+        call per term for all W vectors — effects included
+        (:meth:`estcal.kinematics.chain.SerialRobot.kinematics` with θ (W, P));
+        other methods are evaluated θ by θ (:meth:`Method.residuals_many`)."""
+        TH = np.atleast_2d(np.asarray(thetas, float))
+        return np.concatenate([t.method.residuals_many(self.robot, TH, t.data) for t in self.terms], axis=1)
+
     def with_free(self, names) -> "Problem":
         """Copy whose free set is exactly ``names`` (patterns allowed)."""
         new = Problem.__new__(Problem)

@@ -276,7 +276,7 @@ def _dask_client(scheduler: str, n_workers):
         # an idle worker's CPU — docs/scaling.md)
         with dask.config.set({"distributed.worker.profile.enabled": False}):
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
-                                   processes=True, dashboard_address=None)
+                                   processes=True, dashboard_address=":0")
         client = Client(cluster)
         return client, _OwnCluster(cluster, client)
     client = Client(scheduler, timeout="10s")
