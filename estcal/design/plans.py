@@ -416,21 +416,26 @@ def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidat
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     best_idx, best = None, np.inf
     history = []
-    for r in range(max(1, restarts)):
-        start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
-        if algorithm == "greedy":
-            if r > 0:
-                break
-            idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
-        elif algorithm == "fedorov":
-            idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
-        elif algorithm == "detmax":
-            idx, loss = _detmax_idx(F, B, M0, start, sc)
-        else:
-            raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
-        history.append(loss)
-        if loss < best:
-            best, best_idx = loss, idx
+    from estcal.progress import progress
+
+    n_runs = 1 if algorithm == "greedy" else max(1, restarts)
+    with progress(total=n_runs, desc=f"design ({algorithm}, m={m})", unit="restart") as bar:
+        for r in range(max(1, restarts)):
+            start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
+            if algorithm == "greedy":
+                if r > 0:
+                    break
+                idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
+            elif algorithm == "fedorov":
+                idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
+            elif algorithm == "detmax":
+                idx, loss = _detmax_idx(F, B, M0, start, sc)
+            else:
+                raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
+            history.append(loss)
+            if loss < best:
+                best, best_idx = loss, idx
+            bar.update(1)
     Q = cand[best_idx]
     return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), algorithm,
                 model.robot.joint_names, {"candidate_indices": best_idx, "restart_losses": history,

@@ -233,19 +233,24 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     subs = [gp.subproblem(b) for b in batches]
     lin_traj = None
     hist_x, hist_s = [], []
-    for it in range(passes):
-        flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha)
-        traj = []
-        for k, sub in enumerate(subs):
-            flt.step(sub, None if lin_traj is None else lin_traj[k])
-            traj.append(flt.x)
-            if history and it == passes - 1:
-                hist_x.append(flt.x)
-                hist_s.append(flt.std)
-        if filter == "ukf":
-            break
-        # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
-        lin_traj = [traj[-1]] * len(traj)
+    from estcal.progress import progress
+
+    n_pass = 1 if filter == "ukf" else passes
+    with progress(total=n_pass * len(subs), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
+        for it in range(passes):
+            flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha)
+            traj = []
+            for k, sub in enumerate(subs):
+                flt.step(sub, None if lin_traj is None else lin_traj[k])
+                traj.append(flt.x)
+                bar.update(1)
+                if history and it == passes - 1:
+                    hist_x.append(flt.x)
+                    hist_s.append(flt.std)
+            if filter == "ukf":
+                break
+            # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
+            lin_traj = [traj[-1]] * len(traj)
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
     known = noise_known(problem)

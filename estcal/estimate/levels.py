@@ -247,6 +247,11 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
     est = get_estimator(estimator)
     options = dict(options or {})
+    if options:
+        from estcal.estimate.registry import check_options
+
+        check_options(estimator, options)
+    user_options = dict(options)
     reg_choice = None
     if regularize is not None:
         from estcal.estimate.lsq import LSQ_METHODS
@@ -277,6 +282,11 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         res.nominal = theta0[problem.params.indices(res.names)]
     if sel is not None:
         res.extra["selection"] = sel.to_dict()
+    if user_options:
+        res.extra["options"] = user_options
+    if regularize is not None:
+        res.extra["regularize"] = regularize
+    res.extra.setdefault("measure", problem.terms[0].method.name)
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     return res, sel, problem

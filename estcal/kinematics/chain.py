@@ -134,6 +134,11 @@ class Kinematics:
         return make_transform(self.R, self.p)
 
 
+def _frames_kw(eff, link_p) -> dict:
+    """``link_p`` (N, L, 3) for Cartesian effects that ask for the link frames."""
+    return {"link_p": link_p} if "link_p" in inspect.signature(eff.point_correction).parameters else {}
+
+
 def _screw_at(w, o, rot, x):
     """Velocity of point x (3, 1, N) for unit motions about (rot) / along axes w through o (3, C, N)."""
     d0, d1, d2 = x[0] - o[0], x[1] - o[1], x[2] - o[2]
@@ -293,7 +298,9 @@ class SerialRobot:
           ``(dq (N, n), d(dq)/d(θ_effect) (N, n, m) or None)``: added to the joint values.
         * and/or ``point_correction(robot, readings, points, theta, context,
           derivatives, J_points=None)`` -> ``(dx (N, k, 3), d(dx)/d(θ_effect) (N, k, 3, m) or None)``:
-          added to the marker points (e.g. thermal expansion).
+          added to every measured point — the tool origin and the markers — (e.g.
+          thermal expansion); effects whose signature has ``link_p`` also receive the
+          link frame origins (N, L, 3).
 
         Jacobian columns of effect parameters are exact; the dependence of an
         effect's correction on the geometric parameters (e.g. of a gravity torque
@@ -462,17 +469,24 @@ class SerialRobot:
             m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
             pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
         points = pts.transpose(2, 1, 0).copy()
-        walkers = [(w, slice(w * (N // n_w), (w + 1) * (N // n_w))) for w in range(n_w)] if many else []
-        for eff in self.effects:
-            if hasattr(eff, "point_correction"):
-                if many:
-                    for w, sl in walkers:
-                        d, _ = eff.point_correction(self, readings, points[sl], theta[w], context or {},
-                                                    derivatives=False)
-                        points[sl] = points[sl] + d
-                    continue
-                d, _ = eff.point_correction(self, readings, points, theta, context or {}, derivatives=False)
-                points = points + d
+        # Cartesian effects (thermal expansion) move every measured point: the tool
+        # origin (row 0 of ``allp``) and the markers, so they act on tool positions,
+        # full poses, markers and the link/plane/distance methods alike. With many
+        # parameter vectors they are evaluated walker by walker, with that walker's θ.
+        cart = [eff for eff in self.effects if hasattr(eff, "point_correction")]
+        walkers = ([(w, slice(w * (N // n_w), (w + 1) * (N // n_w))) for w in range(n_w)] if many
+                   else [(None, slice(None))])
+        if cart:
+            link_pn = link_p.transpose(2, 0, 1)
+            allp = np.concatenate([p.T[:, None, :], points], 1)
+            for eff in cart:
+                for w, sl in walkers:
+                    d, _ = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
+                                                context or {}, derivatives=False,
+                                                **_frames_kw(eff, link_pn[sl]))
+                    allp[sl] = allp[sl] + d
+            p = np.ascontiguousarray(allp[:, 0].T)
+            points = allp[:, 1:].copy()
         Rn = np.ascontiguousarray(R.transpose(2, 0, 1))
         pn = np.ascontiguousarray(p.T)
 
@@ -498,18 +512,22 @@ class SerialRobot:
                 _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
                 JpT[i][:, self.marker_idx[i]] += R  # d(p + R m)/dm = R, R[a, c] per pose
             J_points = JpT.transpose(3, 0, 1, 2)
-            for eff in self.effects:
-                if hasattr(eff, "point_correction") and self.n_markers:
+            if cart:
+                # the tool origin's position rows are corrected like a marker's
+                Jall = np.concatenate([J[:, None, :3, :], J_points], 1)
+                for eff in cart:
                     # Effects that scale the whole point (thermal) also need the pose
                     # Jacobian to correct the other columns; older effects may not take it.
                     wants_J = "J" in inspect.signature(eff.point_correction).parameters
-                    for w, sl in (walkers if many else [(None, slice(None))]):
-                        Jp = J_points[sl]
-                        kw = {"J_points": Jp, **({"J": J[sl]} if wants_J else {})}
-                        _, dd = eff.point_correction(self, readings, points[sl], theta if w is None else theta[w],
+                    for w, sl in walkers:
+                        Jp = Jall[sl]
+                        kw = {"J_points": Jp, **({"J": J[sl]} if wants_J else {}), **_frames_kw(eff, link_pn[sl])}
+                        _, dd = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
                                                      context or {}, derivatives=True, **kw)
                         if dd is not None:
                             Jp[..., eff.indices] += dd
+                JT[:3] = Jall[:, 0].transpose(1, 2, 0)
+                J_points = Jall[:, 1:]
         R, p = Rn, pn
         link_R = link_R.transpose(3, 0, 1, 2)
         link_p = link_p.transpose(2, 0, 1)
