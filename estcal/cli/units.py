@@ -54,6 +54,7 @@ DIMENSIONLESS = {
     "--burn-in": "number of rows / samples",
     "--walkers": "number of MCMC walkers",
     "--steps": "number of MCMC steps",
+    "--max-iter": "number of iterations",
 }
 
 # A unit written in an option's name (suffix) or help: "(mm)", "mrad", "deg", "°C", "kg", "s" …

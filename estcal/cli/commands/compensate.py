@@ -44,8 +44,8 @@ def register(app: typer.Typer) -> None:
                                                                 "reachable row (targets with quaternions)."),
         position_only: bool = typer.Option(False, "--position-only", help="Ignore qw,qx,qy,qz: reach the "
                                                                           "point only."),
-        rot_weight_m: float = typer.Option(0.1, "--rot-weight-m", help="Metres per radian weighting "
-                                                                       "orientation against position in the solve."),
+        rot_weight_m: float = typer.Option(0.1, "--rot-weight-m", help="Weight of orientation against position "
+                                                                       "in the solve, m/rad (metres per radian)."),
         max_iter: int = typer.Option(100, "--max-iter", help="Most Levenberg-Marquardt steps per row."),
         allow_unreachable: bool = typer.Option(False, "--allow-unreachable",
                                                help="Exit 0 even when rows are unreachable (still flagged "
