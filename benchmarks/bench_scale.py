@@ -90,26 +90,9 @@ def timed(fn, *a, **k):
 
 
 def puma_problems(n, poses=50):
-    """``n`` PUMA problems as in ``bench_calibration.puma_problem`` (whose identifiable-set
-    search runs once here: the set is structural, the same for every random pose set)."""
-    from estcal.io.dataset import dataset_from_arrays
-    from estcal.kinematics.transforms import so3_exp
-    from estcal.methods import NoiseModel, Problem
-
+    """``n`` PUMA problems of ``bench_calibration`` (seeds 0 … n − 1), one identifiable-set search."""
     prob0, names = puma_problem(poses, 0)
-    robot = prob0.robot
-    out = [(prob0, names)]
-    for seed in range(1, n):
-        rng = np.random.default_rng(seed)
-        q = robot.random_readings(poses, rng)
-        truth = robot.params.values.copy()
-        truth[robot.params.indices(names)] += rng.normal(0, 1e-3, len(names))
-        kin = robot.kinematics(q, truth, jacobian=False)
-        R = so3_exp(rng.normal(0, 5e-4, (poses, 3))) @ kin.R
-        p = kin.p + rng.normal(0, 5e-5, (poses, 3))
-        ds = dataset_from_arrays(robot.joint_names, q, R=R, p=p)
-        out.append((Problem(robot, [(None, ds, NoiseModel(5e-5, 5e-4, known=True))]), names))
-    return out
+    return [(prob0, names)] + [puma_problem(poses, seed, names) for seed in range(1, n)]
 
 
 def bench_calibrations(client, n, workers):
