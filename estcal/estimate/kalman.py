@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
+from ._common import GroupedProblem, evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 from .innovation import InnovationMonitor
 
 __all__ = ["ParameterFilter", "calibrate_kalman", "calibrate_ukf", "process_noise", "default_burn_in"]
@@ -173,7 +173,7 @@ class ParameterFilter:
             sig = f.sigmas_f
             TH = np.broadcast_to(self.theta0, (sig.shape[0], self.theta0.size)).copy()
             TH[:, self.fidx] = sig
-            E = sub.evaluate_many(TH)
+            E = evaluate_many(sub, TH)
             lookup = {s.tobytes(): -E[i] for i, s in enumerate(sig)}
             rows = sub.evaluate(self.full(f.x), jacobian=False)
             R = np.diag(rows.sigma ** 2)

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._common import finish_result, noise_known, prior_std_vector, resolve_free
+from ._common import evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
 
@@ -80,7 +80,7 @@ class LogPosterior:
         X = self.to_theta(Z)
         TH = np.broadcast_to(self.theta, (X.shape[0], self.theta.size)).copy()
         TH[:, self.fidx] = X
-        E = self.problem.evaluate_many(TH) / self.sigma
+        E = evaluate_many(self.problem, TH) / self.sigma
         self.n_evals += X.shape[0]
         chi2 = np.einsum("wm,wm->w", E, E)
         lp = -0.5 * np.sum(((X - self.mu) / self.s) ** 2, axis=1)

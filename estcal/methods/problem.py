@@ -84,7 +84,14 @@ class Problem:
         (:meth:`estcal.kinematics.chain.SerialRobot.kinematics` with θ (W, P));
         other methods are evaluated θ by θ (:meth:`Method.residuals_many`)."""
         TH = np.atleast_2d(np.asarray(thetas, float))
-        return np.concatenate([t.method.residuals_many(self.robot, TH, t.data) for t in self.terms], axis=1)
+
+        def term(t):
+            if hasattr(t.method, "residuals_many"):
+                return t.method.residuals_many(self.robot, TH, t.data)
+            # a duck-typed method (not a Method subclass): θ by θ
+            return np.stack([t.method.rows(self.robot, th, t.data, t.noise, False).e for th in TH])
+
+        return np.concatenate([term(t) for t in self.terms], axis=1)
 
     def with_free(self, names) -> "Problem":
         """Copy whose free set is exactly ``names`` (patterns allowed)."""
