@@ -204,7 +204,7 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
 def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
                     free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
                     validate=(), noise=None, register: bool = True, options: dict | None = None,
-                    regularize=None):
+                    regularize=None, checks: bool = False, allow_ill_conditioned: bool = False):
     """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
 
     ``regularize``: ``None`` (plain least squares), ``"loo"`` (Gaussian prior toward the
@@ -212,6 +212,12 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     tool — with the width τ chosen by leave-one-pose-out CV on ``data``:
     :mod:`estcal.estimate.regularize`), or a fixed τ (SI). Base frame and unknown points are
     never penalised. Needs a least-squares estimator.
+
+    ``checks``: run :mod:`estcal.estimate.checks` — raise
+    :class:`~estcal.estimate.checks.NumericalRefusal` on degenerate data (dof ≤ 0, repeated
+    poses, rank loss beyond the generic identifiable set) and, unless ``allow_ill_conditioned``,
+    on non-convergence or a condition number above ``COND_MAX``; the figures and warnings go to
+    ``result.extra["reliability"]``.
 
     Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
     """
@@ -236,6 +242,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         theta0 = register_base(problem.robot, data, theta0)
         problem = problem.with_values(theta0)
     start = problem
+    exclude = []
     if free is None:
         # Default: the full structural identifiable set (QR). Information-criterion
         # pruning (aic/bic) is greedy and can drop parameters whose effect only shows
@@ -245,6 +252,15 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
         free = sel.identifiable
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
+    assessment = None
+    if checks:
+        from estcal.estimate.checks import NumericalRefusal, precheck
+
+        assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
+                              sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
+                              exclude=exclude)
+        if assessment.refusals:
+            raise NumericalRefusal("\n".join(assessment.refusals))
     est = get_estimator(estimator)
     options = dict(options or {})
     reg_choice = None
@@ -277,6 +293,13 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         res.nominal = theta0[problem.params.indices(res.names)]
     if sel is not None:
         res.extra["selection"] = sel.to_dict()
+    if checks:
+        from estcal.estimate.checks import NumericalRefusal, postcheck
+
+        assessment = assessment.merge(postcheck(problem, res, allow_ill_conditioned=allow_ill_conditioned))
+        res.extra["reliability"] = assessment.to_dict()
+        if assessment.refusals:
+            raise NumericalRefusal("\n".join(assessment.refusals))
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     return res, sel, problem

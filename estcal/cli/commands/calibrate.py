@@ -125,6 +125,8 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+    for w in (res.extra.get("reliability") or {}).get("warnings", []):
+        console.print(f"warning: {w}", soft_wrap=True)
 
 
 def _regularize(value):
@@ -198,11 +200,16 @@ def register(app: typer.Typer) -> None:
                                                                      "estimators: huber | cauchy."),
         option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
                                                               "--option q=1e-5 --option optimizer=dogleg."),
+        allow_ill: bool = typer.Option(False, "--allow-ill-conditioned",
+                                       help="Report non-convergence, a condition number above the documented "
+                                            "threshold (docs/reliability.md) or a rank loss of the data as "
+                                            "warnings instead of refusing (exit 3)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
 
+        from estcal.estimate.checks import NumericalRefusal
         from estcal.estimate.lsq import UnidentifiableError
         from estcal.estimate.registry import estimator_names
         from estcal.io import load_dataset
@@ -291,7 +298,10 @@ def register(app: typer.Typer) -> None:
         try:
             res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
                                                 level=level or "full", selection=selection, validate=vals,
-                                                noise=noise, options=options, regularize=reg_value)
+                                                noise=noise, options=options, regularize=reg_value,
+                                                checks=True, allow_ill_conditioned=allow_ill)
+        except NumericalRefusal as exc:
+            _fail(f"numerical refusal: {exc}", code=3)
         except ParameterError as exc:
             _fail(f"--free: {exc}")
         except UnidentifiableError as exc:
