@@ -56,11 +56,12 @@ def _row_dataset(header, values, joint_names, where, allow_none: bool = False):
     return dataset_from_arrays(joint_names, r, points=pts, context=ctx, path=where)
 
 
-def _lines(data: str):
+def _raw_lines(data: str):
+    """Input lines as bytes (hashed exactly as read, so a checkpoint can name the consumed prefix)."""
     if data == "-":
-        yield from sys.stdin
+        yield from sys.stdin.buffer
     else:
-        with open(data, newline="") as fh:
+        with open(data, "rb") as fh:
             yield from fh
 
 
@@ -86,6 +87,15 @@ def register(app: typer.Typer) -> None:
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
                                                  "tests and the printed history as JSON."),
+        state_path: Optional[Path] = typer.Option(None, "--state", help="Checkpoint file: the filter (x, P, Q, noise, "
+                                                  "row, input SHA-256, options) written atomically every "
+                                                  "--checkpoint-every rows and at exit; also a state for "
+                                                  "`estcal next-pose --state`."),
+        resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from this checkpoint (same input and "
+                                              "options; checkpoints keep going to it unless --state is given)."),
+        checkpoint_every: int = typer.Option(100, "--checkpoint-every", help="Rows between checkpoints."),
+        throttle: float = typer.Option(0.0, "--throttle", help="Seconds to wait after each row (replay a file "
+                                       "as a slow live stream)."),
     ) -> None:
         """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
         are printed as the rows arrive (units: m, rad)."""
@@ -125,6 +135,33 @@ def register(app: typer.Typer) -> None:
             fail(exc)
         noise = NoiseModel(sigma_p, sigma_r, known=True)
         from estcal.estimate._common import PER_POSE_METHODS
+        from estcal.estimate.checkpoint import (CheckpointError, PrefixHasher, file_sha256, filter_checkpoint,
+                                                load_checkpoint, option_differences, restore_filter,
+                                                save_checkpoint)
+
+        if checkpoint_every < 1:
+            fail(f"--checkpoint-every must be ≥ 1, got {checkpoint_every}")
+        if throttle < 0:
+            fail(f"--throttle must be ≥ 0 s, got {throttle}")
+        # the options that change the estimates: a resumed run must use the same ones
+        run_options = {"robot": robot, "root": root, "tip": tip, "free": free, "q": q, "q_params": q_params,
+                       "filter": filter_kind, "method": method, "sigma_p": sigma_p, "sigma_r": sigma_r,
+                       "prior_std": prior_std}
+        saved = None
+        if resume is not None:
+            try:
+                saved = load_checkpoint(resume)
+            except CheckpointError as exc:
+                fail(f"--resume: {exc}")
+            diff = option_differences(saved["options"], run_options)
+            if diff:
+                fail(f"--resume {resume}: the options differ from the checkpointed run: {'; '.join(diff)} — "
+                     f"give the same options to continue it")
+            if state_path is None:
+                state_path = resume
+        elif state_path is not None and state_path.exists():
+            fail(f"--state {state_path}: the file exists (a previous run's checkpoint?) — continue it with "
+                 f"--resume {state_path}, or remove it / choose another path")
 
         try:
             meth = get_method(method) if method else None
@@ -133,7 +170,9 @@ def register(app: typer.Typer) -> None:
         if meth is not None and meth.name not in PER_POSE_METHODS:
             fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
                  f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
-        if free:
+        if saved is not None:
+            names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
+        elif free:
             names_pat = [s.strip() for s in free.split(",") if s.strip()]
         elif data != "-":
             from estcal.estimate._common import identifiable_free
@@ -161,16 +200,45 @@ def register(app: typer.Typer) -> None:
         P0 = np.eye(len(names)) * prior_std ** 2
         try:
             flt = ParameterFilter(pv.values, fidx, P0, Q, kind=filter_kind, names=names)
-        except ValueError as exc:
+            if saved is not None:
+                restore_filter(flt, saved)
+        except (ValueError, CheckpointError) as exc:
             fail(exc)
-        lines = _lines(data)
         where = "<stdin>" if data == "-" else data
+        if data != "-" and not Path(data).exists():
+            fail(f"{data}: file not found")
+        input_sha = file_sha256(data) if data != "-" else None
+        hasher = PrefixHasher()
+        raw = _raw_lines(data)
+
+        def lines():
+            for b in raw:
+                hasher.update(b)
+                yield b.decode("utf-8-sig" if hasher.n == len(b) else "utf-8")
+
+        lines = lines()
         try:
             header = next(csv.reader([next(lines)]))
         except StopIteration:
             fail(f"{where}: empty input (expected a header row)")
+        except UnicodeDecodeError as exc:
+            fail(f"{where}: not UTF-8 text ({exc})")
         header = [h.strip() for h in header]
         history = []
+        burn = None
+        rows_done, last_line = 0, 1
+        skip = 0
+        if saved is not None:
+            history = list(saved["history"])
+            burn = saved["burn"]
+            skip = int(saved["rows"])
+
+        def checkpoint(finished=False):
+            if state_path is None or rows_done < skip:  # still replaying the checkpointed rows: keep it
+                return
+            save_checkpoint(state_path, filter_checkpoint(
+                flt, options=run_options, rows=rows_done, line=last_line, hasher=hasher, input_sha256=input_sha,
+                burn=burn, history=history, finished=finished))
         shown = list(range(min(show, len(names))))
 
         def live_table():
@@ -192,38 +260,91 @@ def register(app: typer.Typer) -> None:
             live_ctx.start()
             live_holder.append(live_ctx)
         console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
-                      f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}")
-        burn = None
-        for ln, line in enumerate(lines, start=2):
-            if not line.strip():
-                continue
-            vals = next(csv.reader([line]))
-            if len(vals) != len(header):
-                fail(f"{where}, line {ln}: {len(vals)} fields but the header has {len(header)}")
-            try:
-                ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}",
-                                  allow_none=meth is not None)
-                m = meth or method_for_dataset(ds, rb)
-                sub = Problem.__new__(Problem)
-                sub.robot = rb
-                sub.terms = [Term(m, ds, noise)]
-                step = flt.step(sub)
-            except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
-                fail(exc)
-            if burn is None and flt.n_rows >= 2 * len(names):
-                burn = flt.n_steps
-            k = flt.n_steps
-            if k % every == 0:
-                run = flt.monitor.running(burn or k)
-                x, s = flt.x, flt.std
-                history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
-                                "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(), "std": s.tolist()})
-                if live_ctx is not None:
-                    live_ctx.update(live_table())
-                else:
-                    par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
-                    console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
-                                  f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                      f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}"
+                      + (f"; resuming after row {skip} (line {saved['line']}) of {resume}" if saved else ""))
+        import signal
+        import time
+
+        def _term(signum, frame):  # SIGTERM: leave through the checkpoint below, like Ctrl-C
+            raise KeyboardInterrupt
+
+        try:
+            old_term = signal.signal(signal.SIGTERM, _term)
+        except ValueError:  # not the main thread (e.g. an embedding application)
+            old_term = None
+
+        def refuse_input(msg):
+            fail(f"--resume {resume}: {msg} — resume needs the input the checkpointed run read (its first "
+                 f"{saved['input_bytes']} bytes, {skip} data rows, unchanged)")
+
+        def check_prefix():
+            if hasher.n != saved["input_bytes"] or hasher.hexdigest() != saved["input_sha256_prefix"]:
+                refuse_input(f"{where} differs from the checkpointed input (SHA-256 of the rows already "
+                             f"processed does not match)")
+
+        try:
+            if saved is not None and skip == 0:
+                check_prefix()
+            for ln, line in enumerate(lines, start=2):
+                if not line.strip():
+                    continue
+                if rows_done < skip:  # already in the checkpoint: hashed, not processed again
+                    rows_done, last_line = rows_done + 1, ln
+                    if rows_done == skip:
+                        check_prefix()
+                    continue
+                vals = next(csv.reader([line]))
+                if len(vals) != len(header):
+                    checkpoint()
+                    fail(f"{where}, line {ln}: {len(vals)} fields but the header has {len(header)}")
+                try:
+                    ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}",
+                                      allow_none=meth is not None)
+                    m = meth or method_for_dataset(ds, rb)
+                    sub = Problem.__new__(Problem)
+                    sub.robot = rb
+                    sub.terms = [Term(m, ds, noise)]
+                    step = flt.step(sub)
+                except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
+                    checkpoint()
+                    fail(exc)
+                rows_done, last_line = rows_done + 1, ln
+                if burn is None and flt.n_rows >= 2 * len(names):
+                    burn = flt.n_steps
+                k = flt.n_steps
+                if k % every == 0:
+                    run = flt.monitor.running(burn or k)
+                    x, s = flt.x, flt.std
+                    history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
+                                    "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(),
+                                    "std": s.tolist()})
+                    if live_ctx is not None:
+                        live_ctx.update(live_table())
+                    else:
+                        par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
+                        console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
+                                      f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                if rows_done % checkpoint_every == 0:
+                    checkpoint()
+                if throttle:
+                    time.sleep(throttle)
+            if rows_done < skip:
+                refuse_input(f"{where} has {rows_done} data rows, fewer than the {skip} already processed")
+        except KeyboardInterrupt:
+            checkpoint()
+            if live_ctx is not None:
+                live_ctx.stop()
+            if state_path is not None:
+                err.print(f"interrupted after row {rows_done} (line {last_line}); checkpoint {state_path} — "
+                          f"continue with --resume {state_path}")
+            raise typer.Exit(130)
+        except UnicodeDecodeError as exc:
+            checkpoint()
+            fail(f"{where}, after line {last_line}: not UTF-8 text ({exc})")
+        finally:
+            if old_term is not None:
+                signal.signal(signal.SIGTERM, old_term)
+        checkpoint(finished=True)
         if live_ctx is not None:
             live_ctx.stop()
         if flt.n_steps == 0:
