@@ -213,7 +213,10 @@ def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessmen
         cond = float("nan")
     out.figures.update(condition_number=cond, converged=bool(res.converged))
     bad = []
-    if not res.converged:
+    if not res.converged and res.method == "mcmc":
+        bad.append(f"the MCMC chain did not reach its target effective sample size in {res.n_iterations} steps "
+                   f"(extend it: --chain FILE with a larger --option max_steps=N continues a stored chain)")
+    elif not res.converged:
         bad.append(f"the estimator {res.method!r} did not converge in {res.n_iterations} iterations")
     if not cond <= COND_MAX:
         bad.append(f"the condition number of the column-scaled observation matrix at the estimate is "

@@ -204,11 +204,14 @@ def register(app: typer.Typer) -> None:
                                        help="Report non-convergence, a condition number above the documented "
                                             "threshold (docs/reliability.md) or a rank loss of the data as "
                                             "warnings instead of refusing (exit 3)."),
+        chain: Optional[Path] = typer.Option(None, "--chain", help="MCMC: keep the chain in this HDF5 file; "
+                                             "run again with the same file, data and options to extend it."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
 
+        from estcal.estimate.chainfile import ChainFileError
         from estcal.estimate.checks import NumericalRefusal
         from estcal.estimate.lsq import UnidentifiableError
         from estcal.estimate.registry import estimator_names
@@ -288,6 +291,10 @@ def register(app: typer.Typer) -> None:
             if not free_list:
                 _fail("--free is empty")
         options = _parse_options(option)
+        if chain is not None:
+            if estimator != "mcmc":
+                _fail(f"--chain stores an MCMC chain: it needs --method mcmc, not {estimator!r}")
+            options["chain"] = str(chain)
         reg_value = _regularize(regularize)
         if robust is not None:
             if robust not in ("huber", "cauchy"):
@@ -302,6 +309,8 @@ def register(app: typer.Typer) -> None:
                                                 checks=True, allow_ill_conditioned=allow_ill)
         except NumericalRefusal as exc:
             _fail(f"numerical refusal: {exc}", code=3)
+        except ChainFileError as exc:
+            _fail(f"--chain: {exc}")
         except ParameterError as exc:
             _fail(f"--free: {exc}")
         except UnidentifiableError as exc:
