@@ -293,6 +293,8 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         res.nominal = theta0[problem.params.indices(res.names)]
     if sel is not None:
         res.extra["selection"] = sel.to_dict()
+    if options.get("robust"):
+        res.extra["robust_report"] = robust_report(problem, res, options["robust"], options.get("robust_k"))
     if checks:
         from estcal.estimate.checks import NumericalRefusal, postcheck
 
@@ -303,6 +305,29 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     return res, sel, problem
+
+
+def robust_report(problem, res, kernel, k=None) -> dict:
+    """:func:`estcal.estimate.robust.outlier_report` at the estimate — at each batch's state for the
+    time-varying smoother (its poses were fitted by their own batch's parameters)."""
+    from estcal.estimate.robust import check_kernel, group_norms, outlier_report
+
+    kernel = check_kernel(kernel)
+    traj = res.extra.get("trajectory")
+    if res.method == "gtsam-timevarying" and traj is not None:
+        fidx = problem.params.indices(res.names)
+        est = np.asarray(traj["estimate"])
+        r = dims = lines = None
+        bs = int(traj["batch_size"])
+        for b in range(est.shape[0]):
+            th = res.theta.copy()
+            th[fidx] = est[b]
+            rb, db, lb, _ = group_norms(problem, th)
+            if r is None:
+                r, dims, lines = rb.copy(), db, lb
+            r[b * bs:(b + 1) * bs] = rb[b * bs:(b + 1) * bs]
+        return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names), norms=(r, dims, lines))
+    return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names))
 
 
 _DIRECT = ("position", "location", "pose", "points")

@@ -174,7 +174,8 @@ def single_thread_blas(enabled: bool = True):
 
 def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, tol: float = 1e-10,
                   theta0=None, validation=(), check: bool = True, verbose: bool = False,
-                  single_thread: bool = True, prior_std=None, prior_mean=None) -> CalibrationResult:
+                  single_thread: bool = True, prior_std=None, prior_mean=None, robust=None,
+                  robust_k=None) -> CalibrationResult:
     """Estimate the free parameters of ``problem`` by nonlinear least squares.
 
     Parameters
@@ -194,11 +195,19 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
         data part; ``dof = M − p_eff`` with ``p_eff = tr((HᵀWH + T⁻¹)⁻¹ HᵀWH)`` the effective
         number of parameters. See :mod:`estcal.estimate.regularize` for choosing τ.
     prior_mean : ``{name: value}`` or array aligned with the free names (default: the initial values)
+    robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel (scalar threshold in σ): iteratively
+        reweighted least squares, :func:`estcal.estimate.robust.calibrate_irls`
 
     Returns
     -------
     CalibrationResult
     """
+    from .robust import calibrate_irls, check_kernel
+
+    if check_kernel(robust) is not None:
+        return calibrate_irls(problem, method, free, robust=robust, robust_k=robust_k, max_iter=max_iter, tol=tol,
+                              theta0=theta0, validation=validation, check=check, single_thread=single_thread,
+                              prior_std=prior_std, prior_mean=prior_mean)
     with single_thread_blas(single_thread):
         return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
                               prior_std, prior_mean)

@@ -125,6 +125,10 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+    if isinstance(res.extra.get("robust_report"), dict):
+        from estcal.estimate.robust import format_report
+
+        console.print(format_report(res.extra["robust_report"]), soft_wrap=True)
     for w in (res.extra.get("reliability") or {}).get("warnings", []):
         console.print(f"warning: {w}", soft_wrap=True)
 
@@ -196,8 +200,10 @@ def register(app: typer.Typer) -> None:
                                                               "measured pose) or fk (pose from the legs)."),
         gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
                                                             "offsets) or 36 (offsets known)."),
-        robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel for the factor-graph "
-                                                                     "estimators: huber | cauchy."),
+        robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel huber | cauchy (thresholds "
+                                             "1.345 / 2.385 σ, --option robust_k=K): lm, gauss-newton, iterated-lls, "
+                                             "scipy-lm (IRLS), gtsam, isam2, gtsam-timevarying, kalman; the "
+                                             "down-weighted rows are named."),
         option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
                                                               "--option q=1e-5 --option optimizer=dogleg."),
         allow_ill: bool = typer.Option(False, "--allow-ill-conditioned",
@@ -299,8 +305,14 @@ def register(app: typer.Typer) -> None:
         if robust is not None:
             if robust not in ("huber", "cauchy"):
                 _fail(f"--robust must be huber or cauchy, got {robust!r}")
-            if estimator not in ("gtsam", "isam2", "gtsam-timevarying"):
-                _fail(f"--robust needs a factor-graph estimator (gtsam, isam2, gtsam-timevarying), not {estimator!r}")
+            if estimator == "ukf":
+                _fail("--robust: the UKF has no robust update here — use --estimator kalman (EKF with a "
+                      "robust innovation weight) or a least-squares / factor-graph estimator")
+            if estimator == "mcmc":
+                _fail("--robust: MCMC samples the Gaussian likelihood and has no robust likelihood — use "
+                      "--estimator lm --robust … to name the outliers, remove them, then sample")
+            if reg_value is not None:
+                _fail("--robust with --regularize is not supported: choose one")
             options["robust"] = robust
         try:
             res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
@@ -320,6 +332,14 @@ def register(app: typer.Typer) -> None:
             _fail(str(exc))
         except (RuntimeError, np.linalg.LinAlgError) as exc:  # e.g. a backend's numerical failure
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            if "Indeterminate" in str(exc):
+                near = " ".join(str(exc).split()).split("(Symbol:")[-1].split(")")[0].strip() \
+                    if "(Symbol:" in str(exc) else "?"
+                _fail(f"numerical refusal: estimator {estimator!r}: gtsam found the linear system indeterminate "
+                      f"near variable {near} — some parameter combinations are not determined by the data "
+                      f"(for gtsam-timevarying: a batch whose poses, after robust down-weighting, leave "
+                      f"directions fixed only by an extremely tight process noise; raise --option q=… or "
+                      f"--option batch_size=…)", code=3)
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
         measure_name = problem.terms[0].method.name
