@@ -87,7 +87,7 @@ def main(argv=None) -> dict:
         q0 = np.array([[-45 * DEG, q20 * DEG]])
         s = abs(np.sin(q20 * DEG))
         closed = (1 + s) / m  # = cos²q20 / (m (1 − |sin q20|)), continuous at 0° and 180°
-        plan = optimise_continuous(mL, m, "test-pose", n_starts=starts, rng=q20, q_test=q0, executor="serial")
+        plan = optimise_continuous(mL, m, "test-pose", n_starts=starts, rng=q20, q_test=q0, scheduler="serial")
         num = plan.value / SIGMA ** 2
         rhoD2 = 2.0 / m
         pct = 100 * (np.sqrt(rhoD2 / num) - 1)
@@ -133,7 +133,7 @@ def main(argv=None) -> dict:
     # ------------------------------------------------------- Fig. 3 optimum
     hyp = np.sqrt(2 * np.cos(20 * DEG) ** 2 / (3 * (1 - np.sin(20 * DEG))))
     best = optimise_continuous(m4, 3, "test-pose", n_starts=starts * 2, rng=7, q_test=Q0,
-                               executor="serial" if args.quick else None)
+                               scheduler="serial" if args.quick else None)
     rho_best = np.sqrt(best.value) / SIGMA
     mc_best = monte_carlo_test_pose_error(m4, best.readings, Q0, n_reps=reps, rng=11, param_std=1e-3,
                                           nonlinear=True, planar=True)

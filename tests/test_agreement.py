@@ -108,7 +108,7 @@ def test_cli_online_file_and_stdin(tmp_path):
     assert np.abs((est - lm.estimate) / lm.std).max() < 0.1
     assert len(d["history"]) == 4
     # stdin, with a misspecified (too small) orientation noise: the innovation test fires
-    r2 = runner.invoke(app, ["online", "-", "--robot", "puma560", "--free", ",".join(sim.free), "--sigma-r", "1e-4",
+    r2 = runner.invoke(app, ["online", "-", "--robot", "puma560", "--free", ",".join(sim.free), "--noise-rot-mrad", "0.1",
                              "--json", str(tmp_path / "s.json")], input=path.read_text())
     assert r2.exit_code == 0, r2.output
     assert json.loads((tmp_path / "s.json").read_text())["innovation"]["fires"]
@@ -162,10 +162,10 @@ def test_cli_online_tracks_drift_effect_only_with_q(tmp_path):
     runner = CliRunner()
     final_truth = base.truth[rob.params.index("theta_2")] + v * t[-1]
     out = {}
-    for label, qv in (("q0", "0"), ("q", str(2 * v))):
+    for label, qv in (("q0", "0"), ("q", str(2 * v * 1e3))):  # --q-mm: mrad per row
         js = tmp_path / f"{label}.json"
         r = runner.invoke(app, ["online", str(path), "--robot", "puma560", "--free", ",".join(base.free),
-                                "--sigma-r", "1e-4", "--q", qv, "--q-params", "theta_2", "--every", "50",
+                                "--noise-rot-mrad", "0.1", "--q-mm", qv, "--q-params", "theta_2", "--every", "50",
                                 "--json", str(js)])
         assert r.exit_code == 0, r.output
         d = json.loads(js.read_text())

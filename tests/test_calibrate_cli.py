@@ -47,7 +47,7 @@ def test_free_parameters_recovered_and_json_keys(tmp_path):
     out = tmp_path / "res.json"
     free = ",".join(TRUE_DELTA)
     r = _run([str(train), "--robot", "puma560", "--free", free, "--validate", str(val1), "--validate", str(val2),
-              "--noise-pos", "1e-5", "--noise-rot", "1e-4", "--known-noise", "--json", str(out)])
+              "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1", "--known-noise", "--json", str(out)])
     assert r.exit_code == 0, r.output
     d = json.loads(out.read_text())
     for key in ("parameters", "rmse_mm", "n_iterations", "converged"):
@@ -168,7 +168,7 @@ def test_selection_agrees_with_identify_module(tmp_path):
 def test_other_estimators_through_cli_agree_with_lm(tmp_path, estimator):
     train, _ = _simulate(tmp_path, 30, 10, "train.csv")
     free = ",".join(TRUE_DELTA)
-    common = [str(train), "--robot", "puma560", "--free", free, "--noise-pos", "1e-5", "--noise-rot", "1e-4",
+    common = [str(train), "--robot", "puma560", "--free", free, "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1",
               "--known-noise"]
     r = _run(common + ["--json", str(tmp_path / "lm.json")])
     assert r.exit_code == 0, r.output
@@ -241,7 +241,7 @@ def test_gough_options_residual_and_model(tmp_path):
     path = tmp_path / "gough.json"
     path.write_text(json.dumps(simulate_gough_data(true_robot, 40, 2).to_dict()))
     out = tmp_path / "g.json"
-    r = _run([str(path), "--robot", "left_hand", "--residual", "fk", "--model", "36", "--noise-leg", "1e-5",
+    r = _run([str(path), "--robot", "left_hand", "--residual", "fk", "--model", "36", "--noise-leg-mm", "0.01",
               "--json", str(out)])
     assert r.exit_code == 0, r.output
     d = json.loads(out.read_text())

@@ -18,13 +18,13 @@ def test_help():
     for cmd in (["--help"], ["simulate", "--help"], ["fk", "--help"]):
         r = runner.invoke(app, cmd)
         assert r.exit_code == 0, r.output
-    assert "--noise-pos" in runner.invoke(app, ["simulate", "--help"]).output
+    assert "--noise-pos-mm" in runner.invoke(app, ["simulate", "--help"]).output
 
 
 def test_simulate_then_fk(tmp_path):
     data, truth, summ = tmp_path / "data.csv", tmp_path / "truth.json", tmp_path / "s.json"
     r = runner.invoke(app, ["simulate", "--robot", "puma560_masses", "--n", "30", "--strategy", "S4",
-                            "--measure", "pose", "--noise-pos", "5e-5", "--noise-rot", "5e-4", "--errors",
+                            "--measure", "pose", "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5", "--errors",
                             "random", "--effects", "joint_compliance:j2,j3", "--payload", "0,5", "--seed", "0",
                             "-o", str(data), "--truth", str(truth), "--json", str(summ)])
     assert r.exit_code == 0, r.output

@@ -98,7 +98,7 @@ def test_continuous_optimisation_within_limits_and_executor():
     model = DesignModel(planar2(), "position", ["a_1", "a_2", "offset_1", "offset_2"], sigma=1e-3)
     q0 = np.array([[-45 * DEG, 20 * DEG]])
     with ThreadPoolExecutor(2) as ex:
-        plan = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, executor=ex)
+        plan = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler=ex)
     lim = model.robot.limits
     assert np.all(plan.readings >= lim[:, 0] - 1e-12) and np.all(plan.readings <= lim[:, 1] + 1e-12)
     # Klimchik eq. (20) doubled (lengths and offsets contribute equally): 2σ²/m cos²q20/(1−|sin q20|)
@@ -109,7 +109,7 @@ def test_continuous_optimisation_within_limits_and_executor():
 def test_continuous_with_constraint_callback():
     model = DesignModel(planar2(), "position", ["a_1", "a_2"], sigma=1e-3)
     q0 = np.array([[-45 * DEG, 20 * DEG]])
-    plan = optimise_continuous(model, 2, "test-pose", n_starts=2, rng=1, q_test=q0, executor="serial",
+    plan = optimise_continuous(model, 2, "test-pose", n_starts=2, rng=1, q_test=q0, scheduler="serial",
                                constraint=_q2_positive_cap)
     assert plan.info["feasible"]
     assert np.all(plan.readings[:, 1] >= -1e-6) and np.all(plan.readings[:, 1] <= 1.0 + 1e-6)

@@ -134,7 +134,7 @@ def test_cli_design_and_next_pose(tmp_path):
     runner = CliRunner()
     out = tmp_path / "d.json"
     res = runner.invoke(app, ["design", "--robot", "planar2", "--n", "3", "--criterion", "test-pose",
-                              "--free", "a_1,a_2,offset_1,offset_2", "--test-pose", "-45,20", "--sigma", "1",
+                              "--free", "a_1,a_2,offset_1,offset_2", "--test-pose", "-45,20", "--noise-pos-mm", "1",
                               "--n-candidates", "300", "--random-plans", "200", "--json", str(out)])
     assert res.exit_code == 0, res.output
     d = json.loads(out.read_text())

@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from estcal.discrepancy import diagnose, identifiable_subset, partial_joint_residuals
+from estcal.discrepancy import Candidate, default_candidates, diagnose, identifiable_subset, partial_joint_residuals
 from estcal.discrepancy.hidden import cartesian_distortion, eligible_joints, simulate_hidden
 from estcal.io.robotfile import load_robot
 from estcal.methods import NoiseModel, Problem
@@ -237,3 +237,56 @@ def test_gravity_ready_lumped_masses_and_measurement_frame():
     # a robot with masses keeps them
     r2, l2 = gravity_ready(puma_masses := load_robot("puma560_masses"))
     assert not l2 and [lk.mass for lk in r2.links] == [lk.mass for lk in puma_masses.links]
+
+
+@pytest.mark.parametrize("scope, measure", [("arm", "position"), ("links", "position"), ("links", "pose")])
+def test_thermal_found_on_tool_data(puma, scope, measure):
+    """Thermal expansion hidden in tool-position / full-pose data (no markers) is named, in the
+    right one of its two forms (whole arm vs links only: a 0.3 m tool tells them apart)."""
+    robot = puma.copy()
+    robot.params["tool_tz"] = 0.3
+    sim, truth = simulate_hidden(robot, [("thermal_expansion", None, 10.0, {"scope": scope})], SIGMA, n_poses=50,
+                                 measure=measure, seed=8, temperature=(20.0, 35.0))
+    assert sim.nominal_robot.n_markers == 0
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    assert res.named[:1] == [("thermal_expansion", ())]
+    assert res.causes[0].options.get("scope", "arm") == scope
+    p = res.causes[0].parameters["thermal_alpha"]
+    v = truth[0]["params"]["thermal_alpha"]
+    assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * abs(v)
+
+
+def test_family_candidates():
+    """Each joint effect is also a candidate over all its joints; a compound effect of weak per-joint
+    terms (encoder gain on every joint, each at a noncentrality ≈ 7, below the single-joint
+    threshold) is named whole with families and only in part without."""
+    from estcal.simulate import NoiseModel as SimNoise
+    from estcal.simulate import simulate
+
+    puma = load_robot("puma560_masses")
+    sim0 = simulate(puma, n_poses=10, measure="points", seed=0)
+    labels = [c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset)]
+    assert "encoder_gain(j1,j2,j3,j4,j5,j6)" in labels and "encoder_gain(j3)" in labels
+    assert not any("," in lb for lb in (c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset,
+                                                                             families=False)))
+    js = ["j1", "j2", "j3", "j4", "j5", "j6"]
+    kw = dict(n_poses=50, measure="points", errors="random", seed=3,
+              error_std={"angle": 5e-4, "length": 5e-4, "offset": 1e-3},
+              effects=[{"effect": "encoder_gain", "joints": js}])
+    # per-joint noncentrality λ_j of a unit gain, from noise-free data: χ² gain of that column alone
+    lam = {}
+    for j in js:
+        sim = simulate(puma, effect_params={f"encgain_{k}": (1e-4 if k == j else 0.0) for k in js},
+                       noise=SimNoise(position=0.0, orientation=0.0), **kw)
+        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False, max_effects=1, n_refit=0,
+                       candidates=[Candidate("encoder_gain", [j])])
+        row = res.steps[0]["table"][0]
+        lam[j] = res.steps[0]["rss_before"] - row["rss_linear"]
+    gains = {f"encgain_{j}": 1e-4 * np.sqrt(7.0 / lam[j]) for j in js}
+    sim = simulate(puma, effect_params=gains, noise=SimNoise(position=SIGMA, orientation=SIGMA), **kw)
+    named = {}
+    for fam in (False, True):
+        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False, families=fam)
+        named[fam] = {j for e, jj in res.named if e == "encoder_gain" for j in jj}
+        assert {e for e, _ in res.named} == {"encoder_gain"}
+    assert named[True] == set(js) and len(named[False]) < 3

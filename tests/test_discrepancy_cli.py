@@ -33,7 +33,7 @@ def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
     sim, truth = hidden_case
     csv = write_dataset(tmp_path / "data.csv", sim.dataset)
     out = tmp_path / "fit.json"
-    r = CliRunner().invoke(app, ["diagnose", str(csv), "--robot", "puma560_masses", "--noise-pos", str(SIGMA),
+    r = CliRunner().invoke(app, ["diagnose", str(csv), "--robot", "puma560_masses", "--noise-pos-mm", str(SIGMA * 1e3),
                                  "--json", str(out), "--report", str(tmp_path / "rep"),
                                  "--validate", str(csv)])
     assert r.exit_code == 0, r.output

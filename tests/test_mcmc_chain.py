@@ -26,7 +26,7 @@ def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("chain")
     path = d / "pos.csv"
     r = runner.invoke(app, ["simulate", "--robot", "puma560", "--n", "40", "--measure", "position",
-                            "--noise-pos", "1e-4", "--seed", "2", "-o", str(path)])
+                            "--noise-pos-mm", "0.1", "--seed", "2", "-o", str(path)])
     assert r.exit_code == 0, r.output
     return path
 

@@ -25,13 +25,13 @@ def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("ckpt")
     path = d / "pos.csv"
     r = runner.invoke(app, ["simulate", "--robot", "puma560", "--n", str(N), "--measure", "position",
-                            "--noise-pos", "1e-4", "--seed", "4", "-o", str(path)])
+                            "--noise-pos-mm", "0.1", "--seed", "4", "-o", str(path)])
     assert r.exit_code == 0, r.output
     return path
 
 
 def _args(path, *extra):
-    return ["online", str(path), "--robot", "puma560", "--free", FREE, "--q", "1e-7", *extra]
+    return ["online", str(path), "--robot", "puma560", "--free", FREE, "--q-mm", "1e-4", *extra]
 
 
 def test_kill_9_and_resume_is_bit_identical(data, tmp_path):
@@ -84,8 +84,8 @@ def test_resume_refuses_other_input_or_options(data, tmp_path):
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, _args(short, "--state", str(state)))
     assert r.exit_code == 2 and "--resume" in r.output  # an existing checkpoint is never overwritten
-    r = runner.invoke(app, _args(short, "--resume", str(state), "--sigma-p", "2e-4"))
-    assert r.exit_code == 2 and "--sigma-p 0.0002 (checkpoint: 0.0001)" in r.output, r.output
+    r = runner.invoke(app, _args(short, "--resume", str(state), "--noise-pos-mm", "0.2"))
+    assert r.exit_code == 2 and "noise-pos (m): 0.0002 (checkpoint: 0.0001)" in r.output, r.output
     changed = tmp_path / "changed.csv"
     lines2 = list(lines)
     lines2[5] = lines2[5].replace(",", ",1", 1)  # one processed row edited

@@ -13,7 +13,7 @@ from estcal.estimate.robust import kernel_threshold, kernel_weight
 
 runner = CliRunner()
 N = 80
-NOISE = ["--noise-pos", "5e-5", "--noise-rot", "5e-4"]
+NOISE = ["--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5"]
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("out")
     clean = d / "clean.csv"
     r = runner.invoke(app, ["simulate", "--robot", "puma560", "--n", str(N), "--measure", "pose",
-                            "--noise-pos", "5e-5", "--noise-rot", "5e-4", "--seed", "7", "-o", str(clean)])
+                            "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5", "--seed", "7", "-o", str(clean)])
     assert r.exit_code == 0, r.output
     lines = clean.read_text().splitlines()
     head = lines[0].split(",")

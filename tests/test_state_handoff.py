@@ -21,7 +21,7 @@ def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("handoff")
     path = d / "pose.csv"
     r = runner.invoke(app, ["simulate", "--robot", "puma560", "--n", "40", "--measure", "position",
-                            "--noise-pos", "1e-4", "--seed", "3", "-o", str(path)])
+                            "--noise-pos-mm", "0.1", "--seed", "3", "-o", str(path)])
     assert r.exit_code == 0, r.output
     return path
 

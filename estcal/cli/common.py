@@ -1,26 +1,51 @@
-"""Small helpers shared by the subcommands: failing with a clear message, writing JSON."""
+"""Small helpers shared by the subcommands: failing with a clear message, writing JSON.
+
+Exit codes (docs/reliability.md): 0 success, 2 bad input or usage
+(:data:`EXIT_INPUT`), 3 numerical refusal — well-formed input the numbers cannot
+answer honestly (:data:`EXIT_REFUSED`, use :func:`refuse`). Errors and warnings
+go to stderr, results to stdout.
+"""
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import typer
 
 from estcal.io.jsonio import write_json
 
-__all__ = ["fail", "write_json", "count_point_columns", "robot_for_data"]
+__all__ = ["fail", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
+           "EXIT_REFUSED"]
+
+EXIT_INPUT = 2
+EXIT_REFUSED = 3
 
 
-def fail(msg: str, code: int = 2):
+def fail(msg, code: int = EXIT_INPUT):
     """Print ``error: msg`` to stderr and exit with ``code`` (no traceback)."""
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
 
 
+def refuse(msg):
+    """A numerical refusal: ``error: msg`` to stderr, exit code 3."""
+    fail(msg, EXIT_REFUSED)
+
+
+def warn(msg) -> None:
+    """``warning: msg`` to stderr (results stay alone on stdout)."""
+    typer.echo(f"warning: {msg}", err=True)
+
+
 def count_point_columns(path) -> tuple[int, bool, bool]:
-    """(k points x1..zk, has x,y,z, has quaternion) from a CSV header."""
-    with Path(path).open(newline="") as fh:
-        header = [h.strip() for h in next(csv.reader(fh), [])]
+    """(k points x1..zk, has x,y,z, has quaternion) from a CSV header (exits with a
+    clear message when the file cannot be read as a dataset)."""
+    from estcal.io.dataset import DatasetError
+    from estcal.io.textinput import read_csv
+
+    try:
+        header = read_csv(path, "dataset", DatasetError).header
+    except DatasetError as exc:
+        fail(exc)
     k = 0
     while all(f"{c}{k + 1}" in header for c in "xyz"):
         k += 1
@@ -46,3 +71,29 @@ def robot_for_data(spec, data, root=None, tip=None, points=None):
         return load_robot(spec, root=root, tip=tip, n_markers=n_markers), n_markers
     except (ValueError, FileNotFoundError, KeyError) as exc:
         fail(str(exc))
+
+
+def check_distinct_poses(ds, minimum: int = 2) -> None:
+    """Refuse (exit 3) a dataset whose rows do not hold ``minimum`` different joint
+    configurations: every fit on it would be a fit to one pose, whatever it prints."""
+    import numpy as np
+
+    if ds.n == 0 or ds.readings.shape[1] == 0:
+        return
+    distinct = len(np.unique(ds.readings, axis=0))
+    if distinct < minimum:
+        what = "all rows have the same joint readings" if distinct == 1 else f"only {distinct} different poses"
+        refuse(f"{ds.where}: {what} ({ds.n} rows, lines {ds.lines[0]}–{ds.lines[-1]}) — a calibration needs "
+               f"at least {minimum} different poses; measure the robot in other configurations")
+
+
+def check_dof(res, data_path, known_noise: bool = False) -> None:
+    """Refuse (exit 3) a fit without residual degrees of freedom: σ0 and the standard
+    deviations scaled by it are undefined (0/0), so no uncertainty can be reported."""
+    dof = getattr(res, "dof", None)
+    if dof is None or dof > 0 or known_noise:
+        return
+    p = len(res.names)
+    refuse(f"{data_path}: {p + dof} residuals for {p} estimated parameters (dof = {dof}): σ0 and every standard "
+           f"deviation are undefined — measure more poses, estimate fewer parameters (--level joint_offset or "
+           f"--free), or give --known-noise")

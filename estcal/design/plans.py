@@ -13,9 +13,9 @@ the information matrix ``M = Σ J_iᵀ W J_i (+ Σ₀⁻¹)`` of a
 * Continuous: the m·n joint values are optimised within the joint limits
   (L-BFGS-B, or SLSQP with user inequality constraints ``g(Q) ≥ 0``) from
   several starting plans; the gradient is a forward difference evaluated in one
-  batched kinematics call. Starts run in parallel through any executor with
-  ``submit`` (``concurrent.futures.ProcessPoolExecutor`` by default; a Dask
-  ``Client`` also fits).
+  batched kinematics call. Starts are independent tasks of
+  :func:`estcal.scale.run_tasks` (``scheduler=``: serial, local processes, a
+  Dask cluster); the best plan does not depend on where they ran.
 * Replication (Klimchik §5): an m-pose plan measured k times has information
   k·M, so ρ0² falls by k.
 * Random-plan baseline: the criterion distribution over many random plans,
@@ -24,7 +24,6 @@ the information matrix ``M = Σ J_iᵀ W J_i (+ Σ₀⁻¹)`` of a
 from __future__ import annotations
 
 import math
-from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -417,21 +416,26 @@ def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidat
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     best_idx, best = None, np.inf
     history = []
-    for r in range(max(1, restarts)):
-        start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
-        if algorithm == "greedy":
-            if r > 0:
-                break
-            idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
-        elif algorithm == "fedorov":
-            idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
-        elif algorithm == "detmax":
-            idx, loss = _detmax_idx(F, B, M0, start, sc)
-        else:
-            raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
-        history.append(loss)
-        if loss < best:
-            best, best_idx = loss, idx
+    from estcal.progress import progress
+
+    n_runs = 1 if algorithm == "greedy" else max(1, restarts)
+    with progress(total=n_runs, desc=f"design ({algorithm}, m={m})", unit="restart") as bar:
+        for r in range(max(1, restarts)):
+            start = _greedy_idx(F, B, M0, m, sc) if r == 0 else list(rng.integers(0, len(cand), m))
+            if algorithm == "greedy":
+                if r > 0:
+                    break
+                idx, loss = start, float(sc.loss(M0 + F[start].sum(0), regularise=True))
+            elif algorithm == "fedorov":
+                idx, loss, _ = _fedorov_idx(F, B, M0, start, sc)
+            elif algorithm == "detmax":
+                idx, loss = _detmax_idx(F, B, M0, start, sc)
+            else:
+                raise ValueError(f"unknown algorithm {algorithm!r}; choose greedy, fedorov or detmax")
+            history.append(loss)
+            if loss < best:
+                best, best_idx = loss, idx
+            bar.update(1)
     Q = cand[best_idx]
     return Plan(Q, sc.criterion, float(criterion_value(criterion, model.information(Q), m, J_test)), algorithm,
                 model.robot.joint_names, {"candidate_indices": best_idx, "restart_losses": history,
@@ -479,8 +483,8 @@ def _local_continuous(args):
 
 
 def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_starts: int = 8, rng=None,
-                        q_test=None, J_test=None, constraint=None, executor: Executor | str | None = None,
-                        max_workers: int | None = None, starts=None, maxiter: int = 300,
+                        q_test=None, J_test=None, constraint=None, scheduler=None,
+                        n_workers: int | None = None, starts=None, maxiter: int = 300,
                         prescreen: int = 0) -> Plan:
     """Multi-start local optimisation of the m·n joint values within the joint limits.
 
@@ -490,11 +494,12 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
         Per-pose feasibility, vectorised: ``constraint(Q (N, n)) -> (N,) or (N, c)``;
         a pose is feasible when all its entries are ≥ 0 (collision / workspace
         limits). Must be picklable for process pools (a module-level function).
-    executor : Executor, 'serial' or None
-        Runs the starts. ``None``: a ``ProcessPoolExecutor(max_workers)`` when
-        ``n_starts > 1``; ``'serial'``: in this process; any object with
-        ``submit(fn, arg)`` returning futures (``concurrent.futures``, Dask
-        ``Client``) is used as is.
+    scheduler, n_workers
+        Where the starts run (:func:`estcal.scale.run_tasks`: ``'serial'``,
+        ``'processes'``, ``'local'``, a Dask address, a Dask ``Client`` or a
+        ``concurrent.futures`` executor). ``None``: ``'processes'`` when there is
+        more than one start, else ``'serial'``. A start that raises is reported
+        in ``info["failed_starts"]``; the plan is the best of the others.
     starts : (S, m, n) initial plans (e.g. the best discrete plan); random ones fill up to ``n_starts``.
     prescreen : int
         If > 0, draw ``prescreen`` random feasible plans and start from the best
@@ -513,25 +518,23 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
             Qs = Qs[np.argsort(L)]
         S += list(Qs[:need])
     tasks = [(model, s.ravel(), m, crit, J_test, constraint, maxiter) for s in S]
-    own = None
-    if executor == "serial" or (executor is None and len(tasks) == 1):
-        results = [_local_continuous(t) for t in tasks]
-    else:
-        if executor is None:
-            own = executor = ProcessPoolExecutor(max_workers=max_workers)
-        try:
-            futs = [executor.submit(_local_continuous, t) for t in tasks]
-            results = [f.result() for f in futs]
-        finally:
-            if own is not None:
-                own.shutdown()
+    from estcal.scale.runner import TaskError, run_tasks
+
+    if scheduler is None:
+        scheduler = "serial" if len(tasks) == 1 else "processes"
+    run = run_tasks(_local_continuous, tasks, scheduler=scheduler, n_workers=n_workers, chunksize=1,
+                    progress=False)
+    results = [r for r in run.results if r is not None]
+    if not results:
+        raise TaskError(run.failures)
     feas = [r for r in results if r[3]] or results
     best = min(feas, key=lambda r: r[1])
     Q = best[0]
     return Plan(Q, crit, float(criterion_value(crit, model.information(Q), m, J_test)), "continuous",
                 model.robot.joint_names,
                 {"start_losses": [r[1] for r in results], "iterations": [r[2] for r in results],
-                 "feasible": bool(best[3]), "n_starts": len(tasks)})
+                 "feasible": bool(best[3]), "n_starts": len(tasks),
+                 "failed_starts": [str(f) for f in run.failures]})
 
 
 # ------------------------------------------------------ replication, random

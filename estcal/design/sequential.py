@@ -26,7 +26,6 @@ the equations above.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +36,7 @@ from .model import DesignModel
 from .update import FAST_CRITERIA, added_criterion_value, whiten, woodbury_covariance
 
 __all__ = ["CalibrationState", "NextPose", "propose_next_pose", "kalman_update", "ActiveRun",
-           "active_calibration", "model_for_state"]
+           "active_calibration", "model_for_state", "covariance_after"]
 
 
 # ------------------------------------------------------------------- state
@@ -102,12 +101,10 @@ class CalibrationState:
 
     @classmethod
     def from_json(cls, path) -> "CalibrationState":
+        from estcal.io.textinput import read_json
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(d, str(path))
+        return cls.from_dict(read_json(path, "state JSON", ValueError), str(path))
 
     @classmethod
     def from_result(cls, result) -> "CalibrationState":
@@ -129,10 +126,9 @@ class CalibrationState:
                 "covariance": self.covariance.tolist(), "std": self.std.tolist()}
 
     def to_json(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        from estcal.io.jsonio import write_json
+
+        return write_json(path, self.to_dict())
 
 
 def model_for_state(model: DesignModel, state: CalibrationState) -> DesignModel:
@@ -195,6 +191,13 @@ class NextPose:
                 f"{', refined' if self.refined else ''})")
 
 
+def covariance_after(model: DesignModel, state: CalibrationState, q) -> np.ndarray:
+    """Predicted covariance after measuring the single pose ``q`` (n,):
+    ``C⁺ = C − C Hᵀ (H C Hᵀ + R)⁻¹ H C`` at the state's estimate."""
+    mdl = model_for_state(model, state)
+    return woodbury_covariance(state.covariance, whiten(mdl.jacobian(np.asarray(q, float)[None]), mdl.row_sigma))[0]
+
+
 def _values_after(crit, C, B, J_test):
     """Criterion of C⁺ for each candidate (Woodbury; general criteria via C⁺ → M⁺)."""
     if crit in FAST_CRITERIA:
@@ -249,7 +252,7 @@ def propose_next_pose(model: DesignModel, state: CalibrationState, criterion: st
                        options={"maxiter": 100})
         if sign * res.fun < sign * best_v:
             best_q, best_v, refined = np.clip(res.x, lim[:, 0], lim[:, 1]), sign * float(res.fun), True
-    Cp = woodbury_covariance(C, whiten(mdl.jacobian(best_q[None]), mdl.row_sigma))[0]
+    Cp = covariance_after(mdl, state, best_q)
     before = float(criterion_value(crit, covariance(C), 1, J_test))
     return NextPose(best_q, crit, before, best_v, list(mdl.robot.joint_names), len(cand), refined,
                     {n: float(s) for n, s in zip(state.parameters, np.sqrt(np.diag(Cp)))})

@@ -20,7 +20,7 @@ The statistics reported:
   √(a_k² + b_k²) of ``δq̂_j ≈ c + Σ_k a_k sin(k q_j) + b_k cos(k q_j)``, k = 1…3,
   and their R² (harmonics of the joint angle).
 
-:func:`save_plots` writes the corresponding figures (matplotlib, Agg backend).
+:func:`save_plots` writes the corresponding figures (:mod:`estcal.plots.diagnose`).
 """
 from __future__ import annotations
 
@@ -167,86 +167,42 @@ def save_plots(folder, problem, theta, analysis: dict, tau=None, title: str = ""
     (δq̂_j vs τ_j), ``residual_norm.png`` (per-pose residual vs time / workspace),
     ``spectrum.png`` (harmonic amplitudes per joint) and, with ``extended=(problem,
     theta)``, the same partial residuals after the extension
-    (``partial_residuals_extended.png``).
+    (``partial_residuals_extended.png``). The figures come from
+    :mod:`estcal.plots.diagnose` (no pyplot, no backend switch); each file is
+    written atomically.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from estcal.plots.diagnose import partial_residuals_figure, residual_norm_figure, spectrum_figure
+    from estcal.report.figures import save_figure
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     robot = problem.robot
     data = problem.terms[0].data
     dq = np.asarray(analysis["partial_joint_residuals_rad"])
-    n = robot.n_joints
-    cols = min(4, n)
-    rws = int(np.ceil(n / cols))
+    names = robot.joint_names
     out = []
 
-    def grid(fname, xs, xlabel, ys, ttl):
-        fig, axs = plt.subplots(rws, cols, figsize=(3.2 * cols, 2.6 * rws), squeeze=False)
-        for j in range(rws * cols):
-            ax = axs[j // cols][j % cols]
-            if j >= n:
-                ax.axis("off")
-                continue
-            unit = 1e3 if robot.joint_types[j] == "revolute" else 1e3
-            ax.plot(xs[:, j], ys[:, j] * unit, ".", ms=4)
-            ax.axhline(0, color="k", lw=0.5)
-            ax.set_title(robot.joint_names[j], fontsize=8)
-            ax.set_xlabel(xlabel, fontsize=7)
-            ax.set_ylabel("δq̂ (mrad | mm)", fontsize=7)
-            ax.tick_params(labelsize=6)
-        fig.suptitle(ttl, fontsize=9)
-        fig.tight_layout()
-        fig.savefig(folder / fname, dpi=90)
-        plt.close(fig)
+    def save(fname, fig):
+        save_figure(fig, folder / fname)
         out.append(fname)
 
-    grid("partial_residuals.png", data.readings, "reading (rad | m)", dq,
-         f"{title} partial joint residuals vs joint reading (geometric model)")
+    save("partial_residuals.png", partial_residuals_figure(
+        data.readings, dq, names, "reading (rad | m)", f"{title} partial joint residuals vs joint reading "
+                                                       f"(geometric model)"))
     if tau is not None:
-        grid("vs_gravity_torque.png", tau, "gravity torque (N·m | N)", dq,
-             f"{title} partial joint residuals vs gravity torque")
+        save("vs_gravity_torque.png", partial_residuals_figure(
+            tau, dq, names, "gravity torque (N·m | N)", f"{title} partial joint residuals vs gravity torque"))
     if extended is not None:
-        from .analysis import partial_joint_residuals as _pjr
-
-        dq2, _ = _pjr(*extended)
-        grid("partial_residuals_extended.png", data.readings, "reading (rad | m)", dq2,
-             f"{title} partial joint residuals after the extension")
+        dq2, _ = partial_joint_residuals(*extended)
+        save("partial_residuals_extended.png", partial_residuals_figure(
+            data.readings, dq2, names, "reading (rad | m)", f"{title} partial joint residuals after the extension"))
     pr = np.asarray(analysis["pose_rms_mm"])
     kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
     xs = [("pose index", np.arange(data.n))] + [(f"tool {a} (m)", kin.p[:, i]) for i, a in enumerate("xyz")]
     if "t" in data.context:
         xs[0] = ("t − t0 (s)", data.context["t"] - data.context["t"].min())
-    fig, axs = plt.subplots(1, len(xs), figsize=(3.2 * len(xs), 2.8))
-    for ax, (lab, x) in zip(axs, xs):
-        ax.plot(x, pr, ".", ms=4)
-        ax.set_xlabel(lab, fontsize=7)
-        ax.set_ylabel("pose RMS error (mm)", fontsize=7)
-        ax.tick_params(labelsize=6)
-    fig.suptitle(f"{title} residual norm vs time and workspace position", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(folder / "residual_norm.png", dpi=90)
-    plt.close(fig)
-    out.append("residual_norm.png")
+    save("residual_norm.png", residual_norm_figure(xs, pr, f"{title} residual norm vs time and workspace position"))
     spec = analysis.get("spectrum", {})
     if spec:
-        names = list(spec)
-        orders = spec[names[0]]["orders"]
-        fig, ax = plt.subplots(figsize=(max(4, 0.9 * len(names) + 2), 2.8))
-        wbar = 0.8 / len(orders)
-        for i, k in enumerate(orders):
-            ax.bar(np.arange(len(names)) + i * wbar, [spec[nm]["amplitude_rad"][i] * 1e3 for nm in names],
-                   wbar, label=f"k={k}")
-        ax.set_xticks(np.arange(len(names)) + 0.4 - wbar / 2)
-        ax.set_xticklabels(names, rotation=30, fontsize=6)
-        ax.set_ylabel("amplitude (mrad)", fontsize=7)
-        ax.legend(fontsize=6)
-        ax.set_title(f"{title} harmonics of the partial joint residuals", fontsize=9)
-        fig.tight_layout()
-        fig.savefig(folder / "spectrum.png", dpi=90)
-        plt.close(fig)
-        out.append("spectrum.png")
+        save("spectrum.png", spectrum_figure(spec, f"{title} harmonics of the partial joint residuals"))
     return out

@@ -40,7 +40,6 @@ References: Schwarz (1978) for BIC; the nested F test (e.g. Seber & Lee,
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +51,7 @@ from scipy import stats
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
+from estcal.progress import progress
 
 from .analysis import residual_analysis, save_plots
 from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
@@ -71,7 +71,7 @@ class Candidate:
     @property
     def label(self) -> str:
         j = ",".join(self.joints) if self.joints else "arm"
-        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders",))
+        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope"))
         return f"{self.effect}{o}({j})"
 
     def make(self, robot):
@@ -79,8 +79,20 @@ class Candidate:
 
         return make_effect(self.effect, robot, joints=self.joints, **self.options)
 
+    def make_names(self, robot) -> list:
+        """Parameter names this candidate would add (empty if it cannot be built)."""
+        try:
+            return list(self.make(robot).param_names)
+        except (ValueError, TypeError):
+            return []
+
     def to_dict(self) -> dict:
         return {"effect": self.effect, "joints": self.joints, "options": _plain(self.options)}
+
+
+def _is_family(entry) -> bool:
+    """A screening-table entry for one effect over several joints."""
+    return bool(entry.get("joints")) and len(entry["joints"]) > 1
 
 
 def _plain(v):
@@ -95,12 +107,18 @@ def _plain(v):
     return v
 
 
-def default_candidates(robot, data, effects: Sequence[str] | None = None, harmonic_orders=(1, 2, 3)):
+def default_candidates(robot, data, effects: Sequence[str] | None = None, harmonic_orders=(1, 2, 3),
+                       families: bool = True):
     """Candidates from the effect registry for ``robot`` and ``data``.
 
-    Per joint for effects that take joints; once for whole-arm effects (those
-    that refuse a joint list, e.g. ``thermal_expansion``). Time/temperature
-    effects only when the data have the column they need.
+    Per joint for effects that take joints and, with ``families``, the whole
+    family once more as one candidate over all its eligible joints (a compound
+    effect — e.g. every joint a little compliant — appears as several weak
+    per-joint terms, each below the significance threshold, whose sum is not:
+    the group's likelihood-ratio test with k degrees of freedom finds it). Once
+    for whole-arm effects (those that refuse a joint list); thermal expansion in
+    both forms, whole arm and links only (``scope``). Time/temperature effects
+    only when the data have the column they need.
     """
     from estcal.effects import EFFECTS
 
@@ -124,6 +142,7 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
             else:
                 continue
             out.append(Candidate(name, None, opts))
+            out.append(Candidate(name, None, dict(opts, scope="links")))
             continue
         else:
             opts = {}
@@ -149,6 +168,11 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
                 per_joint.append(Candidate(name, [j], o))
         if per_joint:
             out += per_joint
+            if families:
+                for o in variants:
+                    js = [c.joints[0] for c in per_joint if c.options == o]
+                    if len(js) > 1:
+                        out.append(Candidate(name, js, o))
         else:
             try:
                 Candidate(name, None, opts).make(robot)
@@ -216,6 +240,19 @@ class DiagnosisResult:
     located: list = field(default_factory=list)  # structure located on a joint but not named
     robot: object = field(default=None, repr=False)  # the extended robot at the estimate
     geometric_robot: object = field(default=None, repr=False)
+    # the final joint fit, for save_model: covariance (SI) of ``covariance_names``, σ0, the data
+    covariance: object = field(default=None, repr=False)
+    covariance_names: list = field(default_factory=list, repr=False)
+    sigma0: float = float("nan")
+    train_data: object = field(default=None, repr=False)
+    validation_data: list = field(default_factory=list, repr=False)
+
+    def save_model(self, path, provenance: dict | None = None):
+        """Write the identified robot (geometry + named effects at the joint estimate) as a
+        robot file with a ``calibration:`` block (docs/robot-file.md, "Saved models")."""
+        from estcal.io.savedmodel import save_diagnosis
+
+        return save_diagnosis(self, path, provenance)
 
     def prepare(self, data):
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
@@ -254,10 +291,9 @@ class DiagnosisResult:
                        "report_files": self.report_files})
 
     def to_json(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        from estcal.io.jsonio import write_json
+
+        return write_json(path, self.to_dict())
 
     def __str__(self) -> str:
         def f(x):
@@ -364,7 +400,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              max_effects: int = 3, min_explained: float = 0.3, n_refit: int = 3, regroup_tol: float = 1e-3,
              ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
-             session_time: bool = True, approach_from_order: bool = False) -> DiagnosisResult:
+             session_time: bool = True, approach_from_order: bool = False,
+             families: bool = True) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -398,6 +435,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     free : explicit geometric free set (default: identifiable geometric parameters).
     report : folder for plots, ``diagnosis.json`` and ``summary.txt``.
     rng : seed of the fold assignment.
+    families : also screen each joint effect as one family over all its joints
+        (see :func:`default_candidates`); tried only at steps where no single-joint
+        or whole-arm candidate is accepted.
     robot_spec : how to reload the nominal robot (stored in the fit for
         :func:`estcal.discrepancy.feedback.simulate_from_fit`).
     """
@@ -456,27 +496,41 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
 
     # 3.-4. forward selection ---------------------------------------------------
     if candidates is None:
-        cands = default_candidates(grobot, data)
+        cands = default_candidates(grobot, data, families=families)
     else:
         cands = []
         for c in candidates:
             if isinstance(c, Candidate):
                 cands.append(c)
             elif isinstance(c, str):
-                cands += default_candidates(grobot, data, effects=[c])
+                cands += default_candidates(grobot, data, effects=[c], families=families)
             else:
                 cands.append(Candidate(*c))
     cur_problem, cur_theta, cur_free = problem, theta_g, list(gfree)
     cur_rss, cur_p, cur_cv = rss_g, p_g, cv_g
     causes, steps, used = [], [], set()
+    cur_res = gres
     for step in range(max_effects):
         b, A, _ = weighted_system(cur_problem, cur_theta, cur_free)
         Q = orthonormal_basis(A)
         b_perp = b - Q @ (Q.T @ b)
         table = []
-        for c in cands:
+        for c in progress(cands, desc=f"diagnose: step {step + 1}, candidate effects", unit="effect"):
             if c.label in used:
                 continue
+            have = set(cur_problem.robot.params.names)
+            if c.joints and len(c.joints) > 1:
+                # a family: the joints of this effect not yet in the model (≥ 2), so the rest of a
+                # compound effect is still searched after some of its joints were named singly
+                rest = [j for j in c.joints
+                        if not have.intersection(Candidate(c.effect, [j], c.options).make_names(cur_problem.robot))]
+                if len(rest) < 2:
+                    continue
+                c = Candidate(c.effect, rest, c.options)
+                if c.label in used:
+                    continue
+            elif c.joints and have.intersection(c.make_names(cur_problem.robot)):
+                continue  # already in the model as part of an accepted family
             entry = {"candidate": c.label, "effect": c.effect, "joints": c.joints}
             try:
                 eff = c.make(cur_problem.robot)
@@ -510,43 +564,48 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         ok = [e for e in table if e["status"] == "ok"]
         n_tested = max(len(ok), 1)
         ok.sort(key=lambda e: e["delta_bic_linear"])
-        refits = []
-        for e in ok[:n_refit]:
-            c, rob, prob, names = e["_obj"]
-            res = _fit(prob, rob.params.values, cur_free + names)
-            rss1 = float(res.chi2)
-            k = len(names)
-            dbic = _ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known)
-            tname, stat, pval = _test(cur_rss, rss1, k, M, cur_p + k, known)
-            e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
-            refits.append((dbic, e, res))
-        refits.sort(key=lambda t: t[0])
+        # Single-joint and whole-arm candidates first; a family (one effect over several
+        # joints) only when none of them is accepted at this step, so a compound effect
+        # of weak per-joint terms is found without a family absorbing a single-joint cause.
         accepted = None
-        n_cv = 0
-        for dbic, e, res in refits:
-            c, rob, prob, names = e["_obj"]
-            excess = cur_rss - (max(M - cur_p, 0) if known else 0.0)
-            frac_excess = (cur_rss - e["rss"]) / excess if excess > 0 else 0.0
-            e["explained_excess_fraction"] = float(frac_excess)
-            reasons = []
-            if not dbic < 0:
-                reasons.append("ΔBIC ≥ 0")
-            if not e["p_value"] < alpha / n_tested:
-                reasons.append(f"p = {e['p_value']:.2g} ≥ α/{n_tested}")
-            if not frac_excess >= min_explained:
-                reasons.append(f"explains {100 * frac_excess:.0f}% < {100 * min_explained:.0f}% of the excess")
-            if not reasons and n_cv < 2:
-                n_cv += 1
-                cv_e = cross_validate(prob, res.theta, cur_free + names, folds, cv_max_iter)
-                e["cv_rmse_mm"] = cv_e[0]
-                if not cv_e[0] < cur_cv[0]:
-                    reasons.append(f"CV RMSE {cv_e[0]:.4g} ≥ {cur_cv[0]:.4g} mm")
-            elif not reasons:
-                reasons.append("not cross-validated (limit)")
-            e["rejected"] = reasons
-            if not reasons:
-                accepted = (e, res, cv_e)
+        for group in ([e for e in ok if not _is_family(e)], [e for e in ok if _is_family(e)]):
+            if accepted is not None:
                 break
+            refits, n_cv = [], 0
+            for e in group[:n_refit]:
+                c, rob, prob, names = e["_obj"]
+                res = _fit(prob, rob.params.values, cur_free + names)
+                rss1 = float(res.chi2)
+                k = len(names)
+                dbic = _ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known)
+                tname, stat, pval = _test(cur_rss, rss1, k, M, cur_p + k, known)
+                e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
+                refits.append((dbic, e, res))
+            refits.sort(key=lambda t: t[0])
+            for dbic, e, res in refits:
+                c, rob, prob, names = e["_obj"]
+                excess = cur_rss - (max(M - cur_p, 0) if known else 0.0)
+                frac_excess = (cur_rss - e["rss"]) / excess if excess > 0 else 0.0
+                e["explained_excess_fraction"] = float(frac_excess)
+                reasons = []
+                if not dbic < 0:
+                    reasons.append("ΔBIC ≥ 0")
+                if not e["p_value"] < alpha / n_tested:
+                    reasons.append(f"p = {e['p_value']:.2g} ≥ α/{n_tested}")
+                if not frac_excess >= min_explained:
+                    reasons.append(f"explains {100 * frac_excess:.0f}% < {100 * min_explained:.0f}% of the excess")
+                if not reasons and n_cv < 2:
+                    n_cv += 1
+                    cv_e = cross_validate(prob, res.theta, cur_free + names, folds, cv_max_iter)
+                    e["cv_rmse_mm"] = cv_e[0]
+                    if not cv_e[0] < cur_cv[0]:
+                        reasons.append(f"CV RMSE {cv_e[0]:.4g} ≥ {cur_cv[0]:.4g} mm")
+                elif not reasons:
+                    reasons.append("not cross-validated (limit)")
+                e["rejected"] = reasons
+                if not reasons:
+                    accepted = (e, res, cv_e)
+                    break
         steps.append({"step": step + 1, "rss_before": cur_rss, "n_candidates": len(cands) - len(used),
                       "n_tested": len(ok), "alpha_per_test": alpha / n_tested,
                       "table": [{k: _plain(v) for k, v in e.items() if not k.startswith("_")}
@@ -627,9 +686,18 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     gmodel = {"theta": dict(zip(gr.params.names, map(float, theta_g))), "free": gfree,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],
                            "chi2_per_dof": analysis["noise_floor"]["chi2_per_dof"]}}
+    try:  # the nominal robot itself, so the fit needs no robot file to be simulated again
+        from estcal.io.robotfile import robot_to_dict
+
+        model["robot_dict"] = robot_to_dict(robot)
+    except ValueError:  # a robot the file format cannot express: the fit names it by robot_spec
+        pass
+    final = cur_res  # the last accepted joint fit (the geometric fit when nothing was named)
     result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
                              gmodel, lumped, robot=xr.with_values(cur_theta),
-                             geometric_robot=gr.with_values(theta_g))
+                             geometric_robot=gr.with_values(theta_g), covariance=np.asarray(final.covariance),
+                             covariance_names=list(final.names), sigma0=float(final.sigma0), train_data=data,
+                             validation_data=list(validate))
     result.located = located
     if report is not None:
         folder = Path(report)
@@ -640,7 +708,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                                extended=(cur_problem, cur_theta) if causes else None)
         result.report_files = files + ["diagnosis.json", "summary.txt"]
         result.to_json(folder / "diagnosis.json")
-        (folder / "summary.txt").write_text(str(result) + "\n")
+        from estcal.io.atomic import atomic_write_text
+
+        atomic_write_text(folder / "summary.txt", str(result) + "\n")
     return result
 
 

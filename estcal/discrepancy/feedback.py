@@ -14,7 +14,6 @@ what the simulation still gets wrong.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -28,11 +27,11 @@ def load_fit(fit) -> dict:
         return fit.to_dict()
     if isinstance(fit, dict):
         return fit
+    from estcal.io.textinput import read_json
+
     path = Path(fit)
-    if not path.exists():
-        raise FileNotFoundError(f"fit file not found: {path}")
-    d = json.loads(path.read_text())
-    if "model" not in d or "theta" not in d.get("model", {}):
+    d = read_json(path, "diagnosis fit JSON", ValueError)
+    if not isinstance(d, dict) or not isinstance(d.get("model"), dict) or "theta" not in d["model"]:
         raise ValueError(f"{path}: not a diagnosis fit (needs the 'model' written by `estcal diagnose --json`)")
     return d
 
@@ -88,6 +87,13 @@ def _nominal(m: dict, robot=None):
     from estcal.io.robotfile import load_robot
     from estcal.kinematics.chain import SerialRobot
 
+    if robot is None and m.get("robot_dict"):
+        # the fit carries its nominal robot (masses included): no robot file needed
+        from estcal.io.robotfile import robot_from_dict
+
+        base = robot_from_dict(m["robot_dict"], source=f"fit model ({m.get('robot')})")
+        nm = int(m.get("n_markers") or 0)
+        return load_robot(base, n_markers=nm) if nm and base.n_markers != nm else base
     spec = robot if robot is not None else (m.get("robot_spec") or m.get("robot"))
     if spec is None:
         raise ValueError("the fit names no robot; pass robot=")

@@ -8,7 +8,8 @@ backlash            δq_j = b_j · sign(τ_j)  or  −b_j · sign(a_j)  ``backla
 gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic<k>_sin_<j>`` rad
                                                                  ``harmonic<k>_cos_<j>``
 encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
-thermal_expansion   δx = α · ΔT · (x − o_base)   (marker points)  ``thermal_alpha``       1/K
+thermal_expansion   δx = α · ΔT · (x − o_base)   (every point)    ``thermal_alpha``       1/K
+                    or α · ΔT · (flange − o_base) (links only)
 drift               δq_j = v_j · (t − t0)                         ``drift_<joint>``       rad/s, m/s
 ==================  ===========================================  ======================  ===========
 
@@ -178,31 +179,45 @@ class Drift(JointEffect):
 
 
 class ThermalExpansion(Effect):
-    """Uniform thermal expansion of the arm about its base: ``δx = α · ΔT · (x − o)``.
+    """Uniform thermal expansion of the arm: ``δx = α · ΔT · (x − o)`` (``scope="arm"``)
+    or of its links only: ``δx = α · ΔT · (f − o)`` (``scope="links"``).
 
-    Applied to every measured point (the robot's markers) ``x``; ``o`` is the
-    world position of the base frame (``base_tx, base_ty, base_tz``), so all link
-    lengths and marker offsets scale by ``1 + α ΔT``. ``ΔT = temperature − T_ref``
+    Applied to every measured point ``x`` — the tool origin and the markers —, so
+    it acts on tool positions, full poses (position part; a uniform expansion
+    leaves orientations unchanged), marker points and the link/plane/distance
+    methods. ``o`` is the world position of frame 0 (``base_tx, base_ty, base_tz``):
+    the base mount (world → frame 0) never expands. With ``scope="arm"`` all link
+    lengths, the tool and the marker offsets scale by ``1 + α ΔT``; with
+    ``scope="links"`` only the chain from frame 0 to the last joint frame ``f``
+    (the flange) does, and the tool and markers, often on a separate
+    thermally stable fixture, keep their size: every point moves by the flange's
+    displacement ``αΔT (f − o)``. ``ΔT = temperature − T_ref``
     (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``)
     is in 1/K (steel ≈ 1.2e-5, aluminium ≈ 2.3e-5). Without a ``temperature``
     column the effect falls back to ``ΔT = t − t_reference`` (warm-up proxy; α
     then in 1/s); with neither it is zero.
 
-    Only points are corrected (the protocol's ``point_correction``), so use it
-    with position/points data (a robot with markers). The derivative with
-    respect to α is exact. The other parameters' point columns change by
-    O(α ΔT) (the expanded point is not rigidly attached); :meth:`correct_jacobian`
-    makes them exact when the chain passes the pose Jacobian ``J`` to
-    ``point_correction``, otherwise that relative 1e-4 term is neglected.
+    The derivative with respect to α is exact. The other parameters' point
+    columns change by O(α ΔT) (the expanded point is not rigidly attached); for
+    ``scope="arm"`` :meth:`correct_jacobian` makes them exact when the chain
+    passes the pose Jacobian ``J`` to ``point_correction``; for ``scope="links"``
+    (which would need the flange's parameter Jacobian) that relative 1e-4 term
+    is neglected — it changes the convergence path of a Gauss–Newton step, not
+    the fixed point.
     """
 
     name = "thermal_expansion"
     prefixes = ()
 
+    SCOPES = ("arm", "links")
+
     def __init__(self, robot, joints: Sequence[str] | None = None, reference: float = 20.0,
-                 t_reference: float = 0.0):
+                 t_reference: float = 0.0, scope: str = "arm"):
         if joints:
             raise ValueError("effect 'thermal_expansion' acts on the whole arm; it takes no joints")
+        if scope not in self.SCOPES:
+            raise ValueError(f"effect 'thermal_expansion': scope must be one of {self.SCOPES}, got {scope!r}")
+        self.scope = scope
         self.robot_joints = list(robot.joint_names)
         self.joints = []
         self.joint_index = np.zeros(0, int)
@@ -220,7 +235,10 @@ class ThermalExpansion(Effect):
         return ["base"]
 
     def options(self):
-        return {"reference": self.reference, "t_reference": self.t_reference}
+        d = {"reference": self.reference, "t_reference": self.t_reference}
+        if self.scope != "arm":
+            d["scope"] = self.scope
+        return d
 
     def context_keys(self):
         return ["temperature", "t"]
@@ -234,11 +252,21 @@ class ThermalExpansion(Effect):
             return t - self.t_reference
         return np.zeros(N)
 
-    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None):
+    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None,
+                         link_p=None):
         N = points.shape[0]
         o = np.asarray(theta, float)[self._base_idx]
         dT = self.delta_T(context, N)
         s = self.values(theta)[0] * dT  # (N,)
+        if self.scope == "links":
+            if link_p is None:
+                raise ValueError("effect 'thermal_expansion' with scope='links' needs the link frames (link_p)")
+            # frame 0 = end of the base link, flange = end of the last link before the tool
+            arm = (link_p[:, -2] - link_p[:, 0])[:, None, :]  # (N, 1, 3), rigid: no undoing needed
+            d = np.broadcast_to(s[:, None, None] * arm, points.shape)
+            if not derivatives:
+                return d, None
+            return d, np.broadcast_to((dT[:, None, None] * arm)[..., None], points.shape + (1,))
         if not derivatives:
             return s[:, None, None] * (points - o), None
         # With derivatives the chain passes the already corrected points x' = x + s (x - o).

@@ -271,7 +271,8 @@ def finish_result(problem, method, names, fidx, estimate, cov, theta_full, nomin
                             std=np.sqrt(np.clip(np.diag(cov), 0, None)), covariance=cov,
                             nominal=np.asarray(nominal, float).copy(), theta=np.asarray(theta_full, float).copy(),
                             all_names=list(problem.params.names), n_iterations=int(n_iterations),
-                            converged=bool(converged), chi2=chi2, dof=dof, covariance_source=covariance_source)
+                            converged=bool(converged), chi2=chi2, dof=dof, covariance_source=covariance_source,
+                            problem=problem, validation_data=list(validation))
     if extra:
         res.extra.update(extra)
     if t0 is not None:

@@ -104,11 +104,11 @@ def load_checkpoint(path) -> dict:
 
 
 def option_differences(saved: dict, current: dict) -> list[str]:
-    """``--name current (checkpoint: saved)`` for every option that differs."""
+    """``option: current (checkpoint: saved)`` for every option that differs."""
     out = []
     for k in sorted(set(saved) | set(current)):
         if saved.get(k) != current.get(k):
-            out.append(f"--{k.replace('_', '-')} {current.get(k)!r} (checkpoint: {saved.get(k)!r})")
+            out.append(f"{k}: {current.get(k)!r} (checkpoint: {saved.get(k)!r})")
     return out
 
 

@@ -268,28 +268,34 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     if passes is None:
         passes = 3 if robust not in (None, "none") and filter == "ekf" else 1
     weights = None
-    for it in range(passes):
-        flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha, robust=robust,
-                              robust_k=robust_k)
-        traj = []
-        for k, sub in enumerate(subs):
-            flt.step(sub, None if lin_traj is None else lin_traj[k], None if weights is None else weights[k])
-            traj.append(flt.x)
-            if history and it == passes - 1:
-                hist_x.append(flt.x)
-                hist_s.append(flt.std)
-        if filter == "ukf":
-            break
-        # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
-        lin_traj = [traj[-1]] * len(traj)
-        if flt.robust is not None:  # IRLS: weights from the residuals at this pass's estimate
-            from .robust import kernel_threshold, kernel_weight
+    from estcal.progress import progress
 
-            weights = []
-            for sub in subs:
-                r = sub.evaluate(flt.full(traj[-1]), jacobian=False)
-                rn = float(np.linalg.norm(r.e / r.sigma))
-                weights.append(float(kernel_weight(flt.robust, rn, kernel_threshold(flt.robust, r.e.size, robust_k))))
+    n_pass = 1 if filter == "ukf" else passes
+    with progress(total=n_pass * len(subs), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
+        for it in range(passes):
+            flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha, robust=robust,
+                                  robust_k=robust_k)
+            traj = []
+            for k, sub in enumerate(subs):
+                flt.step(sub, None if lin_traj is None else lin_traj[k], None if weights is None else weights[k])
+                traj.append(flt.x)
+                bar.update(1)
+                if history and it == passes - 1:
+                    hist_x.append(flt.x)
+                    hist_s.append(flt.std)
+            if filter == "ukf":
+                break
+            # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
+            lin_traj = [traj[-1]] * len(traj)
+            if flt.robust is not None:  # IRLS: weights from the residuals at this pass's estimate
+                from .robust import kernel_threshold, kernel_weight
+
+                weights = []
+                for sub in subs:
+                    r = sub.evaluate(flt.full(traj[-1]), jacobian=False)
+                    rn = float(np.linalg.norm(r.e / r.sigma))
+                    weights.append(float(kernel_weight(flt.robust, rn,
+                                                       kernel_threshold(flt.robust, r.e.size, robust_k))))
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
     known = noise_known(problem)

@@ -263,6 +263,11 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
             raise NumericalRefusal("\n".join(assessment.refusals))
     est = get_estimator(estimator)
     options = dict(options or {})
+    if options:
+        from estcal.estimate.registry import check_options
+
+        check_options(estimator, options)
+    user_options = dict(options)
     reg_choice = None
     if regularize is not None:
         from estcal.estimate.lsq import LSQ_METHODS
@@ -293,6 +298,11 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         res.nominal = theta0[problem.params.indices(res.names)]
     if sel is not None:
         res.extra["selection"] = sel.to_dict()
+    if user_options:
+        res.extra["options"] = user_options
+    if regularize is not None:
+        res.extra["regularize"] = regularize
+    res.extra.setdefault("measure", problem.terms[0].method.name)
     if options.get("robust"):
         res.extra["robust_report"] = robust_report(problem, res, options["robust"], options.get("robust_k"))
     if checks:

@@ -274,6 +274,9 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
 
     rows = problem.evaluate(theta)
     A, b = weighted(rows, theta)
+    if A.shape[0] < A.shape[1]:  # fewer equations than unknowns: singular whatever the data
+        raise UnidentifiableError(f"{A.shape[0]} equations for {A.shape[1]} free parameters — measure more poses "
+                                  f"or estimate fewer parameters")
     if check:
         check_identifiable(A, names)
     cost = float(b @ b)
@@ -302,50 +305,55 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
         it, converged = int(sol.njev or sol.nfev), bool(sol.success)
     else:
         mu, nu = 1e-2, 10.0
-        for it in range(1, max_iter + 1):
-            r_t = None
-            if method == "lm":
-                while True:
-                    dx = _solve(A, b, mu)
+        from estcal.progress import progress
+
+        with progress(total=max_iter, desc=f"calibrate ({method}, {fidx.size} parameters)", unit="iter") as bar:
+            for it in range(1, max_iter + 1):
+                r_t = None
+                if method == "lm":
+                    while True:
+                        dx = _solve(A, b, mu)
+                        trial = theta.copy()
+                        trial[fidx] += dx
+                        # Jacobian computed with the trial residuals: an accepted step (the
+                        # common case) then needs no second forward-kinematics pass
+                        r_t = problem.evaluate(trial, jacobian=True)
+                        c_t = total_cost(r_t, trial)
+                        if c_t <= cost or mu > 1e12:
+                            break
+                        mu *= nu
+                    mu = max(mu / nu, 1e-12)
+                else:
+                    dx = _solve(A, b)
+                    step = 1.0
                     trial = theta.copy()
                     trial[fidx] += dx
-                    # Jacobian computed with the trial residuals: an accepted step (the
-                    # common case) then needs no second forward-kinematics pass
-                    r_t = problem.evaluate(trial, jacobian=True)
-                    c_t = total_cost(r_t, trial)
-                    if c_t <= cost or mu > 1e12:
-                        break
-                    mu *= nu
-                mu = max(mu / nu, 1e-12)
-            else:
-                dx = _solve(A, b)
-                step = 1.0
-                trial = theta.copy()
-                trial[fidx] += dx
-                r_t = None
-                if method == "gauss-newton":
-                    while True:
-                        r_t = problem.evaluate(trial, jacobian=step == 1.0)
-                        c_t = total_cost(r_t, trial)
-                        if c_t <= cost or step < 1e-6:
-                            break
-                        step *= 0.5
-                        trial = theta.copy()
-                        trial[fidx] += step * dx
-                    dx = step * dx
-            theta = trial
-            rows = r_t if (r_t is not None and r_t.H is not None) else problem.evaluate(theta)
-            A, b = weighted(rows, theta)
-            new_cost = float(b @ b)
-            scale = np.maximum(np.abs(theta[fidx]), 1e-3)
-            small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
-            small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
-            cost = new_cost
-            if verbose:
-                print(f"iter {it}: cost {cost:.6g}, max|step| {np.max(np.abs(dx)):.3g}")
-            if small_step or small_cost:
-                converged = True
-                break
+                    r_t = None
+                    if method == "gauss-newton":
+                        while True:
+                            r_t = problem.evaluate(trial, jacobian=step == 1.0)
+                            c_t = total_cost(r_t, trial)
+                            if c_t <= cost or step < 1e-6:
+                                break
+                            step *= 0.5
+                            trial = theta.copy()
+                            trial[fidx] += step * dx
+                        dx = step * dx
+                theta = trial
+                rows = r_t if (r_t is not None and r_t.H is not None) else problem.evaluate(theta)
+                A, b = weighted(rows, theta)
+                new_cost = float(b @ b)
+                scale = np.maximum(np.abs(theta[fidx]), 1e-3)
+                small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
+                small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
+                cost = new_cost
+                bar.update(1)
+                bar.set_postfix(cost=f"{cost:.4g}")
+                if verbose:
+                    print(f"iter {it}: cost {cost:.6g}, max|step| {np.max(np.abs(dx)):.3g}")
+                if small_step or small_cost:
+                    converged = True
+                    break
     if method == "scipy-lm":  # the loop above leaves rows/A/b at the final theta otherwise
         rows = problem.evaluate(theta)
         A, b = weighted(rows, theta)
@@ -371,7 +379,8 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
                             std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
                             all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
-                            covariance_source="model" if known else "scaled by sigma0^2")
+                            covariance_source="model" if known else "scaled by sigma0^2",
+                            problem=problem, validation_data=list(validation))
     res.extra["time_s"] = time.perf_counter() - t0
     if pk.size:
         res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},

@@ -138,19 +138,15 @@ class PosteriorSamples:
         return az.from_dict(posterior=post, sample_stats={"lp": self.log_prob.T})
 
     def corner(self, path, params=None, truths=None):
-        """Corner plot (corner package) of ``params`` (default: up to the first 8) to a PNG."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import corner
+        """Corner plot (:func:`estcal.plots.posterior.corner_figure`) of ``params`` (default: up
+        to the first 8) written to a PNG (atomically); returns the path."""
+        from estcal.plots.posterior import corner_figure
+        from estcal.report.figures import save_figure
 
         idx = list(range(min(8, len(self.names)))) if params is None else [self.names.index(p) for p in params]
-        fig = corner.corner(self.flat[:, idx], labels=[self.names[i] for i in idx],
-                            truths=None if truths is None else np.asarray(truths)[idx], quantiles=[0.025, 0.5, 0.975])
-        fig.savefig(path, dpi=80)
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
+        fig = corner_figure(self.flat[:, idx], [self.names[i] for i in idx],
+                            truths=None if truths is None else np.asarray(truths)[idx])
+        save_figure(fig, path, dpi=80)
         return path
 
 
@@ -190,7 +186,7 @@ def _moves(kind, mean=None, sd=None):
 
 def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | None = None, n_walkers=None,
                      target_ess: float = 1000.0, max_steps: int = 20000, min_steps: int = 200,
-                     check_every: int = 100, seed=0, progress: bool = False, moves: str = "laplace", theta0=None,
+                     check_every: int = 100, seed=0, progress: bool | None = None, moves: str = "laplace", theta0=None,
                      center=None, covariance=None, tau_factor: float = 50.0,
                      proposal_scale: float = 1.2, chain=None) -> PosteriorSamples:
     """Run emcee until the ESS of every parameter reaches ``target_ess`` (see module docstring).
@@ -198,6 +194,8 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     ``center`` / ``covariance`` : Laplace approximation to start from (default: an LM fit).
     ``chain`` : HDF5 file holding the chain (:mod:`estcal.estimate.chainfile`); when it holds a
     chain of the same target, sampling continues it (``max_steps`` counts the stored steps too).
+    ``progress`` : bar of the steps on stderr (None: only on a terminal, not in CI —
+    :func:`estcal.progress.progress`; True forces it, False suppresses it).
     """
     import emcee
 
@@ -253,34 +251,30 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
 
             sampler.reset()  # an empty chain left by a run killed before its first block
             write_frame(chain, names=names, fp=fp, n_walkers=nw, ndim=d, center=center, covariance=covariance)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    from estcal.progress import progress as _progress
 
-        bar = tqdm(total=max_steps, desc="mcmc", unit="step")
     converged = False
     tau = np.full(d, np.nan)
     ess = np.zeros(d)
     burn = 0
-    while n < max_steps:
-        k = min(check_every, max_steps - n)
-        state = sampler.run_mcmc(state, k, progress=False)
-        if backend is not None:
-            backend.maybe_flush()
-        n += k
-        if bar is not None:
+    with _progress(total=max_steps, desc="mcmc", unit="step", enabled=progress) as bar:
+        if n:
+            bar.update(n)
+        while n < max_steps:
+            k = min(check_every, max_steps - n)
+            state = sampler.run_mcmc(state, k, progress=False)
+            if backend is not None:
+                backend.maybe_flush()
+            n += k
             bar.update(k)
-        tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
-        tmax = float(np.nanmax(tau))
-        burn = int(min(np.ceil(3 * tmax), n // 2))
-        ess = nw * (n - burn) / tau
-        if bar is not None:
+            tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
+            tmax = float(np.nanmax(tau))
+            burn = int(min(np.ceil(3 * tmax), n // 2))
+            ess = nw * (n - burn) / tau
             bar.set_postfix(tau=f"{tmax:.0f}", ess=f"{ess.min():.0f}")
-        if n >= min_steps and n > tau_factor * tmax and ess.min() >= target_ess:
-            converged = True
-            break
-    if bar is not None:
-        bar.close()
+            if n >= min_steps and n > tau_factor * tmax and ess.min() >= target_ess:
+                converged = True
+                break
     if saved is not None and not np.isfinite(tau).any():  # resumed at or past max_steps: diagnose only
         tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
         burn = int(min(np.ceil(3 * float(np.nanmax(tau))), n // 2))
@@ -336,4 +330,5 @@ def calibrate_mcmc(problem, free=None, validation=(), *, corner_path=None, corne
     res = finish_result(problem, "mcmc", names, fidx, mean, cov, theta_full_of(theta, fidx, mean), theta[fidx],
                         n_iterations=smp.n_steps, converged=smp.converged, covariance_source="posterior samples",
                         theta_before=theta, validation=validation, t0=t0, extra=extra)
+    res.samples = flat
     return res

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-__all__ = ["ESTIMATORS", "get_estimator", "register_estimator", "estimator_names"]
+__all__ = ["ESTIMATORS", "get_estimator", "register_estimator", "estimator_names", "estimator_options",
+           "check_options"]
 
 ESTIMATORS: dict[str, str] = {
     "lm": "estcal.estimate.lsq:calibrate_lsq",
@@ -49,3 +50,57 @@ def get_estimator(name: str):
     if mod.endswith(".lsq"):
         return lambda problem, **kw: f(problem, method=name, **kw)
     return f
+
+
+# Estimators whose ``**options`` are passed on to another function: the keys that one accepts.
+_FORWARDS = {"estcal.estimate.mcmc:calibrate_mcmc": "estcal.estimate.mcmc:sample_posterior",
+             "estcal.estimate.kalman:calibrate_ukf": "estcal.estimate.kalman:calibrate_kalman"}
+# Arguments the calibration entry point fills itself (not user options).
+_RESERVED = {"problem", "free", "validation", "method", "check", "theta0", "filter"}
+
+
+def _resolve(target):
+    if callable(target):
+        return target
+    mod, fn = target.split(":")
+    return getattr(importlib.import_module(mod), fn)
+
+
+def estimator_options(name: str) -> dict:
+    """``{option: default}`` of the keyword options estimator ``name`` accepts (``--option KEY=VALUE``).
+
+    Read from the estimator function's signature (and, for those that pass ``**options`` on, from
+    the function receiving them); arguments the calibration fills itself (problem, free set,
+    validation data, initial values) are not listed. Imports the estimator's backend.
+    """
+    import inspect
+
+    if name not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {name!r}; choose one of {estimator_names()}")
+    targets = [ESTIMATORS[name]]
+    if isinstance(targets[0], str) and targets[0] in _FORWARDS:
+        targets.append(_FORWARDS[targets[0]])
+    out = {}
+    for t in targets:
+        try:
+            f = _resolve(t)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"estimator {name!r} is not available ({exc})") from exc
+        for p in inspect.signature(f).parameters.values():
+            if p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) or p.name in _RESERVED:
+                continue
+            out[p.name] = None if p.default is inspect.Parameter.empty else p.default
+    return out
+
+
+def check_options(name: str, options) -> None:
+    """Raise ``ValueError`` naming the estimator and its valid keys when an option is unknown."""
+    import difflib
+
+    valid = estimator_options(name)
+    bad = [k for k in (options or {}) if k not in valid]
+    if bad:
+        hint = difflib.get_close_matches(bad[0], list(valid), n=1)
+        raise ValueError(f"estimator {name!r} has no option {bad[0]!r}"
+                         f"{f' (did you mean {hint[0]!r}?)' if hint else ''}; valid keys: "
+                         f"{', '.join(sorted(valid))} (see `estcal estimators`)")

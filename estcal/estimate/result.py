@@ -74,6 +74,8 @@ class CalibrationResult:
     sigma0 : posterior standard deviation of unit weight √(χ²/dof)
     accuracy : {"train": accuracy dict before/after, "validation": [...]} (mm / mrad)
     extra : estimator-specific fields (e.g. credible intervals, innovation statistics)
+    samples : (n_draws, p) posterior draws of the free parameters (MCMC only; kept in memory
+        for plots, not serialised)
     """
 
     method: str
@@ -91,18 +93,45 @@ class CalibrationResult:
     covariance_source: str = "model"
     accuracy: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    samples: np.ndarray | None = field(default=None, repr=False, compare=False)
+    # What the fit was run on, for :meth:`save_model` (not serialised by to_dict):
+    # the Problem (robot, datasets, noise) and the validation datasets.
+    problem: object = field(default=None, repr=False, compare=False)
+    validation_data: list = field(default_factory=list, repr=False, compare=False)
 
     @property
     def sigma0(self) -> float:
         return float(np.sqrt(self.chi2 / self.dof)) if self.dof > 0 else float("nan")
 
     def parameter(self, name: str) -> tuple[float, float]:
+        """``(estimate, std)`` of a free parameter (SI units)."""
+        if name not in self.names:
+            raise ValueError(f"{name!r} is not an estimated parameter; estimated: {', '.join(self.names)}")
         i = self.names.index(name)
         return float(self.estimate[i]), float(self.std[i])
 
-    def robot(self, base_robot):
-        """``base_robot`` with the estimated values (the parameter vector must match)."""
+    def robot(self, base_robot=None):
+        """The robot at the estimate: ``base_robot`` (default: the problem's robot) with the
+        estimated values, matched by parameter name."""
+        if base_robot is None:
+            if self.problem is None:
+                raise ValueError("this result does not know its robot; pass the robot it was fitted to")
+            base_robot = self.problem.robot
+        idx = {n: i for i, n in enumerate(self.all_names)}
+        if all(n in idx for n in base_robot.params.names):
+            return base_robot.with_values(self.theta[[idx[n] for n in base_robot.params.names]])
         return base_robot.with_values(self.theta[: base_robot.n_params])
+
+    def save_model(self, path, provenance: dict | None = None):
+        """Write the identified robot as a robot file with a ``calibration:`` block
+        (docs/robot-file.md, "Saved models"); ``load_robot(path)`` gives the fitted model.
+
+        ``provenance`` adds or overrides keys of the block (e.g. ``level``, ``options``).
+        Returns the path.
+        """
+        from estcal.io.savedmodel import save_calibration
+
+        return save_calibration(self, path, provenance)
 
     def to_dict(self) -> dict:
         d = {

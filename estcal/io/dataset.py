@@ -22,15 +22,25 @@ look like degrees or millimetres).
 """
 from __future__ import annotations
 
-import csv
+import difflib
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays"]
+from estcal.io.textinput import CsvTable, read_csv
+
+__all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table"]
 
 CONTEXT_COLUMNS = ("t", "temperature", "payload")
+QUAT_COLUMNS = ("qw", "qx", "qy", "qz")
+POSE_COLUMNS = ("x", "y", "z") + QUAT_COLUMNS
+# columns read by the measurement methods (docs/methods.md) and the TIAGo files' time window
+METHOD_COLUMNS = ("group", "pair", "distance", "plane_a", "plane_b", "plane_c", "t_start_robot", "t_end_robot")
+_NUMBERED = re.compile(r"^([xyz])(\d+)$")
+# allowance of the spread check for unknown marker offsets and calibration errors (m)
+SPREAD_SLACK_M = 0.2
 
 
 class DatasetError(ValueError):
@@ -138,47 +148,139 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
 
     Parameters
     ----------
-    path : CSV file with a header row.
-    robot : SerialRobot whose ``joint_names`` (and limits, for the unit check) are used.
+    path : CSV file with a header row (comma, semicolon or tab separated; UTF-8,
+        a byte-order mark is accepted).
+    robot : SerialRobot whose ``joint_names`` (and limits and nominal model, for the
+        unit and range checks) are used.
     joint_names : alternative to ``robot``.
     points : keep only the first ``points`` measured points (``--points``).
-    check_units : reject revolute readings beyond ±4π (degrees?) and coordinates beyond
-        50 m (millimetres?).
+    check_units : reject revolute readings beyond ±4π (degrees?), coordinates beyond
+        50 m (millimetres?) and measured positions whose spread disagrees with the
+        robot's nominal model (wrong unit or wrong robot; needs ``robot``).
+
+    Every problem raises :class:`DatasetError` naming the file, the line and the
+    column (see ``docs/dataset.md``, "Checks and error messages").
     """
+    table = read_csv(Path(path), "dataset", DatasetError)
+    return dataset_from_table(table, robot, joint_names, points, check_units)
+
+
+def _decimal_hint(txt: str, delimiter: str) -> str:
+    if "," in txt and delimiter != ",":
+        try:
+            float(txt.replace(",", "."))
+            return f" (decimal comma? write {txt.replace(',', '.')})"
+        except ValueError:
+            pass
+    return ""
+
+
+def _suggest_column(name: str, header: list[str]) -> str:
+    low = {h.lower(): h for h in header if h}
+    if name.lower() in low:
+        return f" (column {low[name.lower()]!r} differs only in case: names are case-sensitive, rename it)"
+    close = difflib.get_close_matches(name, [h for h in header if h], n=1, cutoff=0.75)
+    return f" (did you mean column {close[0]!r}?)" if close else ""
+
+
+def _known_columns(header: list[str], names: list[str]) -> set[str]:
+    known = set(names) | set(POSE_COLUMNS) | set(CONTEXT_COLUMNS) | set(METHOD_COLUMNS)
+    known |= {f"approach_{j}" for j in names}
+    known |= {h for h in header if _NUMBERED.match(h)}
+    return known
+
+
+def _check_header(header: list[str], names: list[str], where: str, line: int) -> list[str]:
+    """Structural checks of a header (duplicates, case, partial measurement sets);
+    returns warnings (unknown columns that look like misspelt known ones)."""
+    at = f"{where}, line {line}"
+    first: dict[str, int] = {}
+    for i, h in enumerate(header):
+        if h and h in first:
+            raise DatasetError(f"{at}: columns {first[h] + 1} and {i + 1} are both named {h!r} — rename or "
+                               f"remove one (estcal would not know which to use)")
+        first.setdefault(h, i)
+    missing = [j for j in names if j not in first]
+    if missing:
+        hint = _suggest_column(missing[0], header)
+        if len(header) == 1 and (" " in header[0]):
+            hint += " — the header has one column: separate the columns with ',', ';' or a tab"
+        raise DatasetError(f"{where}: missing joint column(s) {missing}{hint}; the robot's joints are {names}; "
+                           f"the file has columns {header}")
+    known = _known_columns(header, names)
+    known_lower = {k.lower(): k for k in known}
+    warnings = []
+    for h in header:
+        if not h or h in known:
+            continue
+        if h.lower() in known_lower:
+            raise DatasetError(f"{at}, column {h!r}: column names are case-sensitive — rename it to "
+                               f"{known_lower[h.lower()]!r}")
+        close = difflib.get_close_matches(h, sorted(k for k in known if len(k) >= 3), n=1, cutoff=0.8)
+        if close and len(h) >= 3:
+            warnings.append(f"column {h!r} is not a column estcal uses and is ignored (did you mean {close[0]!r}?)")
+    present = set(header)
+    xyz = [c for c in "xyz" if c in present]
+    if xyz and len(xyz) < 3:
+        raise DatasetError(f"{at}: column(s) {', '.join(xyz)} without {', '.join(c for c in 'xyz' if c not in xyz)}"
+                           f" — a measured point needs x, y and z (m)")
+    quat = [c for c in QUAT_COLUMNS if c in present]
+    if quat and len(quat) < 4:
+        raise DatasetError(f"{at}: quaternion column(s) {', '.join(quat)} without "
+                           f"{', '.join(c for c in QUAT_COLUMNS if c not in quat)} — a pose needs "
+                           f"x,y,z,qw,qx,qy,qz (quaternion scalar-first)")
+    if quat and not xyz:
+        raise DatasetError(f"{at}: quaternion columns without x, y, z — a pose needs x,y,z,qw,qx,qy,qz")
+    idx: dict[int, set] = {}
+    for h in header:
+        m = _NUMBERED.match(h)
+        if m:
+            idx.setdefault(int(m.group(2)), set()).add(m.group(1))
+    if idx:
+        for k in sorted(idx):
+            if idx[k] != set("xyz"):
+                lack = ", ".join(f"{c}{k}" for c in "xyz" if c not in idx[k])
+                raise DatasetError(f"{at}: point {k} has no column {lack} — every measured point needs "
+                                   f"x{k}, y{k}, z{k} (m)")
+        if sorted(idx) != list(range(1, len(idx) + 1)):
+            raise DatasetError(f"{at}: measured points are numbered {sorted(idx)} — number them 1, 2, …, "
+                               f"{len(idx)} without gaps (x1,y1,z1, x2,…)")
+        if xyz and not quat:
+            raise DatasetError(f"{at}: both x,y,z and x1,y1,z1… columns — ambiguous measurement; keep x,y,z "
+                               f"(one point) or x1…zk (k points)")
+    return warnings
+
+
+def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: int | None = None,
+                       check_units: bool = True) -> Dataset:
+    """A :class:`Dataset` from a parsed CSV (:func:`estcal.io.textinput.read_csv`); also
+    used for single rows streamed by ``estcal online``, so both get the same checks."""
     from estcal.kinematics.transforms import quat_to_matrix
 
-    path = Path(path)
-    where = str(path)
-    if not path.exists():
-        raise DatasetError(f"{where}: file not found")
+    where = table.where
     names = list(robot.joint_names if robot is not None else (joint_names or []))
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
-    rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
-    if not rows:
-        raise DatasetError(f"{where}: empty file (expected a header row and data rows)")
-    header = [h.strip() for h in rows[0]]
-    body = rows[1:]
+    header = table.header
+    warnings = _check_header(header, names, where, table.header_line)
+    body = table.rows
     if not body:
         raise DatasetError(f"{where}: header only, no data rows")
-    missing = [j for j in names if j not in header]
-    if missing:
-        raise DatasetError(f"{where}: missing joint column(s) {missing}; the robot's joints are {names}; "
-                           f"the file has columns {header}")
+    lines = np.asarray(table.lines, int)
     data = np.empty((len(body), len(header)))
     for i, r in enumerate(body):
-        line = i + 2
         if len(r) != len(header):
-            raise DatasetError(f"{where}, line {line}: {len(r)} fields but the header has {len(header)} "
-                               f"(inconsistent column count)")
+            hint = ""
+            if table.delimiter != "," and any("," in v for v in r):
+                hint = f" — the file is {table.delimiter_name}-separated; decimal commas?"
+            raise DatasetError(f"{where}, line {lines[i]}: {len(r)} fields but the header has {len(header)} "
+                               f"(inconsistent column count{hint})")
         for c, v in enumerate(r):
             v = v.strip()
             try:
                 data[i, c] = float(v) if v != "" else np.nan
             except ValueError:
                 data[i, c] = np.nan  # non-numeric columns are allowed if unused; checked below
-    col = {h: data[:, i] for i, h in enumerate(header)}
-    raw = {h: [r[i] for r in body] for i, h in enumerate(header)}
+    col = {h: data[:, i] for i, h in enumerate(header) if h}
+    raw = {h: [r[i] for r in body] for i, h in enumerate(header) if h}
 
     def need(hs):
         for h in hs:
@@ -186,26 +288,28 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
             if bad.size:
                 b = bad[0]
                 txt = raw[h][b].strip()
-                what = "is empty" if txt == "" else f"is {txt!r}, not a finite number"
-                raise DatasetError(f"{where}, line {b + 2}, column {h!r}: value {what}")
+                what = "is empty" if txt == "" else f"is {txt!r}, not a finite number" + _decimal_hint(
+                    txt, table.delimiter)
+                raise DatasetError(f"{where}, line {lines[b]}, column {h!r}: value {what}")
 
     need(names)
     k = _point_columns(header)
-    quat = all(c in header for c in ("qw", "qx", "qy", "qz"))
+    quat = all(c in header for c in QUAT_COLUMNS)
     single = all(c in header for c in "xyz")
     used = set(names)
     R = p = pts = None
     if single and quat:
         kind = "pose"
-        need(["x", "y", "z", "qw", "qx", "qy", "qz"])
+        need(list(POSE_COLUMNS))
         p = np.c_[col["x"], col["y"], col["z"]]
         qv = np.c_[col["qw"], col["qx"], col["qy"], col["qz"]]
         nq = np.linalg.norm(qv, axis=1)
         if np.any(np.abs(nq - 1) > 1e-3):
             b = int(np.argmax(np.abs(nq - 1)))
-            raise DatasetError(f"{where}, line {b + 2}: quaternion (qw,qx,qy,qz) has norm {nq[b]:.6f}, expected 1")
+            raise DatasetError(f"{where}, line {lines[b]}: quaternion (qw,qx,qy,qz) has norm {nq[b]:.6f}, "
+                               f"expected 1 (scalar-first unit quaternion)")
         R = quat_to_matrix(qv)
-        used |= {"x", "y", "z", "qw", "qx", "qy", "qz"}
+        used |= set(POSE_COLUMNS)
     elif k >= 1:
         cols = [f"{c}{i + 1}" for i in range(k) for c in "xyz"]
         need(cols)
@@ -237,33 +341,78 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
             context["t"] = 0.5 * (col["t_start_robot"] + col["t_end_robot"])
     # Method columns may be partly empty (e.g. ``distance`` only on the second row of a
     # pair): keep them with NaN where empty; drop only columns with no number at all.
-    columns = {h: col[h].copy() for h in header if h not in used and np.any(np.isfinite(col[h]))}
-    ds = Dataset(names, readings, kind, pts, R, p, context, columns, np.arange(2, len(body) + 2), where)
+    columns = {h: col[h].copy() for h in col if h not in used and np.any(np.isfinite(col[h]))}
+    ds = Dataset(names, readings, kind, pts, R, p, context, columns, lines, where, warnings)
     if check_units:
-        _check_units(ds, robot)
+        coord_names = (["x", "y", "z"] if kind == "pose" or (kind == "position" and k == 0) else
+                       [f"{c}{i + 1}" for i in range(k) for c in "xyz"])
+        _check_units(ds, robot, coord_names)
     if points is not None:
         ds = ds.with_points(points)
     return ds
 
 
-def _check_units(ds: Dataset, robot) -> None:
+def _check_units(ds: Dataset, robot, coord_names=None) -> None:
+    """Values that cannot be in estcal's units (radians, metres) or do not fit the robot."""
     if robot is not None:
         for j, (name, typ) in enumerate(zip(robot.joint_names, robot.joint_types)):
             v = ds.readings[:, j]
-            if typ == "revolute" and np.abs(v).max() > 4 * np.pi:
-                b = int(np.argmax(np.abs(v)))
-                raise DatasetError(f"{ds.where}, line {ds.lines[b]}, column {name!r}: {v[b]:g} rad is beyond "
-                                   f"±4π — readings look like degrees; convert to radians")
             lo, hi = robot.limits[j]
+            b = int(np.argmax(np.abs(v)))
+            at = f"{ds.where}, line {ds.lines[b]}, column {name!r}"
+            if typ == "revolute" and abs(v[b]) > 4 * np.pi:
+                if np.median(np.abs(v)) > np.pi and abs(v[b]) <= 400:
+                    raise DatasetError(f"{at}: {v[b]:g} rad is beyond ±4π and the column's typical value "
+                                       f"{np.median(np.abs(v)):.3g} is beyond ±π — readings look like degrees; "
+                                       f"convert to radians (× π/180)")
+                raise DatasetError(f"{at}: {v[b]:g} rad is beyond ±4π (two turns) — not a plausible joint "
+                                   f"angle in radians; check this value")
+            if typ == "prismatic" and abs(v[b]) > max(1.0, 10 * max(abs(lo), abs(hi))):
+                raise DatasetError(f"{at}: {v[b]:g} m for a prismatic joint with limits [{lo:g}, {hi:g}] m — "
+                                   f"readings look like millimetres; convert to metres")
             span = hi - lo
             out = np.flatnonzero((v < lo - 0.05 * span) | (v > hi + 0.05 * span))
             if out.size:
                 ds.warnings.append(f"{out.size} readings of {name!r} outside its limits [{lo:g}, {hi:g}] "
                                    f"(first at line {ds.lines[out[0]]})")
     coords = ds.points if ds.points is not None else ds.p
-    if coords is not None and np.abs(coords).max() > 50.0:
-        raise DatasetError(f"{ds.where}: measured coordinates reach {np.abs(coords).max():g} m — they look like "
+    if coords is None or not coords.size:
+        return
+    a = np.abs(coords).reshape(len(coords), -1)
+    if a.max() > 50.0:
+        i, c = np.unravel_index(int(np.argmax(a)), a.shape)
+        names = list(coord_names or []) or [f"coordinate {c + 1}"] * a.shape[1]
+        cname = names[c] if c < len(names) else f"coordinate {c + 1}"
+        raise DatasetError(f"{ds.where}, line {ds.lines[i]}, column {cname!r}: measured coordinate "
+                           f"{coords.reshape(len(coords), -1)[i, c]:g} m — beyond 50 m, it looks like "
                            f"millimetres; estcal expects metres")
+    if robot is not None and ds.n >= 3:
+        _check_spread(ds, robot)
+
+
+def _check_spread(ds: Dataset, robot) -> None:
+    """Measured positions must spread like the robot's nominal model says.
+
+    The measurement frame is unknown (registration finds it), but a rigid change of
+    frame keeps distances: the RMS distance of the measured points from their
+    centroid equals that of the predicted tool positions up to the calibration
+    errors (millimetres) and the unknown marker offsets (a marker at distance d
+    from the tool origin changes it by at most d). A ratio far from 1 means a wrong
+    unit (cm, mm, inches) or the wrong robot / joint columns."""
+    meas = ds.points[:, 0, :] if ds.points is not None else ds.p
+    try:
+        pred = robot.kinematics(ds.readings, jacobian=False).p
+    except (ValueError, KeyError, TypeError):  # effects needing context the file lacks: no check
+        return
+    sm = float(np.sqrt(np.mean(np.sum((meas - meas.mean(0)) ** 2, axis=1))))
+    sp = float(np.sqrt(np.mean(np.sum((pred - pred.mean(0)) ** 2, axis=1))))
+    slack = SPREAD_SLACK_M
+    if sm > 2 * sp + slack or sm < 0.5 * sp - slack:
+        ratio = f"{sm / sp:.3g}×" if sp > 0 else "∞×"
+        raise DatasetError(
+            f"{ds.where}: the measured positions spread {sm:.3g} m (RMS about their centroid) but the nominal "
+            f"model of {robot.name!r} puts these joint readings within {sp:.3g} m ({ratio}) — wrong unit (mm, cm, "
+            f"inches instead of metres) or the wrong robot / joint columns?")
 
 
 def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: str = "%.17g") -> Path:
@@ -292,9 +441,11 @@ def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: st
     cols.update(ds.context)
     cols.update(ds.columns)
     cols.update(extra or {})
+    from estcal.io.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     names = list(cols)
     M = np.column_stack([np.asarray(cols[n], float) for n in names])
-    np.savetxt(path, M, delimiter=",", header=",".join(names), comments="", fmt=float_format)
+    with atomic_write(path) as fh:
+        np.savetxt(fh, M, delimiter=",", header=",".join(names), comments="", fmt=float_format)
     return path

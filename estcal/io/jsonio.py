@@ -1,25 +1,31 @@
 """JSON output shared by the CLI, the experiments and the benchmarks.
 
 Results are plain data: numpy arrays become lists, numpy scalars Python
-numbers, dataclasses with ``to_dict()`` their dict, NaN/inf stay as JSON's
-``NaN``/``Infinity`` (Python's json extension, readable by json.loads).
+numbers, dataclasses with ``to_dict()`` their dict. The output is *strict* JSON
+(RFC 8259) that every JSON reader accepts: NaN and ±inf (an undefined standard
+deviation, an infinite criterion) are written as ``null`` — Python's ``NaN`` /
+``Infinity`` extension is not JSON. Files are written atomically
+(:mod:`estcal.io.atomic`): a crash leaves the old file or the new one, never half.
 """
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["to_jsonable", "write_json"]
+__all__ = ["to_jsonable", "write_json", "dumps"]
 
 
 def to_jsonable(v):
     """Recursively convert numpy / dataclass-like values to JSON-serialisable Python data."""
     if isinstance(v, np.ndarray):
-        return v.tolist()
+        return to_jsonable(v.tolist()) if v.dtype.kind in "fcO" else v.tolist()
     if isinstance(v, (np.floating, np.integer, np.bool_)):
-        return v.item()
+        v = v.item()
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
     if isinstance(v, dict):
         return {str(k): to_jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
@@ -32,10 +38,17 @@ def to_jsonable(v):
 
 
 def write_json(path, obj, announce: bool = False) -> Path:
-    """Write ``obj`` as indented JSON to ``path`` (parent folders created); returns the path."""
+    """Write ``obj`` as indented strict JSON to ``path`` (atomically, parent folders
+    created; non-finite numbers as ``null``); returns the path."""
+    from estcal.io.atomic import atomic_write_text
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(to_jsonable(obj), indent=2))
+    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
     if announce:
         print(f"wrote {path}")
     return path
+
+
+def dumps(obj, **kw) -> str:
+    """Strict JSON text of ``obj`` (see :func:`write_json`)."""
+    return json.dumps(to_jsonable(obj), allow_nan=False, **kw)

@@ -40,7 +40,7 @@ from estcal.kinematics.builder import DH_PARAMS, KHALIL_PARAMS, URDF_PARAMS, bui
 from estcal.kinematics.chain import SerialRobot
 from estcal.kinematics.transforms import make_transform, matrix_to_rpy, rpy_to_matrix
 
-__all__ = ["RobotFileError", "load_robot", "save_robot", "robot_from_dict", "robot_to_dict",
+__all__ = ["RobotFileError", "load_robot", "robot_names", "save_robot", "robot_from_dict", "robot_to_dict",
            "read_robot_file", "calibration_covariance", "FORMAT_VERSION", "LENGTH_UNITS", "ANGLE_UNITS"]
 
 FORMAT_VERSION = 1
@@ -104,10 +104,14 @@ def _frame6(ctx: _Ctx, d, key: str, lu: float, au: float) -> dict:
             "rpy": ctx.vector(d.get("rpy", [0, 0, 0]), 3, key, "rpy") * au}
 
 
-def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot:
+def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool = False) -> SerialRobot:
     """Build a robot from a parsed robot-file mapping (see module docstring).
 
-    ``source`` is the file name used in error messages.
+    ``source`` is the file name used in error messages. ``strict`` (files read by
+    :func:`load_robot`) refuses a joint that states none of its geometric parameters
+    (or a URDF-convention joint without ``origin``): in a file written by hand that is
+    a forgotten line, not a link of zero length; mappings built in code may rely on
+    the zero defaults.
     """
     ctx = _Ctx(source)
     if not isinstance(d, Mapping):
@@ -157,6 +161,9 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
         if "label" in jd:
             f["label"] = str(jd["label"])
         if conv == "urdf":
+            if strict and "origin" not in jd:
+                raise ctx.err(where, "no 'origin' {xyz, rpy} — give it ({xyz: [0, 0, 0], rpy: [0, 0, 0]} where "
+                                     "the joint frame is the parent's) so that a missing line is not read as zeros")
             o = _frame6(ctx, jd.get("origin"), f"{where}: origin", lu, au)
             f["origin"] = make_transform(rpy_to_matrix(o["rpy"]), o["xyz"])
             ax = ctx.vector(jd.get("axis", [0, 0, 1]), 3, where, "axis")
@@ -169,6 +176,10 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
                     extra_values[f"{k}_{f.get('label', jname)}"] = ctx.number(jd[k], where, k) * (
                         au if k in _ANGLE_KEYS else lu)
         else:
+            if strict and not any(k in jd for k in _CONV_KEYS[conv]):
+                # a forgotten line would otherwise be read as a zero-length, untwisted link
+                raise ctx.err(where, f"no geometric parameters ({', '.join(_CONV_KEYS[conv])}) — give them "
+                                     f"(0 where zero) so that a missing line is not read as zeros")
             for k in _CONV_KEYS[conv]:
                 if k in jd:
                     f[k] = ctx.number(jd[k], where, k) * (au if k in _ANGLE_KEYS else lu)
@@ -225,9 +236,8 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
         n = sum(f["type"] != "fixed" for f in frames)
         mats = []
         for k in ("joint", "motor"):
-            M = np.asarray(c.get(k, np.eye(n).tolist()), dtype=object)
             try:
-                M = np.array(M, float)
+                M = np.array(c.get(k, np.eye(n).tolist()), float)
             except (TypeError, ValueError):
                 raise ctx.err("coupling", f"{k!r} must be a {n}x{n} matrix of numbers") from None
             if M.shape != (n, n):
@@ -243,15 +253,29 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> SerialRobot
         if not isinstance(d["calibration"], dict):
             raise ctx.err("calibration", "expected a mapping (provenance of a saved model)")
         meta["calibration"] = _calibration_block(ctx, d["calibration"])
+    tool_d, tool_mass = d.get("tool"), None
+    if isinstance(tool_d, Mapping) and ("mass" in tool_d or "com" in tool_d):
+        # mass carried by the tool link itself (e.g. the lumped mass model of a diagnosed robot)
+        ctx.check_keys(tool_d, ("xyz", "rpy", "mass", "com"), "tool")
+        tool_mass = (ctx.number(tool_d.get("mass", 0.0), "tool", "mass"),
+                     ctx.vector(tool_d.get("com", [0, 0, 0]), 3, "tool", "com") * lu)
+        if tool_mass[0] < 0:
+            raise ctx.err("tool", f"'mass' must be >= 0 kg, got {tool_mass[0]}")
+        tool_d = {k: v for k, v in tool_d.items() if k in ("xyz", "rpy")}
     try:
         robot = build_robot(name, frames, base=_frame6(ctx, d.get("base"), "base", lu, au),
-                            tool=_frame6(ctx, d.get("tool"), "tool", lu, au), markers=markers,
+                            tool=_frame6(ctx, tool_d, "tool", lu, au), markers=markers,
                             gravity=gravity, payload=payload, coupling=coupling, convention=convention,
                             tool_const=_tool_const(ctx, d.get("tool_origin"), lu, au), meta=meta)
     except ValueError as exc:
         raise ctx.err("", str(exc)) from exc
     for pname, v in extra_values.items():
         robot.params[pname] = v
+    if tool_mass is not None:
+        import dataclasses
+
+        robot.links = list(robot.links[:-1]) + [dataclasses.replace(robot.links[-1], mass=tool_mass[0],
+                                                                   com=tool_mass[1])]
     if d.get("effects"):
         robot = _attach_effects(ctx, robot, d["effects"])
     return robot
@@ -329,13 +353,27 @@ def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
     import yaml
 
+    from estcal.io.textinput import read_text
+
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"robot file not found: {path}")
+    text = read_text(path, "robot", RobotFileError)
     try:
-        return yaml.safe_load(path.read_text())
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise RobotFileError(f"{path}: invalid YAML ({exc})") from exc
+        mark = getattr(exc, "problem_mark", None)
+        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise RobotFileError(f"{path}{at}: invalid YAML ({what})") from None
+    except RecursionError:
+        raise RobotFileError(f"{path}: invalid YAML (nested too deeply)") from None
+
+
+def robot_names() -> list[str]:
+    """Every robot name :func:`load_robot` accepts besides files: built-ins and packaged robot files."""
+    from estcal.kinematics.robots import BUILTIN
+    from estcal.robots import available
+
+    return sorted(set(BUILTIN) | set(available()))
 
 
 def _packaged(name: str) -> Path | None:
@@ -367,7 +405,7 @@ def load_robot(spec, root: str | None = None, tip: str | None = None, n_markers:
         s = str(spec)
         suffix = Path(s).suffix.lower()
         if suffix in (".yaml", ".yml"):
-            robot = robot_from_dict(read_robot_file(s), source=s)
+            robot = robot_from_dict(read_robot_file(s), source=s, strict=True)
         elif suffix == ".urdf":
             from estcal.kinematics.urdf import robot_from_urdf
 
@@ -380,12 +418,15 @@ def load_robot(spec, root: str | None = None, tip: str | None = None, n_markers:
             if key in BUILTIN:
                 robot = BUILTIN[key](n_markers=n_markers or 0) if key == "tiago" else BUILTIN[key]()
             elif _packaged(key) is not None:
-                robot = robot_from_dict(read_robot_file(_packaged(key)), source=str(_packaged(key)))
+                robot = robot_from_dict(read_robot_file(_packaged(key)), source=str(_packaged(key)), strict=True)
+            elif Path(s).is_dir():
+                raise RobotFileError(f"{s}: is a folder, not a robot — give a built-in name, a robot file "
+                                     f"(.yaml) or a URDF (.urdf)")
             elif Path(s).exists():
-                raise ValueError(f"{s}: unknown robot file type {suffix!r} (expected .yaml, .yml or .urdf)")
+                raise RobotFileError(f"{s}: unknown robot file type {suffix!r} (expected .yaml, .yml or .urdf)")
             else:
-                raise ValueError(f"unknown robot {s!r}: not a built-in ({', '.join(sorted(BUILTIN))}) "
-                                 f"and no such file (.yaml robot file or .urdf)")
+                raise RobotFileError(f"unknown robot {s!r}: not a built-in robot ({', '.join(robot_names())}) "
+                                     f"and no such file (.yaml robot file or .urdf)")
         if (root or tip) and suffix != ".urdf":
             raise ValueError(f"{s}: --root/--tip only apply to URDF files")
     if n_markers is not None and n_markers != robot.n_markers:
@@ -432,6 +473,8 @@ def robot_to_dict(robot: SerialRobot) -> dict:
         out["description"] = str(robot.meta["source"])
     out["base"] = _frame6_out(group("base"))
     out["tool"] = _frame6_out(group("tool"))
+    if links[-1].mass:
+        out["tool"].update(mass=float(links[-1].mass), com=_f(links[-1].com))
     tc = links[-1].const
     if not np.allclose(tc, np.eye(4), atol=0, rtol=0):
         out["tool_origin"] = {"xyz": _f(tc[:3, 3]), "rpy": _f(matrix_to_rpy(tc[:3, :3]))}
@@ -535,12 +578,15 @@ def save_robot(robot: SerialRobot, path) -> Path:
     path = Path(path)
     d = robot_to_dict(robot)
 
-    class _Dumper(yaml.SafeDumper):
+    # libyaml's emitter when available: same text, ~5× faster on a saved model's covariance
+    # (it dominated the per-robot cost of `estcal fleet`, docs/scaling.md)
+    class _Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):
         pass
 
     def _flow_list(dumper, data):
         flow = all(isinstance(x, (int, float)) for x in data) or all(isinstance(x, list) for x in data) and \
-            all(all(isinstance(y, (int, float)) for y in x) for x in data)
+            all(all(isinstance(y, (int, float)) for y in x) for x in data) and sum(map(len, data)) <= 40
+        # (a large matrix — a saved model's covariance — is written one flow row per line)
         return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
     _Dumper.add_representer(list, _flow_list)

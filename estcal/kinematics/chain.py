@@ -134,6 +134,11 @@ class Kinematics:
         return make_transform(self.R, self.p)
 
 
+def _frames_kw(eff, link_p) -> dict:
+    """``link_p`` (N, L, 3) for Cartesian effects that ask for the link frames."""
+    return {"link_p": link_p} if "link_p" in inspect.signature(eff.point_correction).parameters else {}
+
+
 def _screw_at(w, o, rot, x):
     """Velocity of point x (3, 1, N) for unit motions about (rot) / along axes w through o (3, C, N)."""
     d0, d1, d2 = x[0] - o[0], x[1] - o[1], x[2] - o[2]
@@ -162,13 +167,26 @@ def _add_joint_blocks(JT, JqT, blocks):
 
 
 def _rot_mat(R, C):
-    """R (3, 3, N) @ C (3, 3) -> (3, 3, N)."""
+    """R (3, 3, N) @ C (3, 3), or per pose C (3, 3, N) -> (3, 3, N)."""
+    if C.ndim == 3:
+        return np.einsum("ikn,kjn->ijn", R, C)
     return np.einsum("ikn,kj->ijn", R, C)
 
 
 def _rot_vec(R, v):
-    """R (3, 3, N) @ v (3,) -> (3, N)."""
+    """R (3, 3, N) @ v (3,) or per pose v (3, N) -> (3, N)."""
     return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+def _merge_blocks(per_walker, N):
+    """Joint-derivative blocks of W walkers (same parameters, same kinds) as blocks over W·N poses."""
+    out = []
+    for parts in zip(*per_walker):
+        idx, D, kind = parts[0]
+        if kind != "eye":
+            D = np.concatenate([np.broadcast_to(d, (N,) + d.shape[1:]) for _, d, _ in parts])
+        out.append((idx, D, kind))
+    return out
 
 
 class SerialRobot:
@@ -271,7 +289,9 @@ class SerialRobot:
           ``(dq (N, n), d(dq)/d(θ_effect) (N, n, m) or None)``: added to the joint values.
         * and/or ``point_correction(robot, readings, points, theta, context,
           derivatives, J_points=None)`` -> ``(dx (N, k, 3), d(dx)/d(θ_effect) (N, k, 3, m) or None)``:
-          added to the marker points (e.g. thermal expansion).
+          added to every measured point — the tool origin and the markers — (e.g.
+          thermal expansion); effects whose signature has ``link_p`` also receive the
+          link frame origins (N, L, 3).
 
         Jacobian columns of effect parameters are exact; the dependence of an
         effect's correction on the geometric parameters (e.g. of a gravity torque
@@ -356,16 +376,36 @@ class SerialRobot:
         context : dict of per-pose arrays (``t``, ``temperature``, ``payload``) for effects.
         jacobian : compute ``J`` (N, 6, P) and ``J_points`` (N, k, 3, P).
         q_override : (N, n) joint values used instead of the joint model (internal).
+
+        Many parameter vectors at once (MCMC walkers, sigma points): with ``theta`` of
+        shape (W, P) every output gains a leading walker axis — ``R`` (W, N, 3, 3),
+        ``p`` (W, N, 3), ``points`` (W, N, k, 3), ``J`` (W, N, 6, P) … — equal to W
+        single-θ calls (``tests/test_kinematics_batch.py``, 1e-12) in one pass of the
+        chain over the W·N (walker, pose) pairs. Effects are included: their
+        corrections are evaluated walker by walker, with that walker's θ.
         """
         readings = self.check_readings(readings)
         theta = self.params.values if theta is None else np.asarray(theta, float)
-        if theta.shape != (self.n_params,):
-            raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
+        many = theta.ndim == 2
+        if theta.shape[-1:] != (self.n_params,) or theta.ndim > 2:
+            raise ValueError(f"theta must have {self.n_params} entries (or shape (W, {self.n_params})), "
+                             f"got {theta.shape}")
         N, n = readings.shape
-        if q_override is None:
+        if many:
+            if q_override is not None:
+                raise ValueError("q_override needs a single parameter vector")
+            n_w = theta.shape[0]
+            q, dqdth = self._joint_values_many(readings, theta, context, jacobian)
+            seg = lambda const, elems, R, p, W, O, is_rot, k, _n=N: self._segment_many(  # noqa: E731
+                const, elems, theta, _n, R, p, W, O, is_rot, k)
+            N = n_w * N
+        elif q_override is None:
             q, dqdth = self._joint_values(readings, theta, context, jacobian)
         else:
             q, dqdth = np.asarray(q_override, float), None
+        if not many:
+            seg = lambda const, elems, R, p, W, O, is_rot, k: self._segment(  # noqa: E731
+                const, elems, theta, R, p, W, O, is_rot, k)
         # Internal layout is component-major with poses last — R (3, 3, N), p (3, N),
         # axes (3, C, N) — so every operation runs on contiguous length-N rows.
         R = np.zeros((3, 3, N))
@@ -384,12 +424,13 @@ class SerialRobot:
         for li, link in enumerate(self.links):
             # Constant and parameter motions compose into one local transform per
             # segment: one small product per segment instead of one per motion.
-            Cb_R, Cb_p, k = self._segment(link.const, link.before, theta, R, p, W, O, is_rot, k)
+            Cb_R, Cb_p, k = seg(link.const, link.before, R, p, W, O, is_rot, k)
             p = p + _rot_vec(R, Cb_p)
             R = _rot_mat(R, Cb_R)
             if link.joint is not None:
                 j = link.joint
-                val = q[:, j] + (theta[link.joint_param] if link.joint_param >= 0 else 0.0)
+                jv = theta[..., link.joint_param] if link.joint_param >= 0 else 0.0
+                val = q[:, j] + (np.repeat(jv, N // len(jv)) if many and link.joint_param >= 0 else jv)
                 ax = link.joint_axis
                 jo[:, j] = p
                 ja[:, j] = _rot_vec(R, ax)
@@ -405,19 +446,37 @@ class SerialRobot:
                 else:
                     p = p + ja[:, j] * val
             if link.after:
-                Ca_R, Ca_p, k = self._segment(None, link.after, theta, R, p, W, O, is_rot, k)
+                Ca_R, Ca_p, k = seg(None, link.after, R, p, W, O, is_rot, k)
                 p = p + _rot_vec(R, Ca_p)
                 R = _rot_mat(R, Ca_R)
             link_R[li] = R
             link_p[li] = p
 
-        m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
-        pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
+        if many:
+            m = np.repeat(theta[:, self.marker_idx], N // n_w, 0) if self.n_markers else np.zeros((N, 0, 3))
+            pts = p[:, None, :] + np.einsum("ijn,nkj->ikn", R, m)
+        else:
+            m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
+            pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
         points = pts.transpose(2, 1, 0).copy()
-        for eff in self.effects:
-            if hasattr(eff, "point_correction"):
-                d, _ = eff.point_correction(self, readings, points, theta, context or {}, derivatives=False)
-                points = points + d
+        # Cartesian effects (thermal expansion) move every measured point: the tool
+        # origin (row 0 of ``allp``) and the markers, so they act on tool positions,
+        # full poses, markers and the link/plane/distance methods alike. With many
+        # parameter vectors they are evaluated walker by walker, with that walker's θ.
+        cart = [eff for eff in self.effects if hasattr(eff, "point_correction")]
+        walkers = ([(w, slice(w * (N // n_w), (w + 1) * (N // n_w))) for w in range(n_w)] if many
+                   else [(None, slice(None))])
+        if cart:
+            link_pn = link_p.transpose(2, 0, 1)
+            allp = np.concatenate([p.T[:, None, :], points], 1)
+            for eff in cart:
+                for w, sl in walkers:
+                    d, _ = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
+                                                context or {}, derivatives=False,
+                                                **_frames_kw(eff, link_pn[sl]))
+                    allp[sl] = allp[sl] + d
+            p = np.ascontiguousarray(allp[:, 0].T)
+            points = allp[:, 1:].copy()
         Rn = np.ascontiguousarray(R.transpose(2, 0, 1))
         pn = np.ascontiguousarray(p.T)
 
@@ -443,23 +502,83 @@ class SerialRobot:
                 _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
                 JpT[i][:, self.marker_idx[i]] += R  # d(p + R m)/dm = R, R[a, c] per pose
             J_points = JpT.transpose(3, 0, 1, 2)
-            for eff in self.effects:
-                if hasattr(eff, "point_correction") and self.n_markers:
+            if cart:
+                # the tool origin's position rows are corrected like a marker's
+                Jall = np.concatenate([J[:, None, :3, :], J_points], 1)
+                for eff in cart:
                     # Effects that scale the whole point (thermal) also need the pose
                     # Jacobian to correct the other columns; older effects may not take it.
-                    kw = {"J_points": J_points}
-                    if "J" in inspect.signature(eff.point_correction).parameters:
-                        kw["J"] = J
-                    _, dd = eff.point_correction(self, readings, points, theta, context or {},
-                                                 derivatives=True, **kw)
-                    if dd is not None:
-                        J_points[..., eff.indices] += dd
+                    wants_J = "J" in inspect.signature(eff.point_correction).parameters
+                    for w, sl in walkers:
+                        Jp = Jall[sl]
+                        kw = {"J_points": Jp, **({"J": J[sl]} if wants_J else {}), **_frames_kw(eff, link_pn[sl])}
+                        _, dd = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
+                                                     context or {}, derivatives=True, **kw)
+                        if dd is not None:
+                            Jp[..., eff.indices] += dd
+                JT[:3] = Jall[:, 0].transpose(1, 2, 0)
+                J_points = Jall[:, 1:]
         R, p = Rn, pn
         link_R = link_R.transpose(3, 0, 1, 2)
         link_p = link_p.transpose(2, 0, 1)
         j_axis = ja.transpose(2, 1, 0)
         j_orig = jo.transpose(2, 1, 0)
-        return Kinematics(q, R, p, points, J, J_points, J_q, link_R, link_p, j_axis, j_orig)
+        out = [q, R, p, points, J, J_points, J_q, link_R, link_p, j_axis, j_orig]
+        if many:
+            out = [None if a is None else a.reshape((n_w, N // n_w) + a.shape[1:]) for a in out]
+        return Kinematics(*out)
+
+    def _joint_values_many(self, r, TH, context, derivatives):
+        """Joint values of W parameter vectors: q (W·N, n), walker-major, and merged dq/dθ blocks."""
+        n_w, (N, n) = TH.shape[0], r.shape
+        if any(hasattr(e, "joint_correction") for e in self.effects):
+            outs = [self._joint_values(r, th, context, derivatives) for th in TH]
+            return np.concatenate([o[0] for o in outs]), _merge_blocks([o[1] for o in outs], N)
+        K = TH[:, self.gain_idx][:, None, :]
+        off = TH[:, self.offset_idx][:, None, :]
+        blocks = []
+        if self.coupling is None:
+            q = K * r[None] + off
+            if derivatives:
+                blocks.append((self.gain_idx, np.tile(r, (n_w, 1)), "diag"))
+        else:
+            Cj, Cm = (np.asarray(c, float) for c in self.coupling)
+            u = r @ Cm.T
+            q = (K * u[None]) @ Cj.T + off
+            if derivatives:
+                blocks.append((self.gain_idx, np.tile(Cj[None, :, :] * u[:, None, :], (n_w, 1, 1)), "dense"))
+        if derivatives:
+            blocks.append((self.offset_idx, np.arange(n), "eye"))
+            valid = self._jvar_param >= 0
+            if valid.any():
+                blocks.append((self._jvar_param[valid], np.flatnonzero(valid), "eye"))
+        return q.reshape(n_w * N, n), blocks
+
+    def _segment_many(self, const, elems, TH, N, R, p, W, O, is_rot, k):
+        """:meth:`_segment` for W parameter vectors: per-pose local frame (3, 3, W·N), (3, W·N)."""
+        LR0 = np.eye(3) if const is None else const[:3, :3]
+        Lp0 = np.zeros(3) if const is None else const[:3, 3]
+        if not elems:
+            return LR0.copy(), Lp0.copy(), k
+        n_w = TH.shape[0]
+        LR = np.broadcast_to(LR0, (n_w, 3, 3)).copy()
+        Lp = np.broadcast_to(Lp0, (n_w, 3)).copy()
+        for i, e in enumerate(elems):
+            ai = "xyz".index(e.axis)
+            is_rot[k + i] = e.kind == "R"
+            # world axis and a point on it, for the Jacobian, before this motion
+            W[:, k + i] = _rot_vec(R, np.repeat(LR[:, :, ai], N, 0).T)
+            O[:, k + i] = p + _rot_vec(R, np.repeat(Lp, N, 0).T)
+            v = TH[:, e.param]
+            if e.kind == "R":
+                c, s_ = np.cos(v)[:, None], np.sin(v)[:, None]
+                i1, i2 = _OTHER[ai]
+                a1, a2 = LR[:, :, i1].copy(), LR[:, :, i2].copy()
+                LR[:, :, i1] = c * a1 + s_ * a2
+                LR[:, :, i2] = c * a2 - s_ * a1
+            else:
+                Lp = Lp + LR[:, :, ai] * v[:, None]
+        return np.repeat(LR.transpose(1, 2, 0), N, 2), np.repeat(Lp, N, 0).T, k + len(elems)
 
     def _segment(self, const, elems, theta, R, p, W, O, is_rot, k):
         """Compose ``const`` and ``elems`` locally; record each motion's world axis/point."""

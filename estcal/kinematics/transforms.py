@@ -78,7 +78,9 @@ def rpy_to_matrix(rpy):
 def matrix_to_rpy(R):
     """Inverse of :func:`rpy_to_matrix` (pitch in [-pi/2, pi/2])."""
     R = np.asarray(R, dtype=float)
-    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    # atan2 of (sin, cos) rather than arcsin: arcsin loses half the digits near pitch = ±90°
+    # (a rotation saved as rpy then reloaded 5e-12 away instead of bit-exact)
+    pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))
     roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
     return np.stack([roll, pitch, yaw], -1)

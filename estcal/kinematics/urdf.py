@@ -12,6 +12,7 @@ joints, and off-chain branches evaluated at their zero position).
 """
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 
 import numpy as np
@@ -19,21 +20,55 @@ import numpy as np
 from .builder import build_robot
 from .chain import SerialRobot
 
-__all__ = ["robot_from_urdf", "load_urdf"]
+__all__ = ["robot_from_urdf", "load_urdf", "root_links"]
 
 
 def load_urdf(path):
-    """Parse a URDF file with yourdfpy (no meshes)."""
+    """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
+    :func:`estcal.io.textinput.read_text` first (folder, binary, encoding)."""
+    import io
+
     import yourdfpy
 
+    from estcal.io.robotfile import RobotFileError
+    from estcal.io.textinput import read_text
+
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"URDF file not found: {path}")
+    text = read_text(path, "URDF", RobotFileError)
     try:
-        return yourdfpy.URDF.load(str(path), build_scene_graph=False, build_collision_scene_graph=False,
+        urdf = yourdfpy.URDF.load(io.BytesIO(text.encode("utf-8")), build_scene_graph=False, build_collision_scene_graph=False,
                                   load_meshes=False, load_collision_meshes=False)
-    except Exception as exc:  # yourdfpy raises various XML errors
-        raise ValueError(f"{path}: cannot parse URDF ({exc})") from exc
+    except Exception as exc:  # yourdfpy / lxml raise many error types on bad XML  # noqa: BLE001
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise RobotFileError(f"{path}: cannot parse URDF ({msg})") from None
+    _check_tree(urdf, path)
+    return urdf
+
+
+def _check_tree(urdf, path) -> None:
+    """The joints must form a tree over the declared links: every joint names
+    existing links, and no link has two parents (a chain would be silently
+    re-routed through one of them)."""
+    from estcal.io.robotfile import RobotFileError
+
+    if urdf.robot is None or not urdf.robot.links:
+        raise RobotFileError(f"{path}: the URDF has no <link>")
+    links = {lk.name for lk in urdf.robot.links}
+    parent_of: dict[str, str] = {}
+    for j in urdf.robot.joints:
+        for role, name in (("parent", j.parent), ("child", j.child)):
+            if name not in links:
+                raise RobotFileError(f"{path}: joint {j.name!r}: {role} link {name!r} is not declared as a <link>")
+        if j.child in parent_of:
+            raise RobotFileError(f"{path}: link {j.child!r} has two parent joints ({parent_of[j.child]!r} and "
+                                 f"{j.name!r}) — a URDF must be a tree; remove one")
+        parent_of[j.child] = j.name
+
+
+def root_links(urdf) -> list[str]:
+    """Links that are no joint's child (a valid URDF has exactly one)."""
+    children = {j.child for j in urdf.robot.joints}
+    return sorted(lk.name for lk in urdf.robot.links if lk.name not in children)
 
 
 def _chain(urdf, root: str, tip: str):
@@ -41,13 +76,16 @@ def _chain(urdf, root: str, tip: str):
     links = {lk.name for lk in urdf.robot.links}
     for name, what in ((root, "root"), (tip, "tip")):
         if name not in links:
-            raise ValueError(f"{what} link {name!r} is not in the URDF; links include "
-                             f"{sorted(links)[:20]}…")
-    joints = []
+            close = difflib.get_close_matches(str(name), sorted(links), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"{what} link {name!r} is not in the URDF{hint}; links include "
+                             f"{sorted(links)[:20]}{'…' if len(links) > 20 else ''}")
+    joints, seen = [], set()
     cur = tip
     while cur != root:
-        if cur not in parent_joint:
+        if cur not in parent_joint or cur in seen:
             raise ValueError(f"link {tip!r} is not below {root!r} in the URDF tree")
+        seen.add(cur)
         j = parent_joint[cur]
         joints.append(j)
         cur = j.parent
@@ -95,12 +133,19 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
     markers : (k, 3) points in the tip frame (metres), optional.
     """
     urdf = load_urdf(path)
-    root = root or urdf.base_link
+    if root is None:
+        # yourdfpy's base_link is only set when it builds a scene graph (not done here)
+        roots = root_links(urdf)
+        if len(roots) != 1:
+            raise ValueError(f"{path}: the URDF has {len(roots)} root links ({', '.join(roots[:10]) or 'none: a cycle'})"
+                             f" — give --root")
+        root = roots[0]
     if tip is None:
-        leaves = {lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints}
+        leaves = sorted({lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints})
         if len(leaves) != 1:
-            raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links")
-        tip = leaves.pop()
+            raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
+                             f"({', '.join(leaves[:10])}{'…' if len(leaves) > 10 else ''})")
+        tip = leaves[0]
     chain = _chain(urdf, root, tip)
     # A link carries everything rigidly attached to it, including the fixed chain
     # links after the last actuated joint (tool flange, sensor, hand): only the next
@@ -113,11 +158,22 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             continue
         if j.type not in ("revolute", "continuous", "prismatic"):
             raise ValueError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
-        lo, hi = (-np.pi, np.pi) if j.type == "continuous" else (j.limit.lower, j.limit.upper)
+        if j.type == "continuous":
+            lo, hi = -np.pi, np.pi
+        elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
+            raise ValueError(f"{path}: joint {j.name!r} ({j.type}) has no <limit lower=… upper=…> — add its "
+                             f"range ({'rad' if j.type == 'revolute' else 'm'})")
+        else:
+            lo, hi = float(j.limit.lower), float(j.limit.upper)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise ValueError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
+        axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], float)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise ValueError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
         mass, com = _subtree_mass(urdf, j.child, actuated)
         frames.append({"name": j.name, "label": j.name, "convention": "urdf",
                        "type": "prismatic" if j.type == "prismatic" else "revolute",
-                       "origin": pending @ _origin(j), "axis": np.asarray(j.axis, float),
+                       "origin": pending @ _origin(j), "axis": axis,
                        "limits": [float(lo), float(hi)], "mass": mass, "com": com})
         pending = np.eye(4)
     if not frames:

@@ -97,7 +97,10 @@ class GoughData:
         P, R = split_pose(self.T)
         arr = np.c_[P, matrix_to_euler_zyx(R), self.rho]
         hdr = "x,y,z,psi,theta,phi," + ",".join(f"rho{k}" for k in range(1, 7))
-        np.savetxt(path, arr, delimiter=",", header=hdr, comments="", fmt="%.12g")
+        from estcal.io.atomic import atomic_write
+
+        with atomic_write(path) as fh:
+            np.savetxt(fh, arr, delimiter=",", header=hdr, comments="", fmt="%.12g")
 
 
 def load_gough_data(path: str | Path) -> GoughData:
@@ -596,13 +599,15 @@ class GoughCalibrationResult:
         }
 
     def __str__(self) -> str:
+        # printed in mm like every estcal table (every Gough parameter is a length); to_dict() is SI
+        rot = self.extra.get("rmse_rotation_rad")
         rows = [f"Gough calibration ({self.method}, {self.residual.upper()} residuals, Model {self.model}): "
-                f"rmse {self.rmse:.3e} m, {self.n_iterations} iterations, "
-                f"{'converged' if self.converged else 'NOT converged'}",
-                f"{'parameter':<10}{'initial':>14}{'estimate':>14}{'std':>12}"]
+                f"rmse {self.rmse * 1e3:.4g} mm" + ("" if rot is None else f" / {rot * 1e3:.4g} mrad")
+                + f", {self.n_iterations} iterations, {'converged' if self.converged else 'NOT converged'}",
+                f"{'parameter':<10}{'initial mm':>14}{'estimate mm':>14}{'std mm':>12}"]
         for n, v in self.parameters.items():
-            std = "—" if v["std"] is None else f"{v['std']:.3e}"
-            rows.append(f"{n:<10}{v['initial']:>14.6g}{v['estimate']:>14.6g}{std:>12}")
+            std = "—" if v["std"] is None else f"{v['std'] * 1e3:.3e}"
+            rows.append(f"{n:<10}{v['initial'] * 1e3:>14.6g}{v['estimate'] * 1e3:>14.6g}{std:>12}")
         ide = self.identifiability
         if ide.get("regrouped") or ide.get("no_effect"):
             rows.append(f"not identifiable (kept at initial value): "

@@ -18,7 +18,6 @@ half-widths, as in the textbook's ε/2 (Mooring–Roth–Driels §4.6).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -233,11 +232,11 @@ class SimulationResult:
         p = write_dataset(csv_path, self.dataset, float_format=float_format)
         t = None
         if truth_path is not None:
-            t = Path(truth_path)
-            t.parent.mkdir(parents=True, exist_ok=True)
+            from estcal.io.jsonio import write_json
+
             truth = dict(self.truth)
             truth["dataset"] = str(p)
-            t.write_text(json.dumps(truth, indent=2))
+            t = write_json(truth_path, truth)
         return p, t
 
     def to_dict(self) -> dict:
@@ -341,11 +340,6 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         m = default[:k] if k <= 6 else r_pose.normal(0, 0.1, (k, 3))
         nominal = _with_markers(nominal, m)
         notes.append(f"added {k} markers on the tool (m): {np.round(m, 4).tolist()}")
-    if measure == "position" and "thermal_expansion" in names and nominal.n_markers == 0:
-        nominal = _with_markers(nominal, [[0.0, 0.0, 0.0]])
-        notes.append("thermal_expansion acts on measured points: added marker 1 at the tool origin")
-    if measure == "pose" and "thermal_expansion" in names:
-        notes.append("thermal_expansion corrects measured points only; it has no effect on pose data")
 
     # ---- true robot: nominal + errors + effects
     true = nominal.copy()

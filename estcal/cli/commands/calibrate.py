@@ -43,27 +43,16 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import count_point_columns, fail, robot_for_data, write_json
+from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data, warn,
+                               write_json)
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
+from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
            "count_point_columns", "LEVELS"]
 
-_ANGLE_PREFIX = ("alpha", "theta", "beta", "rx", "ry", "rz")
-
 # --------------------------------------------------------------------------- helpers
-def _unit(name: str, robot) -> tuple[str, float]:
-    """Display unit and factor from SI for a parameter name."""
-    head = name.split("_")[0]
-    if name.startswith(("base_r", "tool_r")) or head in _ANGLE_PREFIX:
-        return "mrad", 1e3
-    if head == "gain":
-        return "", 1.0
-    if head == "offset":
-        for j, li in enumerate(robot.offset_idx):
-            if robot.params.names[li] == name:
-                return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
-    return "mm", 1e3
 
 
 def _fmt(v, nd=3):
@@ -125,6 +114,12 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
+    from estcal.report.tables import mcmc_table, rich_table
+
+    mt = mcmc_table(res, lambda n: _unit(n, robot))  # MCMC: credible intervals, ESS and τ per parameter
+    if mt is not None:
+        console.print(rich_table(mt))
+        console.print(mt.note)
     if isinstance(res.extra.get("robust_report"), dict):
         from estcal.estimate.robust import format_report
 
@@ -134,13 +129,20 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
 
 
 def _regularize(value):
-    """``--regularize`` value: None, 'loo', or a positive prior std (SI)."""
+    """``--regularize`` value: None, 'loo', or a positive prior std in milli-units (``2mm`` or
+    ``2mrad``: 0.002 m / rad); a bare number is the deprecated SI form (warned)."""
     if value is None or value == "loo":
         return value
+    text = str(value).strip()
+    scale = 1e-3 if text.endswith(("mm", "mrad")) else 1.0
     try:
-        tau = float(value)
+        tau = float(text.removesuffix("mrad").removesuffix("mm")) * scale
     except ValueError:
-        _fail(f"--regularize must be 'loo' or a prior std in SI units (e.g. 0.002), got {value!r}")
+        _fail(f"--regularize must be 'loo' or a prior std with its unit (e.g. 2mm; mm for lengths, mrad for "
+              f"angles), got {value!r}")
+    if scale == 1.0:
+        typer.echo(f"warning: --regularize {value} without a unit is read as SI (m / rad), deprecated; "
+                   f"write --regularize {tau * 1e3:g}mm", err=True)
     if not tau > 0:
         _fail(f"--regularize: the prior std must be > 0, got {value}")
     return tau
@@ -187,15 +189,19 @@ def register(app: typer.Typer) -> None:
         regularize: Optional[str] = typer.Option(
             None, "--regularize", help="Gaussian prior toward the nominal joint-model parameters (MAP): "
                                        "'loo' (width chosen by leave-one-pose-out CV on the calibration file) "
-                                       "or a prior std in SI units (m / rad). Base frame and points stay free."),
+                                       "or a prior std with its unit, e.g. 2mm (mm for lengths, mrad for angles, 10⁻³ "
+                                       "for gains). Base frame and points stay free."),
         validate: list[Path] = typer.Option([], "--validate", help="Validation dataset; repeat the option for several, scored in order."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
-        noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
-        noise_rot: float = typer.Option(1e-3, "--noise-rot", help="Orientation noise std (rad)."),
+        noise_pos_mm: float = noise_pos_option(0.1),
+        noise_rot_mrad: float = noise_rot_option(1.0),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
         known_noise: bool = typer.Option(False, "--known-noise", help="Trust the noise values (covariance not "
                                                                       "rescaled by σ0²)."),
-        noise_leg: Optional[float] = typer.Option(None, "--noise-leg", help="Gough platforms: leg-length "
-                                                                            "noise std (m)."),
+        noise_leg_mm: Optional[float] = typer.Option(None, "--noise-leg-mm", help="Gough platforms: leg-length "
+                                                                                  "noise std (mm)."),
+        old_noise_leg: Optional[float] = deprecated_option("--noise-leg"),
         residual: str = typer.Option("ik", "--residual", help="Gough platforms: ik (leg lengths from the "
                                                               "measured pose) or fk (pose from the legs)."),
         gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
@@ -204,8 +210,10 @@ def register(app: typer.Typer) -> None:
                                              "1.345 / 2.385 σ, --option robust_k=K): lm, gauss-newton, iterated-lls, "
                                              "scipy-lm (IRLS), gtsam, isam2, gtsam-timevarying, kalman; the "
                                              "down-weighted rows are named."),
-        option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable), e.g. "
-                                                              "--option q=1e-5 --option optimizer=dogleg."),
+        option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable; values "
+                                         "in SI units, parsed as YAML scalars), e.g. --option max_iter=50, "
+                                         "--option q=1e-5 (kalman), --option optimizer=dogleg (gtsam). The keys "
+                                         "of every estimator: `estcal estimators`; docs/calibration.md."),
         allow_ill: bool = typer.Option(False, "--allow-ill-conditioned",
                                        help="Report non-convergence, a condition number above the documented "
                                             "threshold (docs/reliability.md) or a rank loss of the data as "
@@ -213,6 +221,12 @@ def register(app: typer.Typer) -> None:
         chain: Optional[Path] = typer.Option(None, "--chain", help="MCMC: keep the chain in this HDF5 file; "
                                              "run again with the same file, data and options to extend it."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: PNG figures (errors "
+                                              "before/after, residual vs joints, parameters ±2σ, correlation, "
+                                              "MCMC corner plot) and index.html with the tables."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the calibrated robot as a robot file (.yaml) with a "
+                                       "'calibration:' block (provenance, covariance); reload it with --robot."),
     ) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
@@ -226,6 +240,12 @@ def register(app: typer.Typer) -> None:
         from estcal.kinematics.parameters import ParameterError
         from estcal.methods import METHODS, NoiseModel, get_method
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.1)
+        noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 1.0)
+        noise_leg = None if noise_leg_mm is None and old_noise_leg is None else \
+            resolve(noise_leg_mm or 0.0, MILLI, old_noise_leg, "--noise-leg", "--noise-leg-mm", "m", 1.0, 0.0)
         console = Console(width=160)
         # --method dispatch: estimator names and measurement-method names are disjoint
         try:
@@ -272,6 +292,8 @@ def register(app: typer.Typer) -> None:
             except (ValueError, KeyError) as exc:
                 _fail(str(exc))
             console.print(str(gres))
+            if save_model:
+                _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
                 console.print("note: --validate is not supported for Gough platforms (ignored)")
             if json_path:
@@ -289,7 +311,8 @@ def register(app: typer.Typer) -> None:
             _fail(str(exc))
         for d in [ds] + vals:
             for w in d.warnings:
-                console.print(f"warning: {d.where}: {w}")
+                warn(f"{d.where}: {w}")
+        check_distinct_poses(ds)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:
@@ -342,11 +365,25 @@ def register(app: typer.Typer) -> None:
                       f"--option batch_size=…)", code=3)
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
+        check_dof(res, data, known_noise)
         measure_name = problem.terms[0].method.name
         _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
+        res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
+                         measure=measure_name, estimator=estimator, noise=noise.to_dict(), points=n_markers)
         if json_path:
-            res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
-                             measure=measure_name, estimator=estimator,
-                             noise=noise.to_dict(), points=n_markers)
             res.to_json(json_path)
             console.print(f"wrote {json_path}")
+        if report is not None:
+            from estcal.report.calibration import calibration_report
+
+            rep = calibration_report(report, res, problem, vals, unit=lambda n: _unit(n, rob),
+                                     label=sel.regroup_label if sel is not None else None, data_path=str(data),
+                                     validate_paths=[str(v) for v in validate], result_dict=res.to_dict(),
+                                     title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
+            console.print(f"report: {report}/index.html ({len(rep.files)} figures)")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            console.print(f"wrote {save_model} (load it with --robot {save_model})")

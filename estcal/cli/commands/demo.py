@@ -71,7 +71,12 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        out = run_demo(robot, n, seed, estimator=estimator)
+        from estcal.cli.common import fail
+
+        try:
+            out = run_demo(robot, n, seed, estimator=estimator)
+        except (ValueError, KeyError, FileNotFoundError) as exc:
+            fail(str(exc).strip(chr(39)))
         res = out.pop("result")
         con = Console()
         con.print(f"[bold]estcal demo[/]: {out['robot']}, {n} simulated poses (full pose, CMM noise "

@@ -11,7 +11,7 @@ JSON keys: ``robot``, ``method``, ``sigma_mm``, ``free`` (names), ``criterion``,
 ``rho0_mm`` (predicted RMS position error at each test pose), ``test_poses_rad``,
 ``baseline`` (:meth:`BaselineStats.to_dict`: min/mean/max/percentiles),
 ``beats_random`` (plan better than the best random plan), ``accuracy_map`` (with ``--map N``:
-``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``).
+``q``, ``xyz`` (m), ``std`` (m) per pose and a ``summary``; ``--report DIR`` implies ``--map 500``).
 """
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -40,8 +41,10 @@ def register(app: typer.Typer) -> None:
                                       help="greedy, fedorov, detmax (discrete) or continuous."),
         n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidates when no CSV is given."),
         restarts: int = typer.Option(4, "--restarts", help="Restarts (discrete) / starts (continuous)."),
-        sigma_mm: float = typer.Option(0.1, "--sigma", help="Position noise std per coordinate (mm)."),
-        sigma_rot_mrad: float = typer.Option(1.0, "--sigma-rot", help="Orientation noise std (mrad), pose method."),
+        sigma_mm: float = noise_pos_option(0.1),
+        sigma_rot_mrad: float = noise_rot_option(1.0, ", pose method"),
+        old_sigma: Optional[float] = deprecated_option("--sigma"),
+        old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
         free: Optional[str] = typer.Option(None, "--free",
                                            help="Free parameters (comma-separated names/patterns); "
                                                 "default: an identifiable subset (offsets first)."),
@@ -52,7 +55,13 @@ def register(app: typer.Typer) -> None:
                                               help="Restrict the map to a tool-position box "
                                                    "'xmin,ymin,zmin,xmax,ymax,zmax' (mm)."),
         seed: int = typer.Option(0, "--seed"),
+        scheduler: str = typer.Option("processes", "--scheduler", help="Where the continuous starts run: "
+                                      "serial | processes | local (Dask LocalCluster) | tcp://host:8786."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (processes / local)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: plan, criteria, "
+                                              "random-plan histogram, predicted error over the workspace (PNG) "
+                                              "and index.html. Implies --map 500 unless --map is given."),
     ) -> None:
         """Optimise which poses to measure (plan of m poses) and compare with random plans."""
         import numpy as np
@@ -65,13 +74,27 @@ def register(app: typer.Typer) -> None:
         from estcal.design.plans import (evaluate_plan, load_candidates, optimise_continuous,
                                          optimise_discrete, random_baseline)
 
+        from estcal.cli.units import resolve
+
+        sigma_mm = resolve(sigma_mm, 1.0, old_sigma, "--sigma", "--noise-pos-mm", "mm", 1.0, 0.1)
+        sigma_rot_mrad = resolve(sigma_rot_mrad, 1.0, old_sigma_rot, "--sigma-rot", "--noise-rot-mrad", "mrad", 1.0,
+                                 1.0)
         console = Console()
+        if report is not None and map_n <= 0:
+            map_n = 500  # the report's workspace figure needs an accuracy map
         try:
             crit = normalise_criterion(criterion)
             rb = resolve_robot(robot)
             names = parse_free(free, rb, method)
             model = DesignModel(rb, method, names, sigma=sigma_mm * 1e-3,
                                 sigma_rot=sigma_rot_mrad * 1e-3 if method == "pose" else None)
+            need = -(-model.p // model.rows_per_pose)  # ceil: poses for as many equations as parameters
+            if n < need and model.prior_information is None:
+                from estcal.cli.common import refuse
+
+                refuse(f"--n {n}: a plan of {n} poses gives {n * model.rows_per_pose} equations for {model.p} free "
+                       f"parameters — the information matrix is singular (every criterion infinite or zero); use "
+                       f"--n {need} or more, or fewer --free parameters")
             q_test = parse_poses(test_pose, rb)
             if q_test is None and CRITERIA[crit][1]:
                 q_test = default_test_pose(rb)
@@ -80,12 +103,14 @@ def register(app: typer.Typer) -> None:
                 if cand is not None:
                     raise ValueError("--candidates applies to the discrete algorithms, not 'continuous'")
                 plan = optimise_continuous(model, n, crit, n_starts=restarts, rng=seed, q_test=q_test,
-                                           executor="serial" if restarts <= 1 else None, prescreen=200)
+                                           scheduler=scheduler if restarts > 1 else "serial", n_workers=workers,
+                                           prescreen=200)
             else:
                 plan = optimise_discrete(model, n, crit, candidates=cand, n_candidates=n_candidates,
                                          algorithm=algorithm, restarts=restarts, rng=seed, q_test=q_test)
             crits = evaluate_plan(model, plan.readings, q_test=q_test)
-            base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test)
+            base = random_baseline(model, n, crit, n_plans=random_plans, rng=seed + 1, q_test=q_test,
+                                   keep_values=report is not None)
             amap = None
             if map_n > 0:
                 from estcal.design.model import ToolBox
@@ -98,8 +123,9 @@ def register(app: typer.Typer) -> None:
                     box = ToolBox(rb, v[:3], v[3:])
                 amap = model.accuracy_map(model.covariance(plan.readings), n=map_n, rng=seed + 2, constraint=box)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         better = plan.value > base.max if larger_is_better(crit) else plan.value < base.min
         console.print(f"robot {rb.name}, method {method}, σ = {sigma_mm} mm, {model.p} free parameters")
         console.print(f"plan ({plan.method}, m = {plan.m}): {crit} = {plan.value:.6g}   [{CRITERIA[crit][2]}]")
@@ -114,20 +140,31 @@ def register(app: typer.Typer) -> None:
             rho = np.sqrt(np.einsum("tap,pq,taq->t", J0, C, J0)) * 1e3
             console.print("predicted RMS position error at the test pose(s) (mm): "
                           + ", ".join(f"{v:.5g}" for v in rho))
-        console.print("predicted parameter std (m / rad):")
+        from estcal.cli.units import display_unit
+
+        console.print("predicted parameter std:")
         for k, v in crits.param_std.items():
-            console.print(f"  {k:<14}{v:.4g}")
+            u, f = display_unit(k, rb)
+            console.print(f"  {k:<14}{v * f:.4g} {u}")
         console.print(escape(str(base)))
         if amap is not None:
             console.print(escape(str(amap)))
         console.print(f"optimised plan {'beats' if better else 'does NOT beat'} the best of "
                       f"{base.n_plans} random plans")
+        out = {"robot": rb.name, "method": method, "sigma_mm": sigma_mm, "free": names, "criterion": crit,
+               "plan": plan.to_dict(), "criteria": crits.to_dict(),
+               "rho0_mm": None if rho is None else rho.tolist(),
+               "test_poses_rad": None if q_test is None else q_test.tolist(),
+               "baseline": base.to_dict(), "beats_random": bool(better),
+               "accuracy_map": None if amap is None else amap.to_dict()}
         if json_path is not None:
-            out = {"robot": rb.name, "method": method, "sigma_mm": sigma_mm, "free": names, "criterion": crit,
-                   "plan": plan.to_dict(), "criteria": crits.to_dict(),
-                   "rho0_mm": None if rho is None else rho.tolist(),
-                   "test_poses_rad": None if q_test is None else q_test.tolist(),
-                   "baseline": base.to_dict(), "beats_random": bool(better),
-                   "accuracy_map": None if amap is None else amap.to_dict()}
             write_json(json_path, out)
             console.print(f"wrote {json_path}")
+        if report is not None:
+            from estcal.report.design import design_report
+            from estcal.report.units import display_unit
+
+            design_report(report, model, plan, crits, base, amap, rho, q_test, larger_is_better=larger_is_better(crit),
+                          unit=lambda nm: display_unit(nm, rb), title=f"estcal design — {rb.name}",
+                          result_dict=out)
+            console.print(f"report: {report}/index.html")

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import fail, robot_for_data
+from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, warn
 
 __all__ = ["register"]
 
@@ -40,8 +40,9 @@ def register(app: typer.Typer) -> None:
                                                                   "for decisions)."),
         effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
                                                                       "(default: every registered effect)."),
-        noise_pos: Optional[float] = typer.Option(None, "--noise-pos", help="Known position noise std (m); "
+        noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Known position noise std (mm); "
                                                   "default unknown (F tests, no noise-floor test)."),
+        old_noise_pos: Optional[float] = typer.Option(None, "--noise-pos", hidden=True),  # deprecated (m)
         k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
         alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
         max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
@@ -56,14 +57,22 @@ def register(app: typer.Typer) -> None:
                                                       "(backlash by approach direction)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the diagnosis as JSON."),
-        report: Optional[Path] = typer.Option(None, "--report", help="Folder for plots, diagnosis.json, "
-                                                                     "summary.txt."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: residual figures "
+                                              "(PNG), diagnosis.json, summary.txt and index.html with the tables."),
+        save_model: Optional[Path] = typer.Option(
+            None, "--save-model", help="Write the identified robot (geometry + named effects) as a robot file "
+                                       "(.yaml) with a 'calibration:' block; reload it with --robot."),
     ) -> None:
         """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
         from estcal.discrepancy import diagnose
+        from estcal.estimate.lsq import UnidentifiableError
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
+            resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
         if not data.exists():
             _fail(f"{data}: file not found")
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
@@ -76,6 +85,9 @@ def register(app: typer.Typer) -> None:
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
+        for d in [ds] + vals:
+            for w in d.warnings:
+                warn(f"{d.where}: {w}")
         cands = None
         if effects:
             from estcal.effects import EFFECTS
@@ -84,11 +96,15 @@ def register(app: typer.Typer) -> None:
             bad = [e for e in cands if e not in EFFECTS]
             if bad:
                 _fail(f"--effects: unknown effect(s) {bad}; registered: {', '.join(sorted(EFFECTS))}")
+        check_distinct_poses(ds)  # after the option checks: usage errors first
         spec = robot if not (root or tip) else None
         try:
             res = diagnose(rob, ds, validate=vals, candidates=cands, k_folds=k_folds, noise=noise_pos, alpha=alpha,
                            max_effects=max_effects, report=report, rng=seed, robot_spec=spec, geometric=geometric,
                            approach_from_order=approach_from_order)
+        except UnidentifiableError as exc:
+            refuse(f"{data}: {exc} (the geometric fit on {ds.n} poses, and each cross-validation fold of "
+                   f"--folds {k_folds}, needs more equations than parameters)")
         except ValueError as exc:
             _fail(str(exc))
         res.model["robot_spec"] = robot
@@ -96,8 +112,17 @@ def register(app: typer.Typer) -> None:
         res.model["urdf_chain_masses"] = bool(urdf_masses and rob.meta.get("urdf"))
         typer.echo(str(res))
         if report is not None:
+            from estcal.report.diagnose import diagnose_report
+
             res.to_json(Path(report) / "diagnosis.json")
-            typer.echo(f"report: {report}/ ({', '.join(res.report_files)})")
+            diagnose_report(report, res, title=f"estcal diagnose — {rob.name}, {data}")
+            typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
+        if save_model:
+            try:
+                res.save_model(save_model, {"robot": robot})
+            except (ValueError, OSError) as exc:
+                _fail(f"--save-model {save_model}: {exc}")
+            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")

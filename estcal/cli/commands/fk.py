@@ -1,11 +1,14 @@
 """``estcal fk``: forward kinematics of every row of a dataset."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
+
+from estcal.cli.common import fail
+from estcal.io.atomic import atomic_write
+from estcal.io.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -22,25 +25,29 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Tool frame in the world (x,y,z in m; quaternion qw,qx,qy,qz) for every row's joint readings.
 
-        Effects in the robot file are evaluated with the row's t / temperature / payload columns.
+        Effects in the robot file are evaluated with the row's t / temperature / payload / approach_<joint>
+        columns; a model saved by `estcal diagnose --save-model` re-applies its data preparation (t from the
+        file's first row, approach directions from the posture order) as recorded in its calibration block.
         """
         import numpy as np
         from rich.console import Console
-        from rich.markup import escape
 
         from estcal.effects import effect_context
         from estcal.io.dataset import load_dataset
         from estcal.io.robotfile import load_robot
+        from estcal.io.savedmodel import prepare_data
         from estcal.kinematics.transforms import matrix_to_quat
 
         console = Console()
         try:
             rb = load_robot(robot, root=root, tip=tip)
             ds = load_dataset(data, rb)
+            # a saved diagnosis model re-applies the data preparation of its fit (session time, approach
+            # directions from the posture order); effect columns become the effects' context
+            ds = prepare_data(rb, ds)
             kin = rb.kinematics(ds.readings, context=effect_context(rb, ds), jacobian=False)
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            fail(str(exc).strip(chr(39)))
         cols, names = [], []
         if with_joints:
             cols.append(ds.readings)
@@ -50,12 +57,12 @@ def register(app: typer.Typer) -> None:
         if markers and rb.n_markers:
             cols.append(kin.points.reshape(len(ds.readings), -1))
             names += [f"{c}{k + 1}" for k in range(rb.n_markers) for c in "xyz"]
-        output.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(output, np.column_stack(cols), delimiter=",", header=",".join(names), comments="",
-                   fmt="%.15g")
+        with atomic_write(output) as fh:
+            np.savetxt(fh, np.column_stack(cols), delimiter=",", header=",".join(names), comments="",
+                       fmt="%.15g")
         console.print(f"{len(ds.readings)} rows -> {output} ({', '.join(names)})")
         for w in ds.warnings:
-            console.print("[yellow]warning:[/yellow] " + escape(w))
+            typer.echo(f"warning: {data}: {w}", err=True)
         if json_path is not None:
-            json_path.write_text(json.dumps({"rows": int(len(ds.readings)), "robot": rb.name, "input": str(data),
-                                             "output": str(output), "columns": names}, indent=2))
+            write_json(json_path, {"rows": int(len(ds.readings)), "robot": rb.name, "input": str(data),
+                                   "output": str(output), "columns": names})

@@ -156,8 +156,9 @@ def register(app: typer.Typer) -> None:
         rules: str = typer.Option("gecaro", "--rules", help="Default priorities: gecaro (GECARO §1.5) or order "
                                                             "(parameter-vector order)."),
         pivoting: bool = typer.Option(False, "--pivoting", help="QR with column pivoting (ignores priorities)."),
-        plane: Optional[str] = typer.Option(None, "--plane", help="a,b,c of a x + b y + c z + 1 = 0 (plane-known, "
-                                                                  "plane-normal-known)."),
+        plane: Optional[str] = typer.Option(None, "--plane", help="a,b,c of a x + b y + c z + 1 = 0 in 1/m (x, y, z in "
+                                                                  "metres as in the dataset; SI like the files) "
+                                                                  "(plane-known, plane-normal-known)."),
         points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
@@ -167,7 +168,6 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Identifiable, no-effect and regrouped parameters (GECARO App. III) for a measurement method."""
         from rich.console import Console
-        from rich.markup import escape
 
         console = Console()
         try:
@@ -175,8 +175,9 @@ def register(app: typer.Typer) -> None:
                                    points, root, tip, tau_floor)
         except (ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
             msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
-            console.print("[red]error:[/red] " + escape(msg), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(msg)
         _print(console, res)
         if json_path is not None:
             d = res if isinstance(res, dict) else res.to_dict()

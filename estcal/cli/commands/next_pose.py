@@ -9,7 +9,8 @@ measuring a candidate pose is the Kalman / MAP update
 
 JSON keys: ``robot``, ``method``, ``criterion``, ``next`` (:meth:`NextPose.to_dict`:
 ``readings_rad``, ``readings_deg``, ``value_before``, ``value_after``, ``reduction``,
-``predicted_std``), ``test_poses_rad``.
+``predicted_std``), ``test_poses_rad``; with ``--report DIR``: ``accuracy_map`` (``before``, ``after``:
+predicted position-error std on the same ``--map N`` random poses, see :mod:`estcal.report.design`).
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -33,17 +35,24 @@ def register(app: typer.Typer) -> None:
             None, "--test-pose", help="Test pose 'q1,q2,...' (revolute in deg, prismatic in mm); repeatable."),
         candidates: Optional[Path] = typer.Option(None, "--candidates", help="CSV of candidate readings (rad/m)."),
         degrees: bool = typer.Option(False, "--degrees", help="Candidate CSV revolute columns are in degrees."),
-        n_candidates: int = typer.Option(2000, "--n-candidates"),
-        sigma_mm: float = typer.Option(0.1, "--sigma", help="Position noise std per coordinate (mm)."),
-        sigma_rot_mrad: float = typer.Option(1.0, "--sigma-rot", help="Orientation noise std (mrad)."),
+        n_candidates: int = typer.Option(2000, "--n-candidates", help="Random candidate poses when no CSV is "
+                                                                      "given."),
+        sigma_mm: float = noise_pos_option(0.1),
+        sigma_rot_mrad: float = noise_rot_option(1.0, ", pose method"),
+        old_sigma: Optional[float] = deprecated_option("--sigma"),
+        old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
         refine: bool = typer.Option(True, "--refine/--no-refine", help="Polish the best candidate locally."),
         seed: int = typer.Option(0, "--seed"),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the proposal as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: the pose, parameter "
+                                              "std before/after, predicted error over the workspace before/after "
+                                              "(PNG) and index.html; adds 'accuracy_map' to the JSON."),
+        map_n: int = typer.Option(500, "--map", help="Poses sampled within the joint limits for the report's "
+                                  "accuracy map."),
     ) -> None:
         """Propose the next measurement pose from the current estimate and covariance."""
         import numpy as np
         from rich.console import Console
-        from rich.markup import escape
 
         from estcal.design._cli import default_test_pose, format_readings, parse_poses
         from estcal.design.criteria import CRITERIA, normalise_criterion
@@ -51,6 +60,11 @@ def register(app: typer.Typer) -> None:
         from estcal.design.plans import load_candidates
         from estcal.design.sequential import CalibrationState, propose_next_pose
 
+        from estcal.cli.units import resolve
+
+        sigma_mm = resolve(sigma_mm, 1.0, old_sigma, "--sigma", "--noise-pos-mm", "mm", 1.0, 0.1)
+        sigma_rot_mrad = resolve(sigma_rot_mrad, 1.0, old_sigma_rot, "--sigma-rot", "--noise-rot-mrad", "mrad", 1.0,
+                                 1.0)
         console = Console()
         try:
             rb = resolve_robot(robot)
@@ -65,16 +79,33 @@ def register(app: typer.Typer) -> None:
             nxt = propose_next_pose(model, st, crit, q_test=q_test, candidates=cand, n_candidates=n_candidates,
                                     rng=seed, refine=refine)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         console.print(f"robot {rb.name}, method {method}, {len(st.parameters)} parameters in the state")
         console.print("next pose (" + ", ".join(rb.joint_names) + "):")
         console.print("  " + format_readings(nxt.readings, rb)[0])
         console.print(f"{crit}: {nxt.value_before:.6g} -> {nxt.value_after:.6g} "
                       f"({100 * nxt.reduction:.2f} % better, {nxt.n_candidates} candidates"
                       f"{', refined' if nxt.refined else ''})")
+        out = {"robot": rb.name, "method": method, "criterion": crit, "next": nxt.to_dict(),
+               "test_poses_rad": None if q_test is None else q_test.tolist()}
+        maps = None
+        if report is not None:
+            from estcal.design.sequential import covariance_after, model_for_state
+
+            mdl = model_for_state(model, st)
+            Cp = covariance_after(mdl, st, nxt.readings)
+            maps = (mdl.accuracy_map(st.covariance, n=map_n, rng=seed + 2),
+                    mdl.accuracy_map(Cp, n=map_n, rng=seed + 2))  # same poses: same seed
+            out["accuracy_map"] = {"before": maps[0].to_dict(), "after": maps[1].to_dict()}
         if json_path is not None:
-            out = {"robot": rb.name, "method": method, "criterion": crit, "next": nxt.to_dict(),
-                   "test_poses_rad": None if q_test is None else q_test.tolist()}
             write_json(json_path, out)
             console.print(f"wrote {json_path}")
+        if report is not None:
+            from estcal.report.design import next_pose_report
+            from estcal.report.units import display_unit
+
+            next_pose_report(report, model, nxt, st, maps, unit=lambda nm: display_unit(nm, rb),
+                             title=f"estcal next-pose — {rb.name}", result_dict=out)
+            console.print(f"report: {report}/index.html")

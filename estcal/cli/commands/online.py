@@ -6,63 +6,34 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
-def _row_dataset(header, values, joint_names, where, allow_none: bool = False):
-    """One CSV row as a one-pose Dataset (pose, k points or one point, by the header's columns)."""
-    import numpy as np
+def _row_dataset(header, values, robot, where, line, delimiter=",", allow_none: bool = False, header_line: int = 1):
+    """One CSV row as a one-pose Dataset, through the loader's own checks
+    (:func:`estcal.io.dataset.dataset_from_table`: header, numbers, units, ranges)."""
+    from estcal.io.dataset import DatasetError, dataset_from_table
+    from estcal.io.textinput import CsvTable
 
-    from estcal.io.dataset import DatasetError, dataset_from_arrays
-    from estcal.kinematics.transforms import quat_to_matrix
-
-    col = dict(zip(header, values))
-    missing = [j for j in joint_names if j not in col]
-    if missing:
-        raise DatasetError(f"{where}: missing joint column(s) {missing}; the file has {header}")
-
-    def num(name):
-        try:
-            v = float(col[name])
-        except ValueError:
-            raise DatasetError(f"{where}, column {name!r}: {col[name]!r} is not a number") from None
-        if not np.isfinite(v):
-            raise DatasetError(f"{where}, column {name!r}: value is not finite")
-        return v
-
-    r = np.array([[num(j) for j in joint_names]])
-    ctx = {c: np.array([num(c)]) for c in ("t", "temperature", "payload") if c in col}
-    if all(c in col for c in POSE_COLS):
-        q = np.array([[num(c) for c in ("qw", "qx", "qy", "qz")]])
-        n = np.linalg.norm(q)
-        if abs(n - 1) > 1e-3:
-            raise DatasetError(f"{where}: quaternion norm {n:.6f}, expected 1")
-        return dataset_from_arrays(joint_names, r, R=quat_to_matrix(q / n), p=np.array([[num(c) for c in "xyz"]]),
-                                   context=ctx, path=where)
-    k = 0
-    while all(f"{c}{k + 1}" in col for c in "xyz"):
-        k += 1
-    if k:
-        pts = np.array([[[num(f"{c}{i + 1}") for c in "xyz"] for i in range(k)]])
-    elif all(c in col for c in "xyz"):
-        pts = np.array([[[num(c) for c in "xyz"]]])
-    elif allow_none:  # encoder-only row for a method that needs no measured point (plane-known, …)
-        extra = {c: np.array([num(c)]) for c in col if c not in joint_names and c not in ctx}
-        return dataset_from_arrays(joint_names, r, context=ctx, columns=extra, path=where)
-    else:
+    ds = dataset_from_table(CsvTable(header, [values], [line], header_line, delimiter, where), robot)
+    if ds.kind == "none" and not allow_none:
         raise DatasetError(f"{where}: no measurement columns (x,y,z / x1..zk / x,y,z,qw,qx,qy,qz)")
-    return dataset_from_arrays(joint_names, r, points=pts, context=ctx, path=where)
+    return ds
 
 
-def _raw_lines(data: str):
-    """Input lines as bytes (hashed exactly as read, so a checkpoint can name the consumed prefix)."""
+def _lines(data: str):
+    """Lines of the input: a file is read and checked by the input layer (folder, binary,
+    encoding); standard input is read as it comes."""
     if data == "-":
-        yield from sys.stdin.buffer
+        yield from sys.stdin
     else:
-        with open(data, "rb") as fh:
-            yield from fh
+        from estcal.io.dataset import DatasetError
+        from estcal.io.textinput import read_text
+
+        yield from read_text(data, "dataset", DatasetError).splitlines(keepends=True)
 
 
 def register(app: typer.Typer) -> None:
@@ -72,14 +43,19 @@ def register(app: typer.Typer) -> None:
         robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
         free: Optional[str] = typer.Option(None, "--free", help="Comma-separated names/patterns to estimate "
                                            "(default: an identifiable set for a file, the robot's free mask for stdin)."),
-        q: float = typer.Option(0.0, "--q", help="Process-noise std per row (SI; 0 = constant parameters, "
-                                "> 0 = random walk / drift)."),
-        q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q only to these names/patterns."),
+        q_mm: float = typer.Option(0.0, "--q-mm", help="Process-noise std per row, in each parameter's milli-unit "
+                                   "(mm, mrad, 10⁻³ for gains); 0 = constant parameters, > 0 = random walk / drift."),
+        q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q-mm only to these names/patterns."),
         filter_kind: str = typer.Option("ekf", "--filter", help="ekf or ukf (filterpy)."),
         method: Optional[str] = typer.Option(None, "--method", help="Measurement method (default: from the columns)."),
-        sigma_p: float = typer.Option(1e-4, "--sigma-p", help="Position noise std, m."),
-        sigma_r: float = typer.Option(1e-3, "--sigma-r", help="Orientation noise std, rad."),
-        prior_std: float = typer.Option(0.1, "--prior-std", help="Prior std of every free parameter (m / rad)."),
+        sigma_p_mm: float = noise_pos_option(0.1),
+        sigma_r_mrad: float = noise_rot_option(1.0),
+        prior_std_mm: float = typer.Option(100.0, "--prior-std-mm", help="Prior std of every free parameter, in its "
+                                           "milli-unit (mm, mrad, 10⁻³ for gains)."),
+        old_q: Optional[float] = deprecated_option("--q"),
+        old_sigma_p: Optional[float] = deprecated_option("--sigma-p"),
+        old_sigma_r: Optional[float] = deprecated_option("--sigma-r"),
+        old_prior_std: Optional[float] = deprecated_option("--prior-std"),
         every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows."),
         live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
         show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
@@ -87,6 +63,9 @@ def register(app: typer.Typer) -> None:
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
                                                  "tests and the printed history as JSON."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: estimate ± σ after "
+                                              "every row, NIS per row with the innovation tests (PNG), tables and "
+                                              "index.html."),
         state_path: Optional[Path] = typer.Option(None, "--state", help="Checkpoint file: the filter (x, P, Q, noise, "
                                                   "row, input SHA-256, options) written atomically every "
                                                   "--checkpoint-every rows and at exit; also a state for "
@@ -98,8 +77,15 @@ def register(app: typer.Typer) -> None:
                                        "as a slow live stream)."),
     ) -> None:
         """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
-        are printed as the rows arrive (units: m, rad)."""
+        are printed as the rows arrive (mm, mrad; the JSON is SI)."""
         import csv
+
+        from estcal.cli.units import MILLI, display_unit, resolve
+
+        q = resolve(q_mm, MILLI, old_q, "--q", "--q-mm", "SI", 1.0, 0.0)
+        sigma_p = resolve(sigma_p_mm, MILLI, old_sigma_p, "--sigma-p", "--noise-pos-mm", "m", 1.0, 0.1)
+        sigma_r = resolve(sigma_r_mrad, MILLI, old_sigma_r, "--sigma-r", "--noise-rot-mrad", "rad", 1.0, 1.0)
+        prior_std = resolve(prior_std_mm, MILLI, old_prior_std, "--prior-std", "--prior-std-mm", "SI", 1.0, 100.0)
 
         import numpy as np
         from rich.console import Console
@@ -143,10 +129,10 @@ def register(app: typer.Typer) -> None:
             fail(f"--checkpoint-every must be ≥ 1, got {checkpoint_every}")
         if throttle < 0:
             fail(f"--throttle must be ≥ 0 s, got {throttle}")
-        # the options that change the estimates: a resumed run must use the same ones
-        run_options = {"robot": robot, "root": root, "tip": tip, "free": free, "q": q, "q_params": q_params,
-                       "filter": filter_kind, "method": method, "sigma_p": sigma_p, "sigma_r": sigma_r,
-                       "prior_std": prior_std}
+        # the options that change the estimates (SI): a resumed run must use the same ones
+        run_options = {"--robot": robot, "--root": root, "--tip": tip, "--free": free, "q (SI)": q,
+                       "--q-params": q_params, "--filter": filter_kind, "--method": method, "noise-pos (m)": sigma_p,
+                       "noise-rot (rad)": sigma_r, "prior-std (SI)": prior_std}
         saved = None
         if resume is not None:
             try:
@@ -155,8 +141,8 @@ def register(app: typer.Typer) -> None:
                 fail(f"--resume: {exc}")
             diff = option_differences(saved["options"], run_options)
             if diff:
-                fail(f"--resume {resume}: the options differ from the checkpointed run: {'; '.join(diff)} — "
-                     f"give the same options to continue it")
+                fail(f"--resume {resume}: the options differ from the checkpointed run (SI values): "
+                     f"{'; '.join(diff)} — give the same options to continue it")
             if state_path is None:
                 state_path = resume
         elif state_path is not None and state_path.exists():
@@ -170,16 +156,26 @@ def register(app: typer.Typer) -> None:
         if meth is not None and meth.name not in PER_POSE_METHODS:
             fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
                  f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
-        if saved is not None:
-            names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
-        elif free:
-            names_pat = [s.strip() for s in free.split(",") if s.strip()]
-        elif data != "-":
-            from estcal.estimate._common import identifiable_free
+        ds_all = None
+        if data != "-":
+            # a file is checked as a whole first (the loader's unit, range, duplicate and spread
+            # checks), so that the stream below never runs on data the batch commands refuse
+            from estcal.cli.common import check_distinct_poses
             from estcal.io.dataset import load_dataset
 
             try:
                 ds_all = load_dataset(data, rb)
+            except (ValueError, FileNotFoundError) as exc:
+                fail(exc)
+            check_distinct_poses(ds_all)
+        if saved is not None:
+            names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
+        elif free:
+            names_pat = [s.strip() for s in free.split(",") if s.strip()]
+        elif ds_all is not None:
+            from estcal.estimate._common import identifiable_free
+
+            try:
                 prob_all = Problem(rb, [(meth, ds_all, noise)])
                 names_pat = identifiable_free(prob_all)
             except (ValueError, FileNotFoundError) as exc:
@@ -193,6 +189,7 @@ def register(app: typer.Typer) -> None:
         pv = rb.params
         fidx = pv.free_indices
         names = pv.free_names
+        units = [display_unit(n, rb) for n in names]  # printed in mm / mrad (SI in the JSON)
         try:
             Q = process_noise(names, {p.strip(): q for p in q_params.split(",")} if q_params else q)
         except ValueError as exc:
@@ -204,29 +201,42 @@ def register(app: typer.Typer) -> None:
                 restore_filter(flt, saved)
         except (ValueError, CheckpointError) as exc:
             fail(exc)
-        where = "<stdin>" if data == "-" else data
-        if data != "-" and not Path(data).exists():
-            fail(f"{data}: file not found")
         input_sha = file_sha256(data) if data != "-" else None
         hasher = PrefixHasher()
-        raw = _raw_lines(data)
-
-        def lines():
-            for b in raw:
-                hasher.update(b)
-                yield b.decode("utf-8-sig" if hasher.n == len(b) else "utf-8")
-
-        lines = lines()
+        where = "<stdin>" if data == "-" else data
         try:
-            header = next(csv.reader([next(lines)]))
-        except StopIteration:
+            lines = list(_lines(data)) if data != "-" else None
+        except DatasetError as exc:
+            fail(exc)
+
+        def numbered():
+            src = enumerate(lines if lines is not None else sys.stdin, start=1)
+            while True:
+                try:
+                    item = next(src)
+                    hasher.update(item[1].encode("utf-8"))  # the consumed prefix, named in checkpoints
+                    yield item
+                except StopIteration:
+                    return
+                except UnicodeDecodeError:
+                    fail(f"{where}: input is not UTF-8 text — send the CSV as UTF-8")
+
+        rows = numbered()
+        header_line = 0
+        for header_line, first in rows:
+            if first.strip():
+                break
+        else:
             fail(f"{where}: empty input (expected a header row)")
-        except UnicodeDecodeError as exc:
-            fail(f"{where}: not UTF-8 text ({exc})")
-        header = [h.strip() for h in header]
+        from estcal.io.textinput import sniff_delimiter
+
+        first = first.lstrip("\ufeff")
+        delim = sniff_delimiter(first)
+        header = [h.strip() for h in next(csv.reader([first], delimiter=delim))]
         history = []
+        trace_x, trace_s = [], []  # every row's estimate and std, for --report
         burn = None
-        rows_done, last_line = 0, 1
+        rows_done, last_line = 0, header_line
         skip = 0
         if saved is not None:
             history = list(saved["history"])
@@ -245,11 +255,12 @@ def register(app: typer.Typer) -> None:
             run = flt.monitor.running(burn or flt.n_steps)
             tb = Table(title=f"{rb.name}: {flt.n_steps} rows, NIS/row {run['nis_per_row']:.3f}, "
                              f"trace P {np.trace(flt.f.P):.3g}")
-            for c in ("parameter", "estimate", "std", "Δ from nominal"):
-                tb.add_column(c, justify="right" if c != "parameter" else "left")
+            for c in ("parameter", "estimate", "std", "Δ from nominal", "unit"):
+                tb.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
             x, sd = flt.x, flt.std
             for i, n in enumerate(names):
-                tb.add_row(n, f"{x[i]:.6g}", f"{sd[i]:.3g}", f"{x[i] - pv.values[fidx[i]]:.3g}")
+                u, f = units[i]
+                tb.add_row(n, f"{x[i] * f:.6g}", f"{sd[i] * f:.3g}", f"{(x[i] - pv.values[fidx[i]]) * f:.3g}", u)
             return tb
 
         live_ctx = None
@@ -260,7 +271,7 @@ def register(app: typer.Typer) -> None:
             live_ctx.start()
             live_holder.append(live_ctx)
         console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
-                      f"q = {q:g}{' on ' + q_params if q_params else ''}; reading {where}"
+                      f"q = {q / MILLI:g} mm / mrad{' on ' + q_params if q_params else ''}; reading {where}"
                       + (f"; resuming after row {skip} (line {saved['line']}) of {resume}" if saved else ""))
         import signal
         import time
@@ -282,10 +293,14 @@ def register(app: typer.Typer) -> None:
                 refuse_input(f"{where} differs from the checkpointed input (SHA-256 of the rows already "
                              f"processed does not match)")
 
+        def stop(msg):  # a bad row: keep what was computed before it
+            checkpoint()
+            fail(msg)
+
         try:
             if saved is not None and skip == 0:
                 check_prefix()
-            for ln, line in enumerate(lines, start=2):
+            for ln, line in rows:
                 if not line.strip():
                     continue
                 if rows_done < skip:  # already in the checkpoint: hashed, not processed again
@@ -293,22 +308,24 @@ def register(app: typer.Typer) -> None:
                     if rows_done == skip:
                         check_prefix()
                     continue
-                vals = next(csv.reader([line]))
-                if len(vals) != len(header):
-                    checkpoint()
-                    fail(f"{where}, line {ln}: {len(vals)} fields but the header has {len(header)}")
                 try:
-                    ds = _row_dataset(header, [v.strip() for v in vals], rb.joint_names, f"{where}, line {ln}",
-                                      allow_none=meth is not None)
+                    vals = next(csv.reader([line], delimiter=delim))
+                except csv.Error as exc:
+                    stop(f"{where}, line {ln}: not a valid CSV line ({exc})")
+                try:
+                    ds = _row_dataset(header, vals, rb, where, ln, delim, allow_none=meth is not None,
+                                      header_line=header_line)
                     m = meth or method_for_dataset(ds, rb)
                     sub = Problem.__new__(Problem)
                     sub.robot = rb
                     sub.terms = [Term(m, ds, noise)]
                     step = flt.step(sub)
                 except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
-                    checkpoint()
-                    fail(exc)
+                    stop(exc)
                 rows_done, last_line = rows_done + 1, ln
+                if report is not None:
+                    trace_x.append(flt.x)
+                    trace_s.append(flt.std)
                 if burn is None and flt.n_rows >= 2 * len(names):
                     burn = flt.n_steps
                 k = flt.n_steps
@@ -321,7 +338,8 @@ def register(app: typer.Typer) -> None:
                     if live_ctx is not None:
                         live_ctx.update(live_table())
                     else:
-                        par = "  ".join(f"{names[i]}={x[i]:.6g}±{s[i]:.2g}" for i in shown)
+                        par = "  ".join(f"{names[i]}={x[i] * units[i][1]:.6g}±{s[i] * units[i][1]:.2g}"
+                                        f"{(' ' + units[i][0]) if units[i][0] else ''}" for i in shown)
                         console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
                                       f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
                 if rows_done % checkpoint_every == 0:
@@ -338,9 +356,6 @@ def register(app: typer.Typer) -> None:
                 err.print(f"interrupted after row {rows_done} (line {last_line}); checkpoint {state_path} — "
                           f"continue with --resume {state_path}")
             raise typer.Exit(130)
-        except UnicodeDecodeError as exc:
-            checkpoint()
-            fail(f"{where}, after line {last_line}: not UTF-8 text ({exc})")
         finally:
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
@@ -351,10 +366,11 @@ def register(app: typer.Typer) -> None:
             fail(f"{where}: no data rows")
         x, s = flt.x, flt.std
         table = Table(title=f"estimate after {flt.n_steps} rows")
-        for c in ("parameter", "nominal", "estimate", "std"):
-            table.add_column(c, justify="right" if c != "parameter" else "left")
+        for c in ("parameter", "nominal", "estimate", "std", "unit"):
+            table.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
         for i, n in enumerate(names):
-            table.add_row(n, f"{pv.values[fidx[i]]:.6g}", f"{x[i]:.6g}", f"{s[i]:.3g}")
+            u, f = units[i]
+            table.add_row(n, f"{pv.values[fidx[i]] * f:.6g}", f"{x[i] * f:.6g}", f"{s[i] * f:.3g}", u)
         console.print(table)
         bi = default_burn_in(flt.monitor.dims, len(names))
         try:
@@ -365,11 +381,19 @@ def register(app: typer.Typer) -> None:
         except ValueError as exc:
             tests = {"error": str(exc)}
             console.print(f"innovation tests: {exc}")
+        out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
+               "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
+                                                         "nominal": float(pv.values[fidx[i]])}
+                                                     for i, n in enumerate(names)},
+               "covariance": flt.P.tolist(), "innovation": tests, "history": history}
         if json_path is not None:
-            out = {"robot": rb.name, "input": where, "filter": filter_kind, "q": q, "q_params": q_params,
-                   "n_rows": flt.n_steps, "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]),
-                                                             "nominal": float(pv.values[fidx[i]])}
-                                                         for i, n in enumerate(names)},
-                   "covariance": flt.P.tolist(), "innovation": tests, "history": history}
             write_json(json_path, out)
             console.print(f"JSON -> {json_path}")
+        if report is not None:
+            from estcal.report.online import online_report
+            from estcal.report.units import display_unit
+
+            online_report(report, names, pv.values[fidx], trace_x, trace_s, flt.monitor.nis, flt.monitor.dims, tests,
+                          unit=lambda n: display_unit(n, rb), title=f"estcal online — {rb.name}, {where}",
+                          result_dict=out)
+            console.print(f"report -> {report}/index.html")

@@ -1,11 +1,11 @@
 """``estcal simulate``: a simulated calibration dataset with its ground truth."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
 
@@ -28,17 +28,63 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
+    from estcal.io.textinput import read_json, read_text
+
     if p.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        d = yaml.safe_load(p.read_text())
+        try:
+            d = yaml.safe_load(read_text(p, "errors", ValueError))
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{p}: invalid YAML ({' '.join(str(exc).split())})") from None
     else:
-        d = json.loads(p.read_text())
+        d = read_json(p, "errors JSON", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
         d = d["errors"]  # a truth JSON from an earlier run
     if not isinstance(d, dict):
         raise typer.BadParameter(f"{p}: expected a mapping {{parameter name: error}}")
-    return {str(k): float(v) for k, v in d.items()}
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or abs(v) == float("inf"):
+            raise ValueError(f"{p}: error of {k!r} must be a finite number (SI), got {v!r}")
+        out[str(k)] = float(v)
+    return out
+
+
+def _simulate_fleet(console, n_robots, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler, json_path):
+    from estcal.cli.common import fail
+    from estcal.scale.runner import check_scheduler
+    from estcal.scale.simfleet import simulate_fleet
+
+    if out is None:
+        fail("--fleet needs --out DIR (the fleet folder to write)")
+    if n_robots < 1:
+        fail(f"--fleet: the number of robots must be ≥ 1, got {n_robots}")
+    try:
+        check_scheduler(scheduler)
+    except ValueError as exc:
+        fail(f"--scheduler: {exc}")
+    if measure == "position":  # a fleet is measured as full poses unless asked otherwise
+        measure = "pose"
+    try:
+        rr = simulate_fleet(n_robots, out, robot=robot, n_poses=n, n_validate=n, measure=measure,
+                            noise_pos=noise_pos or 5e-5, noise_rot=noise_rot or 5e-4, seed=seed,
+                            scheduler=scheduler)
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        fail(str(exc))
+    for f in rr.failures:
+        console.print(f"[red]failed:[/red] {f}")
+    rows = [r for r in rr.results if r is not None]
+    with_eff = [r for r in rows if r["effects"]]
+    console.print(f"fleet of {len(rows)} robots in {out}/ ({n} calibration + {n} validation poses each, "
+                  f"{measure}, noise {1e3 * (noise_pos or 5e-5):.3g} mm / {1e3 * (noise_rot or 5e-4):.3g} mrad); "
+                  f"{len(with_eff)} with an effect: " + (", ".join(f"{r['robot']} {r['effects'][0]}"
+                                                                   for r in with_eff[:6]) or "none")
+                  + (" …" if len(with_eff) > 6 else ""), soft_wrap=True)
+    if json_path is not None:
+        write_json(json_path, {"fleet": str(out), "robots": rows, "failures": [f.to_dict() for f in rr.failures]})
+    if rr.failures:
+        raise typer.Exit(2)
 
 
 def register(app: typer.Typer) -> None:
@@ -50,21 +96,25 @@ def register(app: typer.Typer) -> None:
         strategy: str = typer.Option("S4", help="Pose strategy: S1 (together), S2 (one joint at a time), "
                                                 "S3 (one held), S4 (uniform random)."),
         measure: str = typer.Option("position", help="position | points | pose."),
-        noise_pos: float = typer.Option(0.0, "--noise-pos", help="Position noise σ (m); half-width if uniform."),
-        noise_rot: float = typer.Option(0.0, "--noise-rot", help="Orientation noise σ (rad); half-width if uniform."),
-        noise_joint: float = typer.Option(0.0, "--noise-joint", help="Joint-reading noise σ (rad or m)."),
-        resolution: float = typer.Option(0.0, "--resolution", help="Encoder resolution (rad or m); 0 = none."),
+        noise_pos_mm: float = noise_pos_option(0.0, "; half-width if uniform"),
+        noise_rot_mrad: float = noise_rot_option(0.0, "; half-width if uniform"),
+        noise_joint_mrad: float = typer.Option(0.0, "--noise-joint-mrad", help="Joint-reading noise σ (mrad; mm "
+                                                                               "for prismatic joints)."),
+        resolution_mrad: float = typer.Option(0.0, "--resolution-mrad", help="Encoder resolution (mrad; mm for "
+                                                                             "prismatic joints); 0 = none."),
         noise_dist: str = typer.Option("gaussian", "--noise-dist", help="gaussian | uniform."),
         errors: str = typer.Option("random", help="random | none | JSON/YAML file {parameter: error}."),
-        error_angle: float = typer.Option(1e-3, "--error-angle", help="σ of random angle errors (rad)."),
-        error_length: float = typer.Option(1e-3, "--error-length", help="σ of random length errors (m)."),
-        error_offset: float = typer.Option(1e-3, "--error-offset", help="σ of random joint-offset errors."),
+        error_angle_mrad: float = typer.Option(1.0, "--error-angle-mrad", help="σ of random angle errors (mrad)."),
+        error_length_mm: float = typer.Option(1.0, "--error-length-mm", help="σ of random length errors (mm)."),
+        error_offset_mrad: float = typer.Option(1.0, "--error-offset-mrad", help="σ of random joint-offset errors "
+                                                                                 "(mrad; mm for prismatic joints)."),
         error_gain: float = typer.Option(0.0, "--error-gain", help="σ of random joint-gain errors."),
         effects: Optional[List[str]] = typer.Option(
             None, "--effects", "-e",
             help="Effect NAME[:JOINT,JOINT] (repeat, or separate with ';'), e.g. joint_compliance:j2,j3."),
         effect_param: Optional[List[str]] = typer.Option(
-            None, "--effect-param", help="NAME=VALUE for an effect parameter, e.g. compliance_j2=2e-6 (repeat)."),
+            None, "--effect-param", help="NAME=VALUE for an effect parameter in SI units like the robot file, "
+                                         "e.g. compliance_j2=2e-6 (rad/(N·m)) (repeat)."),
         seed: int = typer.Option(0, help="Random seed."),
         margin: float = typer.Option(0.0, help="Fraction of each joint range left out at both ends."),
         dt: Optional[float] = typer.Option(None, "--dt", help="Seconds between poses (writes a t column)."),
@@ -78,10 +128,25 @@ def register(app: typer.Typer) -> None:
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="Dataset CSV to write."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth JSON to write."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON."),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
+        old_noise_joint: Optional[float] = deprecated_option("--noise-joint"),
+        old_resolution: Optional[float] = deprecated_option("--resolution"),
+        old_error_angle: Optional[float] = deprecated_option("--error-angle"),
+        old_error_length: Optional[float] = deprecated_option("--error-length"),
+        old_error_offset: Optional[float] = deprecated_option("--error-offset"),
         from_fit: Optional[Path] = typer.Option(
             None, "--from-fit", help="Diagnosis fit (estcal diagnose --json): simulate the robot as identified "
                                      "(geometric + named effects); --errors/--effects are ignored, the noise "
                                      "defaults to the fit's, --measure position means the fit's kind."),
+        fleet: Optional[int] = typer.Option(
+            None, "--fleet", help="Simulate a fleet of N robots into --out DIR (one folder per robot: data.csv, "
+                                  "validate.csv with --n new poses, truth.json; shared DIR/robot.yaml) with "
+                                  "random errors and, for half of them, one random effect. Noise defaults to "
+                                  "0.05 mm / 0.5 mrad. Input of estcal fleet."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Fleet folder to write (with --fleet)."),
+        scheduler: str = typer.Option("serial", "--scheduler", help="With --fleet: serial | processes | local | "
+                                                                    "tcp://host:8786."),
     ) -> None:
         """Simulate a calibration dataset: true robot = nominal + parameter errors + effects.
 
@@ -95,7 +160,25 @@ def register(app: typer.Typer) -> None:
         from estcal.io.robotfile import load_robot
         from estcal.simulate import ErrorModel, NoiseModel, simulate
 
+        from estcal.cli.units import MILLI, resolve
+
+        noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
+        noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 0.0)
+        noise_joint = resolve(noise_joint_mrad, MILLI, old_noise_joint, "--noise-joint", "--noise-joint-mrad",
+                              "rad or m", 1.0, 0.0)
+        resolution = resolve(resolution_mrad, MILLI, old_resolution, "--resolution", "--resolution-mrad", "rad or m",
+                             1.0, 0.0)
+        error_angle = resolve(error_angle_mrad, MILLI, old_error_angle, "--error-angle", "--error-angle-mrad", "rad",
+                              1.0, 1.0)
+        error_length = resolve(error_length_mm, MILLI, old_error_length, "--error-length", "--error-length-mm", "m",
+                               1.0, 1.0)
+        error_offset = resolve(error_offset_mrad, MILLI, old_error_offset, "--error-offset", "--error-offset-mrad",
+                               "rad or m", 1.0, 1.0)
         console = Console()
+        if fleet is not None:
+            _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
+                            json_path)
+            return
         try:
             nominal = load_robot(robot, root=root, tip=tip)
             eff_specs = []
@@ -141,13 +224,14 @@ def register(app: typer.Typer) -> None:
         except typer.BadParameter:
             raise
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            console.print("[red]error:[/red] " + escape(str(exc).strip(chr(39))), soft_wrap=True)
-            raise typer.Exit(2) from None
+            from estcal.cli.common import fail
+
+            fail(str(exc).strip(chr(39)))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)
         elif truth is not None:
-            truth.write_text(json.dumps(res.truth, indent=2))
+            write_json(truth, res.truth)
             truth_path = truth
         table = Table(title=f"estcal simulate — {res.summary.robot}", show_header=False)
         table.add_column("item", style="bold")

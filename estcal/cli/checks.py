@@ -1,0 +1,169 @@
+"""Checks every subcommand gets before it starts working (one place, keyed by option name).
+
+:func:`guard` wraps each subcommand's function when :mod:`estcal.cli.main` mounts
+it, so a new or renamed option is covered by the rules below without touching
+the command's module:
+
+* **numbers** — every float option must be finite; counts (``--n``, ``--every``,
+  ``--restarts`` …) are integers ≥ 1; noise and prior widths are > 0 (≥ 0 in
+  ``simulate``, where 0 means noise-free); process noise, resolutions and
+  simulated error widths are ≥ 0; ``--alpha`` is in (0, 1) … The message names
+  the option, its value and the accepted range (exit code 2).
+* **output files** (``--json``, ``--output/-o``, ``--truth``, ``--save-model`` …)
+  are checked *before* the work, so a long fit is never lost to a bad path: not a
+  folder, their folder can be created and written, not also an input of the
+  command (inputs are never overwritten), and two outputs are not the same file.
+
+Rules by option name, first match wins: see :data:`NUMBER_RULES`.
+"""
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+import os
+import re
+from pathlib import Path
+
+from estcal.cli.common import fail
+
+__all__ = ["guard", "check_number", "check_outputs", "NUMBER_RULES", "OUTPUT_OPTIONS"]
+
+# (pattern on the option name, commands it applies to (None = all), rule)
+# rules: ("int", lo) integer >= lo; ("gt", lo) > lo; ("ge", lo) >= lo; ("open", lo, hi) lo < x < hi;
+#        ("halfopen", lo, hi) lo <= x < hi
+NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
+    (r"--(n|n-poses|n-candidates|restarts|random-plans|every|max-effects|points|walkers|steps|n-jobs|"
+     r"workers|chunk|n-samples|samples)$", None, ("int", 1)),
+    (r"--folds$", None, ("int", 2)),
+    (r"--(show|map|burn-in|seed)$", None, ("int", 0)),
+    (r"--(noise|sigma|prior-std|error)[a-z-]*$", ("simulate",), ("ge", 0.0)),
+    (r"--(noise|sigma|prior-std)[a-z-]*$", None, ("gt", 0.0)),
+    (r"--(q|q-[a-z]+|resolution[a-z-]*|error-[a-z-]+|tau-floor)$", None, ("ge", 0.0)),
+    (r"--alpha$", None, ("open", 0.0, 1.0)),
+    (r"--margin$", None, ("halfopen", 0.0, 0.5)),
+    (r"--dt[a-z-]*$", None, ("gt", 0.0)),
+]
+
+# options whose value is a file the command writes (folders such as --report are not checked here)
+OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
+                  "--html")
+
+
+def _describe(rule) -> str:
+    kind = rule[0]
+    if kind == "int":
+        return f"an integer ≥ {rule[1]}"
+    if kind == "gt":
+        return f"a number > {rule[1]:g}"
+    if kind == "ge":
+        return f"a number ≥ {rule[1]:g}"
+    if kind == "open":
+        return f"a number strictly between {rule[1]:g} and {rule[2]:g}"
+    return f"a number in [{rule[1]:g}, {rule[2]:g})"
+
+
+def _ok(value, rule) -> bool:
+    kind = rule[0]
+    if kind == "int":
+        return value >= rule[1]
+    if kind == "gt":
+        return value > rule[1]
+    if kind == "ge":
+        return value >= rule[1]
+    if kind == "open":
+        return rule[1] < value < rule[2]
+    return rule[1] <= value < rule[2]
+
+
+def check_number(option: str, value, command: str | None = None) -> None:
+    """Exit (code 2) with a message naming ``option`` when ``value`` breaks its rule."""
+    if value is None or isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    if isinstance(value, float) and not math.isfinite(value):
+        fail(f"{option} {value}: must be a finite number")
+    for pattern, commands, rule in NUMBER_RULES:
+        if re.match(pattern, option) and (commands is None or command in commands):
+            if not _ok(value, rule):
+                fail(f"{option} {value:g}: must be {_describe(rule)}")
+            return
+
+
+def _existing_ancestor(p: Path) -> Path:
+    a = p.parent
+    while not a.exists() and a != a.parent:
+        a = a.parent
+    return a
+
+
+def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
+    """``outputs`` {option: path}: refuse folders, unwritable places, inputs and duplicates."""
+    seen: dict[str, str] = {}
+    ins = {}
+    for p in inputs:
+        try:
+            if p.is_file():
+                ins[os.path.realpath(p)] = p
+        except OSError:
+            continue
+    for opt, p in outputs.items():
+        if p is None or str(p) == "-":
+            continue
+        p = Path(p)
+        if p.is_dir():
+            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / ('result.json' if opt == '--json' else 'out.csv')})")
+        anc = _existing_ancestor(p)
+        if not anc.is_dir():
+            fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
+        if not os.access(anc, os.W_OK | os.X_OK):
+            fail(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
+        if p.exists() and not os.access(p, os.W_OK):
+            fail(f"{opt} {p}: the file exists and is read-only — choose another name")
+        real = os.path.realpath(p)
+        if real in ins:
+            fail(f"{opt} {p}: is also an input of this command ({ins[real]}) — write the output to another "
+                 f"file (estcal never overwrites its inputs)")
+        if real in seen:
+            fail(f"{opt} {p}: the same file as {seen[real]} — give each output its own file")
+        seen[real] = opt
+
+
+def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
+    """{python parameter: (long option name or '', is an output)}"""
+    from typer.models import ArgumentInfo, OptionInfo
+
+    out = {}
+    for name, par in sig.parameters.items():
+        d = par.default
+        if isinstance(d, OptionInfo):
+            decls = [s for dcl in (d.param_decls or ()) for s in dcl.split("/") if s.startswith("--")]
+            opt = decls[0] if decls else "--" + name.replace("_", "-")
+            out[name] = (opt, opt in OUTPUT_OPTIONS)
+        elif isinstance(d, ArgumentInfo):
+            out[name] = ("", False)
+    return out
+
+
+def guard(command: str, func):
+    """``func`` wrapped with the number and output checks above (signature kept for typer)."""
+    sig = inspect.signature(func)
+    names = _option_names(sig)
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        bound = sig.bind_partial(*args, **kwargs)
+        outputs, inputs = {}, []
+        for pname, value in bound.arguments.items():
+            opt, is_out = names.get(pname, ("", False))
+            if opt:
+                check_number(opt, value, command)
+            values = value if isinstance(value, (list, tuple)) else [value]
+            for v in values:
+                if is_out and v is not None:
+                    outputs[opt] = Path(v)
+                elif isinstance(v, (str, Path)) and v and str(v) != "-":
+                    inputs.append(Path(v))
+        check_outputs(outputs, inputs)
+        return func(*args, **kwargs)
+
+    return wrapper

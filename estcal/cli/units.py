@@ -1,0 +1,113 @@
+"""Units on the command line (docs/conventions.md, "Units on the command line").
+
+One convention for every subcommand:
+
+* files (CSV, YAML, JSON) are SI: m, rad, s, kg;
+* printed tables are mm and mrad (joint poses: degrees / mm);
+* a length or angle typed as an option is in mm or mrad and the option's name
+  says so (``--noise-pos-mm``, ``--noise-rot-mrad``); a joint quantity is in
+  mrad for revolute and mm for prismatic joints (``--noise-joint-mrad``); a
+  width of *parameters* (prior std, process noise) is in each parameter's
+  milli-unit (mm, mrad, 10⁻³ for dimensionless gains: ``--prior-std-mm``);
+  a joint pose typed as ``q1,q2,…`` is in degrees / mm, as the plans print it;
+* options whose values go verbatim into a named parameter or an estimator
+  (``--effect-param NAME=VALUE``, ``--option KEY=VALUE``) are SI like the files.
+
+Options renamed when this convention was introduced stay accepted as hidden
+aliases in their old unit: the value is converted and a warning names the new
+option (:func:`resolve`).
+
+Every numeric option names its unit in its name or help, or is in
+:data:`DIMENSIONLESS` (checked by ``tests/test_cli_units.py`` over every
+subcommand's ``--help``).
+"""
+from __future__ import annotations
+
+import typer
+
+__all__ = ["MILLI", "resolve", "DIMENSIONLESS", "UNIT_PATTERN", "display_unit"]
+
+MILLI = 1e-3  # mm -> m, mrad -> rad
+
+# Numeric options without a physical unit (option name: what it counts or measures).
+DIMENSIONLESS = {
+    "--n": "number of poses",
+    "--n-poses": "number of configurations",
+    "--n-candidates": "number of candidate poses",
+    "--random-plans": "number of random plans",
+    "--restarts": "number of optimiser restarts",
+    "--map": "number of poses of the accuracy map",
+    "--points": "number of measured / simulated points",
+    "--seed": "random seed",
+    "--folds": "cross-validation folds",
+    "--max-effects": "number of effects",
+    "--every": "rows between status lines",
+    "--show": "number of parameters shown",
+    "--model": "Gough model size (42 / 36 parameters)",
+    "--alpha": "significance level (probability)",
+    "--margin": "fraction of each joint range",
+    "--error-gain": "σ of relative joint-gain errors (gain is dimensionless)",
+    "--tau-floor": "threshold on unit-norm columns",
+    "--n-jobs": "number of worker processes",
+    "--workers": "number of worker processes",
+    "--chunk": "rows per chunk",
+    "--burn-in": "number of rows / samples",
+    "--walkers": "number of MCMC walkers",
+    "--steps": "number of MCMC steps",
+}
+
+# A unit written in an option's name (suffix) or help: "(mm)", "mrad", "deg", "°C", "kg", "s" …
+UNIT_PATTERN = (r"(\bmm\b|\bmrad\b|\bm\b|\brad\b|\bdeg\b|degrees|°|\bs\b|[Ss]econds|\bkg\b|\bSI\b|"
+                r"m/s|\bN\b|\bHz\b|1/m)")
+
+
+def resolve(value: float, scale: float, old_value, old_option: str, new_option: str, old_unit: str,
+            old_scale: float, default: float | None = None) -> float:
+    """SI value of an option pair: the current ``value`` (× ``scale`` to SI), or the deprecated
+    ``old_value`` (× ``old_scale``) with a warning on stderr naming the new option.
+
+    ``default``: the new option's default; if both options were given, exit with code 2.
+    """
+    if old_value is None:
+        return value * scale
+    if default is not None and value != default:
+        typer.echo(f"error: give {new_option} or the deprecated {old_option}, not both", err=True)
+        raise typer.Exit(2)
+    new_value = old_value * old_scale / scale
+    typer.echo(f"warning: {old_option} ({old_unit}) is deprecated; use {new_option} {new_value:g} "
+               f"(docs/conventions.md, 'Units on the command line')", err=True)
+    return old_value * old_scale
+
+
+def display_unit(name: str, robot) -> tuple[str, float]:
+    """Printed unit and factor from SI of parameter ``name``: mrad for angles (and offsets of
+    revolute joints), mm for lengths, none for gains and other dimensionless parameters."""
+    head = name.split("_")[0]
+    if name.startswith(("base_r", "tool_r")) or head in ("alpha", "theta", "beta", "rx", "ry", "rz"):
+        return "mrad", 1e3
+    if head == "gain":
+        return "", 1.0
+    if head == "offset":
+        for j, li in enumerate(robot.offset_idx):
+            if robot.params.names[li] == name:
+                return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
+    kinds = dict(zip(robot.params.names, robot.params.kinds))
+    if kinds.get(name) == "effect":
+        return "SI", 1.0
+    return "mm", 1e3
+
+
+# The same declaration in every subcommand, so the name, unit and help cannot drift apart.
+def noise_pos_option(default, extra: str = ""):
+    """``--noise-pos-mm``: measurement position noise std per coordinate (mm)."""
+    return typer.Option(default, "--noise-pos-mm", help=f"Position noise std per coordinate (mm){extra}.")
+
+
+def noise_rot_option(default, extra: str = ""):
+    """``--noise-rot-mrad``: measurement orientation noise std (mrad)."""
+    return typer.Option(default, "--noise-rot-mrad", help=f"Orientation noise std (mrad){extra}.")
+
+
+def deprecated_option(old: str):
+    """A renamed option, still accepted (hidden) in its old unit; see :func:`resolve`."""
+    return typer.Option(None, old, hidden=True)

@@ -1,0 +1,201 @@
+"""Saved models: the identified robot as a robot file with a ``calibration:`` block.
+
+A saved model is the hand-off format of a calibration (``estcal calibrate
+--save-model``, :meth:`CalibrationResult.save_model`) or of a diagnosis
+(``estcal diagnose --save-model``, :meth:`DiagnosisResult.save_model`): an
+ordinary robot file (``estcal_robot: 1``) whose parameters are at their
+estimates — named effects included — plus a ``calibration:`` block saying how
+it was obtained (docs/robot-file.md, "Saved models")::
+
+    calibration:
+      estcal_version: 0.1.0
+      date: '2026-11-25T09:14:03+00:00'      # UTC, ISO 8601
+      estimator: lm
+      data: [{file: train.csv, sha256: 9f2c…, n_poses: 50, role: train},
+             {file: valid.csv, sha256: 41aa…, n_poses: 50, role: validation}]
+      free: [base_tx, …]                     # names, in the order of covariance
+      covariance: [[…], …]                   # SI units (m, rad, 1)
+      noise: {position: 5.0e-05, orientation: 0.0005, scalar: 5.0e-05, known: false}
+      sigma0: 1.02
+      rmse_mm: {train: {before: 4.2, after: 0.078}, validation: [{file: valid.csv, before: 4.1, after: 0.097}]}
+
+``free`` and ``covariance`` are what the compensation and export helpers read
+(:func:`estcal.io.robotfile.calibration_covariance`). Loading a saved model
+(``--robot model.yaml`` or :func:`estcal.load_robot`) gives the fitted robot:
+``estcal fk`` with it reproduces the fit's predictions (for a diagnosed model,
+the data preparation the diagnosis applied — session time, approach directions
+from the posture order — is recorded in ``data_preparation`` and re-applied by
+:func:`prepare_data`).
+"""
+from __future__ import annotations
+
+import hashlib
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["file_sha256", "data_entry", "calibration_block", "save_calibration", "save_diagnosis",
+           "prepare_data"]
+
+
+def file_sha256(path) -> str:
+    """SHA-256 of a file's bytes (hex), read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def data_entry(data, role: str) -> dict:
+    """``{file, sha256, n_poses, role}`` of a dataset; ``file``/``sha256`` are None for
+    in-memory data (no file to hash)."""
+    path = getattr(data, "path", None)
+    p = Path(path) if path else None
+    ok = p is not None and p.is_file()
+    return {"file": str(path) if path else None, "sha256": file_sha256(p) if ok else None,
+            "n_poses": int(data.n), "role": role}
+
+
+def _rmse_row(acc: dict, path=None) -> dict:
+    """``{before, after}`` RMSE (mm, and mrad for pose data) of one accuracy entry."""
+    b, a = acc.get("before", {}), acc.get("after", {})
+    row = {} if path is None else {"file": path}
+    row.update(before=b.get("rmse_mm"), after=a.get("rmse_mm"))
+    if a.get("rmse_mrad") is not None:
+        row.update(before_mrad=b.get("rmse_mrad"), after_mrad=a.get("rmse_mrad"))
+    return row
+
+
+def calibration_block(*, estimator: str, train, validation=(), free=(), covariance=None, noise=None,
+                      sigma0=None, rmse_mm=None, **extra) -> dict:
+    """The ``calibration:`` mapping of a saved model (plain data, SI units).
+
+    ``train`` / ``validation``: datasets (hashed when they come from files); ``free`` and
+    ``covariance``: the estimated parameters and their covariance in that order (omitted when
+    the covariance is not finite, e.g. an unidentifiable set); ``noise``: a NoiseModel or dict;
+    ``extra``: further keys (``level``, ``options``, ``causes`` …) written as given.
+    """
+    from estcal import __version__
+
+    trains = train if isinstance(train, (list, tuple)) else [train]
+    out: dict = {"estcal_version": __version__,
+                 "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                 "estimator": estimator,
+                 "data": [data_entry(d, "train") for d in trains] + [data_entry(d, "validation")
+                                                                      for d in validation]}
+    C = None if covariance is None else np.asarray(covariance, float)
+    if C is not None and len(free) and np.all(np.isfinite(C)):
+        out["free"] = [str(n) for n in free]
+        out["covariance"] = C.tolist()
+    elif len(free):
+        out["free_not_saved"] = "covariance not finite (parameters not identifiable); free/covariance omitted"
+    if noise is not None:
+        nz = noise.to_dict() if hasattr(noise, "to_dict") else dict(noise)
+        out["noise"] = {k: (bool(v) if k == "known" else float(v)) for k, v in nz.items()}
+    if sigma0 is not None:
+        out["sigma0"] = float(sigma0)
+    if rmse_mm is not None:
+        out["rmse_mm"] = rmse_mm
+    out.update(extra)
+    return out
+
+
+def _finite_or_none(x):
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
+
+
+def _write(robot, block: dict, path) -> Path:
+    from estcal.io.robotfile import _plain, save_robot
+
+    out = robot.copy()  # shallow: the caller's robot keeps its own meta
+    out.meta = dict(robot.meta)
+    out.meta["calibration"] = _finite_or_none(_plain(block))
+    return save_robot(out, path)
+
+
+def save_calibration(result, path, provenance: dict | None = None) -> Path:
+    """Write a :class:`~estcal.estimate.result.CalibrationResult` as a saved model."""
+    problem = result.problem
+    if problem is None:
+        raise ValueError("this CalibrationResult does not know its problem (robot and data); it was not made "
+                         "by an estcal estimator — save its robot with estcal.io.robotfile.save_robot")
+    robot = result.robot()
+    acc = result.accuracy or {}
+    rm = {}
+    if "train" in acc:
+        rm["train"] = _rmse_row(acc["train"])
+    if acc.get("validation"):
+        rm["validation"] = [_rmse_row(v, v.get("path")) for v in acc["validation"]]
+    extra = {k: result.extra[k] for k in ("level", "selection_criterion", "options", "regularize", "measure")
+             if k in result.extra}
+    if "selection" in result.extra:
+        sel = result.extra["selection"]
+        extra.setdefault("level", sel.get("level"))
+        extra.setdefault("selection_criterion", sel.get("criterion"))
+    extra["covariance_source"] = result.covariance_source
+    extra["converged"] = bool(result.converged)
+    extra.update(provenance or {})
+    block = calibration_block(estimator=result.method, train=[t.data for t in problem.terms],
+                              validation=result.validation_data, free=result.names,
+                              covariance=result.covariance, noise=problem.terms[0].noise,
+                              sigma0=result.sigma0, rmse_mm=rm, **extra)
+    return _write(robot, block, path)
+
+
+def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
+    """Write a :class:`~estcal.discrepancy.diagnose.DiagnosisResult` as a saved model
+    (the extended robot: geometry + named effects, at the joint estimate)."""
+    if result.robot is None:
+        raise ValueError("this DiagnosisResult has no robot (it was rebuilt from JSON); run diagnose again")
+    m = result.model
+    rm = {"train": {"geometric": result.rmse_mm["geometric"]["train"],
+                    "extended": result.rmse_mm["extended"]["train"]},
+          "cv": {"geometric": result.rmse_mm["geometric"]["cv"], "extended": result.rmse_mm["extended"]["cv"]}}
+    if result.rmse_mm["geometric"].get("validation") is not None:
+        rm["validation"] = {"geometric": result.rmse_mm["geometric"]["validation"],
+                            "extended": result.rmse_mm["extended"]["validation"]}
+    extra = {"level": m.get("geometric_level"),
+             "causes": [{"effect": c.effect, "joints": list(c.joints),
+                         "parameters": {n: {"estimate": v["estimate"], "std": v["std"]}
+                                        for n, v in c.parameters.items()},
+                         "delta_bic": c.delta_bic, "p_value": c.p_value} for c in result.causes],
+             "verdict": result.verdict,
+             "lumped_masses": bool(result.lumped_masses),
+             "data_preparation": {"session_time": bool(m.get("session_time")),
+                                  "approach_from_order": bool(m.get("approach_from_order"))}}
+    if result.located:
+        extra["located"] = [{"joints": d["joints"], "shape": d["shape"]} for d in result.located]
+    extra.update(provenance or {})
+    cov = result.covariance
+    free = result.covariance_names
+    block = calibration_block(estimator="lm (diagnose: geometric + named effects)", train=result.train_data or [],
+                              validation=result.validation_data, free=free, covariance=cov,
+                              noise=result.noise, sigma0=result.sigma0, rmse_mm=rm, **extra)
+    return _write(result.robot, block, path)
+
+
+def prepare_data(robot, data):
+    """``data`` prepared for ``robot`` as the fit that saved it prepared its own.
+
+    For a diagnosed model (``calibration.data_preparation``): approach columns from the
+    posture order, ``t`` measured from the first pose of the file (session time). Effect
+    columns (``approach_<joint>``) are moved into the context in every case. Data of a
+    model without such a block are returned with only that last step.
+    """
+    from estcal.discrepancy.geometric import derive_approach, with_effect_context
+
+    prep = ((robot.meta.get("calibration") or {}).get("data_preparation") or {})
+    d = derive_approach(data) if prep.get("approach_from_order") else data
+    d = with_effect_context(robot, d)
+    if prep.get("session_time") and "t" in d.context:
+        d.columns["t_abs"] = d.context["t"].copy()
+        d.context["t"] = d.context["t"] - d.context["t"].min()
+    return d

@@ -1,0 +1,33 @@
+"""Figures of estcal's results, one module per concern.
+
+Every function takes plain data (arrays in the display units the tables use —
+mm, mrad, degrees — or result objects) and *returns* a
+:class:`matplotlib.figure.Figure` built without :mod:`matplotlib.pyplot`: no
+backend is chosen or switched (a notebook keeps its own), and nothing is
+written. The CLI's ``--report DIR`` (:mod:`estcal.report`) saves them; in a
+notebook, display the returned figure.
+
+* :mod:`.errors` — per-pose error before/after, residual vs each joint;
+* :mod:`.parameters` — estimates with ±2σ bars, correlation heat map;
+* :mod:`.design` — predicted position error over the workspace, random-plan baseline;
+* :mod:`.online` — row-by-row estimate ± σ and innovation tests;
+* :mod:`.posterior` — MCMC corner plot (``corner`` package);
+* :mod:`.diagnose` — partial joint residuals, residual norm, harmonic spectrum.
+"""
+from __future__ import annotations
+
+from matplotlib.figure import Figure
+
+__all__ = ["new_figure", "Figure"]
+
+
+def new_figure(width: float, height: float, **kwargs) -> Figure:
+    """A pyplot-free figure (``constrained`` layout unless told otherwise)."""
+    kwargs.setdefault("layout", "constrained")
+    return Figure(figsize=(width, height), **kwargs)
+
+
+def grid_shape(n: int, max_cols: int = 4) -> tuple[int, int]:
+    """(rows, cols) of a panel grid for ``n`` panels."""
+    cols = max(1, min(max_cols, n))
+    return int(-(-n // cols)), cols

@@ -1,0 +1,128 @@
+"""A small self-contained HTML report: headings, text, tables and PNG figures.
+
+No template engine, no external assets: ``index.html`` references the PNG
+files next to it, so the folder can be zipped, mailed or served as is.
+Numbers in tables are printed with ``digits`` significant digits (6 by
+default, more than the terminal tables) so that they can be compared with the
+command's JSON.
+"""
+from __future__ import annotations
+
+import html
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+from datetime import datetime, timezone
+from pathlib import Path
+
+from estcal.io.atomic import atomic_write_text
+
+from .figures import save_figure
+
+__all__ = ["Table", "Report", "format_cell"]
+
+
+def format_cell(v, digits: int = 6) -> str:
+    """Text of a table cell: floats with ``digits`` significant digits, None / NaN as '—'."""
+    if v is None:
+        return "—"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return "—" if not math.isfinite(v) else f"{v:.{digits}g}"
+    if hasattr(v, "item") and not isinstance(v, (str, bytes)):  # numpy scalars
+        return format_cell(v.item(), digits)
+    return str(v)
+
+
+@dataclass
+class Table:
+    """A titled table; ``key`` becomes the HTML ``id`` (``table-<key>``).
+
+    ``fmt(row, col, value, digits)``, when given, formats the numeric cells (e.g. decimals
+    chosen per row from an interval's width); otherwise :func:`format_cell`."""
+
+    key: str
+    title: str
+    columns: list
+    rows: list
+    note: str = ""
+    digits: int = 6
+    fmt: Callable | None = field(default=None, repr=False)
+
+    def cell(self, i: int, j: int, v, digits: int | None = None) -> str:
+        d = self.digits if digits is None else digits
+        if self.fmt is not None and isinstance(v, float) and math.isfinite(v):
+            return self.fmt(i, j, v, d)
+        return format_cell(v, d)
+
+    def html(self) -> str:
+        head = "".join(f"<th>{html.escape(str(c))}</th>" for c in self.columns)
+        body = "\n".join("<tr>" + "".join(f"<td>{html.escape(self.cell(i, j, v))}</td>" for j, v in enumerate(r))
+                         + "</tr>" for i, r in enumerate(self.rows))
+        note = f'<p class="note">{html.escape(self.note)}</p>' if self.note else ""
+        return (f'<h3>{html.escape(self.title)}</h3>\n<table id="table-{html.escape(self.key)}">\n'
+                f"<thead><tr>{head}</tr></thead>\n<tbody>\n{body}\n</tbody></table>\n{note}")
+
+
+_CSS = """body{font-family:sans-serif;max-width:1200px;margin:1em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1em}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right;
+font-size:13px}th{background:#eee}td:first-child,th:first-child{text-align:left}
+figure{margin:1em 0}img{max-width:100%;border:1px solid #ddd}figcaption{font-size:13px;color:#555}
+.note{font-size:13px;color:#555}pre{background:#f6f6f6;padding:.5em;font-size:12px;white-space:pre-wrap}"""
+
+
+@dataclass
+class Report:
+    """Collects the parts of a report in order; :meth:`write` produces ``index.html``.
+
+    Figures are saved (PNG, atomic) as soon as they are added, so a run stopped
+    half-way leaves complete images; ``index.html`` is written last.
+    """
+
+    folder: Path
+    title: str
+    subtitle: str = ""
+    parts: list = field(default_factory=list)
+    files: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.folder = Path(self.folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def heading(self, text: str) -> None:
+        self.parts.append(f"<h2>{html.escape(text)}</h2>")
+
+    def text(self, text: str, pre: bool = False) -> None:
+        t = html.escape(text)
+        self.parts.append(f"<pre>{t}</pre>" if pre else f"<p>{t}</p>")
+
+    def table(self, table: Table) -> Table:
+        self.parts.append(table.html())
+        return table
+
+    def figure(self, name: str, fig, caption: str = "") -> str:
+        """Save ``fig`` as ``name`` (PNG) in the folder and show it in the page."""
+        save_figure(fig, self.folder / name)
+        return self.image(name, caption)
+
+    def image(self, name: str, caption: str = "") -> str:
+        """Show an image file already in the folder."""
+        if name not in self.files:
+            self.files.append(name)
+        cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
+        self.parts.append(f'<figure><img src="{html.escape(name)}" alt="{html.escape(caption or name)}">'
+                          f"{cap}</figure>")
+        return name
+
+    def link(self, name: str, text: str) -> None:
+        self.parts.append(f'<p><a href="{html.escape(name)}">{html.escape(text)}</a></p>')
+
+    def write(self) -> Path:
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        sub = f"<p>{html.escape(self.subtitle)}</p>" if self.subtitle else ""
+        page = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+                f"<title>{html.escape(self.title)}</title><style>{_CSS}</style></head><body>\n"
+                f"<h1>{html.escape(self.title)}</h1>\n{sub}<p class=\"note\">written by estcal, {stamp}</p>\n"
+                + "\n".join(self.parts) + "\n</body></html>\n")
+        return atomic_write_text(self.folder / "index.html", page)

@@ -1,0 +1,243 @@
+"""Fleet calibration: calibrate (or diagnose) every robot of a folder, one task per robot.
+
+Layout of a fleet folder ``DIR`` (what :func:`discover_fleet` reads):
+
+* one sub-folder per robot; the folder name is the robot's name;
+* in it, the calibration dataset — ``data.csv`` (or ``calibration.csv``, or the
+  only CSV that is not a validation file) — and optional validation datasets
+  ``validate*.csv`` (scored, never fitted);
+* the robot file — ``robot.yaml``/``robot.yml`` or a single ``*.urdf`` in the
+  robot's folder, else one shared robot file (``robot.yaml``, ``robot.yml`` or a
+  single ``*.urdf``) at ``DIR``'s top level.
+
+Folders whose name starts with ``.`` or ``_`` are skipped (``_models/`` …).
+Every robot is one task of :func:`estcal.scale.runner.run_tasks`: a robot
+whose folder is incomplete or whose calibration fails is reported (name,
+inputs, one-line error) and the others go on. Each worker writes its robot's
+saved model itself (``--save-models``), so only the summary row travels back.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FleetJob", "FleetOptions", "FleetSummary", "FleetError", "discover_fleet", "process_robot",
+           "run_fleet"]
+
+
+class FleetError(ValueError):
+    """A robot folder that cannot be processed (missing dataset or robot file)."""
+
+
+@dataclass(frozen=True)
+class FleetJob:
+    """Inputs of one robot: its name, dataset, validation files and robot file (paths as strings)."""
+
+    name: str
+    folder: str
+    data: str | None
+    validate: tuple = ()
+    robot: str | None = None
+    problem: str | None = None  # why the folder is incomplete (the task then fails with this message)
+
+    def __repr__(self) -> str:  # the "inputs" of a failure report: short and readable
+        return f"{self.name}: data={Path(self.data).name if self.data else None}, robot={self.robot}"
+
+
+@dataclass(frozen=True)
+class FleetOptions:
+    """What to do with each robot (the ``estcal fleet`` options)."""
+
+    level: str = "full"
+    estimator: str = "lm"
+    diagnose: bool = False
+    noise_pos: float = 1e-4
+    noise_rot: float = 1e-3
+    known_noise: bool = False
+    save_models: str | None = None
+    seed: int = 0
+
+
+def _robot_file(folder: Path) -> Path | None:
+    for name in ("robot.yaml", "robot.yml"):
+        if (folder / name).is_file():
+            return folder / name
+    urdfs = sorted(folder.glob("*.urdf"))
+    return urdfs[0] if len(urdfs) == 1 else None
+
+
+def _datasets(folder: Path) -> tuple[Path | None, list[Path], str | None]:
+    csvs = sorted(p for p in folder.glob("*.csv") if p.is_file())
+    val = [p for p in csvs if p.name.lower().startswith("validat")]
+    rest = [p for p in csvs if p not in val]
+    for name in ("data.csv", "calibration.csv"):
+        if folder / name in rest:
+            return folder / name, val, None
+    if len(rest) == 1:
+        return rest[0], val, None
+    if not rest:
+        return None, val, "no calibration dataset (expected data.csv)"
+    return None, val, f"{len(rest)} candidate datasets ({', '.join(p.name for p in rest[:4])}); name one data.csv"
+
+
+def discover_fleet(root) -> list[FleetJob]:
+    """One :class:`FleetJob` per robot folder of ``root`` (sorted by name); see the module docstring."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FleetError(f"{root}: not a folder (expected one sub-folder per robot)")
+    shared = _robot_file(root)
+    jobs = []
+    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith((".", "_"))):
+        data, val, problem = _datasets(folder)
+        rf = _robot_file(folder) or shared
+        if rf is None and problem is None:
+            problem = (f"no robot file (robot.yaml or one .urdf in {folder.name}/, or one shared at "
+                       f"{root.name}/robot.yaml)")
+        jobs.append(FleetJob(folder.name, str(folder), str(data) if data else None, tuple(map(str, val)),
+                             str(rf) if rf else None, problem))
+    if not jobs:
+        raise FleetError(f"{root}: no robot folders (expected one sub-folder per robot with data.csv)")
+    return jobs
+
+
+def _load(job: FleetJob):
+    from estcal.cli.common import count_point_columns
+    from estcal.io import load_dataset
+    from estcal.io.robotfile import load_robot
+
+    k, _, has_quat = count_point_columns(job.data)
+    n_markers = k if k and not has_quat else None
+    rob = load_robot(job.robot, n_markers=n_markers)
+    ds = load_dataset(job.data, rob, points=n_markers)
+    vals = [load_dataset(v, rob, points=n_markers) for v in job.validate]
+    warnings = [f"{Path(d.where).name}: {w}" if d.where else w for d in [ds] + vals for w in d.warnings]
+    return rob, ds, vals, warnings
+
+
+def _acc(acc, which="after", key="rmse_mm"):
+    v = (acc or {}).get(which, {}).get(key)
+    return None if v is None else float(v)
+
+
+def _save(robot, path: Path, block: dict) -> str:
+    from estcal.io.robotfile import save_robot
+
+    robot.meta["calibration"] = block
+    save_robot(robot, path)
+    return str(path)
+
+
+def _calibrate(job, opts, rob, ds, vals, warnings) -> dict:
+    from estcal.estimate.levels import run_calibration
+    from estcal.methods import NoiseModel
+
+    noise = NoiseModel(position=opts.noise_pos, orientation=opts.noise_rot, scalar=opts.noise_pos,
+                       known=opts.known_noise)
+    res, sel, problem = run_calibration(rob, ds, estimator=opts.estimator, level=opts.level, validate=vals,
+                                        noise=noise)
+    if not res.converged:
+        warnings.append("not converged")
+    acc = res.accuracy or {}
+    val = acc.get("validation", [])
+    row = {"poses": int(ds.n), "n_parameters": len(res.names), "sigma0": float(res.sigma0),
+           "converged": bool(res.converged),
+           "rmse_before_mm": _acc(acc.get("train"), "before"), "rmse_after_mm": _acc(acc.get("train")),
+           "rot_rmse_after_mrad": _acc(acc.get("train"), "after", "rmse_mrad"),
+           "validation_rmse_before_mm": _acc(val[0], "before") if val else None,
+           "validation_rmse_mm": _acc(val[0]) if val else None, "causes": []}
+    if opts.save_models:
+        cal = rob.with_values(np.asarray(res.theta)[: rob.n_params])
+        keep = [i for i, n in enumerate(res.names) if n in cal.params.names]
+        C = np.asarray(res.covariance)[np.ix_(keep, keep)]
+        block = {"source": "estcal fleet", "robot": job.name, "method": res.method, "data": job.data, "poses": int(ds.n),
+                 "free": [res.names[i] for i in keep], "covariance": C.tolist(), "sigma0": float(res.sigma0),
+                 "rmse_mm": row["rmse_after_mm"], "validation_rmse_mm": row["validation_rmse_mm"]}
+        row["model"] = _save(cal, Path(opts.save_models) / f"{job.name}.yaml", block)
+    return row
+
+
+def _diagnose(job, opts, rob, ds, vals, warnings) -> dict:
+    from estcal.discrepancy import diagnose
+
+    res = diagnose(rob, ds, validate=vals, noise=opts.noise_pos if opts.known_noise else None, rng=opts.seed)
+    r = res.rmse_mm
+    geo, ext = r.get("geometric", {}), r.get("extended", {})
+    causes = [f"{c.effect}({','.join(c.joints) if c.joints else 'arm'})" for c in res.causes]
+    row = {"poses": int(ds.n), "n_parameters": len(res.geometric_free) + sum(len(c.parameters) for c in res.causes),
+           "rmse_before_mm": _first(geo.get("train")), "rmse_after_mm": _first(ext.get("train")),
+           "validation_rmse_before_mm": _first(geo.get("validation")),
+           "validation_rmse_mm": _first(ext.get("validation")), "causes": causes, "verdict": res.verdict}
+    if opts.save_models:
+        block = {"source": "estcal fleet --diagnose", "robot": job.name, "data": job.data, "poses": int(ds.n), "causes": causes,
+                 "rmse_mm": row["rmse_after_mm"], "validation_rmse_mm": row["validation_rmse_mm"]}
+        row["model"] = _save(res.robot, Path(opts.save_models) / f"{job.name}.yaml", block)
+    return row
+
+
+def _first(v):
+    if isinstance(v, (list, tuple)):
+        v = v[0] if v else None
+    return None if v is None else float(v)
+
+
+def process_robot(job: FleetJob, opts: FleetOptions) -> dict:
+    """Calibrate (or diagnose) one robot and write its saved model; returns its summary row.
+
+    Raises :class:`FleetError` for an incomplete folder and whatever loading or
+    estimation raises otherwise (the runner reports it with the robot's inputs).
+    """
+    if job.problem:
+        raise FleetError(f"{job.folder}: {job.problem}")
+    rob, ds, vals, warnings = _load(job)
+    row = (_diagnose if opts.diagnose else _calibrate)(job, opts, rob, ds, vals, warnings)
+    return {"robot": job.name, **row, "warnings": warnings}
+
+
+def _process(job, opts):  # task signature of run_tasks: fn(task)
+    return process_robot(job, opts)
+
+
+@dataclass
+class FleetSummary:
+    """Rows of the robots processed, failures (robot, inputs, error), and how the run went."""
+
+    rows: list
+    failures: list
+    scheduler: str
+    n_workers: int
+    wall_s: float
+    options: dict = field(default_factory=dict)
+
+    @property
+    def n_ok(self) -> int:
+        return len(self.rows)
+
+    def to_dict(self) -> dict:
+        return {"n_robots": len(self.rows) + len(self.failures), "n_ok": len(self.rows),
+                "n_failed": len(self.failures), "scheduler": self.scheduler, "n_workers": self.n_workers,
+                "wall_s": self.wall_s, "options": self.options, "robots": self.rows,
+                "failures": self.failures}
+
+
+def run_fleet(root, opts: FleetOptions = FleetOptions(), scheduler="serial", n_workers: int | None = None,
+              progress="auto") -> FleetSummary:
+    """Process every robot of the fleet folder ``root``; failures are listed, never fatal."""
+    import functools
+
+    jobs = discover_fleet(root)
+    if opts.save_models:
+        Path(opts.save_models).mkdir(parents=True, exist_ok=True)
+    rr = _run(functools.partial(_process, opts=opts), jobs, scheduler, n_workers, progress)
+    rows = [r for r in rr.results if r is not None]
+    fails = [{"robot": jobs[f.index].name, "folder": jobs[f.index].folder, "inputs": f.inputs, "error": f.error}
+             for f in rr.failures]
+    return FleetSummary(rows, fails, rr.scheduler, rr.n_workers, rr.wall_s,
+                        {k: getattr(opts, k) for k in opts.__dataclass_fields__})
+
+
+def _run(fn, jobs, scheduler, n_workers, progress):
+    from .runner import run_tasks
+
+    return run_tasks(fn, jobs, scheduler=scheduler, n_workers=n_workers, progress=progress, desc="fleet")

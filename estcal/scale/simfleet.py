@@ -1,0 +1,86 @@
+"""A simulated fleet: one folder per robot with its calibration and validation data and its truth.
+
+Every robot of the fleet is the same nominal model (one shared robot file at
+the fleet's top level, as a factory calibrating one product line) with its own
+random geometric errors (:func:`estcal.simulate.random_errors` magnitudes) and,
+with probability ``p_effect``, one non-geometric effect drawn from
+``effects`` on a random joint. Layout (read by :mod:`estcal.scale.fleet`)::
+
+    OUT/robot.yaml                  nominal robot (shared)
+    OUT/robot_0000/data.csv         calibration dataset (n_poses)
+    OUT/robot_0000/validate.csv     validation dataset (n_validate new poses, same robot)
+    OUT/robot_0000/truth.json       ground truth (errors, effects, noise)
+
+Robot ``i`` uses seed ``SeedSequence(seed).spawn(n)[i]``, so a robot's data do
+not depend on the fleet size or on which worker simulated it.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FLEET_EFFECTS", "simulate_fleet", "simulate_robot"]
+
+# effect spec templates: "{j}" is replaced by a random joint drawn among those given
+FLEET_EFFECTS = ("gear_harmonic:{j}", "encoder_gain:{j}", "joint_compliance:j2,j3")
+
+
+def _effect_spec(template: str, rng, joints) -> str:
+    return template.format(j=joints[int(rng.integers(len(joints)))])
+
+
+def simulate_robot(job) -> dict:
+    """Simulate one robot folder (a task of :func:`simulate_fleet`); returns its summary row."""
+    from estcal.io.atomic import atomic_write_text
+    from estcal.io.dataset import write_dataset
+    from estcal.io.robotfile import load_robot
+    from estcal.simulate import NoiseModel, simulate
+
+    (folder, robot_file, n_poses, n_validate, measure, noise_pos, noise_rot, p_effect, effects, seed) = job
+    folder = Path(folder)
+    nominal = load_robot(robot_file)
+    rng = np.random.default_rng(seed)
+    eff = []
+    if effects and rng.random() < p_effect:
+        eff = [_effect_spec(effects[int(rng.integers(len(effects)))], rng, nominal.joint_names)]
+    sim_seed = int(rng.integers(2 ** 63))
+    res = simulate(nominal, n_poses=n_poses + n_validate, measure=measure, errors="random", effects=eff,
+                   noise=NoiseModel(position=noise_pos, orientation=noise_rot), seed=sim_seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    idx = np.arange(n_poses + n_validate)
+    write_dataset(folder / "data.csv", res.dataset.subset(idx[:n_poses]), float_format="%.15g")
+    if n_validate:
+        write_dataset(folder / "validate.csv", res.dataset.subset(idx[n_poses:]), float_format="%.15g")
+    truth = dict(res.truth)
+    truth["fleet"] = {"calibration_poses": n_poses, "validation_poses": n_validate, "effects": eff}
+    atomic_write_text(folder / "truth.json", json.dumps(truth, indent=2))
+    return {"robot": folder.name, "effects": eff, "nominal_rms_mm": res.summary.nominal_rms_mm}
+
+
+def simulate_fleet(n: int, out, robot="puma560", n_poses: int = 50, n_validate: int = 50,
+                   measure: str = "pose", noise_pos: float = 5e-5, noise_rot: float = 5e-4,
+                   p_effect: float = 0.5, effects=FLEET_EFFECTS, seed: int = 0, scheduler="serial",
+                   n_workers: int | None = None, progress="auto"):
+    """Write a simulated fleet of ``n`` robots to ``out`` (see the module docstring).
+
+    Returns the :class:`~estcal.scale.runner.RunResult` of the per-robot simulations
+    (one summary row per robot: name, effects, nominal-vs-true RMS in mm).
+    """
+    from estcal.io.robotfile import load_robot, save_robot
+
+    from .runner import run_tasks, task_seeds
+
+    if n < 1:
+        raise ValueError(f"--fleet: the number of robots must be ≥ 1, got {n}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    nominal = load_robot(robot)
+    robot_file = save_robot(nominal, out / "robot.yaml")
+    width = max(4, len(str(n - 1)))
+    seeds = task_seeds(seed, n)
+    jobs = [(str(out / f"robot_{i:0{width}d}"), str(robot_file), n_poses, n_validate, measure, noise_pos,
+             noise_rot, p_effect, tuple(effects), seeds[i]) for i in range(n)]
+    return run_tasks(simulate_robot, jobs, scheduler=scheduler, n_workers=n_workers, progress=progress,
+                     desc="simulate fleet")

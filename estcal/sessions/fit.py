@@ -1,0 +1,239 @@
+"""Calibration over several sessions with a repeatability model (orchestration).
+
+:func:`fit_sessions` estimates the population parameters θ shared by every
+session, the per-session deviations ``u_s`` of a chosen subset (``vary``) and
+their variance components ``Q`` (REML), by Gauss–Newton iterations on the
+linearised mixed model of :mod:`estcal.sessions.system`, solved by one of the
+three agreeing formulations of :mod:`estcal.sessions.formulations`
+(``"gls"``, ``"gtsam"``, ``"kalman"``).
+
+Units: SI inside (m, rad); :meth:`SessionFit.variance_components` reports the
+between-session standard deviation of each varying parameter in mm (lengths)
+or mrad (angles).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .formulations import solve_factor_graph, solve_gls, solve_kalman
+from .system import blocks_from_rows, reml, reml_objective
+
+__all__ = ["SessionFit", "fit_sessions", "session_problems", "SOLVERS"]
+
+SOLVERS = {"gls": solve_gls, "gtsam": solve_factor_graph, "kalman": solve_kalman}
+_ANGLE_PREFIXES = ("alpha", "theta", "beta", "rx", "ry", "rz")
+
+
+def _is_angle(robot, name: str) -> bool:
+    """Whether parameter ``name`` is an angle (rad) rather than a length (m) or a gain (1)."""
+    pv = robot.params
+    kind = pv.kinds[pv.index(name)]
+    if kind == "offset":
+        j = next((i for i, idx in enumerate(robot.offset_idx) if pv.names[idx] == name), None)
+        return j is not None and robot.joint_types[j] == "revolute"
+    return name.split("_")[0] in _ANGLE_PREFIXES or name.endswith(("_rx", "_ry", "_rz"))
+
+
+@dataclass
+class SessionFit:
+    """Result of :func:`fit_sessions` (plain data; ``to_dict()`` for JSON).
+
+    names : free parameter names; estimate (p,) and cov (p, p) their population
+    values and covariance (SI); vary : the parameters that vary between sessions,
+    q (k,) their variance components (SI², 0 = does not vary) with q_std; s2 :
+    variance factor of the measurement noise (1 when the noise is known);
+    u (n_s, k), u_cov (n_s, k, k) : each session's deviation (BLUP) and its
+    prediction-error covariance; theta : the full parameter vector (population).
+    """
+
+    names: list
+    estimate: np.ndarray
+    cov: np.ndarray
+    vary: list
+    q: np.ndarray
+    q_std: np.ndarray
+    s2: float
+    u: np.ndarray
+    sessions: list
+    formulation: str
+    n_iterations: int
+    converged: bool
+    theta: np.ndarray = field(repr=False)
+    robot: object = field(repr=False, default=None)
+    noise: object = field(repr=False, default=None)
+    reml_objective: float = float("nan")
+    n_rows: int = 0
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def vary_index(self) -> np.ndarray:
+        return np.array([self.names.index(n) for n in self.vary], int)
+
+    def new_session_cov(self) -> np.ndarray:
+        """Covariance of a new session's parameters: ``cov + E Q Eᵀ`` (free parameters)."""
+        C = self.cov.copy()
+        S = self.vary_index
+        C[S, S] += self.q
+        return C
+
+    def variance_components(self) -> list[dict]:
+        """Between-session std of every varying parameter, in mm / mrad (or 1 for gains)."""
+        out = []
+        for n, q, qs in zip(self.vary, self.q, self.q_std):
+            ang = _is_angle(self.robot, n) if self.robot is not None else False
+            f, unit = (1e3, "mrad") if ang else (1e3, "mm")
+            sd = float(np.sqrt(q))
+            # delta method: sd(√q) = sd(q) / (2√q)
+            sd_err = float(qs / (2 * sd)) if sd > 0 and np.isfinite(qs) else float("nan")
+            out.append({"parameter": n, "std": sd * f, "std_err": sd_err * f, "unit": unit,
+                        "varies": bool(q > 0)})
+        return out
+
+    def to_dict(self) -> dict:
+        from estcal.io.jsonio import to_jsonable
+
+        return to_jsonable({
+            "formulation": self.formulation, "sessions": list(self.sessions), "n_rows": self.n_rows,
+            "parameters": {n: {"estimate": float(v), "std": float(s)}
+                           for n, v, s in zip(self.names, self.estimate, self.std)},
+            "vary": list(self.vary), "variance_components": self.variance_components(),
+            "q": self.q.tolist(), "q_std": self.q_std.tolist(), "s2": self.s2,
+            "session_deviations": {s: dict(zip(self.vary, map(float, u))) for s, u in zip(self.sessions, self.u)},
+            "n_iterations": self.n_iterations, "converged": self.converged,
+            "reml_objective": self.reml_objective})
+
+
+def session_problems(robot, datasets, noise):
+    """One :class:`estcal.methods.Problem` per session, all on the same robot."""
+    from estcal.methods import Problem
+
+    return [Problem(robot, [(None, ds, noise)], noise) for ds in datasets]
+
+
+def _linearise(problems, theta, free_idx, S, u):
+    A_list, r_list = [], []
+    for s, prob in enumerate(problems):
+        th = theta.copy()
+        th[free_idx[S]] += u[s]
+        rows = prob.evaluate(th)
+        w = 1.0 / rows.sigma
+        A = rows.H[:, free_idx] * w[:, None]
+        r = rows.e * w + A[:, S] @ u[s]  # pseudo-data: the session's current deviation added back
+        A_list.append(A)
+        r_list.append(r)
+    return A_list, r_list
+
+
+def fit_sessions(robot, datasets, free, vary=(), *, noise=None, q=None, formulation: str = "gls",
+                 theta=None, max_iter: int = 30, tol: float = 1e-9, session_names=None) -> SessionFit:
+    """Fit the repeatability model ``θ_s = θ + E u_s, u_s ~ N(0, Q)`` to several sessions.
+
+    Parameters
+    ----------
+    robot : SerialRobot (its values are the starting point unless ``theta`` is given).
+    datasets : list of Dataset, one per session (same robot, same markers).
+    free : free parameter names (population θ).
+    vary : subset of ``free`` that varies between sessions.
+    noise : :class:`estcal.methods.NoiseModel`; with ``known=False`` the variance factor s² is
+        estimated with Q by REML.
+    q : fixed variance components (SI², one per ``vary``), or None to estimate them by REML.
+    formulation : ``"gls"``, ``"gtsam"`` or ``"kalman"`` (:mod:`estcal.sessions.formulations`).
+    """
+    from estcal.methods import NoiseModel
+
+    if formulation not in SOLVERS:
+        raise ValueError(f"unknown formulation {formulation!r}; choose one of {sorted(SOLVERS)}")
+    noise = noise or NoiseModel()
+    free = list(free)
+    vary = list(vary)
+    missing = [n for n in vary if n not in free]
+    if missing:
+        raise ValueError(f"vary: {missing} are not free parameters; a varying parameter must be estimated")
+    if len(datasets) < 1:
+        raise ValueError("fit_sessions needs at least one session")
+    problems = session_problems(robot, datasets, noise)
+    pv = problems[0].params
+    free_idx = np.array(pv.indices(free), int)
+    S = np.array([free.index(n) for n in vary], int)
+    theta = (pv.values if theta is None else np.asarray(theta, float)).copy()
+    n_s, k = len(datasets), len(S)
+    u = np.zeros((n_s, k))
+    solver = SOLVERS[formulation]
+    estimate_q = q is None and k > 0
+    qv = np.zeros(k) if q is None else np.asarray(q, float).copy()
+    if qv.shape != (k,):
+        raise ValueError(f"q must have one variance per varying parameter ({k}), got shape {qv.shape}")
+    s2 = 1.0
+    A_list, r_list = _linearise(problems, theta, free_idx, S, u)
+    # column scaling (fixed from the first linearisation) keeps N well conditioned across m / rad / 1
+    c = np.sqrt(sum(np.einsum("ij,ij->j", A, A) for A in A_list))
+    c = np.where(c > 0, c, 1.0)
+    _check_rank(A_list, c, free)
+    converged = False
+    obj = float("nan")
+    it = 0
+    for it in range(1, max_iter + 1):
+        As = [A / c for A in A_list]
+        blocks = [blocks_from_rows(A, r) for A, r in zip(As, r_list)]
+        qs = qv * c[S] ** 2
+        if estimate_q or not noise.known:
+            if estimate_q:
+                qs, s2, _, info = reml(blocks, S, q0=qs if it > 1 else None, estimate_scale=not noise.known,
+                                       scale0=s2, q_max=1e10)
+            else:
+                qs, s2 = _scale_only(blocks, S, qs, s2)
+        delta_s, cov_s, u_s = solver(As, r_list, S, qs, s2)
+        delta = delta_s / c
+        theta[free_idx] += delta
+        u = u_s / c[S] if k else u
+        qv = qs / c[S] ** 2 if k else qv
+        step = np.max(np.abs(delta_s) / np.sqrt(np.maximum(np.diag(cov_s), 1e-300)))
+        A_list, r_list = _linearise(problems, theta, free_idx, S, u)
+        if step < tol ** 0.5 * 1e-2 or step < 1e-6:
+            converged = True
+            break
+    # final solve and uncertainties at the converged linearisation
+    As = [A / c for A in A_list]
+    blocks = [blocks_from_rows(A, r) for A, r in zip(As, r_list)]
+    qs = qv * c[S] ** 2
+    q_std = np.full(k, np.nan)
+    if estimate_q:
+        qs, s2, qstd_s, info = reml(blocks, S, q0=qs, estimate_scale=not noise.known, scale0=s2, q_max=1e10)
+        q_std = qstd_s / c[S] ** 2
+    delta_s, cov_s, u_s = solver(As, r_list, S, qs, s2)
+    theta[free_idx] += delta_s / c
+    obj = reml_objective(blocks, S, qs, s2)
+    cov = cov_s / np.outer(c, c)
+    return SessionFit(free, theta[free_idx].copy(), cov, vary, qs / c[S] ** 2 if k else np.zeros(0), q_std,
+                      float(s2), u_s / c[S] if k else np.zeros((n_s, 0)),
+                      list(session_names or [getattr(d, "where", None) or f"session{i + 1}"
+                                             for i, d in enumerate(datasets)]),
+                      formulation, it, converged, theta, problems[0].robot, noise, float(obj),
+                      int(sum(A.shape[0] for A in A_list)))
+
+
+def _check_rank(A_list, c, free, max_cond: float = 1e10):
+    """Refuse a free set that the sessions' data cannot determine (naming the dependent parameters)."""
+    N = sum((A / c).T @ (A / c) for A in A_list)
+    w, V = np.linalg.eigh(N)
+    if w[0] <= w[-1] / max_cond:
+        v = V[:, 0]
+        worst = [free[i] for i in np.argsort(-np.abs(v))[:4] if abs(v[i]) > 0.1]
+        raise ValueError(f"the free parameters are not identifiable from these sessions (condition number "
+                         f"{np.sqrt(w[-1] / max(w[0], 1e-300)):.3g}); dependent combination of {worst}: fix some "
+                         f"of them or choose the free set with estcal.estimate.levels.select_free on the "
+                         f"stacked sessions")
+
+
+def _scale_only(blocks, S, q, s2):
+    """REML variance factor s² with fixed q (unknown noise level, known Q)."""
+    from scipy import optimize
+
+    res = optimize.minimize_scalar(lambda ls: reml_objective(blocks, S, q, float(np.exp(ls))),
+                                   bounds=(np.log(1e-6), np.log(1e6)), method="bounded")
+    return q, float(np.exp(res.x))

@@ -1,0 +1,184 @@
+"""One task runner for serial / process / Dask execution, and fleet calibration (docs/scaling.md).
+
+The Dask tests share one 2-worker LocalCluster (worker processes, one thread each):
+the same pickling path as a real cluster, started once (~1–2 s).
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+from estcal.scale import run_tasks
+from estcal.scale.runner import TaskError
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    import cloudpickle
+
+    # this test module's functions travel by value (workers need not import the tests folder)
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        yield c
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+def _noisy_root(x, seed):
+    """A task whose value depends on its own random stream; negative inputs fail."""
+    return math.sqrt(x) + float(np.random.default_rng(seed).normal())
+
+
+def test_same_seed_same_results_on_every_scheduler(client):
+    tasks = [0.5 * k for k in range(23)]
+    serial = run_tasks(_noisy_root, tasks, seed=42)
+    # independent computation of what each task must return: its own SeedSequence child
+    kids = np.random.SeedSequence(42).spawn(len(tasks))
+    expected = [math.sqrt(x) + np.random.default_rng(k).normal() for x, k in zip(tasks, kids)]
+    assert serial.values() == expected
+    for sched, kw in (("processes", {"n_workers": 2}), (client, {"chunksize": 3}), (client, {"chunksize": 1})):
+        out = run_tasks(_noisy_root, tasks, scheduler=sched, seed=42, **kw)
+        assert out.values() == serial.values(), sched
+    assert run_tasks(_noisy_root, tasks, seed=43).values() != serial.values()
+
+
+def test_failing_task_is_reported_with_its_inputs_and_the_others_finish(client):
+    tasks = [4.0, -1.0, 9.0, {"pose": -2.5}]
+    for sched in ("serial", client):
+        out = run_tasks(math.sqrt, tasks, scheduler=sched, chunksize=2)
+        assert out.results[0] == 2.0 and out.results[2] == 3.0
+        assert [f.index for f in out.failures] == [1, 3]
+        f1, f3 = out.failures
+        assert f1.inputs == "-1.0" and "ValueError" in f1.error and "math domain error" in f1.error
+        assert f3.inputs == "{'pose': -2.5}" and "TypeError" in f3.error
+        assert "Traceback" in f1.traceback
+        with pytest.raises(TaskError, match=r"task 1 \(-1.0\)"):
+            out.values()
+
+
+def test_unknown_scheduler_is_refused():
+    with pytest.raises(ValueError, match="serial, processes, local"):
+        run_tasks(math.sqrt, [1.0], scheduler="threads")
+
+
+def test_monte_carlo_identical_on_dask(client):
+    """The nonlinear Monte Carlo of a plan gives the same errors serially and on Dask; its RMS
+    is close to the linear prediction ρ0 (independent check of the distributed computation)."""
+    from estcal.design import DesignModel, identifiable_subset
+    from estcal.design.montecarlo import monte_carlo_test_pose_error
+    from estcal.kinematics.robots import puma560
+
+    rob = puma560()
+    model = DesignModel(rob, "pose", identifiable_subset(rob, "pose"), sigma=1e-4, sigma_rot=1e-3)
+    Q = rob.random_readings(20, np.random.default_rng(1))
+    q0 = rob.random_readings(3, np.random.default_rng(2))
+    a = monte_carlo_test_pose_error(model, Q, q0, n_reps=12, rng=7, param_std=5e-4)
+    b = monte_carlo_test_pose_error(model, Q, q0, n_reps=12, rng=7, param_std=5e-4, scheduler=client)
+    assert a.to_dict() == b.to_dict()
+    assert 0.6 < a.ratio < 1.5, a  # 12 reps: relative s.e. of the RMS ≈ 0.09
+
+
+# ------------------------------------------------------------------ fleet
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    from estcal.scale.simfleet import simulate_fleet
+
+    root = tmp_path_factory.mktemp("fleet")
+    sim = simulate_fleet(4, root, n_poses=25, n_validate=15, seed=3, p_effect=0.0)
+    assert sim.ok
+    (root / "robot_0002" / "data.csv").write_text("j1,j2\n1,2\n")  # the broken robot folder
+    return root
+
+
+def _check_models(root, models, rows):
+    from estcal.io import load_dataset
+    from estcal.io.robotfile import calibration_covariance, load_robot
+
+    for r in rows:
+        path = models / f"{r['robot']}.yaml"
+        assert r["model"] == str(path)
+        rob = load_robot(path)
+        names, C = calibration_covariance(rob)
+        assert len(names) == r["n_parameters"] and C.shape == (len(names), len(names))
+        assert np.all(np.linalg.eigvalsh(C) > 0)
+        # the saved model reproduces the reported validation RMSE (independent evaluation)
+        val = load_dataset(root / r["robot"] / "validate.csv", rob)
+        kin = rob.kinematics(val.readings, jacobian=False)
+        rmse = float(np.sqrt(np.mean(np.sum((kin.p - val.p) ** 2, -1)))) * 1e3
+        assert rmse == pytest.approx(r["validation_rmse_mm"], rel=1e-9)
+        # and is close to the simulated truth
+        truth = json.loads((root / r["robot"] / "truth.json").read_text())
+        true_theta = np.array([truth["parameters"][n] for n in rob.params.names])
+        err = rob.kinematics(val.readings, jacobian=False).p - rob.kinematics(val.readings, true_theta,
+                                                                               jacobian=False).p
+        assert np.sqrt(np.mean(np.sum(err ** 2, -1))) * 1e3 < 0.1 * r["validation_rmse_before_mm"]
+
+
+def test_fleet_cli_summary_models_and_broken_robot(fleet, tmp_path):
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+
+    models, summary = tmp_path / "models", tmp_path / "summary.json"
+    res = CliRunner().invoke(app, ["fleet", str(fleet), "--save-models", str(models), "--json", str(summary)])
+    assert res.exit_code == 0, res.output
+    assert "3 of 4 robots calibrated" in res.output and "FAILED" in res.output
+    s = json.loads(summary.read_text())
+    assert (s["n_robots"], s["n_ok"], s["n_failed"]) == (4, 3, 1)
+    assert [r["robot"] for r in s["robots"]] == ["robot_0000", "robot_0001", "robot_0003"]
+    (f,) = s["failures"]
+    assert f["robot"] == "robot_0002" and "data.csv" in f["inputs"] and f["error"]
+    for r in s["robots"]:
+        assert r["poses"] == 25 and r["rmse_after_mm"] < 0.1 * r["rmse_before_mm"]
+    assert sorted(p.name for p in models.iterdir()) == ["robot_0000.yaml", "robot_0001.yaml", "robot_0003.yaml"]
+    _check_models(fleet, models, s["robots"])
+    strict = CliRunner().invoke(app, ["fleet", str(fleet), "--strict"])
+    assert strict.exit_code == 1
+
+
+def test_fleet_on_dask_equals_serial(fleet, client, tmp_path):
+    from estcal.scale.fleet import FleetOptions, run_fleet
+
+    a = run_fleet(fleet, FleetOptions(save_models=str(tmp_path / "a")), progress=False)
+    b = run_fleet(fleet, FleetOptions(save_models=str(tmp_path / "b")), scheduler=client, progress=False)
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "model"} for r in rows]  # noqa: E731
+    assert strip(a.rows) == strip(b.rows) and a.failures == b.failures
+    for r in a.rows:
+        assert (tmp_path / "a" / f"{r['robot']}.yaml").read_text() == \
+            (tmp_path / "b" / f"{r['robot']}.yaml").read_text().replace(str(tmp_path / "b"), str(tmp_path / "a"))
+
+
+def test_fleet_discovery_errors(tmp_path):
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+
+    res = CliRunner().invoke(app, ["fleet", str(tmp_path / "nope")])
+    assert res.exit_code == 2 and "not a folder" in res.output
+    (tmp_path / "r1").mkdir()
+    (tmp_path / "r1" / "data.csv").write_text("j1\n0\n")
+    res = CliRunner().invoke(app, ["fleet", str(tmp_path)])
+    assert res.exit_code == 2 and "no robot file" in res.output  # every robot failed
+    res = CliRunner().invoke(app, ["fleet", str(tmp_path), "--scheduler", "threads"])
+    assert res.exit_code == 2 and "--scheduler" in res.output
+
+
+def test_design_restarts_identical_on_dask(client):
+    from estcal.design import DesignModel
+    from estcal.design.plans import optimise_continuous
+    from estcal.kinematics.robots import planar2
+
+    model = DesignModel(planar2(), "position", ["a_1", "a_2", "offset_1", "offset_2"], sigma=1e-3)
+    q0 = np.array([[-0.8, 0.35]])
+    a = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler="serial")
+    b = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler=client)
+    np.testing.assert_array_equal(a.readings, b.readings)
+    assert a.info == b.info and a.value == b.value and not a.info["failed_starts"]
