@@ -88,7 +88,9 @@ def test_resume_refuses_other_input_or_options(data, tmp_path):
     assert r.exit_code == 2 and "noise-pos (m): 0.0002 (checkpoint: 0.0001)" in r.output, r.output
     changed = tmp_path / "changed.csv"
     lines2 = list(lines)
-    lines2[5] = lines2[5].replace(",", ",1", 1)  # one processed row edited
+    vals = lines2[5].rstrip("\n").split(",")
+    vals[-1] = repr(float(vals[-1]) + 1e-3)  # one processed row edited (still a valid row)
+    lines2[5] = ",".join(vals) + "\n"
     changed.write_text("".join(lines2))
     r = runner.invoke(app, _args(changed, "--resume", str(state)))
     assert r.exit_code == 2 and "differs from the checkpointed input" in r.output, r.output

@@ -32,7 +32,7 @@ def files(tmp_path_factory):
     qs = q.copy()
     qs[:, 4] = 0.0  # exactly singular
     out["exact"] = _write(d / "exact.csv", qs)
-    out["repeated"] = _write(d / "repeated.csv", np.repeat(q[:1], 40, axis=0))
+    out["repeated"] = _write(d / "repeated.csv", np.repeat(q[:3], 14, axis=0))  # 3 poses, 14 times each
     out["few"] = _write(d / "few.csv", q[:4])
     out["far"] = _write(d / "far.csv", q, errors={"a_2": 0.06})  # a 60 mm error in a link length
     return out
@@ -57,7 +57,7 @@ def test_good_data_pass_and_report_figures(files, tmp_path):
 @pytest.mark.parametrize("case, words", [
     ("near", ["generic poses identifies 30", "alpha_5"]),
     ("exact", ["generic poses identifies 30", "alpha_5"]),
-    ("repeated", ["only 1 distinct joint configuration", "repeated lines 3, 4"]),
+    ("repeated", ["only 3 distinct joint configuration(s) among 42 poses", "repeated lines 3, 4, 5"]),
     ("few", ["24 equations for 24 free parameters", "degrees of freedom 0"]),
 ])
 def test_degenerate_data_refused_with_exit_3(files, case, words):
