@@ -131,7 +131,9 @@ def generic_identifiable(problem, level, theta, exclude=(), groups=None):
     t = problem.terms[0]
     if t.data.kind not in ("position", "points", "pose"):
         return None
-    rows_per_pose = max(1, len(problem.evaluate(theta, jacobian=False).e) // max(t.data.n, 1))
+    one = Problem.__new__(Problem)  # one pose tells the rows per pose (no pass over large data)
+    one.robot, one.terms = problem.robot, [type(t)(t.method, t.data.subset([0]), t.noise)]
+    rows_per_pose = max(1, len(one.evaluate(theta, jacobian=False).e))
     n_min = max(60, int(np.ceil(3 * len(problem.params.names) / rows_per_pose)))
     try:
         gen = Problem(problem.robot, [(t.method, _generic_dataset(problem.robot, t.data, theta, n_min), t.noise)],
@@ -150,8 +152,11 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     t = problem.terms[0]
     data = t.data
     theta = sel.theta if (sel is not None and sel.theta is not None) else pv.values
-    rows = problem.evaluate(theta, jacobian=sel is None)
-    m, p = len(rows.e), len(free)
+    from estcal.estimate.reduced import n_rows, use_chunks
+
+    ck = use_chunks(problem)
+    m = n_rows(problem, theta, ck) if ck is not None else len(problem.evaluate(theta, jacobian=False).e)
+    p = len(free)
     out.figures.update(rows=int(m), n_parameters=int(p), dof=int(m - p))
     n_distinct = None
     if data.kind != "none" or data.n:
@@ -205,9 +210,14 @@ def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessmen
     out = Assessment()
     pv = problem.params
     fidx = pv.indices(res.names)
+    from estcal.estimate.reduced import reduce_system, use_chunks
+
     try:
-        rows = problem.evaluate(res.theta)
-        A, _ = _weighted(rows, fidx)
+        ck = use_chunks(problem)
+        if ck is not None:  # large data: the triangular factor has A's singular values
+            A = reduce_system(problem, res.theta, fidx, ck)[0]
+        else:
+            A, _ = _weighted(problem.evaluate(res.theta), fidx)
         cond = scaled_condition(A)
     except (ValueError, np.linalg.LinAlgError):
         cond = float("nan")

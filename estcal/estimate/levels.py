@@ -88,9 +88,17 @@ def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]
 
 
 def _weighted_matrix(problem, theta):
+    """``(A, b, M, bᵀb)``; on large data (A, b) = (R, Qᵀb) of :mod:`estcal.estimate.reduced` — the
+    ordered QR below, the regrouping coefficients and the condition number are invariant under Qᵀ."""
     from estcal.estimate.lsq import _weighted
+    from estcal.estimate.reduced import reduce_system, use_chunks
 
-    return _weighted(problem.evaluate(theta), slice(None))
+    ck = use_chunks(problem)
+    if ck is not None:
+        R, c, rss, m = reduce_system(problem, theta, np.arange(len(problem.params.names)), ck)
+        return R, c, m, rss
+    A, b = _weighted(problem.evaluate(theta), slice(None))
+    return A, b, A.shape[0], float(b @ b)
 
 
 def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
@@ -125,12 +133,11 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     if exclude:
         groups = [[n for n in g if n not in exclude] for g in groups]
     theta = pv.values.copy() if theta is None else np.asarray(theta, float)
-    A, b = _weighted_matrix(problem, theta)
+    A, b, M, rss = _weighted_matrix(problem, theta)
     norms = np.linalg.norm(A, axis=0)
     scale = max(float(norms.max()), 1e-300)
-    M = A.shape[0]
     kept: list[int] = []
-    Q = np.zeros((M, 0))
+    Q = np.zeros((A.shape[0], 0))
     no_effect, regrouped_idx = [], []
     first = set(pv.indices(groups[0])) if groups and groups[0] else set()
     order = [pv.index(n) for g in groups for n in g]
@@ -147,13 +154,12 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
             try:
                 r0 = calibrate_lsq(problem.with_values(theta), "lm", free=reg_sel.identifiable, check=False)
                 theta = r0.theta
-                A, b = _weighted_matrix(problem, theta)
+                A, b, M, rss = _weighted_matrix(problem, theta)
                 norms = np.linalg.norm(A, axis=0)
                 scale = max(float(norms.max()), 1e-300)
             except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
                 pass
     rejected = []
-    rss = float(b @ b)
 
     pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
 

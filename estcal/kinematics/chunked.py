@@ -18,8 +18,9 @@ CHUNK = 20_000
 
 
 def tool_poses(robot, readings, theta=None, context: dict | None = None, fields=("R", "p"), chunk: int = CHUNK):
-    """``{field: array}`` for ``fields`` among ``R``, ``p``, ``points``, ``q`` (tool frame, marker
-    points, joint values) of every pose, computed ``chunk`` poses at a time."""
+    """``fields`` among ``R``, ``p``, ``points``, ``q`` (tool frame, marker points, joint values) of
+    every pose, computed ``chunk`` poses at a time: a namespace with those attributes that also
+    reads like a dict (``out.p`` or ``out["p"]``)."""
     readings = np.asarray(readings, float)
     n = readings.shape[0]
     ctx = context or {}
@@ -30,4 +31,8 @@ def tool_poses(robot, readings, theta=None, context: dict | None = None, fields=
         kin = robot.kinematics(readings[sl], theta, c, jacobian=False)
         for f in fields:
             out[f].append(getattr(kin, f))
-    return {f: np.concatenate(v, axis=0) if v else np.zeros((0,)) for f, v in out.items()}
+    return _Fields({f: np.concatenate(v, axis=0) if v else np.zeros((0,)) for f, v in out.items()})
+
+
+class _Fields(dict):
+    __getattr__ = dict.__getitem__
