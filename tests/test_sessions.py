@@ -50,6 +50,20 @@ def test_three_formulations_agree_on_the_linear_model(q):
         np.testing.assert_allclose(u, ref[2], atol=1e-6 * max(1.0, np.abs(ref[2]).max()))
 
 
+def test_kalman_within_session_drift():
+    """Pose-by-pose processing with zero within-session drift is the session-batch filter (and
+    GLS); a within-session drift widens the last session's deviation uncertainty."""
+    A_list, r_list, S, q = _linear_case(seed=5, m=30)
+    ref = solve_kalman(A_list, r_list, S, q)
+    same = solve_kalman(A_list, r_list, S, q, q_within=np.zeros(3), rows_per_pose=3)
+    sd = np.sqrt(np.diag(ref[1]))
+    assert np.max(np.abs(same[0] - ref[0]) / sd) < 1e-6  # round-off of the diffuse prior, in σ
+    np.testing.assert_allclose(np.sqrt(np.diag(same[1])), sd, rtol=1e-6)
+    drift = solve_kalman(A_list, r_list, S, q, q_within=np.full(3, 0.05), rows_per_pose=3)
+    assert np.all(np.diag(drift[1]) >= np.diag(ref[1]) * (1 - 1e-9))
+    assert not np.allclose(drift[0], ref[0])
+
+
 def test_reml_objective_matches_dense_formula():
     """−2ℓ_R from the Woodbury blocks equals the textbook dense expression (Harville 1977)."""
     A_list, r_list, S, q = _linear_case(seed=3)
