@@ -21,9 +21,9 @@ Sampler
 -------
 emcee's ensemble sampler with ``vectorize=True``: the log-posterior receives
 all walkers at once and evaluates their residuals in one vectorised forward
-kinematics (:meth:`estcal.methods.problem.Problem.evaluate_many`, effects included). Walkers start in
-a small ball drawn from the Laplace approximation around the least-squares
-optimum, and the sampler works in the coordinates that whiten it
+kinematics (:meth:`estcal.methods.problem.Problem.evaluate_many`, effects included). Walkers start as
+draws from the Laplace approximation around the least-squares optimum (see
+"Start" below), and the sampler works in the coordinates that whiten it
 (θ = θ̂ + L z, L Lᵀ = Σ_LS). Default moves (``moves="laplace"``): 70 %
 independence Metropolis–Hastings proposals from the Laplace approximation
 inflated by ``proposal_scale`` (exact MH acceptance, so the target is the
@@ -38,6 +38,21 @@ steps until (a) it is longer than 50 integrated autocorrelation times τ
 (emcee's reliability rule for τ itself) and (b) the effective sample size
 ESS = n_walkers · (n_steps − burn-in)/τ reaches ``target_ess`` for every
 parameter, or ``max_steps`` is hit (then ``converged = False``). Burn-in is 3 max τ.
+
+Start
+-----
+The walkers are independent draws from the Laplace approximation N(θ̂, Σ_LS)
+itself (``init_scale = 1``), not emcee's customary small ball: for the
+near-Gaussian calibration posterior that is already (almost) the stationary
+distribution, so the 3 τ burn-in only has to absorb the small non-Gaussian part.
+A shrunken start (the former ``0.5``) is *not* removed by a 3 τ burn-in: the
+independence proposal leaves an over-concentrated walker slowly (a state where
+posterior/proposal is large is rarely left), a transient of ~15 τ, while τ
+measures the stationary mixing only. With the default stopping rule (~600 steps)
+that transient made every posterior σ ≈ 1.5–2 % too small (variance ≈ 3 % low,
+measured against the exact covariance of a linear-Gaussian problem in
+``experiments/mcmc_variance_bias.py``; test
+``tests/test_mcmc_variance.py``).
 """
 from __future__ import annotations
 
@@ -187,10 +202,12 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
                      target_ess: float = 1000.0, max_steps: int = 20000, min_steps: int = 200,
                      check_every: int = 100, seed=0, progress: bool | None = None, moves: str = "laplace", theta0=None,
                      center=None, covariance=None, tau_factor: float = 50.0,
-                     proposal_scale: float = 1.2, chain=None) -> PosteriorSamples:
+                     proposal_scale: float = 1.2, init_scale: float = 1.0, chain=None) -> PosteriorSamples:
     """Run emcee until the ESS of every parameter reaches ``target_ess`` (see module docstring).
 
     ``center`` / ``covariance`` : Laplace approximation to start from (default: an LM fit).
+    ``init_scale`` : walkers start as draws from the Laplace approximation with its covariance
+    scaled by ``init_scale²`` (1: the approximation itself, see the module docstring, "Start").
     ``chain`` : HDF5 file holding the chain (:mod:`estcal.estimate.chainfile`); when it holds a
     chain of the same target, sampling continues it (``max_steps`` counts the stored steps too).
     ``progress`` : bar of the steps on stderr (None: only on a terminal, not in CI —
@@ -226,7 +243,7 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     d = post.ndim
     nw = int(n_walkers or max(2 * d + 2, 64))
     rng = np.random.default_rng(seed)
-    p0 = 0.5 * rng.standard_normal((nw, d))
+    p0 = float(init_scale) * rng.standard_normal((nw, d))
     if noise_scale:
         r = problem.evaluate(theta_full_of(theta, fidx, center), jacobian=False)  # start log λ at log σ0
         p0[:, -1] = 0.5 * np.log(np.sum((r.e / r.sigma) ** 2) / max(r.e.size - len(fidx), 1)) \
@@ -267,7 +284,8 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
             n += k
             bar.update(k)
             tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
-            tmax = float(np.nanmax(tau))
+            # τ is NaN when a walker has not moved at all yet (zero variance): not converged
+            tmax = float(np.max(tau)) if np.isfinite(tau).all() else float(n)
             burn = int(min(np.ceil(3 * tmax), n // 2))
             ess = nw * (n - burn) / tau
             bar.set_postfix(tau=f"{tmax:.0f}", ess=f"{ess.min():.0f}")
