@@ -97,3 +97,9 @@ def test_a_shrunken_start_is_detected():
     """The statistic has the power to see the former bias (walkers from 0.5² Σ_LS: E[z²] ≈ 0.97)."""
     zs = [z for _, z, _, _ in _run([0, 1], init_scale=0.5)]
     assert np.sum(zs) / np.sqrt(len(zs)) < -Z_CRIT, zs
+
+
+def test_de_moves_sample_the_exact_posterior():
+    """``moves="de"``: with emcee's DESnookerMove at 20 % (the former set) E[z²] was ≈ 0.75 here (z ≈ −50)."""
+    (smp, z, m2, _), = _run([3], moves="de", min_steps=1200, max_steps=1200, target_ess=1e9)
+    assert abs(z) < 4.0, (z, m2)
