@@ -175,6 +175,9 @@ def _rot_mat(R, C):
 
 def _rot_vec(R, v):
     """R (3, 3, N) @ v (3,) or per pose v (3, N) -> (3, N)."""
+    if R.shape[2] <= 16 and v.ndim == 1:
+        # a few poses (a stream of single poses): one matmul call, not five array temporaries
+        return (R.transpose(2, 0, 1) @ v).T
     return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
 
 
