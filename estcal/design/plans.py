@@ -526,7 +526,7 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
     if scheduler is None:
         scheduler = "serial" if len(tasks) == 1 else "processes"
     run = run_tasks(_local_continuous, tasks, scheduler=scheduler, n_workers=n_workers, chunksize=1,
-                    progress=False)
+                    progress="auto", desc=f"design (continuous, m={m}): starts")
     results = [r for r in run.results if r is not None]
     if not results:
         raise TaskError(run.failures)

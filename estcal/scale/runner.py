@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -152,10 +151,12 @@ def _run_chunk(fn, chunk):
     BLAS runs single-threaded on every scheduler: a worker process is one core's
     worth of work, the result does not depend on BLAS's thread count (its
     reductions' order), and OpenBLAS's spinning threads do not slow a serial run
-    on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md)."""
+    on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md).
+    Progress bars inside a task stay quiet (the runner's own bar counts the tasks)."""
     from estcal.estimate.lsq import single_thread_blas
+    from estcal.progress import nested
 
-    with single_thread_blas():
+    with single_thread_blas(), nested():
         return _run_items(fn, chunk)
 
 
@@ -167,11 +168,10 @@ def _run_items(fn, chunk):
 def _progress(total, desc, progress):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from estcal.progress import progress as bar
 
-    # disable=None: tqdm stays quiet when stderr is not a terminal (logs, CI)
-    return tqdm(total=total, desc=desc, unit="task", disable=None if progress == "auto" else False,
-                file=sys.stderr, leave=False)
+    # "auto": only on a terminal's stderr, not in CI, not inside another bar (estcal.progress)
+    return bar(total=total, desc=desc or "tasks", unit="task", enabled=None if progress == "auto" else True)
 
 
 def _default_workers(scheduler) -> int:
