@@ -142,11 +142,16 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
     ``degrees`` (revolute columns in degrees).
     """
     import csv
+    import io
     from pathlib import Path
 
+    from estcal.io.textinput import read_text, sniff_delimiter
+
     path = Path(path)
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    text = read_text(path, "candidates", ValueError)  # folder, binary, encoding: one clear message
+    delim = sniff_delimiter(next((ln for ln in text.splitlines() if ln.strip()), ""))
+    rows = [r for r in csv.reader(io.StringIO(text, newline=""), delimiter=delim)
+            if r and not r[0].lstrip().startswith("#")]
     if not rows:
         raise ValueError(f"{path}: no candidate rows")
     names = robot.joint_names
