@@ -1,7 +1,7 @@
 """Benchmark: vectorised forward kinematics + full identification Jacobian.
 
 Measures, for a 6-joint robot (PUMA 560, Table 6.1 model: 54 parameters) and
-N = 10,000 poses (issue 2 target: FK + Jacobian < 50 ms on this machine):
+N = 10,000 poses (target: FK + Jacobian < 50 ms on this machine):
 
 * ``fk_ms``            — FK only (``jacobian=False``), median of the repeats;
 * ``fk_jac_ms``        — FK + analytic Jacobian of the tool pose (N, 6, P);

@@ -15,9 +15,8 @@ Why a *sequential* QR without pivoting
 --------------------------------------
 GECARO sorts the columns by decreasing priority and keeps "the first ``b``
 independent columns". QR with column pivoting reorders the columns by the
-norm of their remaining part and therefore ignores the priorities (the
-issue text mentions pivoting; it is offered as ``pivoting=True``, and the
-result says which was used). A plain Householder QR of a rank-deficient
+norm of their remaining part and therefore ignores the priorities (it is
+offered as ``pivoting=True``, and the result says which was used). A plain Householder QR of a rank-deficient
 matrix is not reliable either: after a dependent column the reflector is
 built from round-off, and that random direction can absorb part of a later
 independent column. So the default is the QR built column by column: column
