@@ -100,6 +100,9 @@ def check_dof(res, data_path, known_noise: bool = False) -> None:
     dof = getattr(res, "dof", None)
     if dof is None or dof > 0 or known_noise:
         return
+    prior = (getattr(res, "extra", None) or {}).get("prior") or {}
+    if prior.get("dof_effective", 0) > 0:  # a MAP prior (--regularize) leaves residual freedom
+        return
     p = len(res.names)
     refuse(f"{data_path}: {p + dof} residuals for {p} estimated parameters (dof = {dof}): σ0 and every standard "
            f"deviation are undefined — measure more poses, estimate fewer parameters (--level joint_offset or "
