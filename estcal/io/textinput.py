@@ -116,6 +116,7 @@ class CsvTable:
     header_line: int
     delimiter: str
     where: str
+    numeric: object = None  # (n, columns) float array when parsed by the numeric fast path (rows None)
 
     @property
     def delimiter_name(self) -> str:

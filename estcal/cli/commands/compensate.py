@@ -1,6 +1,6 @@
 """``estcal compensate``: corrected joint commands from a calibrated (saved) model.
 
-Thin shell around :func:`estcal.compensate.compensate`; the method, the output
+Thin shell around :func:`estcal.compensation.compensate`; the method, the output
 columns and the exit codes are documented in docs/compensation.md.
 """
 from __future__ import annotations
@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.markup import escape
 
-        from estcal.compensate import compensate
+        from estcal.compensation import compensate
         from estcal.effects import effect_context
         from estcal.io.atomic import atomic_write
         from estcal.io.dataset import DatasetError, load_dataset
@@ -75,13 +75,12 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=False, width=120)
         if not targets.exists():
             fail(f"{targets}: file not found")
-        for p, opt in ((output, "-o"), (json_path, "--json")):
-            if p is not None and _same_file(p, targets):
-                fail(f"{opt} {p} is the input file; choose another output path (inputs are never overwritten)")
-        if json_path is not None and _same_file(json_path, output):
-            fail(f"--json and -o are the same file {output}")
-        if not (tol_mm > 0 and tol_mrad > 0 and rot_weight_m > 0):
-            fail("--tol-mm, --tol-mrad and --rot-weight-m must be > 0")
+        # outputs equal to TARGETS or to each other are refused by estcal.cli.checks.guard
+        for opt, v in (("--tol-mm", tol_mm), ("--tol-mrad", tol_mrad), ("--rot-weight-m", rot_weight_m)):
+            if not v > 0:
+                fail(f"{opt} must be > 0, got {v:g}")
+        if max_iter < 1:
+            fail(f"--max-iter must be an integer ≥ 1, got {max_iter}")
         try:
             rb = load_robot(robot)
         except (ValueError, KeyError, FileNotFoundError) as exc:
