@@ -94,21 +94,6 @@ def check_distinct_poses(ds, minimum: int = 2) -> None:
                f"at least {minimum} different poses; measure the robot in other configurations")
 
 
-def check_dof(res, data_path, known_noise: bool = False) -> None:
-    """Refuse (exit 3) a fit without residual degrees of freedom: σ0 and the standard
-    deviations scaled by it are undefined (0/0), so no uncertainty can be reported."""
-    dof = getattr(res, "dof", None)
-    if dof is None or dof > 0 or known_noise:
-        return
-    prior = (getattr(res, "extra", None) or {}).get("prior") or {}
-    if prior.get("dof_effective", 0) > 0:  # a MAP prior (--regularize) leaves residual freedom
-        return
-    p = len(res.names)
-    refuse(f"{data_path}: {p + dof} residuals for {p} estimated parameters (dof = {dof}): σ0 and every standard "
-           f"deviation are undefined — measure more poses, estimate fewer parameters (--level joint_offset or "
-           f"--free), or give --known-noise")
-
-
 def save_model_or_fail(result, path, robot_spec) -> str:
     """``result.save_model(path)`` (calibration or diagnosis) with the robot spec in the
     provenance; a clear error on failure. Returns the line to print."""
