@@ -34,8 +34,8 @@ def message(exc: BaseException) -> str:
 
 
 def refuse(msg):
-    """A numerical refusal: ``error: msg`` to stderr, exit code 3."""
-    fail(msg, EXIT_REFUSED)
+    """A numerical refusal: ``error: numerical refusal: msg`` to stderr, exit code 3."""
+    fail(f"numerical refusal: {msg}", EXIT_REFUSED)
 
 
 def warn(msg) -> None:
