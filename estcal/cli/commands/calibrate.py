@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data,
+from estcal.cli.common import (count_point_columns, fail, robot_for_data,
                                save_model_or_fail, warn, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
@@ -331,7 +331,6 @@ def register(app: typer.Typer) -> None:
         for d in parts + vals:
             for w in d.warnings:
                 warn(f"{d.where}: {w}")
-        check_distinct_poses(ds)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:
@@ -384,7 +383,6 @@ def register(app: typer.Typer) -> None:
                       f"--option batch_size=…)", code=3)
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
-        check_dof(res, data_label, known_noise)
         measure_name = problem.terms[0].method.name
         _print_report(console, res, sel, rob, data_label, [str(v) for v in validate], measure_name, estimator)
         res.extra.update(robot=robot, data=data_label, validate=[str(v) for v in validate],

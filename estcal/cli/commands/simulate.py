@@ -35,7 +35,7 @@ def _load_errors(errors: str):
     if p.suffix.lower() in (".yaml", ".yml"):
         d = read_yaml(p, "errors", ValueError)
     else:
-        d = read_json(p, "errors JSON", ValueError)
+        d = read_json(p, "errors", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
         d = d["errors"]  # a truth JSON from an earlier run
     if not isinstance(d, dict):
