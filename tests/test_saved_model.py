@@ -244,6 +244,8 @@ def test_unknown_estimator_option_names_the_estimator_and_keys(puma_pose):
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--estimator", "kalman",
                          "--option", "passes=2", "--option", "qq=1"])
     assert r.exit_code == 2 and "'kalman' has no option 'qq'" in r.output and "(did you mean 'q'?)" in r.output
+    r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--estimator", "kalman", "--option", "q=abc"])
+    assert r.exit_code == 2 and "option 'q': expected a number" in r.output
     # a valid option is accepted (3 iterations do not converge: a numerical refusal, exit 3, unless allowed)
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--option", "max_iter=3"])
     assert r.exit_code == 3 and "did not converge" in r.output, r.output
