@@ -28,6 +28,8 @@ def register(app: typer.Typer) -> None:
         Effects in the robot file are evaluated with the row's t / temperature / payload / approach_<joint>
         columns; a model saved by `estcal diagnose --save-model` re-applies its data preparation (t from the
         file's first row, approach directions from the posture order) as recorded in its calibration block.
+        When the file has x,y,z (and qw,qx,qy,qz) columns — a dataset, compensation targets or commands —
+        it also prints how far the computed tool frame is from them (RMS and max, mm and mrad).
         """
         import numpy as np
         from rich.console import Console
@@ -61,8 +63,45 @@ def register(app: typer.Typer) -> None:
             np.savetxt(fh, np.column_stack(cols), delimiter=",", header=",".join(names), comments="",
                        fmt="%.15g")
         console.print(f"{len(ds.readings)} rows -> {output} ({', '.join(names)})")
+        diff = _against_file(rb, ds, kin)
+        if diff:
+            console.print(diff["text"], soft_wrap=True)
         for w in ds.warnings:
             typer.echo(f"warning: {data}: {w}", err=True)
         if json_path is not None:
             write_json(json_path, {"rows": int(len(ds.readings)), "robot": rb.name, "input": str(data),
-                                   "output": str(output), "columns": names})
+                                   "output": str(output), "columns": names,
+                                   **({k: v for k, v in diff.items() if k != "text"} if diff else {})})
+
+
+def _against_file(rb, ds, kin) -> dict | None:
+    """Distance of the computed tool frame (or markers) from the file's own x,y,z[,qw..qz] columns.
+
+    Turns `estcal fk` into a check: on a compensated command file it shows where the model (or a URDF
+    export, or a true robot) puts the tool relative to the targets; on a dataset, the model's error.
+    The point is the tool origin, or the markers when the model has them (docs/dataset.md).
+    """
+    import numpy as np
+
+    from estcal.kinematics.transforms import so3_log
+
+    if ds.kind == "pose":
+        dp = np.linalg.norm(kin.p - ds.p, axis=1)
+        dr = np.linalg.norm(so3_log(ds.R @ np.swapaxes(kin.R, 1, 2)), axis=1)
+        what = "x,y,z,q"
+    elif ds.kind in ("position", "points") and ds.points is not None:
+        model = kin.points if rb.n_markers else kin.p[:, None, :]
+        k = min(model.shape[1], ds.points.shape[1])
+        dp = np.linalg.norm(model[:, :k] - ds.points[:, :k], axis=2).ravel()
+        dr = None
+        what = "x,y,z" if k == 1 else f"x1..z{k}"
+    else:
+        return None
+    out = {"position_rms_mm": float(np.sqrt(np.mean(dp ** 2)) * 1e3), "position_max_mm": float(dp.max() * 1e3)}
+    text = f"vs the file's {what}: {out['position_rms_mm']:.4g} mm RMS (max {out['position_max_mm']:.4g})"
+    if dr is not None:
+        out.update(orientation_rms_mrad=float(np.sqrt(np.mean(dr ** 2)) * 1e3),
+                   orientation_max_mrad=float(dr.max() * 1e3))
+        text += f", {out['orientation_rms_mrad']:.4g} mrad RMS (max {out['orientation_max_mrad']:.4g})"
+    out["text"] = text
+    return out
