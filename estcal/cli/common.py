@@ -13,7 +13,7 @@ import typer
 
 from estcal.io.jsonio import write_json
 
-__all__ = ["fail", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
+__all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
            "EXIT_REFUSED", "save_model_or_fail"]
 
 EXIT_INPUT = 2
@@ -24,6 +24,13 @@ def fail(msg, code: int = EXIT_INPUT):
     """Print ``error: msg`` to stderr and exit with ``code`` (no traceback)."""
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
+
+
+def message(exc: BaseException) -> str:
+    """The text of an exception for ``fail`` (a KeyError's own quotes removed)."""
+    if isinstance(exc, KeyError) and exc.args and isinstance(exc.args[0], str):
+        return exc.args[0]
+    return str(exc)
 
 
 def refuse(msg):

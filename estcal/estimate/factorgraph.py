@@ -58,17 +58,21 @@ def _gtsam():
 def robust_noise(dim: int, kernel: str | None = None, k: float | None = None):
     """Unit noise model of dimension ``dim``, optionally robust (``huber`` k=1.345, ``cauchy`` k=2.385).
 
-    The residuals are already whitened, so the kernel threshold ``k`` is in units of σ.
+    The residuals are already whitened, so the kernel threshold ``k`` is in units of σ; the kernel
+    weighs the norm of the factor's ``dim`` rows, so the scalar threshold is carried to ``dim``
+    dimensions at the same inlier probability (:func:`estcal.estimate.robust.kernel_threshold`).
     """
+    from .robust import kernel_threshold
+
     gtsam = _gtsam()
     base = gtsam.noiseModel.Unit.Create(dim)
     if kernel is None or kernel in ("none", "l2", "gaussian"):
         return base
     kernel = kernel.lower()
     if kernel == "huber":
-        m = gtsam.noiseModel.mEstimator.Huber.Create(1.345 if k is None else k)
+        m = gtsam.noiseModel.mEstimator.Huber.Create(kernel_threshold("huber", dim, k))
     elif kernel == "cauchy":
-        m = gtsam.noiseModel.mEstimator.Cauchy.Create(2.385 if k is None else k)
+        m = gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_threshold("cauchy", dim, k))
     else:
         raise ValueError(f"unknown robust kernel {kernel!r}; choose 'huber', 'cauchy' or none")
     return gtsam.noiseModel.Robust.Create(m, base)
@@ -621,7 +625,8 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
 
 
 def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_size: int = 10, prior_std=None,
-                          theta0=None, max_iter: int = 100, robust: str | None = None, **_ignored):
+                          theta0=None, max_iter: int = 100, robust: str | None = None,
+                          robust_k: float | None = None, **_ignored):
     """Time-varying calibration: one parameter state per batch of poses, linked by process noise.
 
     Parameters whose process-noise std ``q`` (per batch transition, same forms as
@@ -665,7 +670,7 @@ def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_siz
         keys, parts = ([C, V[b]], [const, var]) if const.size else ([V[b]], [var])
         for g in ids:
             m = block.slices[g].size
-            graph.add(_measurement_factor(block, g, keys, parts, nominal, robust_noise(m, robust)))
+            graph.add(_measurement_factor(block, g, keys, parts, nominal, robust_noise(m, robust, robust_k)))
     params = gtsam.LevenbergMarquardtParams()
     params.setDiagonalDamping(True)
     params.setMaxIterations(max_iter)

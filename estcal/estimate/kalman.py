@@ -20,7 +20,7 @@ the residual ``e`` of :class:`~estcal.methods.problem.Problem` and
 :class:`~filterpy.kalman.ExtendedKalmanFilter` and
 :class:`~filterpy.kalman.UnscentedKalmanFilter`, not hand-written ones.
 The UKF's sigma points are evaluated in one vectorised call
-(:func:`estcal.estimate.batcheval.evaluate_many`).
+(:meth:`estcal.methods.problem.Problem.evaluate_many`).
 
 The UKF predicts each measurement as the mean of h over the current Gaussian
 (second-order term ½ tr(∇²h P) included): with a very wide prior that term
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
+from ._common import GroupedProblem, evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 from .innovation import InnovationMonitor
 
 __all__ = ["ParameterFilter", "calibrate_kalman", "calibrate_ukf", "process_noise", "default_burn_in"]
@@ -101,13 +101,21 @@ class ParameterFilter:
     """
 
     def __init__(self, theta, fidx, P0, Q=None, kind: str = "ekf", names=None, ukf_alpha: float = 1e-2,
-                 ukf_beta: float = 2.0, ukf_kappa: float = 0.0):
+                 ukf_beta: float = 2.0, ukf_kappa: float = 0.0, robust: str | None = None,
+                 robust_k: float | None = None):
         self.theta0 = np.asarray(theta, float).copy()
         self.fidx = np.asarray(fidx, int)
         self.names = list(names) if names is not None else [str(i) for i in self.fidx]
         p = self.fidx.size
         self.Q = np.zeros((p, p)) if Q is None else np.asarray(Q, float)
         self.kind = kind
+        from .robust import check_kernel
+
+        self.robust, self.robust_k = check_kernel(robust), robust_k
+        if self.robust is not None and kind != "ekf":
+            raise ValueError(f"robust kernels are implemented for the EKF (--filter ekf / estimator kalman), "
+                             f"not the {kind.upper()}")
+        self.weights: list[float] = []  # robust weight of every update (1 without a kernel)
         x0 = self.theta0[self.fidx].copy()
         if kind == "ekf":
             from filterpy.kalman import ExtendedKalmanFilter
@@ -147,11 +155,13 @@ class ParameterFilter:
         return th
 
     # ---------------------------------------------------------------- step
-    def step(self, sub, x_lin=None) -> Step:
+    def step(self, sub, x_lin=None, weight=None) -> Step:
         """Predict (P += Q) and update with the rows of ``sub`` (an object with ``evaluate``).
 
         ``x_lin`` : linearise at this free-parameter vector instead of the current
         estimate (EKF only; used by iterated passes).
+        ``weight`` : robust weight of this update (default: the kernel of the innovation's
+        normalised norm when the filter has a kernel).
         """
         f = self.f
         if self.kind == "ekf":
@@ -166,11 +176,22 @@ class ParameterFilter:
             else:  # affine model about x_lin: h(x) = −e_lin + H (x − x_lin)
                 hx = -e + H @ (f.x - lin)
             z = np.zeros(e.size)
+            w = 1.0 if weight is None else float(weight)
+            if self.robust is not None and weight is None:
+                # weigh the innovation by the kernel of its normalised norm √(νᵀS⁻¹ν)
+                # (docs: estcal.estimate.robust); R / w is the reweighted measurement noise
+                from .robust import kernel_threshold, kernel_weight
+
+                nu = z - hx
+                S = H @ f.P @ H.T + R
+                r = float(np.sqrt(nu @ np.linalg.solve(S, nu)))
+                w = float(kernel_weight(self.robust, r, kernel_threshold(self.robust, e.size, self.robust_k)))
+            if w != 1.0:
+                R = R / max(w, 1e-12)
+            self.weights.append(w)
             f.update(z, lambda x: H, lambda x: hx, R=R)
             y, S = np.asarray(f.y, float), np.asarray(f.S, float)
         else:
-            from .batcheval import evaluate_many
-
             f.predict()
             sig = f.sigmas_f
             TH = np.broadcast_to(self.theta0, (sig.shape[0], self.theta0.size)).copy()
@@ -198,9 +219,11 @@ def _prior(problem, names, fidx, prior_std, P0):
 
 
 def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", prior_std=None, P0=None,
-                     q=0.0, batch_size: int = 1, passes: int = 1, theta0=None, burn_in: int | None = None,
+                     q=0.0, batch_size: int = 1, passes: int | None = None, theta0=None,
+                     burn_in: int | None = None,
                      lags: int = 10, history: bool = False, ukf_alpha: float = 1e-2,
-                     scale_covariance: bool | None = None, **_ignored):
+                     scale_covariance: bool | None = None, robust: str | None = None, robust_k: float | None = None,
+                     **_ignored):
     """Kalman-filter calibration: process the problem's poses one group at a time.
 
     Parameters
@@ -212,7 +235,12 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
         default :func:`~estcal.estimate._common.default_prior_std` (0.1, wide)
     q : process-noise std per step (see :func:`process_noise`); 0 = constant parameters
     batch_size : poses per update (1 = measurement by measurement)
-    passes : iterated-EKF passes (each re-linearises at the previous pass's estimates)
+    passes : iterated-EKF passes (each re-linearises at the previous pass's estimates); default 1,
+        3 with a robust kernel: the first pass weighs each update by the kernel of its innovation
+        (early outliers, seen while P is still wide, pass almost unweighted), the next ones by the
+        kernel of its residual at the previous pass's estimate — iteratively reweighted, whose
+        fixed point is the robust M-estimate (:mod:`estcal.estimate.robust`)
+    robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel and scalar threshold (σ); EKF only
     theta0 : full initial parameter vector (prior mean of the free ones); default the problem's values
     burn_in : steps left out of the innovation tests (default: until 2 p rows were seen)
     history : keep per-step estimates and standard deviations in ``extra``
@@ -235,15 +263,19 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     subs = [gp.subproblem(b) for b in batches]
     lin_traj = None
     hist_x, hist_s = [], []
+    if passes is None:
+        passes = 3 if robust not in (None, "none") and filter == "ekf" else 1
+    weights = None
     from estcal.progress import progress
 
     n_pass = 1 if filter == "ukf" else passes
     with progress(total=n_pass * len(subs), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
         for it in range(passes):
-            flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha)
+            flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha, robust=robust,
+                                  robust_k=robust_k)
             traj = []
             for k, sub in enumerate(subs):
-                flt.step(sub, None if lin_traj is None else lin_traj[k])
+                flt.step(sub, None if lin_traj is None else lin_traj[k], None if weights is None else weights[k])
                 traj.append(flt.x)
                 bar.update(1)
                 if history and it == passes - 1:
@@ -253,6 +285,15 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
                 break
             # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
             lin_traj = [traj[-1]] * len(traj)
+            if flt.robust is not None:  # IRLS: weights from the residuals at this pass's estimate
+                from .robust import kernel_threshold, kernel_weight
+
+                weights = []
+                for sub in subs:
+                    r = sub.evaluate(flt.full(traj[-1]), jacobian=False)
+                    rn = float(np.linalg.norm(r.e / r.sigma))
+                    weights.append(float(kernel_weight(flt.robust, rn,
+                                                       kernel_threshold(flt.robust, r.e.size, robust_k))))
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
     known = noise_known(problem)
@@ -262,7 +303,7 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     if scale_covariance is None:
         scale_covariance = not known
     src = "model (filter P)"
-    if scale_covariance and dof > 0:
+    if scale_covariance and dof > 0 and robust is None:  # σ0² would count the outliers (as gtsam: unscaled)
         P = P * (chi2 / dof)
         src = "filter P scaled by sigma0^2"
     bi = default_burn_in(flt.monitor.dims, len(fidx)) if burn_in is None else burn_in

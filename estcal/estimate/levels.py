@@ -88,9 +88,17 @@ def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]
 
 
 def _weighted_matrix(problem, theta):
+    """``(A, b, M, bᵀb)``; on large data (A, b) = (R, Qᵀb) of :mod:`estcal.estimate.reduced` — the
+    ordered QR below, the regrouping coefficients and the condition number are invariant under Qᵀ."""
     from estcal.estimate.lsq import _weighted
+    from estcal.estimate.reduced import reduce_system, use_chunks
 
-    return _weighted(problem.evaluate(theta), slice(None))
+    ck = use_chunks(problem)
+    if ck is not None:
+        R, c, rss, m = reduce_system(problem, theta, np.arange(len(problem.params.names)), ck)
+        return R, c, m, rss
+    A, b = _weighted(problem.evaluate(theta), slice(None))
+    return A, b, A.shape[0], float(b @ b)
 
 
 def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
@@ -125,12 +133,11 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     if exclude:
         groups = [[n for n in g if n not in exclude] for g in groups]
     theta = pv.values.copy() if theta is None else np.asarray(theta, float)
-    A, b = _weighted_matrix(problem, theta)
+    A, b, M, rss = _weighted_matrix(problem, theta)
     norms = np.linalg.norm(A, axis=0)
     scale = max(float(norms.max()), 1e-300)
-    M = A.shape[0]
     kept: list[int] = []
-    Q = np.zeros((M, 0))
+    Q = np.zeros((A.shape[0], 0))
     no_effect, regrouped_idx = [], []
     first = set(pv.indices(groups[0])) if groups and groups[0] else set()
     order = [pv.index(n) for g in groups for n in g]
@@ -147,13 +154,12 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
             try:
                 r0 = calibrate_lsq(problem.with_values(theta), "lm", free=reg_sel.identifiable, check=False)
                 theta = r0.theta
-                A, b = _weighted_matrix(problem, theta)
+                A, b, M, rss = _weighted_matrix(problem, theta)
                 norms = np.linalg.norm(A, axis=0)
                 scale = max(float(norms.max()), 1e-300)
             except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
                 pass
     rejected = []
-    rss = float(b @ b)
 
     pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
 
@@ -204,7 +210,7 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
 def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
                     free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
                     validate=(), noise=None, register: bool = True, options: dict | None = None,
-                    regularize=None):
+                    regularize=None, checks: bool = False, allow_ill_conditioned: bool = False):
     """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
 
     ``regularize``: ``None`` (plain least squares), ``"loo"`` (Gaussian prior toward the
@@ -212,6 +218,12 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     tool — with the width τ chosen by leave-one-pose-out CV on ``data``:
     :mod:`estcal.estimate.regularize`), or a fixed τ (SI). Base frame and unknown points are
     never penalised. Needs a least-squares estimator.
+
+    ``checks``: run :mod:`estcal.estimate.checks` — raise
+    :class:`~estcal.estimate.checks.NumericalRefusal` on degenerate data (dof ≤ 0, repeated
+    poses, rank loss beyond the generic identifiable set) and, unless ``allow_ill_conditioned``,
+    on non-convergence or a condition number above ``COND_MAX``; the figures and warnings go to
+    ``result.extra["reliability"]``.
 
     Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
     """
@@ -236,6 +248,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         theta0 = register_base(problem.robot, data, theta0)
         problem = problem.with_values(theta0)
     start = problem
+    exclude = []
     if free is None:
         # Default: the full structural identifiable set (QR). Information-criterion
         # pruning (aic/bic) is greedy and can drop parameters whose effect only shows
@@ -245,6 +258,15 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
         free = sel.identifiable
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
+    assessment = None
+    if checks:
+        from estcal.estimate.checks import NumericalRefusal, precheck
+
+        assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
+                              sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
+                              exclude=exclude)
+        if assessment.refusals:
+            raise NumericalRefusal("\n".join(assessment.refusals))
     est = get_estimator(estimator)
     options = dict(options or {})
     if options:
@@ -287,9 +309,41 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     if regularize is not None:
         res.extra["regularize"] = regularize
     res.extra.setdefault("measure", problem.terms[0].method.name)
+    if options.get("robust"):
+        res.extra["robust_report"] = robust_report(problem, res, options["robust"], options.get("robust_k"))
+    if checks:
+        from estcal.estimate.checks import NumericalRefusal, postcheck
+
+        assessment = assessment.merge(postcheck(problem, res, allow_ill_conditioned=allow_ill_conditioned))
+        res.extra["reliability"] = assessment.to_dict()
+        if assessment.refusals:
+            raise NumericalRefusal("\n".join(assessment.refusals))
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     return res, sel, problem
+
+
+def robust_report(problem, res, kernel, k=None) -> dict:
+    """:func:`estcal.estimate.robust.outlier_report` at the estimate — at each batch's state for the
+    time-varying smoother (its poses were fitted by their own batch's parameters)."""
+    from estcal.estimate.robust import check_kernel, group_norms, outlier_report
+
+    kernel = check_kernel(kernel)
+    traj = res.extra.get("trajectory")
+    if res.method == "gtsam-timevarying" and traj is not None:
+        fidx = problem.params.indices(res.names)
+        est = np.asarray(traj["estimate"])
+        r = dims = lines = None
+        bs = int(traj["batch_size"])
+        for b in range(est.shape[0]):
+            th = res.theta.copy()
+            th[fidx] = est[b]
+            rb, db, lb, _ = group_norms(problem, th)
+            if r is None:
+                r, dims, lines = rb.copy(), db, lb
+            r[b * bs:(b + 1) * bs] = rb[b * bs:(b + 1) * bs]
+        return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names), norms=(r, dims, lines))
+    return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names))
 
 
 _DIRECT = ("position", "location", "pose", "points")

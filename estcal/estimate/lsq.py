@@ -174,7 +174,8 @@ def single_thread_blas(enabled: bool = True):
 
 def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, tol: float = 1e-10,
                   theta0=None, validation=(), check: bool = True, verbose: bool = False,
-                  single_thread: bool = True, prior_std=None, prior_mean=None) -> CalibrationResult:
+                  single_thread: bool = True, prior_std=None, prior_mean=None, robust=None,
+                  robust_k=None, chunk: int | None = None) -> CalibrationResult:
     """Estimate the free parameters of ``problem`` by nonlinear least squares.
 
     Parameters
@@ -194,12 +195,27 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
         data part; ``dof = M − p_eff`` with ``p_eff = tr((HᵀWH + T⁻¹)⁻¹ HᵀWH)`` the effective
         number of parameters. See :mod:`estcal.estimate.regularize` for choosing τ.
     prior_mean : ``{name: value}`` or array aligned with the free names (default: the initial values)
+    robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel (scalar threshold in σ): iteratively
+        reweighted least squares, :func:`estcal.estimate.robust.calibrate_irls`
+    chunk : poses per chunk of the bounded-memory path (:mod:`estcal.estimate.reduced`; default:
+        automatic above ``CHUNK_POSES`` poses for lm / gauss-newton / iterated-lls without prior)
 
     Returns
     -------
     CalibrationResult
     """
+    from .robust import calibrate_irls, check_kernel
+
+    if check_kernel(robust) is not None:
+        return calibrate_irls(problem, method, free, robust=robust, robust_k=robust_k, max_iter=max_iter, tol=tol,
+                              theta0=theta0, validation=validation, check=check, single_thread=single_thread,
+                              prior_std=prior_std, prior_mean=prior_mean)
+    from .reduced import use_chunks
+
+    ck = use_chunks(problem, chunk) if (prior_std is None and method != "scipy-lm") else None
     with single_thread_blas(single_thread):
+        if ck is not None:
+            return _calibrate_lsq_reduced(problem, method, free, max_iter, tol, theta0, validation, check, ck)
         return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
                               prior_std, prior_mean)
 
@@ -377,6 +393,74 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
         res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},
                               "mean": {names[k]: float(mu_p[k]) for k in pk},
                               "effective_parameters": p_eff, "dof_effective": dof_eff}
+    res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
+    return res
+
+
+def _calibrate_lsq_reduced(problem, method, free, max_iter, tol, theta0, validation, check, chunk):
+    """:func:`_calibrate_lsq` on the reduced system (R, c) built chunk by chunk
+    (:mod:`estcal.estimate.reduced`): the same iterations, steps and covariance, in O(chunk · P) memory."""
+    from .reduced import chunked_cost, reduce_system
+
+    problem, fidx, names = resolve_free(problem, free)
+    pv = problem.params
+    theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    nominal = theta[fidx].copy()
+    t0 = time.perf_counter()
+    A, b, cost, m = reduce_system(problem, theta, fidx, chunk)
+    if check:
+        check_identifiable(A, names)
+    converged, it = False, 0
+    mu, nu = 1e-2, 10.0
+    for it in range(1, max_iter + 1):
+        if method == "lm":
+            while True:
+                dx = _solve(A, b, mu)
+                trial = theta.copy()
+                trial[fidx] += dx
+                c_t = chunked_cost(problem, trial, chunk)
+                if c_t <= cost or mu > 1e12:
+                    break
+                mu *= nu
+            mu = max(mu / nu, 1e-12)
+        else:
+            dx = _solve(A, b)
+            step = 1.0
+            trial = theta.copy()
+            trial[fidx] += dx
+            if method == "gauss-newton":
+                while True:
+                    c_t = chunked_cost(problem, trial, chunk)
+                    if c_t <= cost or step < 1e-6:
+                        break
+                    step *= 0.5
+                    trial = theta.copy()
+                    trial[fidx] += step * dx
+                dx = step * dx
+        theta = trial
+        A, b, new_cost, m = reduce_system(problem, theta, fidx, chunk)
+        scale = np.maximum(np.abs(theta[fidx]), 1e-3)
+        small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
+        small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
+        cost = new_cost
+        if small_step or small_cost:
+            converged = True
+            break
+    chi2, dof = float(cost), int(m - fidx.size)
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    _, R = np.linalg.qr(A / s)
+    Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
+    cov = (Rinv @ Rinv.T) / np.outer(s, s)
+    known = noise_known(problem)
+    if not known and dof > 0:
+        cov = cov * (chi2 / dof)
+    res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
+                            std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
+                            all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
+                            covariance_source="model" if known else "scaled by sigma0^2")
+    res.extra["time_s"] = time.perf_counter() - t0
+    res.extra["chunk_poses"] = int(chunk)
     res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
     return res
 

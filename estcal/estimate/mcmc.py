@@ -21,7 +21,7 @@ Sampler
 -------
 emcee's ensemble sampler with ``vectorize=True``: the log-posterior receives
 all walkers at once and evaluates their residuals in one vectorised forward
-kinematics (:func:`estcal.estimate.batcheval.evaluate_many`). Walkers start in
+kinematics (:meth:`estcal.methods.problem.Problem.evaluate_many`, effects included). Walkers start in
 a small ball drawn from the Laplace approximation around the least-squares
 optimum, and the sampler works in the coordinates that whiten it
 (θ = θ̂ + L z, L Lᵀ = Σ_LS). Default moves (``moves="laplace"``): 70 %
@@ -46,8 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._common import finish_result, noise_known, prior_std_vector, resolve_free
-from .batcheval import evaluate_many
+from ._common import evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
 
@@ -188,10 +187,12 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
                      target_ess: float = 1000.0, max_steps: int = 20000, min_steps: int = 200,
                      check_every: int = 100, seed=0, progress: bool | None = None, moves: str = "laplace", theta0=None,
                      center=None, covariance=None, tau_factor: float = 50.0,
-                     proposal_scale: float = 1.2) -> PosteriorSamples:
+                     proposal_scale: float = 1.2, chain=None) -> PosteriorSamples:
     """Run emcee until the ESS of every parameter reaches ``target_ess`` (see module docstring).
 
     ``center`` / ``covariance`` : Laplace approximation to start from (default: an LM fit).
+    ``chain`` : HDF5 file holding the chain (:mod:`estcal.estimate.chainfile`); when it holds a
+    chain of the same target, sampling continues it (``max_steps`` counts the stored steps too).
     ``progress`` : bar of the steps on stderr (None: only on a terminal, not in CI —
     :func:`estcal.progress.progress`; True forces it, False suppresses it).
     """
@@ -200,6 +201,20 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     t0 = time.perf_counter()
     problem, fidx, names = resolve_free(problem, free)
     theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    if noise_scale is None:
+        noise_scale = not noise_known(problem)
+    s = prior_std_vector(problem, names, prior_std)
+    backend = saved = None
+    if chain is not None:
+        from .chainfile import fingerprint, open_chain
+
+        d = fidx.size + int(noise_scale)
+        nw_ = int(n_walkers or max(2 * d + 2, 64))
+        fp = fingerprint(problem, theta, {"prior_std": s.tolist(), "noise_scale": bool(noise_scale),
+                                          "moves": moves, "proposal_scale": proposal_scale, "seed": seed})
+        backend, saved = open_chain(chain, names=names, fp=fp, n_walkers=nw_, ndim=d)
+        if saved is not None:  # the frame the stored coordinates are written in
+            center, covariance = saved["center"], saved["covariance"]
     if center is None or covariance is None:
         from .lsq import calibrate_lsq
 
@@ -207,9 +222,6 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
         center, covariance = ls.estimate, ls.covariance
     center = np.asarray(center, float)
     L = np.linalg.cholesky(np.asarray(covariance, float) + 1e-30 * np.eye(len(center)))
-    if noise_scale is None:
-        noise_scale = not noise_known(problem)
-    s = prior_std_vector(problem, names, prior_std)
     post = LogPosterior(problem, fidx, theta, theta[fidx].copy(), s, center, L, noise_scale)
     d = post.ndim
     nw = int(n_walkers or max(2 * d + 2, 64))
@@ -224,20 +236,34 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     if noise_scale:
         pmean[-1] = p0[:, -1].mean()
         psd[-1] = proposal_scale / np.sqrt(2.0 * max(post.M - len(fidx), 1))
-    sampler = emcee.EnsembleSampler(nw, d, post, vectorize=True, moves=_moves(moves, pmean, psd))
-    sampler.random_state = np.random.RandomState(int(rng.integers(2 ** 31))).get_state()
+    sampler = emcee.EnsembleSampler(nw, d, post, vectorize=True, moves=_moves(moves, pmean, psd),
+                                    backend=backend)
+    n = 0
+    state = p0
+    if saved is not None:  # continue: the backend restored the random state; start from the last step
+        n = int(backend.iteration)
+        state = None
+    else:
+        sampler.random_state = np.random.RandomState(int(rng.integers(2 ** 31))).get_state()
+        if backend is not None:
+            from .chainfile import write_frame
+
+            sampler.reset()  # an empty chain left by a run killed before its first block
+            write_frame(chain, names=names, fp=fp, n_walkers=nw, ndim=d, center=center, covariance=covariance)
     from estcal.progress import progress as _progress
 
-    state = p0
-    n = 0
     converged = False
     tau = np.full(d, np.nan)
     ess = np.zeros(d)
     burn = 0
     with _progress(total=max_steps, desc="mcmc", unit="step", enabled=progress) as bar:
+        if n:
+            bar.update(n)
         while n < max_steps:
             k = min(check_every, max_steps - n)
             state = sampler.run_mcmc(state, k, progress=False)
+            if backend is not None:
+                backend.maybe_flush()
             n += k
             bar.update(k)
             tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
@@ -248,6 +274,13 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
             if n >= min_steps and n > tau_factor * tmax and ess.min() >= target_ess:
                 converged = True
                 break
+    if saved is not None and not np.isfinite(tau).any():  # resumed at or past max_steps: diagnose only
+        tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
+        burn = int(min(np.ceil(3 * float(np.nanmax(tau))), n // 2))
+        ess = nw * (n - burn) / tau
+        converged = bool(n > tau_factor * np.nanmax(tau) and ess.min() >= target_ess)
+    if backend is not None:
+        backend.flush()
     zs = sampler.get_chain(discard=burn)
     lp = sampler.get_log_prob(discard=burn)
     X = post.to_theta(zs.reshape(-1, d)).reshape(zs.shape[0], nw, len(fidx))

@@ -33,7 +33,9 @@ def register_base(robot, data, theta=None):
     transform is composed with the correction, so it works for any starting base.
     """
     theta = robot.params.values.copy() if theta is None else np.asarray(theta, float).copy()
-    kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
+    from estcal.kinematics.chunked import tool_poses
+
+    kin = tool_poses(robot, data.readings, theta, data.context, fields=("p", "points"))  # bounded memory
     if data.kind == "pose":
         pred, meas = kin.p, data.p
     else:

@@ -27,7 +27,11 @@ def pose_errors(robot, theta, data):
     """
     from estcal.kinematics.transforms import pose_error
 
-    kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
+    from estcal.kinematics.chunked import tool_poses
+
+    # chunked: only the tool frame and the points are kept (bounded memory on large files)
+    kin = tool_poses(robot, data.readings, theta, data.context,
+                     fields=("R", "p") if data.kind == "pose" else ("p", "points"))
     if data.kind == "pose":
         err = pose_error(data.R, data.p, kin.R, kin.p)
         return np.linalg.norm(err[:, :3], axis=1)[:, None], np.linalg.norm(err[:, 3:], axis=1)

@@ -108,13 +108,10 @@ def priorities_from_matrix(robot, matrix) -> dict:
 def load_priorities(path) -> dict:
     """Read a priority file (YAML): a mapping ``{name or pattern: priority}``, or
     ``{matrix: [[α, d, θ, r, β, K], …]}`` (returned as ``{"__matrix__": array}``)."""
-    import yaml
+    from estcal.io.textinput import read_yaml
 
     path = Path(path)
-    try:
-        d = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read priority file ({exc})") from exc
+    d = read_yaml(path, "priority", ValueError)
     if not isinstance(d, dict):
         raise ValueError(f"{path}: expected a mapping {{parameter or pattern: priority}} or {{matrix: [...]}}")
     if "matrix" in d:
@@ -143,6 +140,39 @@ def expand_patterns(names: Sequence[str], patterns) -> list[str]:
         raise ValueError(f"patterns {list(patterns)} match no parameter; parameters are {list(names)}")
     keep = set(out)
     return [n for n in names if n in keep]
+
+
+#: poses per chunk of :func:`reduced_observation_matrix`; datasets above it are reduced
+CHUNK_POSES = 20_000
+
+
+def reduced_observation_matrix(problem, names: Sequence[str] | None = None, theta=None,
+                               chunk: int = CHUNK_POSES):
+    """``(R, names, n_rows)``: the triangular factor of ``W`` (``W = Q R``) built ``chunk`` poses at a
+    time (R ← qr([R; W_chunk])), so that memory stays O(chunk · P) whatever the number of poses.
+
+    Every quantity :func:`estcal.identify.core.identifiable` computes — column norms, the
+    sequential QR's ``|R_jj|``, regrouping coefficients, singular values — is invariant under
+    ``W → QᵀW``, so the analysis of R is that of W (tested to 1e-10 in
+    ``tests/test_memory.py``). Single-term problems with a splittable dataset only."""
+    from estcal.methods.problem import Problem, Term
+
+    pv = problem.params
+    names = list(pv.free_names if names is None else names)
+    cols = pv.indices(names)
+    (t,) = problem.terms
+    n = t.data.n
+    R = np.zeros((0, len(names)))
+    m = 0
+    for a in range(0, n, chunk):
+        sub = Problem.__new__(Problem)
+        sub.robot = problem.robot
+        sub.terms = [Term(t.method, t.data.subset(np.arange(a, min(a + chunk, n))), t.noise)]
+        rows = sub.evaluate(theta)
+        W = rows.H[:, cols] / rows.sigma[:, None]
+        m += W.shape[0]
+        R = np.linalg.qr(np.vstack([R, W]), mode="r")
+    return R, names, m
 
 
 def observation_matrix(problem, names: Sequence[str] | None = None, theta=None):
@@ -257,15 +287,27 @@ def identify(robot, method: str | None = "position", data=None, n_poses: int = 6
         mname = m.name
         meta["method"] = mname
         names = _candidates(problem, robot, candidates)
-        W, names = observation_matrix(problem, names)
+        from estcal.estimate._common import PER_POSE_METHODS
+
+        n_rows = None
+        if data.n > CHUNK_POSES and len(problem.terms) == 1 and hasattr(data, "subset") \
+                and mname in PER_POSE_METHODS:
+            W, names, n_rows = reduced_observation_matrix(problem, names)  # bounded memory
+        else:
+            W, names = observation_matrix(problem, names)
         meta.update({"source": data.where, "n_poses": int(data.n)})
     prio = _merge_priorities(problem, names, priorities, rules)
-    res = identifiable(W, names, prio, pivoting=pivoting, tol_factor=tol_factor, tau_floor=tau_floor, meta=meta)
+    res = identifiable(W, names, prio, pivoting=pivoting, tol_factor=tol_factor, tau_floor=tau_floor, meta=meta,
+                       n_rows=None if data is None else n_rows)
     res.meta["rules"] = rules
     if notes:
         res.meta["notes"] = notes
     if data is not None and check_excitation and mname is not None:
-        ref = identify(robot, mname, None, max(int(n_poses), data.n), seed, priorities, rules, candidates,
+        # the reference needs generic poses, not as many as the data: capped so that a large
+        # dataset is not doubled by a random one (the column-scaled condition number of random
+        # poses hardly depends on their number once W has many more rows than columns)
+        ref = identify(robot, mname, None, max(int(n_poses), min(data.n, 5000)), seed, priorities, rules,
+                       candidates,
                        pivoting, tol_factor, method_options, check_excitation=False,
                        generator_options=generator_options, tau_floor=tau_floor)
         a, b = set(res.identifiable), set(ref.identifiable)

@@ -237,7 +237,7 @@ def _sequential_qr(Ws: np.ndarray, tau_factor: float, tau_floor: float):
 
 def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = False, tol_factor: float = 1.0,
                  tau_floor: float = 1e-10, rel_coef_tol: float = 1e-9,
-                 meta: dict | None = None) -> IdentifiabilityResult:
+                 meta: dict | None = None, n_rows: int | None = None) -> IdentifiabilityResult:
     """Identifiable parameters of the observation matrix ``W`` (GECARO App. III).
 
     Parameters
@@ -272,7 +272,7 @@ def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = Fals
     cols = [names[i] for i in use]
     Wu = W[:, use]
     c = len(cols)
-    M = W.shape[0]
+    M = W.shape[0] if n_rows is None else int(n_rows)  # W may be the R factor of a taller matrix
     if c == 0:
         raise ValueError("no parameter to analyse (all priorities are 0)")
     norms = np.linalg.norm(Wu, axis=0)

@@ -161,8 +161,44 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
     Every problem raises :class:`DatasetError` naming the file, the line and the
     column (see ``docs/dataset.md``, "Checks and error messages").
     """
-    table = read_csv(Path(path), "dataset", DatasetError)
+    table = _read_numeric(Path(path)) or read_csv(Path(path), "dataset", DatasetError)
     return dataset_from_table(table, robot, joint_names, points, check_units)
+
+
+def _read_numeric(path):
+    """Fast path for large, plain numeric CSV files: numpy's C parser straight from the file
+    (memory ≈ the float array; the text path keeps every field as a Python string, ~5 kB per
+    row). Used only when the file is a plain UTF-8 table — header on line 1, every field a
+    finite number, no blank line, no quote — so that it gives exactly the dataset the text path
+    gives; anything else (and every error message) goes through :func:`read_csv`. Returns a
+    :class:`CsvTable` carrying the parsed array, or None."""
+    from estcal.io.textinput import CsvTable, check_input_file, sniff_delimiter
+
+    try:
+        p = check_input_file(path, "dataset", DatasetError)
+        if p.stat().st_size < (1 << 20):  # small files: the text path is fast and names every problem
+            return None
+        with open(p, "rb") as fh:
+            first = fh.readline()
+            sample = fh.read(1 << 16)
+        if first.startswith(b"\xef\xbb\xbf"):
+            first = first[3:]
+        head = first.decode("utf-8")
+        if not head.strip() or head.lstrip().startswith("#") or b'"' in first + sample or b"\r" in sample \
+                or b"\n\n" in sample:
+            return None
+        delim = sniff_delimiter(head)
+        header = [h.strip() for h in head.rstrip("\r\n").split(delim)]
+        import warnings as _w
+
+        with _w.catch_warnings():
+            _w.simplefilter("error")  # empty lines etc. are a warning in numpy: fall back instead
+            data = np.loadtxt(p, delimiter=delim, skiprows=1, ndmin=2, encoding="utf-8-sig", dtype=float)
+    except (ValueError, UnicodeDecodeError, OSError, Warning):
+        return None
+    if data.shape[1] != len(header) or not np.all(np.isfinite(data)):
+        return None
+    return CsvTable(header, None, np.arange(2, 2 + data.shape[0]), 1, delim, str(path), numeric=data)
 
 
 def _decimal_hint(txt: str, delimiter: str) -> str:
@@ -262,10 +298,13 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
     header = table.header
     warnings = _check_header(header, names, where, table.header_line)
     body = table.rows
-    if not body:
+    numeric = getattr(table, "numeric", None)
+    if numeric is not None:  # the fast path (:func:`_read_numeric`): every field already a finite number
+        body = []
+    elif not body:
         raise DatasetError(f"{where}: header only, no data rows")
     lines = np.asarray(table.lines, int)
-    data = np.empty((len(body), len(header)))
+    data = numeric if numeric is not None else np.empty((len(body), len(header)))
     for i, r in enumerate(body):
         if len(r) != len(header):
             hint = ""
@@ -280,7 +319,7 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
             except ValueError:
                 data[i, c] = np.nan  # non-numeric columns are allowed if unused; checked below
     col = {h: data[:, i] for i, h in enumerate(header) if h}
-    raw = {h: [r[i] for r in body] for i, h in enumerate(header) if h}
+    raw = {h: [r[i] for r in body] for i, h in enumerate(header) if h} if numeric is None else {}
 
     def need(hs):
         for h in hs:
@@ -323,7 +362,7 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
         used |= {"x", "y", "z"}
     else:
         kind = "none"
-    readings = np.c_[tuple(col[j] for j in names)] if names else np.zeros((len(body), 0))
+    readings = np.c_[tuple(col[j] for j in names)] if names else np.zeros((data.shape[0], 0))
     context = {}
     for c in CONTEXT_COLUMNS:
         if c in header:
@@ -394,24 +433,31 @@ def _check_spread(ds: Dataset, robot) -> None:
     """Measured positions must spread like the robot's nominal model says.
 
     The measurement frame is unknown (registration finds it), but a rigid change of
-    frame keeps distances: the RMS distance of the measured points from their
-    centroid equals that of the predicted tool positions up to the calibration
-    errors (millimetres) and the unknown marker offsets (a marker at distance d
-    from the tool origin changes it by at most d). A ratio far from 1 means a wrong
-    unit (cm, mm, inches) or the wrong robot / joint columns."""
+    frame keeps distances: the median distance between two measured points equals
+    that between the predicted tool positions for the same joint readings, up to the
+    calibration errors (millimetres) and the unknown marker offsets (a marker at
+    distance d from the tool origin changes a distance by at most 2d). A ratio far
+    from 1 means a wrong unit (cm, mm, inches) or the wrong robot / joint columns.
+    The median keeps a few gross outliers (a wrong row, an unreachable target) from
+    raising a false alarm; a whole file in the wrong unit moves it."""
+    from scipy.spatial.distance import pdist
+
     meas = ds.points[:, 0, :] if ds.points is not None else ds.p
     try:
-        pred = robot.kinematics(ds.readings, jacobian=False).p
+        from estcal.kinematics.chunked import tool_poses
+
+        pred = tool_poses(robot, ds.readings, fields=("p",))["p"]
     except (ValueError, KeyError, TypeError):  # effects needing context the file lacks: no check
         return
-    sm = float(np.sqrt(np.mean(np.sum((meas - meas.mean(0)) ** 2, axis=1))))
-    sp = float(np.sqrt(np.mean(np.sum((pred - pred.mean(0)) ** 2, axis=1))))
+    take = np.linspace(0, ds.n - 1, min(ds.n, 400)).astype(int)  # pdist is O(N²): a spread-out subset
+    sm = float(np.median(pdist(meas[take])))
+    sp = float(np.median(pdist(pred[take])))
     slack = SPREAD_SLACK_M
     if sm > 2 * sp + slack or sm < 0.5 * sp - slack:
         ratio = f"{sm / sp:.3g}×" if sp > 0 else "∞×"
         raise DatasetError(
-            f"{ds.where}: the measured positions spread {sm:.3g} m (RMS about their centroid) but the nominal "
-            f"model of {robot.name!r} puts these joint readings within {sp:.3g} m ({ratio}) — wrong unit (mm, cm, "
+            f"{ds.where}: the measured positions are {sm:.3g} m apart (median over pairs of rows) but the nominal "
+            f"model of {robot.name!r} puts these joint readings {sp:.3g} m apart ({ratio}) — wrong unit (mm, cm, "
             f"inches instead of metres) or the wrong robot / joint columns?")
 
 

@@ -120,6 +120,12 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
     if mt is not None:
         console.print(rich_table(mt))
         console.print(mt.note)
+    if isinstance(res.extra.get("robust_report"), dict):
+        from estcal.estimate.robust import format_report
+
+        console.print(format_report(res.extra["robust_report"]), soft_wrap=True)
+    for w in (res.extra.get("reliability") or {}).get("warnings", []):
+        console.print(f"warning: {w}", soft_wrap=True)
 
 
 def _regularize(value):
@@ -162,7 +168,9 @@ _fail = fail
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     def calibrate(
-        data: Path = typer.Argument(..., help="Calibration dataset (CSV: joint columns + x,y,z / x1..zk / pose)."),
+        data: list[Path] = typer.Argument(..., help="Calibration dataset (CSV: joint columns + x,y,z / x1..zk / "
+                                                    "pose); several files are several sessions, fitted with one "
+                                                    "parameter set (per-session deviations: estcal sessions)."),
         robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
@@ -200,12 +208,20 @@ def register(app: typer.Typer) -> None:
                                                               "measured pose) or fk (pose from the legs)."),
         gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
                                                             "offsets) or 36 (offsets known)."),
-        robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel for the factor-graph "
-                                                                     "estimators: huber | cauchy."),
+        robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel huber | cauchy (thresholds "
+                                             "1.345 / 2.385 σ, --option robust_k=K): lm, gauss-newton, iterated-lls, "
+                                             "scipy-lm (IRLS), gtsam, isam2, gtsam-timevarying, kalman; the "
+                                             "down-weighted rows are named."),
         option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable; values "
                                          "in SI units, parsed as YAML scalars), e.g. --option max_iter=50, "
                                          "--option q=1e-5 (kalman), --option optimizer=dogleg (gtsam). The keys "
                                          "of every estimator: `estcal estimators`; docs/calibration.md."),
+        allow_ill: bool = typer.Option(False, "--allow-ill-conditioned",
+                                       help="Report non-convergence, a condition number above the documented "
+                                            "threshold (docs/reliability.md) or a rank loss of the data as "
+                                            "warnings instead of refusing (exit 3)."),
+        chain: Optional[Path] = typer.Option(None, "--chain", help="MCMC: keep the chain in this HDF5 file; "
+                                             "run again with the same file, data and options to extend it."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: PNG figures (errors "
                                               "before/after, residual vs joints, parameters ±2σ, correlation, "
@@ -217,6 +233,8 @@ def register(app: typer.Typer) -> None:
         """Estimate robot parameters from measurements (batch least squares or any registered estimator)."""
         from rich.console import Console
 
+        from estcal.estimate.chainfile import ChainFileError
+        from estcal.estimate.checks import NumericalRefusal
         from estcal.estimate.lsq import UnidentifiableError
         from estcal.estimate.registry import estimator_names
         from estcal.io import load_dataset
@@ -257,8 +275,12 @@ def register(app: typer.Typer) -> None:
             _fail("give either --free or --level, not both")
         if level is not None and level not in LEVELS:
             _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
-        if not data.exists():
-            _fail(f"{data}: file not found")
+        session_paths = list(data)
+        data = session_paths[0]
+        data_label = " + ".join(str(p) for p in session_paths)
+        for p in session_paths:
+            if not p.exists():
+                _fail(f"{p}: dataset file not found")
 
         # Gough platforms have their own calibration entry point
         try:
@@ -268,6 +290,8 @@ def register(app: typer.Typer) -> None:
         if is_gough_file is not None and is_gough_file(robot):
             from estcal.parallel.calibration import calibrate_gough
 
+            if len(session_paths) > 1:
+                _fail("several data files are not supported for Gough platforms: give one file")
             free_list = [s.strip() for s in free.split(",") if s.strip()] if free else None
             try:
                 gres = calibrate_gough(robot, data, method=estimator, free=free_list, residual=residual,
@@ -279,9 +303,9 @@ def register(app: typer.Typer) -> None:
             if save_model:
                 _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
-                console.print("note: --validate is not supported for Gough platforms (ignored)")
+                warn("--validate is not supported for Gough platforms (ignored)")
             if report is not None:
-                console.print("note: --report is not supported for Gough platforms (ignored)")
+                warn("--report is not supported for Gough platforms (ignored)")
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)
@@ -291,11 +315,20 @@ def register(app: typer.Typer) -> None:
 
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
         try:
-            ds = load_dataset(data, rob, points=n_markers)
+            parts = [load_dataset(p, rob, points=n_markers) for p in session_paths]
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
-        for d in [ds] + vals:
+        if len(parts) > 1:
+            from estcal.sessions.data import stack_sessions
+
+            try:
+                ds = stack_sessions(parts)
+            except ValueError as exc:
+                _fail(str(exc))
+        else:
+            ds = parts[0]
+        for d in parts + vals:
             for w in d.warnings:
                 warn(f"{d.where}: {w}")
         check_distinct_poses(ds)
@@ -306,17 +339,32 @@ def register(app: typer.Typer) -> None:
             if not free_list:
                 _fail("--free is empty")
         options = _parse_options(option)
+        if chain is not None:
+            if estimator != "mcmc":
+                _fail(f"--chain stores an MCMC chain: it needs --method mcmc, not {estimator!r}")
+            options["chain"] = str(chain)
         reg_value = _regularize(regularize)
         if robust is not None:
             if robust not in ("huber", "cauchy"):
                 _fail(f"--robust must be huber or cauchy, got {robust!r}")
-            if estimator not in ("gtsam", "isam2", "gtsam-timevarying"):
-                _fail(f"--robust needs a factor-graph estimator (gtsam, isam2, gtsam-timevarying), not {estimator!r}")
+            if estimator == "ukf":
+                _fail("--robust: the UKF has no robust update here — use --estimator kalman (EKF with a "
+                      "robust innovation weight) or a least-squares / factor-graph estimator")
+            if estimator == "mcmc":
+                _fail("--robust: MCMC samples the Gaussian likelihood and has no robust likelihood — use "
+                      "--estimator lm --robust … to name the outliers, remove them, then sample")
+            if reg_value is not None:
+                _fail("--robust with --regularize is not supported: choose one")
             options["robust"] = robust
         try:
             res, sel, problem = run_calibration(rob, ds, measure=measure, estimator=estimator, free=free_list,
                                                 level=level or "full", selection=selection, validate=vals,
-                                                noise=noise, options=options, regularize=reg_value)
+                                                noise=noise, options=options, regularize=reg_value,
+                                                checks=True, allow_ill_conditioned=allow_ill)
+        except NumericalRefusal as exc:
+            _fail(f"numerical refusal: {exc}", code=3)
+        except ChainFileError as exc:
+            _fail(f"--chain: {exc}")
         except ParameterError as exc:
             _fail(f"--free: {exc}")
         except UnidentifiableError as exc:
@@ -326,12 +374,20 @@ def register(app: typer.Typer) -> None:
             _fail(str(exc))
         except (RuntimeError, np.linalg.LinAlgError) as exc:  # e.g. a backend's numerical failure
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            if "Indeterminate" in str(exc):
+                near = " ".join(str(exc).split()).split("(Symbol:")[-1].split(")")[0].strip() \
+                    if "(Symbol:" in str(exc) else "?"
+                _fail(f"numerical refusal: estimator {estimator!r}: gtsam found the linear system indeterminate "
+                      f"near variable {near} — some parameter combinations are not determined by the data "
+                      f"(for gtsam-timevarying: a batch whose poses, after robust down-weighting, leave "
+                      f"directions fixed only by an extremely tight process noise; raise --option q=… or "
+                      f"--option batch_size=…)", code=3)
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
-        check_dof(res, data, known_noise)
+        check_dof(res, data_label, known_noise)
         measure_name = problem.terms[0].method.name
-        _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
-        res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
+        _print_report(console, res, sel, rob, data_label, [str(v) for v in validate], measure_name, estimator)
+        res.extra.update(robot=robot, data=data_label, validate=[str(v) for v in validate],
                          measure=measure_name, estimator=estimator, noise=noise.to_dict(), points=n_markers)
         if json_path:
             res.to_json(json_path)
@@ -340,7 +396,7 @@ def register(app: typer.Typer) -> None:
             from estcal.report.calibration import calibration_report
 
             rep = calibration_report(report, res, problem, vals, unit=lambda n: _unit(n, rob),
-                                     label=sel.regroup_label if sel is not None else None, data_path=str(data),
+                                     label=sel.regroup_label if sel is not None else None, data_path=data_label,
                                      validate_paths=[str(v) for v in validate], result_dict=res.to_dict(),
                                      title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
             console.print(f"report: {report}/index.html ({len(rep.files)} figures)")

@@ -77,7 +77,7 @@ def register(app: typer.Typer) -> None:
             resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
         for d in data:
             if not d.exists():
-                _fail(f"{d}: file not found")
+                _fail(f"{d}: dataset file not found")
         rob, n_markers = robot_for_data(robot, data[0], root=root, tip=tip, points=points)
         if urdf_masses and rob.meta.get("urdf"):
             from estcal.discrepancy.masses import with_urdf_masses

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail
+from estcal.cli.common import fail, message
 from estcal.io.atomic import atomic_write
 from estcal.io.jsonio import write_json
 
@@ -47,21 +47,31 @@ def register(app: typer.Typer) -> None:
             # a saved diagnosis model re-applies the data preparation of its fit (session time, approach
             # directions from the posture order); effect columns become the effects' context
             ds = prepare_data(rb, ds)
-            kin = rb.kinematics(ds.readings, context=effect_context(rb, ds), jacobian=False)
+            ctx = effect_context(rb, ds)
+            rb.kinematics(ds.readings[:1], context={k: np.asarray(v)[:1] if np.ndim(v) else v
+                                                    for k, v in ctx.items()}, jacobian=False)  # errors early
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            fail(str(exc).strip(chr(39)))
-        cols, names = [], []
-        if with_joints:
-            cols.append(ds.readings)
-            names += list(rb.joint_names)
-        cols += [kin.p, matrix_to_quat(kin.R)]
+            fail(message(exc))
+        from estcal.kinematics.chunked import CHUNK, tool_poses
+
+        names = list(rb.joint_names) if with_joints else []
         names += ["x", "y", "z", "qw", "qx", "qy", "qz"]
-        if markers and rb.n_markers:
-            cols.append(kin.points.reshape(len(ds.readings), -1))
+        want_points = markers and rb.n_markers
+        if want_points:
             names += [f"{c}{k + 1}" for k in range(rb.n_markers) for c in "xyz"]
+        n = len(ds.readings)
+        # written CHUNK rows at a time: memory stays bounded whatever the number of rows
         with atomic_write(output) as fh:
-            np.savetxt(fh, np.column_stack(cols), delimiter=",", header=",".join(names), comments="",
-                       fmt="%.15g")
+            fh.write(",".join(names) + "\n")
+            for a in range(0, n, CHUNK):
+                sl = slice(a, min(a + CHUNK, n))
+                c = {k: np.asarray(v)[sl] if np.ndim(v) and np.shape(v)[0] == n else v for k, v in ctx.items()}
+                k = tool_poses(rb, ds.readings[sl], context=c,
+                               fields=("R", "p", "points") if want_points else ("R", "p"))
+                cols = ([ds.readings[sl]] if with_joints else []) + [k["p"], matrix_to_quat(k["R"])]
+                if want_points:
+                    cols.append(k["points"].reshape(sl.stop - sl.start, -1))
+                np.savetxt(fh, np.column_stack(cols), delimiter=",", fmt="%.15g")
         console.print(f"{len(ds.readings)} rows -> {output} ({', '.join(names)})")
         diff = _against_file(rb, ds, kin)
         if diff:

@@ -1,6 +1,7 @@
 """``estcal online``: recursive (Kalman) calibration of a dataset streamed row by row."""
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Optional
@@ -10,6 +11,7 @@ from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_opti
 from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+_BINARY = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f]")  # never in CSV text (tab, LF, CR allowed)
 
 
 def _row_dataset(header, values, robot, where, line, delimiter=",", allow_none: bool = False, header_line: int = 1):
@@ -66,6 +68,15 @@ def register(app: typer.Typer) -> None:
         report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: estimate ± σ after "
                                               "every row, NIS per row with the innovation tests (PNG), tables and "
                                               "index.html."),
+        state_path: Optional[Path] = typer.Option(None, "--state", help="Checkpoint file: the filter (x, P, Q, noise, "
+                                                  "row, input SHA-256, options) written atomically every "
+                                                  "--checkpoint-every rows and at exit; also a state for "
+                                                  "`estcal next-pose --state`."),
+        resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from this checkpoint (same input and "
+                                              "options; checkpoints keep going to it unless --state is given)."),
+        checkpoint_every: int = typer.Option(100, "--checkpoint-every", help="Rows between checkpoints."),
+        throttle: float = typer.Option(0.0, "--throttle", help="Seconds to wait after each row (replay a file "
+                                       "as a slow live stream)."),
     ) -> None:
         """Kalman-filter calibration, one row at a time: estimate, standard deviations and innovation statistics
         are printed as the rows arrive (mm, mrad; the JSON is SI)."""
@@ -112,6 +123,33 @@ def register(app: typer.Typer) -> None:
             fail(exc)
         noise = NoiseModel(sigma_p, sigma_r, known=True)
         from estcal.estimate._common import PER_POSE_METHODS
+        from estcal.estimate.checkpoint import (CheckpointError, PrefixHasher, file_sha256, filter_checkpoint,
+                                                load_checkpoint, option_differences, restore_filter,
+                                                save_checkpoint)
+
+        if checkpoint_every < 1:
+            fail(f"--checkpoint-every must be ≥ 1, got {checkpoint_every}")
+        if throttle < 0:
+            fail(f"--throttle must be ≥ 0 s, got {throttle}")
+        # the options that change the estimates (SI): a resumed run must use the same ones
+        run_options = {"--robot": robot, "--root": root, "--tip": tip, "--free": free, "q (SI)": q,
+                       "--q-params": q_params, "--filter": filter_kind, "--method": method, "noise-pos (m)": sigma_p,
+                       "noise-rot (rad)": sigma_r, "prior-std (SI)": prior_std}
+        saved = None
+        if resume is not None:
+            try:
+                saved = load_checkpoint(resume)
+            except CheckpointError as exc:
+                fail(f"--resume: {exc}")
+            diff = option_differences(saved["options"], run_options)
+            if diff:
+                fail(f"--resume {resume}: the options differ from the checkpointed run (SI values): "
+                     f"{'; '.join(diff)} — give the same options to continue it")
+            if state_path is None:
+                state_path = resume
+        elif state_path is not None and state_path.exists():
+            fail(f"--state {state_path}: the file exists (a previous run's checkpoint?) — continue it with "
+                 f"--resume {state_path}, or remove it / choose another path")
 
         try:
             meth = get_method(method) if method else None
@@ -132,7 +170,9 @@ def register(app: typer.Typer) -> None:
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
             check_distinct_poses(ds_all)
-        if free:
+        if saved is not None:
+            names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
+        elif free:
             names_pat = [s.strip() for s in free.split(",") if s.strip()]
         elif ds_all is not None:
             from estcal.estimate._common import identifiable_free
@@ -159,8 +199,12 @@ def register(app: typer.Typer) -> None:
         P0 = np.eye(len(names)) * prior_std ** 2
         try:
             flt = ParameterFilter(pv.values, fidx, P0, Q, kind=filter_kind, names=names)
-        except ValueError as exc:
+            if saved is not None:
+                restore_filter(flt, saved)
+        except (ValueError, CheckpointError) as exc:
             fail(exc)
+        input_sha = file_sha256(data) if data != "-" else None
+        hasher = PrefixHasher()
         where = "<stdin>" if data == "-" else data
         try:
             lines = list(_lines(data)) if data != "-" else None
@@ -171,7 +215,13 @@ def register(app: typer.Typer) -> None:
             src = enumerate(lines if lines is not None else sys.stdin, start=1)
             while True:
                 try:
-                    yield next(src)
+                    ln, text = next(src)
+                    bad = _BINARY.search(text)
+                    if bad:
+                        fail(f"{where}, line {ln}, column {bad.start() + 1}: control character "
+                             f"0x{ord(bad.group()):02x} — binary data, not CSV text")
+                    hasher.update(text.encode("utf-8"))  # the consumed prefix, named in checkpoints
+                    yield ln, text
                 except StopIteration:
                     return
                 except UnicodeDecodeError:
@@ -191,6 +241,20 @@ def register(app: typer.Typer) -> None:
         header = [h.strip() for h in next(csv.reader([first], delimiter=delim))]
         history = []
         trace_x, trace_s = [], []  # every row's estimate and std, for --report
+        burn = None
+        rows_done, last_line = 0, header_line
+        skip = 0
+        if saved is not None:
+            history = list(saved["history"])
+            burn = saved["burn"]
+            skip = int(saved["rows"])
+
+        def checkpoint(finished=False):
+            if state_path is None or rows_done < skip:  # still replaying the checkpointed rows: keep it
+                return
+            save_checkpoint(state_path, filter_checkpoint(
+                flt, options=run_options, rows=rows_done, line=last_line, hasher=hasher, input_sha256=input_sha,
+                burn=burn, history=history, finished=finished))
         shown = list(range(min(show, len(names))))
 
         def live_table():
@@ -213,43 +277,95 @@ def register(app: typer.Typer) -> None:
             live_ctx.start()
             live_holder.append(live_ctx)
         console.print(f"estcal online: {rb.name}, {len(names)} free parameters, filter {filter_kind}, "
-                      f"q = {q / MILLI:g} mm / mrad{' on ' + q_params if q_params else ''}; reading {where}")
-        burn = None
-        for ln, line in rows:
-            if not line.strip():
-                continue
-            try:
-                vals = next(csv.reader([line], delimiter=delim))
-            except csv.Error as exc:
-                fail(f"{where}, line {ln}: not a valid CSV line ({exc})")
-            try:
-                ds = _row_dataset(header, vals, rb, where, ln, delim, allow_none=meth is not None,
-                                  header_line=header_line)
-                m = meth or method_for_dataset(ds, rb)
-                sub = Problem.__new__(Problem)
-                sub.robot = rb
-                sub.terms = [Term(m, ds, noise)]
-                step = flt.step(sub)
-            except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
-                fail(exc)
-            if report is not None:
-                trace_x.append(flt.x)
-                trace_s.append(flt.std)
-            if burn is None and flt.n_rows >= 2 * len(names):
-                burn = flt.n_steps
-            k = flt.n_steps
-            if k % every == 0:
-                run = flt.monitor.running(burn or k)
-                x, s = flt.x, flt.std
-                history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
-                                "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(), "std": s.tolist()})
-                if live_ctx is not None:
-                    live_ctx.update(live_table())
-                else:
-                    par = "  ".join(f"{names[i]}={x[i] * units[i][1]:.6g}±{s[i] * units[i][1]:.2g}"
-                                    f"{(' ' + units[i][0]) if units[i][0] else ''}" for i in shown)
-                    console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
-                                  f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                      f"q = {q / MILLI:g} mm / mrad{' on ' + q_params if q_params else ''}; reading {where}"
+                      + (f"; resuming after row {skip} (line {saved['line']}) of {resume}" if saved else ""))
+        import signal
+        import time
+
+        def _term(signum, frame):  # SIGTERM: leave through the checkpoint below, like Ctrl-C
+            raise KeyboardInterrupt
+
+        try:
+            old_term = signal.signal(signal.SIGTERM, _term)
+        except ValueError:  # not the main thread (e.g. an embedding application)
+            old_term = None
+
+        def refuse_input(msg):
+            fail(f"--resume {resume}: {msg} — resume needs the input the checkpointed run read (its first "
+                 f"{saved['input_bytes']} bytes, {skip} data rows, unchanged)")
+
+        def check_prefix():
+            if hasher.n != saved["input_bytes"] or hasher.hexdigest() != saved["input_sha256_prefix"]:
+                refuse_input(f"{where} differs from the checkpointed input (SHA-256 of the rows already "
+                             f"processed does not match)")
+
+        def stop(msg):  # a bad row: keep what was computed before it
+            checkpoint()
+            fail(msg)
+
+        try:
+            if saved is not None and skip == 0:
+                check_prefix()
+            for ln, line in rows:
+                if not line.strip():
+                    continue
+                if rows_done < skip:  # already in the checkpoint: hashed, not processed again
+                    rows_done, last_line = rows_done + 1, ln
+                    if rows_done == skip:
+                        check_prefix()
+                    continue
+                try:
+                    vals = next(csv.reader([line], delimiter=delim))
+                except csv.Error as exc:
+                    stop(f"{where}, line {ln}: not a valid CSV line ({exc})")
+                try:
+                    ds = _row_dataset(header, vals, rb, where, ln, delim, allow_none=meth is not None,
+                                      header_line=header_line)
+                    m = meth or method_for_dataset(ds, rb)
+                    sub = Problem.__new__(Problem)
+                    sub.robot = rb
+                    sub.terms = [Term(m, ds, noise)]
+                    step = flt.step(sub)
+                except (DatasetError, ValueError, np.linalg.LinAlgError) as exc:
+                    stop(exc)
+                rows_done, last_line = rows_done + 1, ln
+                if report is not None:
+                    trace_x.append(flt.x)
+                    trace_s.append(flt.std)
+                if burn is None and flt.n_rows >= 2 * len(names):
+                    burn = flt.n_steps
+                k = flt.n_steps
+                if k % every == 0:
+                    run = flt.monitor.running(burn or k)
+                    x, s = flt.x, flt.std
+                    history.append({"row": k, "line": ln, "nis": step.nis, "nis_per_row": run["nis_per_row"],
+                                    "trace_P": float(np.trace(flt.f.P)), "estimate": x.tolist(),
+                                    "std": s.tolist()})
+                    if live_ctx is not None:
+                        live_ctx.update(live_table())
+                    else:
+                        par = "  ".join(f"{names[i]}={x[i] * units[i][1]:.6g}±{s[i] * units[i][1]:.2g}"
+                                        f"{(' ' + units[i][0]) if units[i][0] else ''}" for i in shown)
+                        console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
+                                      f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                if rows_done % checkpoint_every == 0:
+                    checkpoint()
+                if throttle:
+                    time.sleep(throttle)
+            if rows_done < skip:
+                refuse_input(f"{where} has {rows_done} data rows, fewer than the {skip} already processed")
+        except KeyboardInterrupt:
+            checkpoint()
+            if live_ctx is not None:
+                live_ctx.stop()
+            if state_path is not None:
+                err.print(f"interrupted after row {rows_done} (line {last_line}); checkpoint {state_path} — "
+                          f"continue with --resume {state_path}")
+            raise typer.Exit(130)
+        finally:
+            if old_term is not None:
+                signal.signal(signal.SIGTERM, old_term)
+        checkpoint(finished=True)
         if live_ctx is not None:
             live_ctx.stop()
         if flt.n_steps == 0:

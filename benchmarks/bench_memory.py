@@ -1,0 +1,84 @@
+"""Peak memory (RSS) and wall time of the data-heavy commands on large datasets.
+
+Each command runs in its own process under ``/usr/bin/time -v`` ("Maximum resident set
+size"; on systems without it, ``resource.getrusage(RUSAGE_CHILDREN)`` of a fresh child), on
+a PUMA 560 pose dataset of N rows simulated once per size (noise 0.05 mm / 0.5 mrad)::
+
+    python benchmarks/bench_memory.py --n 20000 100000 --json out.json
+    python benchmarks/bench_memory.py --quick            # N = 5000, for a smoke run
+
+Commands measured: ``fk``, ``identifiable --data``, ``online --free (5 parameters)`` and
+``calibrate`` (full level, LM). Figures: docs/benchmarks.md ("Memory on large datasets").
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ESTCAL = str(Path(sys.executable).parent / "estcal")
+FREE = "offset_2,offset_3,a_2,d_3,alpha_3"
+
+
+def run(args, timeout):
+    """(peak RSS MB, wall s, exit code) of ``estcal args`` in a child process."""
+    cmd = [ESTCAL, *args]
+    if shutil.which("time") or os.path.exists("/usr/bin/time"):
+        t0 = time.perf_counter()
+        p = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True, timeout=timeout)
+        wall = time.perf_counter() - t0
+        m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", p.stderr)
+        return (int(m.group(1)) / 1024 if m else float("nan")), wall, p.returncode
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(after, before) / 1024, wall, p.returncode
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[20000, 100000], help="dataset sizes (poses)")
+    ap.add_argument("--commands", nargs="+", default=["fk", "identifiable", "online", "calibrate"])
+    ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per command")
+    ap.add_argument("--quick", action="store_true", help="N = 5000 only")
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    sizes = [5000] if a.quick else a.n
+    out = []
+    with tempfile.TemporaryDirectory() as d:
+        for n in sizes:
+            data = Path(d) / f"pose{n}.csv"
+            rss, wall, rc = run(["simulate", "--robot", "puma560", "--n", str(n), "--measure", "pose",
+                                 "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5", "--seed", "1", "-o", str(data)],
+                                a.timeout)
+            assert rc == 0, f"simulate failed for N = {n}"
+            cmds = {
+                "fk": ["fk", str(data), "--robot", "puma560", "-o", str(Path(d) / "fk.csv")],
+                "identifiable": ["identifiable", "--robot", "puma560", "--data", str(data)],
+                "online": ["online", str(data), "--robot", "puma560", "--free", FREE, "--every", "1000000"],
+                "calibrate": ["calibrate", str(data), "--robot", "puma560"],
+            }
+            for c in a.commands:
+                rss, wall, rc = run(cmds[c], a.timeout)
+                row = {"command": c, "n_poses": n, "file_mb": data.stat().st_size / 2**20, "peak_rss_mb": rss,
+                       "wall_s": wall, "exit_code": rc}
+                out.append(row)
+                print(f"{c:13s} N={n:8d}  file {row['file_mb']:7.1f} MB  peak RSS {rss:8.1f} MB  "
+                      f"{wall:8.1f} s  exit {rc}", flush=True)
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,83 @@
+"""Least squares on large datasets in bounded memory: the problem reduced to a triangular factor.
+
+The weighted system ``A = H_free/σ``, ``b = e/σ`` of M rows enters every least-squares
+quantity only through ``AᵀA``, ``Aᵀb`` and ``bᵀb``: with ``[A b] = Q R̃`` (thin QR),
+``min ‖A x − b‖² = min ‖R x − c‖² + const`` (R, c the blocks of R̃), the covariance is
+``(RᵀR)⁻¹``, column norms and singular values of A are those of R, and the identifiable set
+found by the ordered QR of :func:`estcal.estimate.levels.select_free` is the same. R̃ is
+built ``chunk`` poses at a time — ``R̃ ← qr([R̃; A_k b_k])`` (TSQR, as stable as one QR of the
+whole matrix) — so memory is O(chunk · P) instead of O(M · P): a 6-axis pose dataset of 10⁶
+rows would need 2.6 GB for H alone.
+
+Used automatically above :data:`CHUNK_POSES` poses (single-term problems of per-pose methods:
+position, location, points), or with ``chunk=N`` in :func:`estcal.estimate.lsq.calibrate_lsq`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "reduce_system", "chunked_cost", "n_rows"]
+
+#: poses per chunk (≈ 60 MB of Jacobian and kinematics for a 6-axis arm with 54 parameters)
+CHUNK_POSES = 20_000
+
+
+def chunkable(problem) -> bool:
+    from ._common import PER_POSE_METHODS
+
+    terms = getattr(problem, "terms", None)
+    return (bool(terms) and len(terms) == 1 and hasattr(terms[0].data, "subset")
+            and getattr(terms[0].method, "name", "") in PER_POSE_METHODS and not hasattr(problem, "row_scale"))
+
+
+def use_chunks(problem, chunk=None):
+    """The chunk size to use: ``chunk`` when given, CHUNK_POSES for large chunkable problems, else None."""
+    if chunk is not None:
+        return int(chunk) if chunkable(problem) else None
+    if chunkable(problem) and problem.terms[0].data.n > CHUNK_POSES:
+        return CHUNK_POSES
+    return None
+
+
+def subproblems(problem, chunk: int):
+    """Sub-problems of ``chunk`` consecutive poses (the same robot, method and noise)."""
+    from estcal.methods.problem import Problem, Term
+
+    (t,) = problem.terms
+    n = t.data.n
+    for a in range(0, n, chunk):
+        sub = Problem.__new__(Problem)
+        sub.robot = problem.robot
+        sub.terms = [Term(t.method, t.data.subset(np.arange(a, min(a + chunk, n))), t.noise)]
+        yield sub
+
+
+def reduce_system(problem, theta, cols, chunk: int):
+    """``(R, c, rss, m)``: triangular factor and ``c = Qᵀb`` of the weighted system of columns
+    ``cols`` at ``theta``, ``rss = bᵀb`` and the number of rows ``m``."""
+    p = len(cols)
+    Rt = np.zeros((0, p + 1))
+    rss, m = 0.0, 0
+    for sub in subproblems(problem, chunk):
+        rows = sub.evaluate(theta)
+        w = 1.0 / rows.sigma
+        Ab = np.column_stack([rows.H[:, cols] * w[:, None], rows.e * w])
+        rss += float(Ab[:, -1] @ Ab[:, -1])
+        m += Ab.shape[0]
+        Rt = np.linalg.qr(np.vstack([Rt, Ab]), mode="r")
+    if Rt.shape[0] < p + 1:  # fewer rows than columns: pad (the rank check reports it)
+        Rt = np.vstack([Rt, np.zeros((p + 1 - Rt.shape[0], p + 1))])
+    return Rt[:p, :p], Rt[:p, p], rss, m
+
+
+def chunked_cost(problem, theta, chunk: int) -> float:
+    """``Σ (e/σ)²`` without Jacobians, chunk by chunk."""
+    c = 0.0
+    for sub in subproblems(problem, chunk):
+        r = sub.evaluate(theta, jacobian=False)
+        c += float(np.sum((r.e / r.sigma) ** 2))
+    return c
+
+
+def n_rows(problem, theta, chunk: int) -> int:
+    return sum(len(sub.evaluate(theta, jacobian=False).e) for sub in subproblems(problem, chunk))
