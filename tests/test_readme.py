@@ -118,3 +118,30 @@ def test_true_model_file_is_the_simulators_truth(readme_run):
     k = saved.kinematics(q, jacobian=False)
     dp = np.linalg.norm(k.p - np.column_stack([m["x"], m["y"], m["z"]]), axis=1)
     assert np.sqrt(np.mean(dp ** 2)) == pytest.approx(np.sqrt(3) * 5e-5, rel=0.25)
+
+
+def test_command_table_lists_every_subcommand_once_with_a_docs_link():
+    """README's command table names each subcommand of `estcal --help` in exactly one row, and every
+    row links to a docs page that exists (or says 'this page')."""
+    import re
+
+    from typer.main import get_command
+
+    from estcal.cli.main import app
+
+    names = set(get_command(app).commands)
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    table = text[text.index("| command | what it does | docs |"):]
+    rows = []
+    for ln in table.splitlines()[2:]:
+        if not ln.startswith("|"):
+            break
+        rows.append(ln)
+    seen = [n for r in rows for n in re.findall(r"`estcal ([a-z-]+)`", r.split("|")[1])]
+    assert sorted(seen) == sorted(names), (sorted(set(names) - set(seen)), sorted(set(seen) - set(names)))
+    for r in rows:
+        docs = r.rstrip("|").split("|")[-1]
+        links = re.findall(r"\]\(([^)]+)\)", docs)
+        assert links or "this page" in docs, r
+        for link in links:
+            assert (REPO / link.split("#")[0]).exists(), link
