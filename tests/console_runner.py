@@ -34,12 +34,22 @@ class Command:
     cmd: str
     expected: list = field(default_factory=list)
 
+    @property
+    def exit_code(self) -> int:
+        """The documented exit status: a ``[exit N]`` output line (docs/reliability.md), else 0."""
+        for e in self.expected:
+            m = re.fullmatch(r"\s*\[exit (\d+)\]\s*", e)
+            if m:
+                return int(m.group(1))
+        return 0
 
-def console_commands(text: str) -> list[Command]:
-    """The ``$`` commands of every ```console block of ``text`` with their documented output."""
+
+def console_commands(text: str, infos=("console",)) -> list[Command]:
+    """The ``$`` commands of every ```console block (or of the blocks whose info string is in
+    ``infos``, ``""`` for plain fences) of ``text`` with their documented output."""
     out = []
     for line, info, _extra, body in code_blocks(text):
-        if info != "console":
+        if info not in infos:
             continue
         lines, cur, i = body.rstrip("\n").split("\n"), None, 0
         while i < len(lines):
@@ -80,7 +90,7 @@ def missing_lines(expected: list[str], actual: str, rtol: float = 1e-3) -> list[
         index.setdefault(skeleton(a), []).append([float(x) for x in NUMBER.findall(a)])
     missing = []
     for e in expected:
-        if not e.strip() or e.strip() == TRIM:
+        if not e.strip() or e.strip() == TRIM or re.fullmatch(r"\[exit \d+\]", e.strip()):
             continue
         want = [float(x) for x in NUMBER.findall(e)]
         cands = index.get(skeleton(e), [])
@@ -102,18 +112,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("pages", nargs="+", type=Path)
     ap.add_argument("--cwd", type=Path, default=Path("."), help="folder to run the commands in")
+    ap.add_argument("--plain", action="store_true", help="also the $ lines of plain ``` and ```bash blocks")
     args = ap.parse_args(argv)
     bad = 0
+    infos = ("console", "", "bash", "sh", "shell") if args.plain else ("console",)
     for page in args.pages:
-        for c in console_commands(page.read_text(encoding="utf-8")):
+        for c in console_commands(page.read_text(encoding="utf-8"), infos):
             p = run(c.cmd, args.cwd)
             miss = missing_lines(c.expected, p.stdout + p.stderr)
-            status = "ok" if p.returncode == 0 and not miss else f"FAIL (exit {p.returncode})"
+            status = "ok" if p.returncode == c.exit_code and not miss else f"FAIL (exit {p.returncode})"
             bad += status != "ok"
             print(f"{page}:{c.line}: {status}: {c.cmd[:100]}")
             for m in miss[:8]:
                 print(f"    not in the output: {m.strip()[:120]}")
-            if p.returncode and not miss:
+            if p.returncode != c.exit_code and not miss:
                 print("    " + (p.stderr.strip().splitlines() or [""])[-1][:200])
     return 1 if bad else 0
 
