@@ -176,8 +176,6 @@ def register(app: typer.Typer) -> None:
                                "rad or m", 1.0, 1.0)
         console = Console()
         if true_model is not None and true_model.suffix.lower() not in (".yaml", ".yml"):
-            from estcal.cli.common import fail
-
             fail(f"--true-model {true_model}: a robot file must end in .yaml or .yml")
         if fleet is not None:
             _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
