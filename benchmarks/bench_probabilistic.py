@@ -168,7 +168,7 @@ def bench_gtsam_vs_lm(quick, repeat=3):
         res = {}
         for name, f in runs.items():
             best = None
-            for _ in range(repeat if n <= 500 else 1):
+            for _ in range(repeat if n <= 500 else 3):
                 t, c = time.perf_counter(), time.process_time()
                 r = f()
                 w, cp = time.perf_counter() - t, time.process_time() - c

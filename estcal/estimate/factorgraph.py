@@ -326,7 +326,10 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     if check:
-        _check(problem, fidx, names, theta)
+        from .lsq import single_thread_blas
+
+        with single_thread_blas():  # a QR of a tall thin matrix: BLAS threads only spin
+            _check(problem, fidx, names, theta)
     plain = robust is None and not latent_joints and not base_pose3 and not tool_pose3 and optimizer == "lm"
     if linear is None:  # asking for grouped CustomFactors means asking for the nonlinear graph
         linear = plain and poses_per_factor == 1
@@ -336,7 +339,11 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
                              "optimizer 'lm'")
         prior = (nominal.copy(), _prior_std(problem, names, prior_std)) if (use_prior or prior_std is not None) \
             else None
-        x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior, marginals)
+        from .lsq import single_thread_blas
+
+        with single_thread_blas():  # tall thin matrices: BLAS threads only spin (see single_thread_blas)
+            x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior,
+                                                               marginals)
         theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
         src = "gtsam marginals (Gaussian factor graph)"
         if not noise_known(problem) and dof > 0:
@@ -530,29 +537,48 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
     for it in range(1, max_iter + 1):
         G, gv, f = A.T @ A, A.T @ b, float(b @ b)
         scale = np.sqrt(np.maximum(np.diag(G), 1e-300))
+        # the parameters' standard deviations at this linearisation (data only), to measure steps in σ
+        try:
+            sd = np.sqrt(np.maximum(np.diag(np.linalg.inv(G)), 1e-300))
+        except np.linalg.LinAlgError:
+            sd = 1.0 / scale
+        accepted = False
         while True:
             t = time.perf_counter()
             dx = np.asarray(graph(x, G, gv, f, np.sqrt(lam) * scale).optimize().at(X))
             t_solve += time.perf_counter() - t
+            step = float(np.max(np.abs(dx) / sd))
+            if step < 1e-9:  # the minimum to well below the estimate's uncertainty
+                converged = True
+                break
             xn = x + dx
             _, bn = linearise(xn, jacobian=False)  # trial: residuals only
             cn = cost(xn, bn)
             if cn <= c:
+                accepted = True
+                break
+            if step < 1e-6 or lam > 1e12:  # no decrease possible: at the minimum to working precision
+                converged = True
                 break
             lam *= 10.0
-            if lam > 1e12:
-                break
-        if cn > c:  # no decrease possible: at the minimum to working precision
-            converged = True
+        if not accepted:
             break
-        # converged when the step is below 1e-10 of each parameter's scale 1/‖A_j‖ (≈ σ_j)
-        small = np.max(np.abs(dx) * scale) <= 1e-10 or c - cn <= rtol * max(c, 1e-300)
+        small = step < 1e-8 or c - cn <= rtol * max(c, 1e-300)
         x, c = xn, cn
         A, b = linearise(x)
         lam = max(lam / 10.0, 1e-12)
         if small:
             converged = True
             break
+    # one undamped Gauss–Newton step to finish: the damped steps stop short of the minimum by
+    # about λ times their length; near the minimum Gauss–Newton converges quadratically
+    G, gv = A.T @ A, A.T @ b
+    dx = np.asarray(graph(x, G, gv, float(b @ b)).optimize().at(X))
+    _, bn = linearise(x + dx, jacobian=False)
+    cn = cost(x + dx, bn)
+    if cn <= c * (1.0 + 1e-12):
+        x, c = x + dx, cn
+        A, b = linearise(x)
     cov = np.full((p, p), np.nan)
     t_m = time.perf_counter()
     if marginals:

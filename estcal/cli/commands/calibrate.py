@@ -157,7 +157,13 @@ def _parse_options(items) -> dict:
         if "=" not in item:
             _fail(f"--option {item!r}: expected KEY=VALUE")
         k, v = item.split("=", 1)
-        out[k.strip()] = yaml.safe_load(v)
+        val = yaml.safe_load(v)
+        if isinstance(val, str):  # YAML 1.1 reads 1e-7 (no dot) as a string: a number is meant
+            try:
+                val = float(val)
+            except ValueError:
+                pass
+        out[k.strip()] = val
     return out
 
 
