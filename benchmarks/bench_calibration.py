@@ -63,15 +63,18 @@ def _median_ms(f, repeat, key=None):
     return float(np.median(ts) * 1e3), out
 
 
-def puma_problem(n, seed=0):
+def puma_problem(n, seed=0, names=None):
+    """Simulated PUMA problem and its free set (``names``: skip the identifiable-set search,
+    e.g. when building many problems: the set is structural, the same for any random poses)."""
     robot = puma560()
     rng = np.random.default_rng(seed)
     q = robot.random_readings(n, rng)
     # identifiable set on these poses, then a truth with 1 mm / 1 mrad errors on it
-    kin = robot.kinematics(q, jacobian=False)
-    ds0 = dataset_from_arrays(robot.joint_names, q, R=kin.R, p=kin.p)
-    prob0 = Problem(robot, [(None, ds0, NoiseModel(5e-5, 5e-4, known=True))])
-    names = select_free(prob0, "full", "structural", refine_registration=False).identifiable
+    if names is None:
+        kin = robot.kinematics(q, jacobian=False)
+        ds0 = dataset_from_arrays(robot.joint_names, q, R=kin.R, p=kin.p)
+        prob0 = Problem(robot, [(None, ds0, NoiseModel(5e-5, 5e-4, known=True))])
+        names = select_free(prob0, "full", "structural", refine_registration=False).identifiable
     truth = robot.params.values.copy()
     truth[robot.params.indices(names)] += rng.normal(0, 1e-3, len(names))
     kin = robot.kinematics(q, truth, jacobian=False)

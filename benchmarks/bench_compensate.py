@@ -4,7 +4,7 @@ PUMA 560 with masses and a 2 kg payload; the model is the nominal robot + 1 mm /
 random geometric errors + j2/j3 compliance; N well-conditioned targets planned on the
 nominal model (as in experiments/compensation.py). Measures, median of the repeats:
 
-* ``solve_ms``      — :func:`estcal.compensate.compensate` without covariance;
+* ``solve_ms``      — :func:`estcal.compensation.compensate` without covariance;
 * ``with_std_ms``   — with the covariance propagation (30 free parameters);
 * ``rows_per_s``    — N / solve time; ``iterations_max`` / ``iterations_median``;
 * ``max_error_mm``  — largest residual of the reached rows (a sanity check).
@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "experiments"))
 def main(argv=None) -> dict:
     import compensation as exp  # experiments/compensation.py: nominal robot and target planning
 
-    from estcal.compensate import compensate
+    from estcal.compensation import compensate
     from estcal.effects import make_effect
     from estcal.io.jsonio import write_json
     from estcal.kinematics.transforms import matrix_to_quat

@@ -33,8 +33,8 @@ _API = {
     "estimator_options": "estcal.estimate.registry:estimator_options",
     "calibration_covariance": "estcal.io.robotfile:calibration_covariance",
     # using a saved model (added by their work packages; one line each):
-    # compensation — "compensate": "estcal.<module>:compensate",
-    # URDF export  — "export_urdf": "estcal.<module>:export_urdf",
+    "compensate": "estcal.compensation.core:compensate",
+    "export_urdf": "estcal.kinematics.urdf_export:export_urdf",
 }
 
 __all__ = ["__version__", *_API]

@@ -29,7 +29,7 @@ import functools
 import os
 import sys
 
-__all__ = ["progress", "progress_enabled"]
+__all__ = ["progress", "progress_enabled", "nested"]
 
 _open_auto = 0  # automatic bars currently open (only the outermost is drawn)
 
@@ -51,6 +51,22 @@ def progress_enabled(enabled: bool | None = None, stream=None) -> bool:
     try:
         return bool(stream.isatty())
     except (AttributeError, ValueError):  # closed or replaced streams
+        return False
+
+
+class nested:
+    """Context in which automatic bars stay quiet, as inside an open bar: for work that runs
+    as one task of an outer loop in another process (a worker of
+    :func:`estcal.scale.runner.run_tasks`), where the outer bar's count is not visible."""
+
+    def __enter__(self):
+        global _open_auto
+        _open_auto += 1
+        return self
+
+    def __exit__(self, *exc):
+        global _open_auto
+        _open_auto -= 1
         return False
 
 

@@ -20,7 +20,7 @@ Setting
   ≥ 0.03, as a real program is planned), *planned on the nominal model*: the
   target is the nominal forward kinematics of the nominal command.
 * Execution: each model's commands (nominal = the planned command itself;
-  geometric / extended = :func:`estcal.compensate.compensate` from the saved
+  geometric / extended = :func:`estcal.compensation.compensate` from the saved
   file) are sent to the true robot (noise-free forward kinematics, effects
   included) with the file's payload, and again with a 5 kg payload (a
   ``payload`` column in the targets: only the extended model can use it).
@@ -67,7 +67,7 @@ def nominal_robot():
 
 def plan_targets(nominal, n, seed):
     """Well-conditioned nominal commands and the poses the nominal model reaches with them."""
-    from estcal.compensate.solve import task_residual
+    from estcal.compensation.solve import task_residual
 
     r = nominal.random_readings(4 * n, np.random.default_rng(seed), margin=0.1)
     kin = nominal.kinematics(r, jacobian=False)
@@ -93,7 +93,7 @@ def errors(true, cmd, p, R, context):
 
 
 def run(n_poses: int, n_targets: int, seed: int, out: Path | None) -> dict:
-    from estcal.compensate import compensate
+    from estcal.compensation import compensate
     from estcal.discrepancy.diagnose import diagnose
     from estcal.effects import make_effect
     from estcal.estimate.levels import run_calibration

@@ -3,8 +3,9 @@
 Every fenced block whose info string is exactly ``python`` is executed; the blocks of a page
 share one namespace, so a page reads as one script (docs/api.md, "Documentation snippets").
 Blocks meant as illustration only are fenced ``python no-run`` (or ``pycon`` for an interactive
-session) and are skipped. A ```` ```text output ```` block that is the next fenced block after a code
-block is its printed output and is compared with what the block prints. Tracebacks give the page and its line: ``File "docs/api.md", line 42``.
+session; a ```python block written with ``>>>`` prompts counts as one) and are skipped. A ```` ```text output ```` block that is the next fenced block after a
+code block is its printed output and is compared with what the block prints. Tracebacks give the
+page and its line: ``File "docs/api.md", line 42``.
 
 Usage (also what the tests do, one subprocess per page so that pages cannot leak state —
 registered effects, matplotlib figures — into each other or into the test process)::
@@ -51,8 +52,8 @@ def python_blocks(path) -> list[tuple[int, str, str | None]]:
     blocks = code_blocks(text)
     out = []
     for i, (line, info, extra, code) in enumerate(blocks):
-        if info != "python" or "no-run" in extra:
-            continue
+        if info != "python" or "no-run" in extra or code.lstrip().startswith(">>>"):
+            continue  # illustrative, or an interactive session (like ```pycon)
         expected = None
         if i + 1 < len(blocks) and blocks[i + 1][1] == "text" and "output" in blocks[i + 1][2].split():
             expected = blocks[i + 1][3]

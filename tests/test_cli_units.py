@@ -91,7 +91,7 @@ def test_the_help_parser_sees_the_options():
 
 def test_noise_options_have_one_name_everywhere():
     """`--noise-pos-mm` / `--noise-rot-mrad` wherever a measurement noise is an option."""
-    for name in ("simulate", "calibrate", "online", "design", "next-pose"):
+    for name in ("simulate", "calibrate", "online", "design", "next-pose", "fleet"):
         out = runner.invoke(app, [name, "--help"], env={"COLUMNS": "400"}).output
         assert "--noise-pos-mm" in out and "--noise-rot-mrad" in out, name
         assert "--sigma " not in out and "--noise-pos " not in out

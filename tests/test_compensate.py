@@ -1,4 +1,4 @@
-"""Compensation (estcal.compensate, `estcal compensate`): independent checks of the solve,
+"""Compensation (estcal.compensation, `estcal compensate`): independent checks of the solve,
 the limits, the effects, the covariance propagation and the command-line contract."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from estcal.cli.main import app
-from estcal.compensate import compensate
-from estcal.compensate.solve import task_residual
+from estcal.compensation import compensate
+from estcal.compensation.solve import task_residual
 from estcal.effects import make_effect
 from estcal.io.robotfile import load_robot, robot_from_dict, robot_to_dict, save_robot
 from estcal.kinematics.transforms import matrix_to_quat, so3_log
@@ -212,7 +212,9 @@ def cli_case(tmp_path):
     r0, kin = planned(nominal, 12, seed=2)
     keep = well_conditioned(nominal, r0, kin)
     r0, p, R = r0[keep][:6], kin.p[keep][:6].copy(), kin.R[keep][:6]
-    p[3] += [5.0, 0.0, 0.0]  # 5 m away: outside the workspace (CSV line 5)
+    # 1 m further from the shoulder than the arm reaches (≈ 0.86 m): outside the workspace (CSV line 5)
+    o2 = nominal.kinematics(r0[3:4], jacobian=False).joint_origin[0, 1]
+    p[3] += (p[3] - o2) / np.linalg.norm(p[3] - o2)
     appr = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
     write_targets(tmp_path / "targets.csv", nominal, r0, p, matrix_to_quat(R), {"approach_j2": appr})
     return tmp_path, model, r0, p, R, appr
@@ -248,7 +250,7 @@ def test_cli_errors_exit_2_and_no_covariance_column(cli_case, tmp_path):
     tmp, model, r0, p, R, appr = cli_case
     t = str(tmp / "targets.csv")
     r = runner.invoke(app, ["compensate", t, "--robot", str(tmp / "model.yaml"), "-o", t])
-    assert r.exit_code == 2 and "input file" in r.output
+    assert r.exit_code == 2 and "input" in r.output
     nominal = load_robot("puma560_masses")
     write_targets(tmp / "nox.csv", nominal, r0, np.zeros((len(r0), 0)))
     r = runner.invoke(app, ["compensate", str(tmp / "nox.csv"), "--robot", str(tmp / "model.yaml"), "-o",
@@ -328,3 +330,33 @@ def test_gains_coupling_and_prismatic_joint_inverted():
         em, _ = task_residual(model, r0[:5] - dr, th, {}, T[:5, :3], kin.R[keep][:5], 0.1)
         Jfd[..., c] = -(ep - em) / 2e-6
     assert np.abs(J - Jfd).max() < 1e-7 * np.abs(J).max()
+
+
+@pytest.mark.parametrize("effect,column,value", [("joint_compliance", "payload", 6.0),
+                                                 ("thermal_expansion", "temperature", 45.0)])
+def test_cli_context_columns_reach_the_effects(tmp_path, effect, column, value):
+    """A `payload` / `temperature` column changes the commands, and the model with that context reaches
+    the target (the thermal model has a marker: the target is marker 1)."""
+    nominal = load_robot("puma560_masses")
+    base = true_puma(markers=1 if effect == "thermal_expansion" else 0)
+    model = base.add_effect(make_effect(effect, base))
+    for n in model.effects[0].param_names:
+        model.params[n] = 3e-4 if effect == "joint_compliance" else 2.3e-5
+    save_robot(model, tmp_path / "m.yaml")
+    r0, kin = planned(nominal, 20, seed=8)
+    keep = well_conditioned(nominal, r0, kin)
+    r0, p = r0[keep][:5], kin.p[keep][:5]
+    ctx = {column: np.full(len(r0), value)}
+    write_targets(tmp_path / "t.csv", nominal, r0, p, extra=ctx)
+    write_targets(tmp_path / "t0.csv", nominal, r0, p)
+    outs = []
+    for t in ("t.csv", "t0.csv"):
+        r = runner.invoke(app, ["compensate", str(tmp_path / t), "--robot", str(tmp_path / "m.yaml"), "-o",
+                                str(tmp_path / f"c_{t}")])
+        assert r.exit_code == 0, r.output
+        rows = list(csv.DictReader((tmp_path / f"c_{t}").open()))
+        outs.append(np.array([[float(row[j]) for j in model.joint_names] for row in rows]))
+    k = model.kinematics(outs[0], context=ctx, jacobian=False)
+    reached = k.points[:, 0] if model.n_markers else k.p
+    assert np.abs(reached - p).max() < 1e-9
+    assert np.abs(outs[0] - outs[1]).max() > 1e-5  # the column was used

@@ -104,7 +104,10 @@ def test_online_stream_matches_estcal_online(stream_csv, tmp_path):
     assert r.returncode == 0, r.stderr
     rows = [ln for ln in r.stdout.splitlines() if ln.startswith("row ")]
     assert len(rows) == 40 and "theta_2 = " in rows[-1] and " ± " in rows[-1]
-    res = CliRunner().invoke(app, ["online", str(path), "--robot", "puma560", *common, "--json",
+    # the same noise in the CLI's units (docs/conventions.md, "Units on the command line")
+    cli = ["--noise-pos-mm", "0.1", "--noise-rot-mrad", "0.1", "--free", ",".join(free), "--q-mm", "0.02",
+           "--q-params", "theta_2"]
+    res = CliRunner().invoke(app, ["online", str(path), "--robot", "puma560", *cli, "--json",
                                    str(tmp_path / "cli.json")])
     assert res.exit_code == 0, res.output
     a = json.loads((tmp_path / "script.json").read_text())["parameters"]

@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from test_calibrate_cli import TRUE_DELTA, _simulate  # the same simulated PUMA 560 pose data
+
 from estcal.cli.main import app
-from estcal.io.dataset import dataset_from_arrays, write_dataset
+from estcal.io.dataset import write_dataset
 from estcal.kinematics import puma560
 from estcal.report.units import display_unit
 
-FREE = "offset_2,offset_3,a_2,d_3,base_tx"
-DELTA = {"offset_2": 2e-3, "offset_3": -1.5e-3, "a_2": 1e-3, "d_3": -8e-4, "base_tx": 2e-3}
+FREE = ",".join(TRUE_DELTA)  # every perturbed parameter of the simulated truth
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -116,25 +117,10 @@ def captured():
         yield figs
 
 
-def _simulate(folder, n, seed, name):
-    robot = puma560()
-    theta = robot.params.values.copy()
-    for k, v in DELTA.items():
-        theta[robot.params.index(k)] += v
-    rng = np.random.default_rng(seed)
-    q = robot.random_readings(n, rng)
-    kin = robot.kinematics(q, theta, jacobian=False)
-    from estcal.kinematics.transforms import so3_exp
-
-    R = so3_exp(rng.normal(0, 1e-4, (n, 3))) @ kin.R
-    p = kin.p + rng.normal(0, 1e-5, (n, 3))
-    return write_dataset(folder / name, dataset_from_arrays(robot.joint_names, q, R=R, p=p))
-
-
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("reports")
-    return d, _simulate(d, 30, 1, "train.csv"), _simulate(d, 15, 2, "val.csv")
+    return d, _simulate(d, 30, 1, "train.csv")[0], _simulate(d, 15, 2, "val.csv")[0]
 
 
 def _invoke(args):
@@ -154,7 +140,8 @@ def calib(data, captured):
     d, train, val = data
     folder = d / "rep_lm"
     r = _invoke(["calibrate", str(train), "-r", "puma560", "--free", FREE, "--validate", str(val),
-                 "--noise-pos", "1e-5", "--noise-rot", "1e-4", "--json", str(d / "lm.json"), "--report", str(folder)])
+                 "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1", "--json", str(d / "lm.json"),
+                 "--report", str(folder)])
     figs = {k: captured[k] for k in ("pose_errors.png", "pose_errors_rotation.png", "residual_vs_joints.png",
                                      "parameters.png", "correlation.png")}
     return folder, json.loads((d / "lm.json").read_text()), figs, r.output
@@ -299,7 +286,7 @@ def test_mcmc_report_table_and_corner_quantiles(mcmc):
 def test_online_report(data, captured):
     d, train, _ = data
     folder = d / "rep_online"
-    _invoke(["online", str(train), "-r", "puma560", "--free", FREE, "--sigma-p", "1e-5", "--sigma-r", "1e-4",
+    _invoke(["online", str(train), "-r", "puma560", "--free", FREE, "--noise-pos-mm", "0.01", "--noise-rot-mrad", "0.1",
              "--json", str(d / "online.json"), "--report", str(folder)])
     js = json.loads((d / "online.json").read_text())
     page = _check_folder(folder)
@@ -328,8 +315,11 @@ def test_online_report(data, captured):
 
     nis = np.asarray(lines["nis"].get_ydata())
     m = 6  # a pose row: 3 position + 3 orientation components
+    burn = js["innovation"]["burn_in"]
     out = (nis < stats.chi2.ppf(0.025, m)) | (nis > stats.chi2.ppf(0.975, m))
-    assert len(lines["nis_outside"].get_xdata()) == int(out.sum())
+    assert len(lines["nis_outside"].get_xdata()) == int(out[burn:].sum())
+    # … and their fraction is the JSON's (the innovation tests count the same rows)
+    assert out[burn:].mean() == pytest.approx(js["innovation"]["nis_outside_95"], rel=1e-12)
 
 
 # ------------------------------------------------------------------ design / next-pose
@@ -398,7 +388,7 @@ def test_diagnose_report(tmp_path, captured):
                              n_poses=30, measure="position", seed=4)
     csv = write_dataset(tmp_path / "data.csv", sim.dataset)
     folder = tmp_path / "rep"
-    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos", str(sigma), "--effects",
+    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3), "--effects",
              "joint_compliance,encoder_gain", "--folds", "3", "--max-effects", "1", "--json", str(tmp_path / "d.json"),
              "--report", str(folder)])
     js = json.loads((tmp_path / "d.json").read_text())

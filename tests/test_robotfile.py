@@ -144,7 +144,7 @@ def test_good_file_loads(tmp_path):
 def test_invalid_yaml_and_missing_file(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text("estcal_robot: 1\njoints: [\n")
-    with pytest.raises(RobotFileError, match=r"bad.yaml, line 3, column 1: invalid YAML \(expected the node"):
+    with pytest.raises(RobotFileError, match=r"bad.yaml, line 3, column 1: invalid YAML in the robot file \(expected the node"):
         load_robot(p)
     with pytest.raises(RobotFileError, match="nope.yaml: robot file not found"):
         load_robot(tmp_path / "nope.yaml")

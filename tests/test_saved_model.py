@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 from estcal.cli.main import app
 from estcal.io import load_dataset, write_dataset
 from estcal.io.robotfile import calibration_covariance, load_robot
+from estcal.kinematics.transforms import matrix_to_quat
 from estcal.simulate import simulate
 
 RUN = CliRunner()
@@ -110,7 +111,7 @@ def test_calibrate_saved_model_reproduces_the_fit_through_fk(puma_pose, tmp_path
     train, valid = puma_pose
     model, js = tmp_path / "M.yaml", tmp_path / "fit.json"
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--estimator", estimator,
-                         "--validate", str(valid), "--noise-pos", "5e-5", "--noise-rot", "5e-4",
+                         "--validate", str(valid), "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5",
                          "--json", str(js), "--save-model", str(model)])
     assert r.exit_code == 0, r.output
     fit = json.loads(js.read_text())
@@ -121,6 +122,8 @@ def test_calibrate_saved_model_reproduces_the_fit_through_fk(puma_pose, tmp_path
         out = _fk(tmp_path, data, model)
         p = np.column_stack([out["x"], out["y"], out["z"]])
         assert np.abs(p - kin.p).max() < 1e-12
+        quat = np.column_stack([out[c] for c in ("qw", "qx", "qy", "qz")])
+        assert np.abs(quat - matrix_to_quat(kin.R)).max() < 1e-12  # orientation too (rad-level 1e-12)
     block = yaml.safe_load(model.read_text())["calibration"]
     _check_block(block, [(train, "train"), (valid, "validation")], fit)
     assert block["estimator"] == estimator and block["noise"]["position"] == 5e-5
@@ -180,7 +183,7 @@ def test_diagnosed_model_with_effects_reads_its_columns_in_fk(tmp_path):
                    t=t, record_approach=True)
     data = write_dataset(tmp_path / "data.csv", sim.dataset)
     model, js = tmp_path / "diag.yaml", tmp_path / "fit.json"
-    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--noise-pos", str(sigma),
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3),
                          "--effects", "backlash,drift", "--folds", "3", "--json", str(js),
                          "--save-model", str(model)])
     assert r.exit_code == 0, r.output
@@ -215,7 +218,7 @@ def test_fit_json_is_self_contained(tmp_path, monkeypatch):
                    seed=4, noise={"position": 1e-4})
     data = write_dataset(tmp_path / "mocap.csv", sim.dataset)
     js = tmp_path / "fit.json"
-    r = RUN.invoke(app, ["diagnose", str(data), "--robot", str(urdf), "--noise-pos", "1e-4",
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", str(urdf), "--noise-pos-mm", "0.1",
                          "--effects", "joint_compliance", "--folds", "3", "--json", str(js)])
     assert r.exit_code == 0, r.output
     urdf.unlink()
@@ -263,3 +266,27 @@ def test_lumped_mass_model_keeps_the_tool_link_mass(tmp_path):
     no_tool = load_robot(tmp_path / "lumped.yaml")
     no_tool.links[-1] = no_tool.links[-1].__class__(**{**no_tool.links[-1].__dict__, "mass": 0.0})
     assert np.abs(no_tool.gravity_torques(q) - lumped.gravity_torques(q)).max() > 0.1
+
+
+def test_method_unknowns_are_kept_apart_from_the_robot_covariance(tmp_path):
+    """Plane-unknown data estimate the plane too: the block's free/covariance hold the robot's
+    parameters (their marginal: the matching sub-matrix of the full covariance), the plane is
+    listed under method_unknowns, and calibration_covariance works on the reloaded file."""
+    from estcal.estimate import calibrate_lsq
+    from estcal.io.dataset import dataset_from_arrays
+    from estcal.methods import NoiseModel, Problem, get_method
+
+    robot = load_robot("puma560")
+    q = simulate(robot, n_poses=40, measure="position", seed=2).dataset.readings
+    ds = dataset_from_arrays(robot.joint_names, q)  # encoders only: the poses touch one unknown plane
+    problem = Problem(robot, [(get_method("plane-unknown"), ds, NoiseModel(scalar=1e-5))])
+    kinds = dict(zip(problem.params.names, problem.params.kinds))
+    plane = [n for n in problem.params.names if kinds[n] == "other"]
+    assert plane  # the plane's parameters are unknowns of the method
+    res = calibrate_lsq(problem, "lm", free=["offset_2", "offset_3"] + plane, check=False)
+    back = load_robot(res.save_model(tmp_path / "plane.yaml"))
+    names, C = calibration_covariance(back)
+    idx = [res.names.index(n) for n in ("offset_2", "offset_3")]
+    assert names == ["offset_2", "offset_3"]
+    np.testing.assert_array_equal(C, res.covariance[np.ix_(idx, idx)])
+    assert set(back.meta["calibration"]["method_unknowns"]) == set(plane)

@@ -154,3 +154,79 @@ def test_recalibration_curve_and_pose_choice(sessions):
         if tot < best:
             best, best_c = tot, c
     assert choose_poses(fit, data, 1) == [best_c]
+
+
+def test_sessions_cli_and_session_column(tmp_path):
+    """`estcal sessions` on one file per session and on one file with a `session` column gives the
+    same fit; `--vary auto` picks the truly varying offset among three candidates; a new session is
+    scored with its coverage; the JSON is strict."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+    from estcal.io.dataset import write_dataset
+    from estcal.sessions.data import stack_sessions
+
+    robot = puma560()
+    # no fixed geometric errors: the free offsets are the whole model (no misfit to mistake for variation)
+    ds, truth = simulate_sessions(robot, 6, 12, {"offset_2": 2e-3}, noise=5e-5, seed=5, error_std=0.0)
+    files = []
+    for i, d in enumerate(ds):
+        files.append(tmp_path / f"day{i + 1}.csv")
+        write_dataset(files[-1], d)
+    stacked = stack_sessions(ds[:5])
+    write_dataset(tmp_path / "all.csv", stacked, extra={"session": stacked.columns["session"]})
+    common = ["--robot", "puma560", "--free", "offset_2,offset_3,offset_4", "--noise-pos-mm", "0.05",
+              "--known-noise"]
+    r = CliRunner().invoke(app, ["sessions", *map(str, files[:5]), *common, "--vary", "auto", "--validate",
+                                 str(files[5]), "--json", str(tmp_path / "a.json")])
+    assert r.exit_code == 0, r.output
+    a = json.loads((tmp_path / "a.json").read_text(), parse_constant=lambda c: pytest.fail(c))
+    assert a["vary"] == ["offset_2"]
+    assert "offset_2" in r.output and "mrad" in r.output and "coverage" in r.output
+    r = CliRunner().invoke(app, ["sessions", str(tmp_path / "all.csv"), *common, "--vary", "offset_2", "--json",
+                                 str(tmp_path / "b.json")])
+    assert r.exit_code == 0, r.output
+    b = json.loads((tmp_path / "b.json").read_text())
+    for n, v in a["parameters"].items():
+        assert abs(v["estimate"] - b["parameters"][n]["estimate"]) < 1e-6 * v["std"] + 1e-12
+    r = CliRunner().invoke(app, ["sessions", str(files[0]), *common, "--vary", "offset_9"])
+    assert r.exit_code == 2 and "offset_9" in r.output
+
+
+def test_diagnose_takes_several_sessions(tmp_path):
+    """`estcal diagnose A.csv B.csv`: the sessions are fitted together with approach directions
+    derived per session (the first pose of each session has none), and the saved model lists
+    both files with their sha256."""
+    import hashlib
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+    from estcal.discrepancy import diagnose
+    from estcal.io.dataset import write_dataset
+
+    robot = puma560()
+    ds, _ = simulate_sessions(robot, 2, 15, {}, noise=5e-5, seed=6, error_std=2e-4)
+    res = diagnose(robot, ds, noise=5e-5, plots=False, approach_from_order=True, k_folds=3, max_effects=1)
+    assert isinstance(res.train_data, list) and len(res.train_data) == 2
+    files = []
+    for i, d in enumerate(ds):
+        files.append(tmp_path / f"s{i}.csv")
+        write_dataset(files[-1], d)
+    r = CliRunner().invoke(app, ["diagnose", *map(str, files), "--robot", "puma560", "--noise-pos-mm", "0.05",
+                                 "--folds", "3", "--approach-from-order", "--save-model", str(tmp_path / "m.yaml")])
+    assert r.exit_code == 0, r.output
+    block = yaml.safe_load((tmp_path / "m.yaml").read_text())["calibration"]
+    shas = [e["sha256"] for e in block["data"] if e["role"] == "train"]
+    assert shas == [hashlib.sha256(f.read_bytes()).hexdigest() for f in files]
+    # approach per session: stacking first and deriving after would give the second session's
+    # first pose an approach from the first session's last pose
+    from estcal.discrepancy.geometric import derive_approach
+    from estcal.sessions.data import stack_sessions
+
+    per = stack_sessions([derive_approach(d) for d in ds])
+    first2 = ds[0].n
+    assert all(per.columns[c][first2] == 0 for c in per.columns if c.startswith("approach_"))

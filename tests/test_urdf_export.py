@@ -336,7 +336,7 @@ def random_robots(draw):
     return rb.with_values(v)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(random_robots())
 def test_random_robot_round_trip(tmp_path, robot):
     path = save_robot(robot, tmp_path / "R.yaml")
@@ -347,3 +347,32 @@ def test_random_robot_round_trip(tmp_path, robot):
     back = load_robot(str(out), root="world", tip="tool")
     assert back.joint_names == robot.joint_names
     assert np.abs(back.fk(q) - load_robot(str(path)).fk(q)).max() < 1e-9
+
+
+def test_saved_model_provenance_and_note(tmp_path):
+    """A model saved by `calibrate --save-model` carries its provenance into the URDF."""
+    data = tmp_path / "train.csv"
+    r = runner.invoke(app, ["simulate", "--robot", "planar2", "--n", "12", "--noise-pos-mm", "0.05", "--seed", "3",
+                            "-o", str(data)])
+    assert r.exit_code == 0, r.output
+    model = tmp_path / "cal.yaml"
+    r = runner.invoke(app, ["calibrate", str(data), "--robot", "planar2", "--noise-pos-mm", "0.05",
+                            "--save-model", str(model)])
+    assert r.exit_code == 0, r.output
+    out, r = _export(tmp_path, model)
+    text = out.read_text()
+    block = load_robot(str(model)).meta["calibration"]
+    assert f"estimator: {block['estimator']}" in text and block["data"][0]["sha256"] in text
+    # a URDF-convention model exported without --from-urdf is pointed to it
+    tiago_like = save_robot(_calibrated(robot_from_urdf(out, root="world", tip="tool")), tmp_path / "u.yaml")
+    _, r = _export(tmp_path, tiago_like)
+    assert "--from-urdf ORIGINAL.urdf" in r.output
+
+
+def test_nominal_model_from_urdf_changes_nothing(tmp_path, tiago_dir):
+    original = tiago_dir / "tiago_48_schunk.urdf"
+    res = export_urdf(load_robot("tiago", n_markers=0), tmp_path / "n.urdf", from_urdf=original, warn=False)
+    assert res.changed == [] and (res.root, res.tip) == ("base_footprint", "wrist_ft_tool_link")
+    j0 = {j.name: j.origin for j in load_urdf(original).robot.joints}
+    j1 = {j.name: j.origin for j in load_urdf(tmp_path / "n.urdf").robot.joints}
+    assert j0.keys() == j1.keys() and all(np.allclose(j0[n], j1[n], atol=1e-15) for n in j0)

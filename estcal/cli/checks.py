@@ -34,7 +34,7 @@ __all__ = ["guard", "check_number", "check_outputs", "NUMBER_RULES", "OUTPUT_OPT
 #        ("halfopen", lo, hi) lo <= x < hi
 NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
     (r"--(n|n-poses|n-candidates|restarts|random-plans|every|max-effects|points|walkers|steps|n-jobs|"
-     r"workers|chunk|n-samples|samples)$", None, ("int", 1)),
+     r"workers|chunk|n-samples|samples|max-iter|fleet)$", None, ("int", 1)),
     (r"--folds$", None, ("int", 2)),
     (r"--(show|map|burn-in|seed)$", None, ("int", 0)),
     (r"--(noise|sigma|prior-std|error)[a-z-]*$", ("simulate",), ("ge", 0.0)),
@@ -42,12 +42,17 @@ NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
     (r"--(q|q-[a-z]+|resolution[a-z-]*|error-[a-z-]+|tau-floor)$", None, ("ge", 0.0)),
     (r"--alpha$", None, ("open", 0.0, 1.0)),
     (r"--margin$", None, ("halfopen", 0.0, 0.5)),
-    (r"--dt[a-z-]*$", None, ("gt", 0.0)),
+    (r"--(dt|tol)[a-z-]*$", None, ("gt", 0.0)),
+    (r"--rot-weight[a-z-]*$", None, ("ge", 0.0)),
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)
+OUTPUT_FOLDER_OPTIONS = ("--report", "--out", "--out-dir", "--output-dir")
 OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
-                  "--html")
+                  "--html", "--urdf")
+
+
+_EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml"}
 
 
 def _describe(rule) -> str:
@@ -96,8 +101,18 @@ def _existing_ancestor(p: Path) -> Path:
     return a
 
 
-def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
-    """``outputs`` {option: path}: refuse folders, unwritable places, inputs and duplicates."""
+def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[str, Path] | None = None) -> None:
+    """``outputs`` {option: path}: refuse folders, unwritable places, inputs and duplicates;
+    ``folders`` {option: path} are output folders: refuse an existing file."""
+    for opt, p in (folders or {}).items():
+        p = Path(p)
+        if p.exists() and not p.is_dir():
+            fail(f"{opt} {p}: is a file — give a folder (it is created if missing)")
+        anc = p if p.is_dir() else _existing_ancestor(p)
+        if not anc.is_dir():
+            fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
+        if not os.access(anc, os.W_OK | os.X_OK):
+            fail(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
     seen: dict[str, str] = {}
     ins = {}
     for p in inputs:
@@ -111,7 +126,8 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
             continue
         p = Path(p)
         if p.is_dir():
-            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / ('result.json' if opt == '--json' else 'out.csv')})")
+            example = _EXAMPLE_NAME.get(opt, "out.csv")
+            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / example})")
         anc = _existing_ancestor(p)
         if not anc.is_dir():
             fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
@@ -121,15 +137,15 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path]) -> None:
             fail(f"{opt} {p}: the file exists and is read-only — choose another name")
         real = os.path.realpath(p)
         if real in ins:
-            fail(f"{opt} {p}: is also an input of this command ({ins[real]}) — write the output to another "
-                 f"file (estcal never overwrites its inputs)")
+            fail(f"{opt} {p}: is also an input file of this command ({ins[real]}) — write the output to another "
+                 f"file (inputs are never overwritten)")
         if real in seen:
             fail(f"{opt} {p}: the same file as {seen[real]} — give each output its own file")
         seen[real] = opt
 
 
 def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
-    """{python parameter: (long option name or '', is an output)}"""
+    """{python parameter: (long option name or '', 'file' / 'folder' output or '')}"""
     from typer.models import ArgumentInfo, OptionInfo
 
     out = {}
@@ -138,9 +154,9 @@ def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
         if isinstance(d, OptionInfo):
             decls = [s for dcl in (d.param_decls or ()) for s in dcl.split("/") if s.startswith("--")]
             opt = decls[0] if decls else "--" + name.replace("_", "-")
-            out[name] = (opt, opt in OUTPUT_OPTIONS)
+            out[name] = (opt, "file" if opt in OUTPUT_OPTIONS else "folder" if opt in OUTPUT_FOLDER_OPTIONS else "")
         elif isinstance(d, ArgumentInfo):
-            out[name] = ("", False)
+            out[name] = ("", "")
     return out
 
 
@@ -152,18 +168,20 @@ def guard(command: str, func):
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         bound = sig.bind_partial(*args, **kwargs)
-        outputs, inputs = {}, []
+        outputs, folders, inputs = {}, {}, []
         for pname, value in bound.arguments.items():
-            opt, is_out = names.get(pname, ("", False))
+            opt, kind = names.get(pname, ("", ""))
             if opt:
                 check_number(opt, value, command)
             values = value if isinstance(value, (list, tuple)) else [value]
             for v in values:
-                if is_out and v is not None:
+                if kind == "file" and v is not None:
                     outputs[opt] = Path(v)
+                elif kind == "folder" and v is not None:
+                    folders[opt] = Path(v)
                 elif isinstance(v, (str, Path)) and v and str(v) != "-":
                     inputs.append(Path(v))
-        check_outputs(outputs, inputs)
+        check_outputs(outputs, inputs, folders)
         return func(*args, **kwargs)
 
     return wrapper

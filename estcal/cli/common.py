@@ -13,8 +13,8 @@ import typer
 
 from estcal.io.jsonio import write_json
 
-__all__ = ["fail", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
-           "EXIT_REFUSED"]
+__all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
+           "EXIT_REFUSED", "save_model_or_fail"]
 
 EXIT_INPUT = 2
 EXIT_REFUSED = 3
@@ -24,6 +24,13 @@ def fail(msg, code: int = EXIT_INPUT):
     """Print ``error: msg`` to stderr and exit with ``code`` (no traceback)."""
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
+
+
+def message(exc: BaseException) -> str:
+    """The text of an exception for ``fail`` (a KeyError's own quotes removed)."""
+    if isinstance(exc, KeyError) and exc.args and isinstance(exc.args[0], str):
+        return exc.args[0]
+    return str(exc)
 
 
 def refuse(msg):
@@ -97,3 +104,13 @@ def check_dof(res, data_path, known_noise: bool = False) -> None:
     refuse(f"{data_path}: {p + dof} residuals for {p} estimated parameters (dof = {dof}): σ0 and every standard "
            f"deviation are undefined — measure more poses, estimate fewer parameters (--level joint_offset or "
            f"--free), or give --known-noise")
+
+
+def save_model_or_fail(result, path, robot_spec) -> str:
+    """``result.save_model(path)`` (calibration or diagnosis) with the robot spec in the
+    provenance; a clear error on failure. Returns the line to print."""
+    try:
+        result.save_model(path, {"robot": robot_spec})
+    except (ValueError, OSError) as exc:
+        fail(f"--save-model {path}: {exc}")
+    return f"wrote {path} (load it with --robot {path})"

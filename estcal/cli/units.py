@@ -54,11 +54,13 @@ DIMENSIONLESS = {
     "--burn-in": "number of rows / samples",
     "--walkers": "number of MCMC walkers",
     "--steps": "number of MCMC steps",
+    "--max-iter": "number of iterations",
+    "--recalibrate": "number of re-measured poses",
 }
 
 # A unit written in an option's name (suffix) or help: "(mm)", "mrad", "deg", "°C", "kg", "s" …
 UNIT_PATTERN = (r"(\bmm\b|\bmrad\b|\bm\b|\brad\b|\bdeg\b|degrees|°|\bs\b|[Ss]econds|\bkg\b|\bSI\b|"
-                r"m/s|\bN\b|\bHz\b|1/m)")
+                r"m/s|\bN\b|\bHz\b|1/m|[Mm]illi(metres|radians)|[Mm]etres|[Rr]adians)")
 
 
 def resolve(value: float, scale: float, old_value, old_option: str, new_option: str, old_unit: str,

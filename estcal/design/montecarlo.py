@@ -150,7 +150,7 @@ def monte_carlo_test_pose_error(model: DesignModel, readings, q_test, n_reps: in
             draws.append((z, _noise_draws(model, len(Q), rng)))
         run = run_tasks(functools.partial(_one_calibration, model=model, Q=Q, q_test=q_test, std=std,
                                           planar=planar), draws, scheduler=scheduler, n_workers=n_workers,
-                        progress=False)
+                        progress="auto", desc="Monte Carlo calibrations")
         errs = np.asarray(run.values(), float)
     e2 = errs ** 2
     rms = float(np.sqrt(e2.mean()))

@@ -142,11 +142,16 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
     ``degrees`` (revolute columns in degrees).
     """
     import csv
+    import io
     from pathlib import Path
 
+    from estcal.io.textinput import read_text, sniff_delimiter
+
     path = Path(path)
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    text = read_text(path, "candidates", ValueError)  # folder, binary, encoding: one clear message
+    delim = sniff_delimiter(next((ln for ln in text.splitlines() if ln.strip()), ""))
+    rows = [r for r in csv.reader(io.StringIO(text, newline=""), delimiter=delim)
+            if r and not r[0].lstrip().startswith("#")]
     if not rows:
         raise ValueError(f"{path}: no candidate rows")
     names = robot.joint_names
@@ -485,7 +490,7 @@ def _local_continuous(args):
 def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_starts: int = 8, rng=None,
                         q_test=None, J_test=None, constraint=None, scheduler=None,
                         n_workers: int | None = None, starts=None, maxiter: int = 300,
-                        prescreen: int = 0) -> Plan:
+                        prescreen: int = 0, executor=None) -> Plan:
     """Multi-start local optimisation of the m·n joint values within the joint limits.
 
     Parameters
@@ -500,6 +505,7 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
         ``concurrent.futures`` executor). ``None``: ``'processes'`` when there is
         more than one start, else ``'serial'``. A start that raises is reported
         in ``info["failed_starts"]``; the plan is the best of the others.
+    executor : former name of ``scheduler`` (still accepted).
     starts : (S, m, n) initial plans (e.g. the best discrete plan); random ones fill up to ``n_starts``.
     prescreen : int
         If > 0, draw ``prescreen`` random feasible plans and start from the best
@@ -521,9 +527,11 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
     from estcal.scale.runner import TaskError, run_tasks
 
     if scheduler is None:
+        scheduler = executor
+    if scheduler is None:
         scheduler = "serial" if len(tasks) == 1 else "processes"
     run = run_tasks(_local_continuous, tasks, scheduler=scheduler, n_workers=n_workers, chunksize=1,
-                    progress=False)
+                    progress="auto", desc=f"design (continuous, m={m}): starts")
     results = [r for r in run.results if r is not None]
     if not results:
         raise TaskError(run.failures)

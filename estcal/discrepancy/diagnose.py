@@ -258,14 +258,10 @@ class DiagnosisResult:
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
         order (if used), effect columns moved into the context, session time. Score new data
         with ``self.robot`` (extended) or ``self.geometric_robot`` after this."""
-        from .geometric import derive_approach
+        from estcal.io.savedmodel import prepare_data
 
-        d = derive_approach(data) if self.model.get("approach_from_order") else data
-        d = with_effect_context(self.robot, d)
-        if self.model.get("session_time") and "t" in d.context:
-            d.columns["t_abs"] = d.context["t"].copy()
-            d.context["t"] = d.context["t"] - d.context["t"].min()
-        return d
+        return prepare_data(self.robot, data, {k: self.model.get(k) for k in ("approach_from_order",
+                                                                                "session_time")})
 
     def score(self, data) -> dict:
         """RMSE / max (mm) of the geometric and extended models on ``data`` (prepared first),
@@ -407,7 +403,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     Parameters
     ----------
     robot : SerialRobot or robot spec (built-in name, .yaml, .urdf).
-    data : Dataset (position / points / pose) of the robot's joints.
+    data : Dataset (position / points / pose) of the robot's joints, or a list of datasets,
+        one per session (approach directions and session time per session; fitted
+        together, see :func:`estcal.sessions.data.stack_sessions`).
     validate : datasets scored with both models (not used for any decision).
     candidates : list of :class:`Candidate`, of registered effect names, or None
         (every registered effect on every joint, :func:`default_candidates`).
@@ -443,6 +441,11 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     """
     from estcal.io.robotfile import load_robot
 
+    sessions = list(data) if isinstance(data, (list, tuple)) else None
+    if sessions is not None:
+        if not sessions:
+            raise ValueError("diagnose: no dataset given")
+        data = sessions[0]
     if isinstance(robot, (str, Path)):
         robot_spec = robot_spec or str(robot)
         robot = load_robot(robot, n_markers=data.n_points if data.kind in ("points",) else None)
@@ -456,13 +459,28 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     else:
         nm = NoiseModel(position=float(noise), orientation=float(noise), scalar=float(noise), known=True)
     known = bool(nm.known)
+    stacked = sessions is not None and len(sessions) > 1
+    if stacked:
+        # several sessions (one dataset each): approach directions and session time are
+        # per session, then the sessions are fitted together (a ``session`` column records them)
+        from estcal.sessions.data import stack_sessions
+
+        parts = []
+        for d in sessions:
+            d = derive_approach(d) if approach_from_order else d.subset(slice(None))
+            if session_time and "t" in d.context:
+                d.columns["t_abs"] = d.context["t"].copy()
+                d.context["t"] = d.context["t"] - d.context["t"].min()
+            parts.append(d)
+        data = stack_sessions(parts)
     if approach_from_order:
-        data = derive_approach(data)
+        if not stacked:
+            data = derive_approach(data)
         validate = [derive_approach(d) for d in validate]
     data = with_effect_context(robot, data)
     validate = [with_effect_context(robot, d) for d in validate]
     if session_time:
-        for d in [data] + validate:
+        for d in ([] if stacked else [data]) + validate:
             if "t" in d.context:
                 d.columns["t_abs"] = d.context["t"].copy()
                 d.context["t"] = d.context["t"] - d.context["t"].min()
@@ -696,7 +714,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
                              gmodel, lumped, robot=xr.with_values(cur_theta),
                              geometric_robot=gr.with_values(theta_g), covariance=np.asarray(final.covariance),
-                             covariance_names=list(final.names), sigma0=float(final.sigma0), train_data=data,
+                             covariance_names=list(final.names), sigma0=float(final.sigma0),
+                             train_data=list(sessions) if stacked else data,
                              validation_data=list(validate))
     result.located = located
     if report is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GroupedProblem", "PER_POSE_METHODS", "resolve_free", "noise_known", "identifiable_free", "finish_result",
+__all__ = ["GroupedProblem", "PER_POSE_METHODS", "evaluate_many", "resolve_free", "noise_known", "identifiable_free", "finish_result",
            "default_prior_std", "prior_std_vector"]
 
 
@@ -283,3 +283,12 @@ def finish_result(problem, method, names, fidx, estimate, cov, theta_full, nomin
     except (AttributeError, IndexError, TypeError):  # Problem-like objects without datasets
         res.accuracy = {}
     return res
+
+
+def evaluate_many(problem, thetas) -> np.ndarray:
+    """Residuals (W, M) at every row of ``thetas``: ``problem.evaluate_many`` (batched
+    kinematics) when the problem has it, else θ by θ (problem-like objects, e.g. Gough)."""
+    TH = np.atleast_2d(np.asarray(thetas, float))
+    if hasattr(problem, "evaluate_many"):
+        return problem.evaluate_many(TH)
+    return np.stack([problem.evaluate(th, jacobian=False).e for th in TH])

@@ -9,6 +9,12 @@ Variables
   variables): the encoder reading enters as a prior factor with the encoder
   noise, instead of being taken as exact.
 
+By default a batch solve needs no Python callback inside gtsam: each
+Levenberg–Marquardt step evaluates the whole problem once (vectorised FK and
+analytic Jacobian) and hands gtsam a *Gaussian* factor graph of linear factors
+(:func:`_levenberg_marquardt_linear`). The nonlinear graph below is built for
+robust kernels, latent joints, Pose3 frames, Dogleg and iSAM2.
+
 Factors
 -------
 * one :class:`gtsam.CustomFactor` per measurement group (the rows of one pose
@@ -280,7 +286,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
                     robust_k: float | None = None, prior_std=None, use_prior: bool = False, theta0=None,
                     max_iter: int = 100, latent_joints: bool = False, encoder_std=None, check: bool = True,
                     marginals: bool = True, base_pose3: bool = False, tool_pose3: bool = False,
-                    base_prior=None, poses_per_factor: int = 1, **_ignored):
+                    base_prior=None, poses_per_factor: int = 1, linear: bool | None = None, **_ignored):
     """Batch factor-graph calibration (gtsam LM or Dogleg) with marginal covariances.
 
     Parameters
@@ -302,6 +308,11 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
         kernels need; larger values cut the Python-callback overhead, see the module docstring)
     base_prior : ``(T_world_base (4, 4), sigmas (6,) in gtsam order ω then v)`` — a
         ``PriorFactorPose3`` on the base (e.g. from a registration); needs ``base_pose3``
+    linear : solve each Levenberg–Marquardt step as a gtsam *Gaussian* factor graph built
+        from one vectorised evaluation of the analytic Jacobian (no Python callback inside
+        gtsam: :func:`_levenberg_marquardt_linear`). Default: on whenever the graph is the
+        plain one (no robust kernel, latent joints or Pose3 frames, optimizer ``lm``); the
+        nonlinear ``CustomFactor`` graph stays for those and for iSAM2.
 
     Returns
     -------
@@ -316,6 +327,26 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     nominal = theta[fidx].copy()
     if check:
         _check(problem, fidx, names, theta)
+    plain = robust is None and not latent_joints and not base_pose3 and not tool_pose3 and optimizer == "lm"
+    if linear is None:  # asking for grouped CustomFactors means asking for the nonlinear graph
+        linear = plain and poses_per_factor == 1
+    if linear:
+        if not plain:
+            raise ValueError("linear=True needs the plain graph: no robust kernel, latent joints or Pose3 frames, "
+                             "optimizer 'lm'")
+        prior = (nominal.copy(), _prior_std(problem, names, prior_std)) if (use_prior or prior_std is not None) \
+            else None
+        x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior, marginals)
+        theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
+        src = "gtsam marginals (Gaussian factor graph)"
+        if not noise_known(problem) and dof > 0:
+            cov = cov * (chi2 / dof)
+            src += " scaled by sigma0^2"
+        extra = {"optimizer": "lm (Gaussian factor graph per step)", "robust": "none", **info,
+                 "python_factor_time_s": 0.0, "python_factor_fraction": 0.0}
+        return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
+                             converged=info["converged"], covariance_source=src, theta_before=theta,
+                             validation=validation, t0=t0, extra=extra)
     gp = GroupedProblem(problem)
     timer = _Timer()
     X = gtsam.symbol("x", 0)
@@ -437,6 +468,99 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
                          converged=n_iter < max_iter, covariance_source=src, theta_before=theta,
                          validation=validation, t0=t0, extra=extra)
+
+
+def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, marginals=True,
+                                rtol: float = 1e-15):
+    """Levenberg–Marquardt where every step is a gtsam Gaussian factor graph.
+
+    At each iterate the whole problem is evaluated once (vectorised FK and analytic
+    Jacobian over all poses) and handed to gtsam as linear factors on the free-parameter
+    variable: the whitened measurement block with
+    ``A = H/σ``, ``b = e/σ`` (e = measured − predicted) — handed over as one
+    ``HessianFactor(x, AᵀA, Aᵀb, bᵀb)`` —, the optional prior
+    ``JacobianFactor(x, diag(1/s), (x_prior − x)/s)`` and the damping
+    ``JacobianFactor(x, √λ · diag(‖A_j‖), 0)`` (Marquardt's diagonal scaling). gtsam
+    eliminates the graph (multifrontal QR/Cholesky) and returns the step; the step is
+    accepted when the cost decreases (λ ÷ 10), else λ × 10 (Madsen, Nielsen & Tingleff,
+    *Methods for non-linear least squares problems*, 2004, §3.2). The covariance is
+    ``gtsam.Marginals`` of the undamped graph at the solution. Returns
+    ``(x, cov, iterations, info)``.
+    """
+    gtsam = _gtsam()
+    X = gtsam.symbol("x", 0)
+    th = theta.copy()
+    p = len(fidx)
+    t_lin = [0.0]
+
+    def linearise(x, jacobian=True):
+        t = time.perf_counter()
+        th[fidx] = x
+        rows = problem.evaluate(th, jacobian=jacobian)
+        w = 1.0 / rows.sigma
+        b = rows.e * w
+        A = rows.H[:, fidx] * w[:, None] if jacobian else None
+        t_lin[0] += time.perf_counter() - t
+        return A, b
+
+    def cost(x, b):
+        c = float(b @ b)
+        if prior is not None:
+            c += float(np.sum(((x - prior[0]) / prior[1]) ** 2))
+        return c
+
+    def graph(x, G, g, f, damping=None):
+        # the measurement block as one HessianFactor (AᵀA, Aᵀb, bᵀb): the p × p information
+        # of every pose at once — gtsam's linear algebra then costs O(p³) per step, not O(M p²)
+        fg = gtsam.GaussianFactorGraph()
+        fg.add(gtsam.HessianFactor(X, G, g, f))
+        if prior is not None:
+            fg.add(gtsam.JacobianFactor(X, np.diag(1.0 / prior[1]), (prior[0] - x) / prior[1],
+                                        gtsam.noiseModel.Unit.Create(p)))
+        if damping is not None:
+            fg.add(gtsam.JacobianFactor(X, np.diag(damping), np.zeros(p), gtsam.noiseModel.Unit.Create(p)))
+        return fg
+
+    t_solve = 0.0
+    x = np.asarray(x0, float).copy()
+    A, b = linearise(x)
+    c = cost(x, b)
+    lam = 1e-3
+    it, converged = 0, False
+    for it in range(1, max_iter + 1):
+        G, gv, f = A.T @ A, A.T @ b, float(b @ b)
+        scale = np.sqrt(np.maximum(np.diag(G), 1e-300))
+        while True:
+            t = time.perf_counter()
+            dx = np.asarray(graph(x, G, gv, f, np.sqrt(lam) * scale).optimize().at(X))
+            t_solve += time.perf_counter() - t
+            xn = x + dx
+            _, bn = linearise(xn, jacobian=False)  # trial: residuals only
+            cn = cost(xn, bn)
+            if cn <= c:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                break
+        if cn > c:  # no decrease possible: at the minimum to working precision
+            converged = True
+            break
+        # converged when the step is below 1e-10 of each parameter's scale 1/‖A_j‖ (≈ σ_j)
+        small = np.max(np.abs(dx) * scale) <= 1e-10 or c - cn <= rtol * max(c, 1e-300)
+        x, c = xn, cn
+        A, b = linearise(x)
+        lam = max(lam / 10.0, 1e-12)
+        if small:
+            converged = True
+            break
+    cov = np.full((p, p), np.nan)
+    t_m = time.perf_counter()
+    if marginals:
+        fg = graph(x, A.T @ A, A.T @ b, float(b @ b))
+        cov = np.asarray(gtsam.Marginals(fg, fg.optimize()).marginalCovariance(X))
+    info = {"converged": converged, "linearise_time_s": t_lin[0], "solve_time_s": t_solve,
+            "marginals_time_s": time.perf_counter() - t_m, "final_lambda": lam, "n_factors": 1 + (prior is not None)}
+    return x, cov, it, info
 
 
 def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0=None, batch_size: int = 1,

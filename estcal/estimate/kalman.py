@@ -20,7 +20,7 @@ the residual ``e`` of :class:`~estcal.methods.problem.Problem` and
 :class:`~filterpy.kalman.ExtendedKalmanFilter` and
 :class:`~filterpy.kalman.UnscentedKalmanFilter`, not hand-written ones.
 The UKF's sigma points are evaluated in one vectorised call
-(:func:`estcal.estimate.batcheval.evaluate_many`).
+(:meth:`estcal.methods.problem.Problem.evaluate_many`).
 
 The UKF predicts each measurement as the mean of h over the current Gaussian
 (second-order term ½ tr(∇²h P) included): with a very wide prior that term
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
+from ._common import GroupedProblem, evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 from .innovation import InnovationMonitor
 
 __all__ = ["ParameterFilter", "calibrate_kalman", "calibrate_ukf", "process_noise", "default_burn_in"]
@@ -192,8 +192,6 @@ class ParameterFilter:
             f.update(z, lambda x: H, lambda x: hx, R=R)
             y, S = np.asarray(f.y, float), np.asarray(f.S, float)
         else:
-            from .batcheval import evaluate_many
-
             f.predict()
             sig = f.sigmas_f
             TH = np.broadcast_to(self.theta0, (sig.shape[0], self.theta0.size)).copy()

@@ -21,7 +21,7 @@ Sampler
 -------
 emcee's ensemble sampler with ``vectorize=True``: the log-posterior receives
 all walkers at once and evaluates their residuals in one vectorised forward
-kinematics (:func:`estcal.estimate.batcheval.evaluate_many`). Walkers start in
+kinematics (:meth:`estcal.methods.problem.Problem.evaluate_many`, effects included). Walkers start in
 a small ball drawn from the Laplace approximation around the least-squares
 optimum, and the sampler works in the coordinates that whiten it
 (θ = θ̂ + L z, L Lᵀ = Σ_LS). Default moves (``moves="laplace"``): 70 %
@@ -46,8 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._common import finish_result, noise_known, prior_std_vector, resolve_free
-from .batcheval import evaluate_many
+from ._common import evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
 

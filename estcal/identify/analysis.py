@@ -108,13 +108,10 @@ def priorities_from_matrix(robot, matrix) -> dict:
 def load_priorities(path) -> dict:
     """Read a priority file (YAML): a mapping ``{name or pattern: priority}``, or
     ``{matrix: [[α, d, θ, r, β, K], …]}`` (returned as ``{"__matrix__": array}``)."""
-    import yaml
+    from estcal.io.textinput import read_yaml
 
     path = Path(path)
-    try:
-        d = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read priority file ({exc})") from exc
+    d = read_yaml(path, "priority", ValueError)
     if not isinstance(d, dict):
         raise ValueError(f"{path}: expected a mapping {{parameter or pattern: priority}} or {{matrix: [...]}}")
     if "matrix" in d:

@@ -351,21 +351,25 @@ def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
 
 def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
-    import yaml
+    from estcal.io.textinput import read_yaml
 
-    from estcal.io.textinput import read_text
+    return read_yaml(path, "robot", RobotFileError)
 
-    path = Path(path)
-    text = read_text(path, "robot", RobotFileError)
+
+def _is_gough(spec: str) -> bool:
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = " ".join(str(getattr(exc, "problem", None) or exc).split())
-        raise RobotFileError(f"{path}{at}: invalid YAML ({what})") from None
-    except RecursionError:
-        raise RobotFileError(f"{path}: invalid YAML (nested too deeply)") from None
+        from estcal.parallel import is_gough_file
+    except ImportError:  # pragma: no cover
+        return False
+    return is_gough_file(spec)
+
+
+def _gough_names() -> list[str]:
+    try:
+        from estcal.parallel.gough import BUILTINS
+    except ImportError:  # pragma: no cover
+        return []
+    return sorted(BUILTINS)
 
 
 def robot_names() -> list[str]:
@@ -419,14 +423,18 @@ def load_robot(spec, root: str | None = None, tip: str | None = None, n_markers:
                 robot = BUILTIN[key](n_markers=n_markers or 0) if key == "tiago" else BUILTIN[key]()
             elif _packaged(key) is not None:
                 robot = robot_from_dict(read_robot_file(_packaged(key)), source=str(_packaged(key)), strict=True)
+            elif _is_gough(s):
+                raise RobotFileError(f"{s}: is a Gough–Stewart (parallel) platform — this command needs a serial "
+                                     f"robot; `estcal calibrate` and `estcal identifiable` handle platforms")
             elif Path(s).is_dir():
                 raise RobotFileError(f"{s}: is a folder, not a robot — give a built-in name, a robot file "
                                      f"(.yaml) or a URDF (.urdf)")
             elif Path(s).exists():
                 raise RobotFileError(f"{s}: unknown robot file type {suffix!r} (expected .yaml, .yml or .urdf)")
             else:
-                raise RobotFileError(f"unknown robot {s!r}: not a built-in robot ({', '.join(robot_names())}) "
-                                     f"and no such file (.yaml robot file or .urdf)")
+                raise RobotFileError(f"unknown robot {s!r}: not a built-in robot ({', '.join(robot_names())}; "
+                                     f"parallel: {', '.join(_gough_names())}) and no such file (.yaml robot "
+                                     f"file or .urdf)")
         if (root or tip) and suffix != ".urdf":
             raise ValueError(f"{s}: --root/--tip only apply to URDF files")
     if n_markers is not None and n_markers != robot.n_markers:

@@ -142,10 +142,19 @@ def save_calibration(result, path, provenance: dict | None = None) -> Path:
         extra.setdefault("selection_criterion", sel.get("criterion"))
     extra["covariance_source"] = result.covariance_source
     extra["converged"] = bool(result.converged)
+    # Unknowns of the measurement method (a plane, a sphere centre …) are not robot parameters:
+    # the block keeps the robot's part of the covariance (its marginal) and lists those apart.
+    kinds = dict(zip(problem.params.names, problem.params.kinds))
+    keep = [i for i, n in enumerate(result.names) if kinds.get(n) != "other"]
+    other = [i for i in range(len(result.names)) if i not in keep]
+    if other:
+        extra["method_unknowns"] = {result.names[i]: {"estimate": float(result.estimate[i]),
+                                                      "std": float(result.std[i])} for i in other}
+    C = np.asarray(result.covariance, float)[np.ix_(keep, keep)]
     extra.update(provenance or {})
     block = calibration_block(estimator=result.method, train=[t.data for t in problem.terms],
-                              validation=result.validation_data, free=result.names,
-                              covariance=result.covariance, noise=problem.terms[0].noise,
+                              validation=result.validation_data, free=[result.names[i] for i in keep],
+                              covariance=C, noise=problem.terms[0].noise,
                               sigma0=result.sigma0, rmse_mm=rm, **extra)
     return _write(robot, block, path)
 
@@ -182,20 +191,22 @@ def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
     return _write(result.robot, block, path)
 
 
-def prepare_data(robot, data):
+def prepare_data(robot, data, preparation: dict | None = None):
     """``data`` prepared for ``robot`` as the fit that saved it prepared its own.
 
-    For a diagnosed model (``calibration.data_preparation``): approach columns from the
-    posture order, ``t`` measured from the first pose of the file (session time). Effect
-    columns (``approach_<joint>``) are moved into the context in every case. Data of a
-    model without such a block are returned with only that last step.
+    ``preparation`` (default: the robot's ``calibration.data_preparation``, written for a
+    diagnosed model): ``approach_from_order`` — approach columns from the posture order;
+    ``session_time`` — ``t`` measured from the first pose of the file (the absolute time
+    stays in ``columns["t_abs"]``). Effect columns (``approach_<joint>``) are moved into the
+    context in every case.
     """
     from estcal.discrepancy.geometric import derive_approach, with_effect_context
 
-    prep = ((robot.meta.get("calibration") or {}).get("data_preparation") or {})
-    d = derive_approach(data) if prep.get("approach_from_order") else data
+    if preparation is None:
+        preparation = (robot.meta.get("calibration") or {}).get("data_preparation") or {}
+    d = derive_approach(data) if preparation.get("approach_from_order") else data
     d = with_effect_context(robot, d)
-    if prep.get("session_time") and "t" in d.context:
+    if preparation.get("session_time") and "t" in d.context:
         d.columns["t_abs"] = d.context["t"].copy()
         d.context["t"] = d.context["t"] - d.context["t"].min()
     return d

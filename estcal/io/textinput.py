@@ -26,7 +26,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["InputError", "check_input_file", "read_text", "read_csv", "read_json", "parse_csv_text", "CsvTable",
+__all__ = ["InputError", "check_input_file", "read_text", "read_csv", "read_json", "read_yaml", "parse_csv_text", "CsvTable",
            "DELIMITERS"]
 
 # spreadsheet exports: comma, semicolon (locales with a decimal comma), tab
@@ -77,7 +77,7 @@ def decode_text(data: bytes, where: str, what: str = "input", error=InputError) 
     if nul >= 0:
         line = data.count(b"\n", 0, nul) + 1
         raise error(f"{where}: binary file (NUL byte at line {line}), not a {what} text file — "
-                    f"give the text file (CSV / YAML / URDF)")
+                    f"export the {what} as a text file")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -177,3 +177,20 @@ def read_json(path, what: str = "JSON", error=InputError):
         raise error(f"{p}, line {exc.lineno}, column {exc.colno}: not valid JSON ({exc.msg})") from None
     except RecursionError:
         raise error(f"{p}: not valid JSON (nested too deeply)") from None
+
+
+def read_yaml(path, what: str = "YAML", error=InputError):
+    """Parse the YAML file ``path`` (safe loader); a syntax error names its line and column."""
+    import yaml
+
+    p = Path(path)
+    text = read_text(p, what, error)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise error(f"{p}{at}: invalid YAML in the {what} file ({problem})") from None
+    except RecursionError:
+        raise error(f"{p}: invalid YAML in the {what} file (nested too deeply)") from None

@@ -167,15 +167,24 @@ def _add_joint_blocks(JT, JqT, blocks):
 
 
 def _rot_mat(R, C):
-    """R (3, 3, N) @ C (3, 3), or per pose C (3, 3, N) -> (3, 3, N)."""
-    if C.ndim == 3:
-        return np.einsum("ikn,kjn->ijn", R, C)
-    return np.einsum("ikn,kj->ijn", R, C)
+    """R (3, 3, N) @ C (3, 3) -> (3, 3, N); or C (3, 3, W), one per walker, with the N = W·N'
+    poses walker-major (nine component sums: several times faster than stacked matmuls)."""
+    if C.ndim == 2:
+        return np.einsum("ikn,kj->ijn", R, C)
+    R4 = R.reshape(3, 3, C.shape[2], -1)
+    out = np.empty_like(R4)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = R4[i, 0] * C[0, j, :, None] + R4[i, 1] * C[1, j, :, None] + R4[i, 2] * C[2, j, :, None]
+    return out.reshape(R.shape)
 
 
 def _rot_vec(R, v):
-    """R (3, 3, N) @ v (3,) or per pose v (3, N) -> (3, N)."""
-    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+    """R (3, 3, N) @ v (3,) -> (3, N); or v (3, W), one per walker (poses walker-major)."""
+    if v.ndim == 1:
+        return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+    R4 = R.reshape(3, 3, v.shape[1], -1)
+    return (R4[:, 0] * v[0][:, None] + R4[:, 1] * v[1][:, None] + R4[:, 2] * v[2][:, None]).reshape(3, -1)
 
 
 def _merge_blocks(per_walker, N):
@@ -396,8 +405,8 @@ class SerialRobot:
                 raise ValueError("q_override needs a single parameter vector")
             n_w = theta.shape[0]
             q, dqdth = self._joint_values_many(readings, theta, context, jacobian)
-            seg = lambda const, elems, R, p, W, O, is_rot, k, _n=N: self._segment_many(  # noqa: E731
-                const, elems, theta, _n, R, p, W, O, is_rot, k)
+            seg = lambda const, elems, R, p, W, O, is_rot, k: self._segment_many(  # noqa: E731
+                const, elems, theta, R, p, W, O, is_rot, k, jacobian)
             N = n_w * N
         elif q_override is None:
             q, dqdth = self._joint_values(readings, theta, context, jacobian)
@@ -453,8 +462,9 @@ class SerialRobot:
             link_p[li] = p
 
         if many:
-            m = np.repeat(theta[:, self.marker_idx], N // n_w, 0) if self.n_markers else np.zeros((N, 0, 3))
-            pts = p[:, None, :] + np.einsum("ijn,nkj->ikn", R, m)
+            m = theta[:, self.marker_idx] if self.n_markers else np.zeros((n_w, 0, 3))
+            Rm = np.einsum("ijwn,wkj->ikwn", R.reshape(3, 3, n_w, -1), m).reshape(3, m.shape[1], N)
+            pts = p[:, None, :] + Rm
         else:
             m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
             pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
@@ -554,8 +564,8 @@ class SerialRobot:
                 blocks.append((self._jvar_param[valid], np.flatnonzero(valid), "eye"))
         return q.reshape(n_w * N, n), blocks
 
-    def _segment_many(self, const, elems, TH, N, R, p, W, O, is_rot, k):
-        """:meth:`_segment` for W parameter vectors: per-pose local frame (3, 3, W·N), (3, W·N)."""
+    def _segment_many(self, const, elems, TH, R, p, W, O, is_rot, k, jacobian):
+        """:meth:`_segment` for W parameter vectors: local frame per walker (3, 3, W), (3, W)."""
         LR0 = np.eye(3) if const is None else const[:3, :3]
         Lp0 = np.zeros(3) if const is None else const[:3, 3]
         if not elems:
@@ -566,9 +576,9 @@ class SerialRobot:
         for i, e in enumerate(elems):
             ai = "xyz".index(e.axis)
             is_rot[k + i] = e.kind == "R"
-            # world axis and a point on it, for the Jacobian, before this motion
-            W[:, k + i] = _rot_vec(R, np.repeat(LR[:, :, ai], N, 0).T)
-            O[:, k + i] = p + _rot_vec(R, np.repeat(Lp, N, 0).T)
+            if jacobian:  # world axis and a point on it before this motion (Jacobian columns)
+                W[:, k + i] = _rot_vec(R, LR[:, :, ai].T)
+                O[:, k + i] = p + _rot_vec(R, Lp.T)
             v = TH[:, e.param]
             if e.kind == "R":
                 c, s_ = np.cos(v)[:, None], np.sin(v)[:, None]
@@ -578,7 +588,7 @@ class SerialRobot:
                 LR[:, :, i2] = c * a2 - s_ * a1
             else:
                 Lp = Lp + LR[:, :, ai] * v[:, None]
-        return np.repeat(LR.transpose(1, 2, 0), N, 2), np.repeat(Lp, N, 0).T, k + len(elems)
+        return LR.transpose(1, 2, 0), Lp.T.copy(), k + len(elems)
 
     def _segment(self, const, elems, theta, R, p, W, O, is_rot, k):
         """Compose ``const`` and ``elems`` locally; record each motion's world axis/point."""

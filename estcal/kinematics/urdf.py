@@ -12,10 +12,14 @@ joints, and off-chain branches evaluated at their zero position).
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
+import io
 from pathlib import Path
 
 import numpy as np
+
+from estcal.io.robotfile import RobotFileError
 
 from .builder import build_robot
 from .chain import SerialRobot
@@ -26,18 +30,20 @@ __all__ = ["robot_from_urdf", "load_urdf", "root_links"]
 def load_urdf(path):
     """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
     :func:`estcal.io.textinput.read_text` first (folder, binary, encoding)."""
-    import io
-
     import yourdfpy
 
-    from estcal.io.robotfile import RobotFileError
     from estcal.io.textinput import read_text
 
     path = Path(path)
     text = read_text(path, "URDF", RobotFileError)
+    _check_xml(text, path)
     try:
-        urdf = yourdfpy.URDF.load(io.BytesIO(text.encode("utf-8")), build_scene_graph=False, build_collision_scene_graph=False,
-                                  load_meshes=False, load_collision_meshes=False)
+        # yourdfpy prints its parser's complaints and retries; the checks above already
+        # named the problems users make, so its chatter is kept off the terminal
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            urdf = yourdfpy.URDF.load(io.BytesIO(text.encode("utf-8")), build_scene_graph=False,
+                                      build_collision_scene_graph=False, load_meshes=False,
+                                      load_collision_meshes=False)
     except Exception as exc:  # yourdfpy / lxml raise many error types on bad XML  # noqa: BLE001
         msg = " ".join(str(exc).split()) or type(exc).__name__
         raise RobotFileError(f"{path}: cannot parse URDF ({msg})") from None
@@ -45,12 +51,40 @@ def load_urdf(path):
     return urdf
 
 
+def _check_xml(text: str, path) -> None:
+    """Strict XML parse with the position of the first error, and the elements a
+    kinematic chain needs (a <robot> with named links; joints with name, type,
+    parent and child)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(text.encode("utf-8"))
+    except ET.ParseError as exc:
+        line, col = exc.position
+        msg = str(exc).split(":")[0]
+        raise RobotFileError(f"{path}, line {line}, column {col + 1}: not valid XML ({msg})") from None
+    if root.tag != "robot":
+        raise RobotFileError(f"{path}: the top element is <{root.tag}>, a URDF's is <robot>")
+    for i, lk in enumerate(root.findall("link")):
+        if not lk.get("name"):
+            raise RobotFileError(f"{path}: <link> number {i + 1} has no name attribute")
+    for i, j in enumerate(root.findall("joint")):
+        name = j.get("name")
+        where = f"joint {name!r}" if name else f"<joint> number {i + 1}"
+        if not name:
+            raise RobotFileError(f"{path}: {where} has no name attribute")
+        if not j.get("type"):
+            raise RobotFileError(f"{path}: {where} has no type attribute (revolute, continuous, prismatic, fixed …)")
+        for tag in ("parent", "child"):
+            el = j.find(tag)
+            if el is None or not el.get("link"):
+                raise RobotFileError(f"{path}: {where} has no <{tag} link=\"…\"/>")
+
+
 def _check_tree(urdf, path) -> None:
     """The joints must form a tree over the declared links: every joint names
     existing links, and no link has two parents (a chain would be silently
     re-routed through one of them)."""
-    from estcal.io.robotfile import RobotFileError
-
     if urdf.robot is None or not urdf.robot.links:
         raise RobotFileError(f"{path}: the URDF has no <link>")
     links = {lk.name for lk in urdf.robot.links}
@@ -71,20 +105,20 @@ def root_links(urdf) -> list[str]:
     return sorted(lk.name for lk in urdf.robot.links if lk.name not in children)
 
 
-def _chain(urdf, root: str, tip: str):
+def _chain(urdf, root: str, tip: str, path=""):
     parent_joint = {j.child: j for j in urdf.robot.joints}
     links = {lk.name for lk in urdf.robot.links}
     for name, what in ((root, "root"), (tip, "tip")):
         if name not in links:
             close = difflib.get_close_matches(str(name), sorted(links), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ValueError(f"{what} link {name!r} is not in the URDF{hint}; links include "
+            raise RobotFileError(f"{path}: {what} link {name!r} is not in the URDF{hint}; links include "
                              f"{sorted(links)[:20]}{'…' if len(links) > 20 else ''}")
     joints, seen = [], set()
     cur = tip
     while cur != root:
         if cur not in parent_joint or cur in seen:
-            raise ValueError(f"link {tip!r} is not below {root!r} in the URDF tree")
+            raise RobotFileError(f"{path}: link {tip!r} is not below {root!r} in the URDF tree")
         seen.add(cur)
         j = parent_joint[cur]
         joints.append(j)
@@ -137,16 +171,16 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
         # yourdfpy's base_link is only set when it builds a scene graph (not done here)
         roots = root_links(urdf)
         if len(roots) != 1:
-            raise ValueError(f"{path}: the URDF has {len(roots)} root links ({', '.join(roots[:10]) or 'none: a cycle'})"
+            raise RobotFileError(f"{path}: the URDF has {len(roots)} root links ({', '.join(roots[:10]) or 'none: a cycle'})"
                              f" — give --root")
         root = roots[0]
     if tip is None:
         leaves = sorted({lk.name for lk in urdf.robot.links} - {j.parent for j in urdf.robot.joints})
         if len(leaves) != 1:
-            raise ValueError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
+            raise RobotFileError(f"{path}: give --tip; the URDF has {len(leaves)} leaf links "
                              f"({', '.join(leaves[:10])}{'…' if len(leaves) > 10 else ''})")
         tip = leaves[0]
-    chain = _chain(urdf, root, tip)
+    chain = _chain(urdf, root, tip, path)
     # A link carries everything rigidly attached to it, including the fixed chain
     # links after the last actuated joint (tool flange, sensor, hand): only the next
     # actuated chain joint ends its subtree.
@@ -157,19 +191,19 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             pending = pending @ _origin(j)
             continue
         if j.type not in ("revolute", "continuous", "prismatic"):
-            raise ValueError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
+            raise RobotFileError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
         if j.type == "continuous":
             lo, hi = -np.pi, np.pi
         elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
-            raise ValueError(f"{path}: joint {j.name!r} ({j.type}) has no <limit lower=… upper=…> — add its "
+            raise RobotFileError(f"{path}: joint {j.name!r} ({j.type}) has no <limit lower=… upper=…> — add its "
                              f"range ({'rad' if j.type == 'revolute' else 'm'})")
         else:
             lo, hi = float(j.limit.lower), float(j.limit.upper)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-                raise ValueError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
+                raise RobotFileError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], float)
         if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
-            raise ValueError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
+            raise RobotFileError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
         mass, com = _subtree_mass(urdf, j.child, actuated)
         frames.append({"name": j.name, "label": j.name, "convention": "urdf",
                        "type": "prismatic" if j.type == "prismatic" else "revolute",
@@ -177,7 +211,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
                        "limits": [float(lo), float(hi)], "mass": mass, "com": com})
         pending = np.eye(4)
     if not frames:
-        raise ValueError(f"{path}: no actuated joint between {root!r} and {tip!r}")
+        raise RobotFileError(f"{path}: no actuated joint between {root!r} and {tip!r}")
     robot = build_robot(name or f"{urdf.robot.name}:{root}->{tip}", frames, markers=markers,
                         convention="urdf", tool_const=pending,
                         meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip})

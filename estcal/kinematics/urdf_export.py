@@ -335,7 +335,7 @@ def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
                              f"(was the model loaded from this URDF with --root {root} --tip {tip}?)")
         head, _ = link_transform_parts(robot, li_of[k], theta)
         new = np.linalg.solve(fixed_before, head)
-        if not np.allclose(new, _origin(j), atol=1e-15, rtol=0):
+        if not np.allclose(new, _origin(j), atol=1e-12, rtol=0):  # else keep the original, bit for bit
             j.origin = new
             changed.append(j.name)
         fixed_before = np.eye(4)

@@ -94,6 +94,13 @@ class Method:
     def rows(self, robot, theta, data, noise: NoiseModel, jacobian: bool = True) -> Rows:
         raise NotImplementedError
 
+    def residuals_many(self, robot, thetas, data) -> np.ndarray:
+        """Residuals ``e`` (W, M) at each row of ``thetas`` (W, P) — MCMC walkers, sigma points.
+
+        This default evaluates :meth:`rows` θ by θ; the classical methods override it
+        with one call of the batched kinematics (``robot.kinematics`` with θ (W, P))."""
+        return np.stack([self.rows(robot, th, data, NoiseModel(), jacobian=False).e for th in thetas])
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
@@ -124,6 +131,12 @@ class PositionMethod(Method):
         N = data.n
         return Rows(e, H, np.full(3 * N, noise.position), np.repeat(np.arange(N), 3), np.zeros(3 * N, int))
 
+    def residuals_many(self, robot, thetas, data):
+        self.check(robot, data)
+        kin = robot.kinematics(data.readings, thetas, data.context, jacobian=False)
+        pred = kin.points[:, :, 0] if robot.n_markers else kin.p
+        return (data.points[None, :, 0] - pred).reshape(len(pred), -1)
+
 
 class PointsMethod(Method):
     """k points of one rigid body (markers 1..k, unknown coordinates in the tool frame).
@@ -147,6 +160,14 @@ class PointsMethod(Method):
         N = data.n
         return Rows(e, H, np.full(3 * k * N, noise.position), np.repeat(np.arange(N), 3 * k),
                     np.zeros(3 * k * N, int))
+
+    def residuals_many(self, robot, thetas, data):
+        self.check(robot, data)
+        k = data.n_points
+        if robot.n_markers < k:
+            return super().residuals_many(robot, thetas, data)  # rows() raises the clear error
+        kin = robot.kinematics(data.readings, thetas, data.context, jacobian=False)
+        return (data.points[None] - kin.points[:, :, :k]).reshape(len(kin.points), -1)
 
 
 class PoseMethod(Method):
@@ -175,6 +196,11 @@ class PoseMethod(Method):
         N = data.n
         sig = np.tile(np.r_[np.full(3, noise.position), np.full(3, noise.orientation)], N)
         return Rows(e, H, sig, np.repeat(np.arange(N), 6), np.tile(np.r_[0, 0, 0, 1, 1, 1], N))
+
+    def residuals_many(self, robot, thetas, data):
+        self.check(robot, data)
+        kin = robot.kinematics(data.readings, thetas, data.context, jacobian=False)
+        return pose_error(data.R[None], data.p[None], kin.R, kin.p).reshape(len(kin.p), -1)
 
 
 METHODS: dict[str, type] = {"position": PositionMethod, "location": PoseMethod, "pose": PoseMethod,

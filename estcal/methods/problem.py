@@ -76,6 +76,23 @@ class Problem:
         return Rows.concatenate([t.method.rows(self.robot, theta, t.data, t.noise, jacobian)
                                  for t in self.terms])
 
+    def evaluate_many(self, thetas) -> np.ndarray:
+        """Residuals ``e`` (W, M) at every row of ``thetas`` (W, P), rows ordered as :meth:`evaluate`.
+
+        The classical methods (position, pose, points) use one batched kinematics
+        call per term for all W vectors — effects included
+        (:meth:`estcal.kinematics.chain.SerialRobot.kinematics` with θ (W, P));
+        other methods are evaluated θ by θ (:meth:`Method.residuals_many`)."""
+        TH = np.atleast_2d(np.asarray(thetas, float))
+
+        def term(t):
+            if hasattr(t.method, "residuals_many"):
+                return t.method.residuals_many(self.robot, TH, t.data)
+            # a duck-typed method (not a Method subclass): θ by θ
+            return np.stack([t.method.rows(self.robot, th, t.data, t.noise, False).e for th in TH])
+
+        return np.concatenate([term(t) for t in self.terms], axis=1)
+
     def with_free(self, names) -> "Problem":
         """Copy whose free set is exactly ``names`` (patterns allowed)."""
         new = Problem.__new__(Problem)

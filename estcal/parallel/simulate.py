@@ -11,12 +11,14 @@ points, ``offset`` for Δρ_k).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
+
+from estcal.io.atomic import atomic_write_text
+from estcal.io.jsonio import write_json
 
 from ._rot import make_T, so3_exp
 from .calibration import GoughData
@@ -45,11 +47,11 @@ class GoughSimulation:
         if truth_path is not None:
             d = dict(self.truth)
             d["dataset"] = str(csv_path)
-            Path(truth_path).write_text(json.dumps(d, indent=2))
+            write_json(truth_path, d)
         if true_robot_path is not None:
             import yaml
 
-            Path(true_robot_path).write_text(yaml.safe_dump(self.true_robot.to_dict()))
+            atomic_write_text(true_robot_path, yaml.safe_dump(self.true_robot.to_dict()))
         return Path(csv_path)
 
     def to_dict(self) -> dict:

@@ -31,3 +31,14 @@ def grid_shape(n: int, max_cols: int = 4) -> tuple[int, int]:
     """(rows, cols) of a panel grid for ``n`` panels."""
     cols = max(1, min(max_cols, n))
     return int(-(-n // cols)), cols
+
+
+def joint_panels(n: int, width: float, height: float, max_cols: int = 4):
+    """A figure with one panel per joint (``n`` panels, ``max_cols`` per row, spare panels
+    hidden); returns ``(fig, axes)`` with ``len(axes) == n``."""
+    rows, cols = grid_shape(n, max_cols)
+    fig = new_figure(width * cols, height * rows)
+    axs = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axs[n:]:
+        ax.axis("off")
+    return fig, list(axs[:n])

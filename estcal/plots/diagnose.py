@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import grid_shape, new_figure
+from . import joint_panels, new_figure
 
 __all__ = ["partial_residuals_figure", "residual_norm_figure", "spectrum_figure"]
 
@@ -13,15 +13,8 @@ def partial_residuals_figure(x, dq, joint_names, xlabel: str, title: str):
     one panel per joint."""
     x = np.asarray(x, float)
     dq = np.asarray(dq, float)
-    n = len(joint_names)
-    rows, cols = grid_shape(n)
-    fig = new_figure(3.2 * cols, 2.6 * rows)
-    axs = fig.subplots(rows, cols, squeeze=False)
-    for j in range(rows * cols):
-        ax = axs[j // cols][j % cols]
-        if j >= n:
-            ax.axis("off")
-            continue
+    fig, axes = joint_panels(len(joint_names), 3.2, 2.6)
+    for j, ax in enumerate(axes):
         ax.plot(x[:, j], dq[:, j] * 1e3, ".", ms=4, gid=joint_names[j])
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(joint_names[j], fontsize=8)

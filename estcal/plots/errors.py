@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import grid_shape, new_figure
+from . import joint_panels, new_figure
 
 __all__ = ["pose_error_figure", "residual_vs_joints_figure"]
 
@@ -50,15 +50,8 @@ def residual_vs_joints_figure(sets, joint_names, joint_units, unit: str = "mm"):
     sets : list of dicts ``{"label", "readings" (N, n) in joint display units, "error" (N,) in unit}``.
     joint_units : per joint 'deg' or 'mm'.
     """
-    n = len(joint_names)
-    rows, cols = grid_shape(n)
-    fig = new_figure(3.0 * cols, 2.5 * rows)
-    axs = fig.subplots(rows, cols, squeeze=False)
-    for j in range(rows * cols):
-        ax = axs[j // cols][j % cols]
-        if j >= n:
-            ax.axis("off")
-            continue
+    fig, axes = joint_panels(len(joint_names), 3.0, 2.5)
+    for j, ax in enumerate(axes):
         for k, s in enumerate(sets):
             ax.plot(np.asarray(s["readings"])[:, j], s["error"], "o", ms=3, color=f"C{k}", label=s["label"],
                     alpha=0.8, gid=f"set{k}")

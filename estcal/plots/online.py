@@ -31,7 +31,7 @@ def online_history_figure(rows, change, std, names, units, nis, dims, burn_in: i
     burn_in : rows left out of the tests (dashed line).
     verdict : the tests' one-line verdict (panel title).
 
-    Rows whose NIS is outside the bounds are marked in red (``gid='nis_outside'``);
+    Rows after the burn-in whose NIS is outside the bounds are circled in red (``gid='nis_outside'``);
     the estimate lines carry ``gid = name``.
     """
     rows = np.asarray(rows)
@@ -52,18 +52,20 @@ def online_history_figure(rows, change, std, names, units, nis, dims, burn_in: i
                 ax.axvline(burn_in, color="0.5", ls="--", lw=0.8)
             ax.set_title(f"{names[i]} ({units[i] or '—'})", fontsize=8)
             ax.tick_params(labelsize=6)
-            lim = np.nanmax(np.abs(change[len(rows) // 10:, i]) + std[len(rows) // 10:, i]) if len(rows) else 1
+            # scale to the rows after the burn-in: the wide prior would flatten everything else
+            tail = slice(min(max(burn_in, len(rows) // 4), max(len(rows) - 1, 0)), None)
+            lim = np.nanmax(np.abs(change[tail, i]) + std[tail, i]) if len(rows) else 1.0
             if np.isfinite(lim) and lim > 0:
                 ax.set_ylim(-1.5 * lim, 1.5 * lim)
         elif i == p:
             nis = np.asarray(nis, float)
             lo, hi = nis_bounds(dims)
-            out = (nis < lo) | (nis > hi)
+            out = ((nis < lo) | (nis > hi)) & (rows > burn_in)  # the tests leave the burn-in out
             ax.plot(rows, nis, ".", ms=3, color="C0", gid="nis")
             ax.plot(rows, hi, color="k", lw=0.6)
             ax.plot(rows, lo, color="k", lw=0.6)
             ax.plot(rows[out], nis[out], "o", ms=4, mfc="none", color="r", gid="nis_outside",
-                    label=f"{int(out.sum())} rows outside 95 %")
+                    label=f"{int(out.sum())} rows after burn-in outside 95 %")
             if burn_in:
                 ax.axvline(burn_in, color="0.5", ls="--", lw=0.8, label="burn-in")
             ax.set_yscale("log")

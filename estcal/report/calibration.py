@@ -2,16 +2,13 @@
 correlation and (MCMC) the posterior."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-
-from estcal.io.atomic import atomic_write_text
 
 from .html import Report
 from .tables import accuracy_table, mcmc_table, parameter_table
+from .units import joint_display
 
-__all__ = ["calibration_report", "per_pose_errors", "joint_display"]
+__all__ = ["calibration_report", "per_pose_errors"]
 
 
 def per_pose_errors(robot, theta, data):
@@ -23,15 +20,6 @@ def per_pose_errors(robot, theta, data):
     if pos is None:
         return None, None
     return np.sqrt(np.mean(pos ** 2, axis=1)) * 1e3, None if rot is None else rot * 1e3
-
-
-def joint_display(robot, readings):
-    """Readings in display units (revolute: degrees, prismatic: mm) and the unit of each joint."""
-    rev = np.array([t == "revolute" for t in robot.joint_types])
-    q = np.asarray(readings, float).copy()
-    q[:, rev] = np.degrees(q[:, rev])
-    q[:, ~rev] *= 1e3
-    return q, ["deg" if r else "mm" for r in rev]
 
 
 def calibration_report(folder, res, problem, validation=(), *, unit, label=None, data_path="",
@@ -110,7 +98,8 @@ def calibration_report(folder, res, problem, validation=(), *, unit, label=None,
                 order = sorted(range(len(res.names)), key=lambda i: res.names[i].startswith(("base_", "marker")))
                 fac = np.array([f for _, f in units])
                 X = (np.asarray(samples) - res.nominal) * fac
-                fig = corner_figure(X[:, order], [f"{res.names[i]} − initial ({units[i][0] or '—'})" for i in order])
+                labels = [f"{res.names[i]} − initial ({units[i][0] or '—'})" for i in order]
+                fig = corner_figure(X[:, order], labels)
             except ImportError:
                 rep.text("corner plot skipped: the optional 'corner' package is not installed "
                          "(pip install estcal[mcmc])")
@@ -120,11 +109,6 @@ def calibration_report(folder, res, problem, validation=(), *, unit, label=None,
                            "parameters, joint-model ones before the base frame and markers; display units), "
                            "2.5 / 50 / 97.5 % quantiles dashed.")
     if result_dict is not None:
-        import json
-
-        from estcal.io.jsonio import to_jsonable
-
-        atomic_write_text(Path(folder) / "result.json", json.dumps(to_jsonable(result_dict), indent=2))
-        rep.link("result.json", "result.json — the same numbers as estcal calibrate --json")
+        rep.json("result.json", result_dict, "result.json — the same numbers as estcal calibrate --json")
     rep.write()
     return rep

@@ -1,39 +1,24 @@
 """Reports of ``estcal design`` (a measurement plan) and ``estcal next-pose``."""
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 
-from estcal.io.atomic import atomic_write_text
-
 from .html import Report, Table
+from .units import joint_display
 
 __all__ = ["design_report", "next_pose_report", "readings_table"]
 
 
-def _display_readings(robot, Q):
-    rev = np.array([t == "revolute" for t in robot.joint_types])
-    Q = np.atleast_2d(np.asarray(Q, float)).copy()
-    Q[:, rev] = np.degrees(Q[:, rev])
-    Q[:, ~rev] *= 1e3
-    return Q, ["°" if r else "mm" for r in rev]
-
-
 def readings_table(key, title, robot, Q) -> Table:
     """Joint readings of each pose (revolute in degrees, prismatic in mm)."""
-    D, units = _display_readings(robot, Q)
+    D, units = joint_display(robot, Q)
     return Table(key, title, ["pose"] + [f"{n} ({u})" for n, u in zip(robot.joint_names, units)],
                  [[i + 1] + [float(v) for v in row] for i, row in enumerate(D)])
 
 
-def _dump(folder, result_dict, rep, command):
+def _dump(result_dict, rep, command):
     if result_dict is not None:
-        from estcal.io.jsonio import to_jsonable
-
-        atomic_write_text(Path(folder) / "result.json", json.dumps(to_jsonable(result_dict), indent=2))
-        rep.link("result.json", f"result.json — the same numbers as estcal {command} --json")
+        rep.json("result.json", result_dict, f"result.json — the same numbers as estcal {command} --json")
 
 
 def design_report(folder, model, plan, criteria, baseline, accuracy_map=None, rho_mm=None, q_test=None, *,
@@ -62,7 +47,7 @@ def design_report(folder, model, plan, criteria, baseline, accuracy_map=None, rh
     rep.table(Table("param_std", "predicted parameter std (display units)", ["parameter", "std", "unit"],
                     [[n, float(s * unit(n)[1]), unit(n)[0]] for n, s in std.items()]))
     if rho_mm is not None:
-        D, _ = _display_readings(rb, q_test)
+        D, _ = joint_display(rb, q_test)
         rep.table(Table("test_pose", "predicted RMS position error at the test pose(s)",
                         ["test pose"] + list(rb.joint_names) + ["error (mm)"],
                         [[i + 1] + [float(v) for v in D[i]] + [float(r)] for i, r in enumerate(rho_mm)]))
@@ -88,7 +73,7 @@ def design_report(folder, model, plan, criteria, baseline, accuracy_map=None, rh
                    accuracy_map_figure([("after the plan", accuracy_map.xyz * 1e3, accuracy_map.std * 1e3)], marks),
                    "Predicted position-error std √trace(J C Jᵀ) at random reachable poses within the joint "
                    "limits (nominal tool positions, three projections); crosses: the plan's poses.")
-    _dump(folder, result_dict, rep, "design")
+    _dump(result_dict, rep, "design")
     rep.write()
     return rep
 
@@ -128,7 +113,7 @@ def next_pose_report(folder, model, nxt, state, maps, *, unit, title: str = "est
                                    [("next pose", _next_position(model, state, nxt) * 1e3)]),
                "Predicted position-error std at random reachable poses with the current covariance (top) and "
                "after measuring the proposed pose (bottom, same colour scale); cross: the proposed pose.")
-    _dump(folder, result_dict, rep, "next-pose")
+    _dump(result_dict, rep, "next-pose")
     rep.write()
     return rep
 

@@ -115,6 +115,15 @@ class Report:
                           f"{cap}</figure>")
         return name
 
+    def json(self, name: str, obj, text: str = "") -> None:
+        """Write ``obj`` as JSON (atomically) into the folder and link it from the page."""
+        import json
+
+        from estcal.io.jsonio import to_jsonable
+
+        atomic_write_text(self.folder / name, json.dumps(to_jsonable(obj), indent=2))
+        self.link(name, text or name)
+
     def link(self, name: str, text: str) -> None:
         self.parts.append(f'<p><a href="{html.escape(name)}">{html.escape(text)}</a></p>')
 

@@ -1,12 +1,7 @@
 """Report of ``estcal online``: estimate ± σ after every row and the innovation tests."""
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
-
-from estcal.io.atomic import atomic_write_text
 
 from .html import Report, Table
 
@@ -61,9 +56,6 @@ def online_report(folder, names, nominal, trace_estimate, trace_std, nis, dims, 
                "Estimate − initial value (line) ± σ (band) after each row; last panel: NIS of every row with "
                "its χ² 95 % bounds, rows outside circled, burn-in dashed.")
     if result_dict is not None:
-        from estcal.io.jsonio import to_jsonable
-
-        atomic_write_text(Path(folder) / "result.json", json.dumps(to_jsonable(result_dict), indent=2))
-        rep.link("result.json", "result.json — the same numbers as estcal online --json")
+        rep.json("result.json", result_dict, "result.json — the same numbers as estcal online --json")
     rep.write()
     return rep

@@ -14,7 +14,9 @@ Folders whose name starts with ``.`` or ``_`` are skipped (``_models/`` …).
 Every robot is one task of :func:`estcal.scale.runner.run_tasks`: a robot
 whose folder is incomplete or whose calibration fails is reported (name,
 inputs, one-line error) and the others go on. Each worker writes its robot's
-saved model itself (``--save-models``), so only the summary row travels back.
+saved model itself (``--save-models``; :meth:`CalibrationResult.save_model` /
+:meth:`DiagnosisResult.save_model`, docs/robot-file.md "Saved models"), so only
+the summary row travels back.
 """
 from __future__ import annotations
 
@@ -121,14 +123,6 @@ def _acc(acc, which="after", key="rmse_mm"):
     return None if v is None else float(v)
 
 
-def _save(robot, path: Path, block: dict) -> str:
-    from estcal.io.robotfile import save_robot
-
-    robot.meta["calibration"] = block
-    save_robot(robot, path)
-    return str(path)
-
-
 def _calibrate(job, opts, rob, ds, vals, warnings) -> dict:
     from estcal.estimate.levels import run_calibration
     from estcal.methods import NoiseModel
@@ -148,13 +142,9 @@ def _calibrate(job, opts, rob, ds, vals, warnings) -> dict:
            "validation_rmse_before_mm": _acc(val[0], "before") if val else None,
            "validation_rmse_mm": _acc(val[0]) if val else None, "causes": []}
     if opts.save_models:
-        cal = rob.with_values(np.asarray(res.theta)[: rob.n_params])
-        keep = [i for i, n in enumerate(res.names) if n in cal.params.names]
-        C = np.asarray(res.covariance)[np.ix_(keep, keep)]
-        block = {"source": "estcal fleet", "robot": job.name, "method": res.method, "data": job.data, "poses": int(ds.n),
-                 "free": [res.names[i] for i in keep], "covariance": C.tolist(), "sigma0": float(res.sigma0),
-                 "rmse_mm": row["rmse_after_mm"], "validation_rmse_mm": row["validation_rmse_mm"]}
-        row["model"] = _save(cal, Path(opts.save_models) / f"{job.name}.yaml", block)
+        path = Path(opts.save_models) / f"{job.name}.yaml"
+        res.save_model(path, {"source": "estcal fleet", "robot": job.name, "level": opts.level})
+        row["model"] = str(path)
     return row
 
 
@@ -170,9 +160,9 @@ def _diagnose(job, opts, rob, ds, vals, warnings) -> dict:
            "validation_rmse_before_mm": _first(geo.get("validation")),
            "validation_rmse_mm": _first(ext.get("validation")), "causes": causes, "verdict": res.verdict}
     if opts.save_models:
-        block = {"source": "estcal fleet --diagnose", "robot": job.name, "data": job.data, "poses": int(ds.n), "causes": causes,
-                 "rmse_mm": row["rmse_after_mm"], "validation_rmse_mm": row["validation_rmse_mm"]}
-        row["model"] = _save(res.robot, Path(opts.save_models) / f"{job.name}.yaml", block)
+        path = Path(opts.save_models) / f"{job.name}.yaml"
+        res.save_model(path, {"source": "estcal fleet --diagnose", "robot": job.name})
+        row["model"] = str(path)
     return row
 
 

@@ -23,6 +23,9 @@ child, ``SeedSequence(seed).spawn(n)[i]`` for task ``i``, passed as ``fn``'s
 second argument; the same seed gives bit-identical results on every scheduler
 (``tests/test_scale.py``).
 
+Every task runs with single-threaded BLAS, whatever the scheduler (same
+numbers; no oversubscription of the cores by BLAS threads).
+
 Overhead: tasks travel in *chunks* (a list of tasks per submitted job; by
 default about eight chunks per worker), so a per-task cost of a few
 milliseconds is not swamped by the scheduler's per-job cost (measured in
@@ -35,7 +38,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -144,7 +146,21 @@ def _run_one(fn, index, task, seed):
 
 
 def _run_chunk(fn, chunk):
-    """Run a chunk ``[(index, task, seed), …]``; module level so that every pool can pickle it."""
+    """Run a chunk ``[(index, task, seed), …]``; module level so that every pool can pickle it.
+
+    Progress bars inside a task stay quiet (the runner's own bar counts the tasks).
+    BLAS runs single-threaded on every scheduler: a worker process is one core's
+    worth of work, the result does not depend on BLAS's thread count (its
+    reductions' order), and OpenBLAS's spinning threads do not slow a serial run
+    on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md)."""
+    from estcal.estimate.lsq import single_thread_blas
+    from estcal.progress import nested
+
+    with single_thread_blas(), nested():
+        return _run_items(fn, chunk)
+
+
+def _run_items(fn, chunk):
     return [(i,) + _run_one(fn, i, t, s) for i, t, s in chunk]
 
 
@@ -152,11 +168,10 @@ def _run_chunk(fn, chunk):
 def _progress(total, desc, progress):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from estcal.progress import progress as bar
 
-    # disable=None: tqdm stays quiet when stderr is not a terminal (logs, CI)
-    return tqdm(total=total, desc=desc, unit="task", disable=None if progress == "auto" else False,
-                file=sys.stderr, leave=False)
+    # "auto": only on a terminal's stderr, not in CI, not inside another bar (estcal.progress)
+    return bar(total=total, desc=desc or "tasks", unit="task", enabled=None if progress == "auto" else True)
 
 
 def _default_workers(scheduler) -> int:
@@ -197,11 +212,14 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
 
     label = scheduler if isinstance(scheduler, str) else type(scheduler).__name__
     if scheduler in (None, "serial") or n == 0:
+        from estcal.estimate.lsq import single_thread_blas
+
         bar = _progress(n, desc, progress)
-        for it in items:
-            collect(_run_chunk(fn, [it]))
-            if bar is not None:
-                bar.update(1)
+        with single_thread_blas():  # as on the workers (see _run_chunk)
+            for it in items:
+                collect(_run_items(fn, [it]))
+                if bar is not None:
+                    bar.update(1)
         if bar is not None:
             bar.close()
         return RunResult(results, [failures[i] for i in sorted(failures)], "serial", 1, time.perf_counter() - t0)
@@ -276,7 +294,7 @@ def _dask_client(scheduler: str, n_workers):
         # an idle worker's CPU — docs/scaling.md)
         with dask.config.set({"distributed.worker.profile.enabled": False}):
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
-                                   processes=True, dashboard_address=None)
+                                   processes=True, dashboard_address=":0")
         client = Client(cluster)
         return client, _OwnCluster(cluster, client)
     client = Client(scheduler, timeout="10s")

@@ -4,7 +4,7 @@ Every robot of the fleet is the same nominal model (one shared robot file at
 the fleet's top level, as a factory calibrating one product line) with its own
 random geometric errors (:func:`estcal.simulate.random_errors` magnitudes) and,
 with probability ``p_effect``, one non-geometric effect drawn from
-``effects`` on a random joint. Layout (read by :mod:`estcal.scale.fleet`)::
+``effects`` on a random major joint (magnitudes in :func:`_effect_spec`). Layout (read by :mod:`estcal.scale.fleet`)::
 
     OUT/robot.yaml                  nominal robot (shared)
     OUT/robot_0000/data.csv         calibration dataset (n_poses)
@@ -23,12 +23,28 @@ import numpy as np
 
 __all__ = ["FLEET_EFFECTS", "simulate_fleet", "simulate_robot"]
 
-# effect spec templates: "{j}" is replaced by a random joint drawn among those given
-FLEET_EFFECTS = ("gear_harmonic:{j}", "encoder_gain:{j}", "joint_compliance:j2,j3")
+# Effects drawn for a fleet robot, on one of its first three (major) joints, with magnitudes
+# well above a CMM's noise (so that `estcal fleet --diagnose` has something to find):
+# a first-order gear harmonic of amplitude 1 mrad (random phase), an encoder gain error of
+# ±2e-3, joint compliance of 1–3e-5 rad/(N·m) on j2, j3 (robots with link masses only).
+FLEET_EFFECTS = ("gear_harmonic", "encoder_gain", "joint_compliance")
 
 
-def _effect_spec(template: str, rng, joints) -> str:
-    return template.format(j=joints[int(rng.integers(len(joints)))])
+def _effect_spec(name: str, rng, robot) -> dict | None:
+    joints = robot.joint_names[:3]
+    j = joints[int(rng.integers(len(joints)))]
+    if name == "gear_harmonic":
+        phase = rng.uniform(0, 2 * np.pi)
+        return {"effect": name, "joints": [j], "options": {"orders": [1]},
+                "params": {f"harmonic1_sin_{j}": 1e-3 * np.cos(phase), f"harmonic1_cos_{j}": 1e-3 * np.sin(phase)}}
+    if name == "encoder_gain":
+        return {"effect": name, "joints": [j], "params": {f"encgain_{j}": 2e-3 * rng.choice([-1.0, 1.0])}}
+    if name == "joint_compliance":
+        if not any(lk.mass > 0 for lk in robot.links) or len(joints) < 3:
+            return None
+        js = joints[1:3]
+        return {"effect": name, "joints": js, "params": {f"compliance_{x}": rng.uniform(1e-5, 3e-5) for x in js}}
+    return {"effect": name}
 
 
 def simulate_robot(job) -> dict:
@@ -44,7 +60,8 @@ def simulate_robot(job) -> dict:
     rng = np.random.default_rng(seed)
     eff = []
     if effects and rng.random() < p_effect:
-        eff = [_effect_spec(effects[int(rng.integers(len(effects)))], rng, nominal.joint_names)]
+        spec = _effect_spec(effects[int(rng.integers(len(effects)))], rng, nominal)
+        eff = [spec] if spec is not None else []
     sim_seed = int(rng.integers(2 ** 63))
     res = simulate(nominal, n_poses=n_poses + n_validate, measure=measure, errors="random", effects=eff,
                    noise=NoiseModel(position=noise_pos, orientation=noise_rot), seed=sim_seed)
@@ -54,9 +71,10 @@ def simulate_robot(job) -> dict:
     if n_validate:
         write_dataset(folder / "validate.csv", res.dataset.subset(idx[n_poses:]), float_format="%.15g")
     truth = dict(res.truth)
-    truth["fleet"] = {"calibration_poses": n_poses, "validation_poses": n_validate, "effects": eff}
+    labels = [f"{e['effect']}:{','.join(e.get('joints') or [])}" for e in eff]
+    truth["fleet"] = {"calibration_poses": n_poses, "validation_poses": n_validate, "effects": labels}
     atomic_write_text(folder / "truth.json", json.dumps(truth, indent=2))
-    return {"robot": folder.name, "effects": eff, "nominal_rms_mm": res.summary.nominal_rms_mm}
+    return {"robot": folder.name, "effects": labels, "nominal_rms_mm": res.summary.nominal_rms_mm}
 
 
 def simulate_fleet(n: int, out, robot="puma560", n_poses: int = 50, n_validate: int = 50,

@@ -76,7 +76,7 @@ def predict_session(fit, data, cov=None, theta=None, level: float = 0.95) -> dic
 def coverage_band(n: int, level: float = 0.95, z: float = 1.96) -> list:
     """Binomial band of an empirical coverage over n independent points."""
     h = z * np.sqrt(level * (1 - level) / max(n, 1))
-    return [float(level - h), float(level + h)]
+    return [float(max(level - h, 0.0)), float(min(level + h, 1.0))]
 
 
 def update_session(fit, data, idx, n_iter: int = 3):

@@ -190,9 +190,10 @@ class SimulationSummary:
              ("effects", ", ".join(self.effects) or "none"),
              ("nominal vs true, RMS (mm)", f"{self.nominal_rms_mm:.4f}"),
              ("nominal vs true, max (mm)", f"{self.nominal_max_mm:.4f}")]
-        if self.nominal_rot_rms_deg is not None:
-            r += [("nominal vs true, rot RMS (deg)", f"{self.nominal_rot_rms_deg:.5f}"),
-                  ("nominal vs true, rot max (deg)", f"{self.nominal_rot_max_deg:.5f}")]
+        if self.nominal_rot_rms_deg is not None:  # printed in mrad like every table (docs/conventions.md)
+            mrad = 1e3 * np.pi / 180
+            r += [("nominal vs true, rot RMS (mrad)", f"{self.nominal_rot_rms_deg * mrad:.4f}"),
+                  ("nominal vs true, rot max (mrad)", f"{self.nominal_rot_max_deg * mrad:.4f}")]
         r += [("measurement noise RMS (mm)", f"{self.noise_rms_mm:.4f}"), ("seed", str(self.seed))]
         return r
 

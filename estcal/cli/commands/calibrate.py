@@ -43,8 +43,8 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data, warn,
-                               write_json)
+from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data,
+                               save_model_or_fail, warn, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
@@ -274,7 +274,7 @@ def register(app: typer.Typer) -> None:
         if level is not None and level not in LEVELS:
             _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
         if not data.exists():
-            _fail(f"{data}: file not found")
+            _fail(f"{data}: dataset file not found")
 
         # Gough platforms have their own calibration entry point
         try:
@@ -295,7 +295,9 @@ def register(app: typer.Typer) -> None:
             if save_model:
                 _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
             if validate:
-                console.print("note: --validate is not supported for Gough platforms (ignored)")
+                warn("--validate is not supported for Gough platforms (ignored)")
+            if report is not None:
+                warn("--report is not supported for Gough platforms (ignored)")
             if json_path:
                 out = gres.to_dict()
                 out.update(robot=robot, data=str(data), estimator=estimator)
@@ -382,8 +384,4 @@ def register(app: typer.Typer) -> None:
                                      title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
             console.print(f"report: {report}/index.html ({len(rep.files)} figures)")
         if save_model:
-            try:
-                res.save_model(save_model, {"robot": robot})
-            except (ValueError, OSError) as exc:
-                _fail(f"--save-model {save_model}: {exc}")
-            console.print(f"wrote {save_model} (load it with --robot {save_model})")
+            console.print(save_model_or_fail(res, save_model, robot))

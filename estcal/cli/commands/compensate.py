@@ -1,6 +1,6 @@
 """``estcal compensate``: corrected joint commands from a calibrated (saved) model.
 
-Thin shell around :func:`estcal.compensate.compensate`; the method, the output
+Thin shell around :func:`estcal.compensation.compensate`; the method, the output
 columns and the exit codes are documented in docs/compensation.md.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail
+from estcal.cli.common import fail, warn
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -24,9 +24,14 @@ def _same_file(a: Path, b: Path) -> bool:
 def _read_raw(path: Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows as text (blank lines dropped, as load_dataset does), so that the
     columns other than the joints are written back unchanged."""
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not (len(r) == 1 and not r[0].strip())]
-    return [h.strip() for h in rows[0]], rows[1:]
+    from estcal.io.dataset import DatasetError
+    from estcal.io.textinput import read_csv
+
+    try:  # the input layer: folder, binary, encoding, delimiter (docs/reliability.md)
+        table = read_csv(path, "targets", DatasetError)
+    except DatasetError as exc:
+        fail(str(exc))
+    return table.header, table.rows
 
 
 def register(app: typer.Typer) -> None:
@@ -44,8 +49,8 @@ def register(app: typer.Typer) -> None:
                                                                 "reachable row (targets with quaternions)."),
         position_only: bool = typer.Option(False, "--position-only", help="Ignore qw,qx,qy,qz: reach the "
                                                                           "point only."),
-        rot_weight_m: float = typer.Option(0.1, "--rot-weight-m", help="Metres per radian weighting "
-                                                                       "orientation against position in the solve."),
+        rot_weight_m: float = typer.Option(0.1, "--rot-weight-m", help="Weight of orientation against position "
+                                                                       "in the solve, m/rad (metres per radian)."),
         max_iter: int = typer.Option(100, "--max-iter", help="Most Levenberg-Marquardt steps per row."),
         allow_unreachable: bool = typer.Option(False, "--allow-unreachable",
                                                help="Exit 0 even when rows are unreachable (still flagged "
@@ -61,7 +66,7 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.markup import escape
 
-        from estcal.compensate import compensate
+        from estcal.compensation import compensate
         from estcal.effects import effect_context
         from estcal.io.atomic import atomic_write
         from estcal.io.dataset import DatasetError, load_dataset
@@ -70,13 +75,12 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=False, width=120)
         if not targets.exists():
             fail(f"{targets}: file not found")
-        for p, opt in ((output, "-o"), (json_path, "--json")):
-            if p is not None and _same_file(p, targets):
-                fail(f"{opt} {p} is the input file; choose another output path (inputs are never overwritten)")
-        if json_path is not None and _same_file(json_path, output):
-            fail(f"--json and -o are the same file {output}")
-        if not (tol_mm > 0 and tol_mrad > 0 and rot_weight_m > 0):
-            fail("--tol-mm, --tol-mrad and --rot-weight-m must be > 0")
+        # outputs equal to TARGETS or to each other are refused by estcal.cli.checks.guard
+        for opt, v in (("--tol-mm", tol_mm), ("--tol-mrad", tol_mrad), ("--rot-weight-m", rot_weight_m)):
+            if not v > 0:
+                fail(f"{opt} must be > 0, got {v:g}")
+        if max_iter < 1:
+            fail(f"--max-iter must be an integer ≥ 1, got {max_iter}")
         try:
             rb = load_robot(robot)
         except (ValueError, KeyError, FileNotFoundError) as exc:
@@ -98,7 +102,7 @@ def register(app: typer.Typer) -> None:
         except (DatasetError, FileNotFoundError) as exc:
             fail(str(exc))
         for w in ds.warnings:
-            console.print("[yellow]warning:[/yellow] " + escape(w))
+            warn(f"{targets}: {w}")
         if ds.kind == "pose" and not position_only:
             tgt = np.c_[ds.p, _quat(ds.R)]
         else:
@@ -155,18 +159,14 @@ def register(app: typer.Typer) -> None:
         for note in notes:
             console.print("note: " + escape(note))
         if res.start_outside.any():
-            console.print(f"[yellow]warning:[/yellow] starting joints outside the limits (projected) on lines "
-                          f"{_lines(res.lines[res.start_outside])}")
+            warn(f"starting joints outside the limits (projected) on lines {_lines(res.lines[res.start_outside])}")
         if json_path is not None:
-            import json
-
-            from estcal.io.atomic import atomic_write_text
-            from estcal.io.jsonio import to_jsonable
+            from estcal.io.jsonio import write_json
 
             d = res.to_dict()
             d.update(input=str(targets), output=str(output), robot=str(robot), notes=notes,
                      readings_changed_max=float(shift.max()))
-            atomic_write_text(json_path, json.dumps(to_jsonable(d), indent=2))
+            write_json(json_path, d)  # strict JSON, atomic
         if ok < n:
             bad = res.unreachable_lines
             worst = float(res.error_mm[~res.reachable].max())

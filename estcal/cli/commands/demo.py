@@ -71,12 +71,12 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        from estcal.cli.common import fail
+        from estcal.cli.common import fail, message
 
         try:
             out = run_demo(robot, n, seed, estimator=estimator)
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         res = out.pop("result")
         con = Console()
         con.print(f"[bold]estcal demo[/]: {out['robot']}, {n} simulated poses (full pose, CMM noise "

@@ -123,9 +123,9 @@ def register(app: typer.Typer) -> None:
                     box = ToolBox(rb, v[:3], v[3:])
                 amap = model.accuracy_map(model.covariance(plan.readings), n=map_n, rng=seed + 2, constraint=box)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            from estcal.cli.common import fail
+            from estcal.cli.common import fail, message
 
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         better = plan.value > base.max if larger_is_better(crit) else plan.value < base.min
         console.print(f"robot {rb.name}, method {method}, σ = {sigma_mm} mm, {model.p} free parameters")
         console.print(f"plan ({plan.method}, m = {plan.m}): {crit} = {plan.value:.6g}   [{CRITERIA[crit][2]}]")

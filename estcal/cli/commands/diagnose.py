@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, warn
+from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, save_model_or_fail, warn
 
 __all__ = ["register"]
 
@@ -31,7 +31,9 @@ _fail = fail
 def register(app: typer.Typer) -> None:
     @app.command("diagnose")
     def diagnose_cmd(
-        data: Path = typer.Argument(..., help="Measured dataset (CSV: joint columns + x,y,z / x1..zk / pose)."),
+        data: list[Path] = typer.Argument(..., help="Measured dataset(s) (CSV: joint columns + x,y,z / x1..zk / "
+                                                    "pose); several files are several sessions, fitted together "
+                                                    "(approach and time per session)."),
         robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
@@ -73,19 +75,20 @@ def register(app: typer.Typer) -> None:
 
         noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
             resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
-        if not data.exists():
-            _fail(f"{data}: file not found")
-        rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
+        for d in data:
+            if not d.exists():
+                _fail(f"{d}: dataset file not found")
+        rob, n_markers = robot_for_data(robot, data[0], root=root, tip=tip, points=points)
         if urdf_masses and rob.meta.get("urdf"):
             from estcal.discrepancy.masses import with_urdf_masses
 
             rob = with_urdf_masses(rob)
         try:
-            ds = load_dataset(data, rob, points=n_markers)
+            sessions = [load_dataset(d, rob, points=n_markers) for d in data]
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
-        for d in [ds] + vals:
+        for d in sessions + vals:
             for w in d.warnings:
                 warn(f"{d.where}: {w}")
         cands = None
@@ -96,14 +99,18 @@ def register(app: typer.Typer) -> None:
             bad = [e for e in cands if e not in EFFECTS]
             if bad:
                 _fail(f"--effects: unknown effect(s) {bad}; registered: {', '.join(sorted(EFFECTS))}")
-        check_distinct_poses(ds)  # after the option checks: usage errors first
+        for d in sessions:
+            check_distinct_poses(d)  # after the option checks: usage errors first
+        ds = sessions[0] if len(sessions) == 1 else sessions
+        n_poses = sum(d.n for d in sessions)
+        where = ", ".join(str(d) for d in data)
         spec = robot if not (root or tip) else None
         try:
             res = diagnose(rob, ds, validate=vals, candidates=cands, k_folds=k_folds, noise=noise_pos, alpha=alpha,
                            max_effects=max_effects, report=report, rng=seed, robot_spec=spec, geometric=geometric,
                            approach_from_order=approach_from_order)
         except UnidentifiableError as exc:
-            refuse(f"{data}: {exc} (the geometric fit on {ds.n} poses, and each cross-validation fold of "
+            refuse(f"{where}: {exc} (the geometric fit on {n_poses} poses, and each cross-validation fold of "
                    f"--folds {k_folds}, needs more equations than parameters)")
         except ValueError as exc:
             _fail(str(exc))
@@ -115,14 +122,10 @@ def register(app: typer.Typer) -> None:
             from estcal.report.diagnose import diagnose_report
 
             res.to_json(Path(report) / "diagnosis.json")
-            diagnose_report(report, res, title=f"estcal diagnose — {rob.name}, {data}")
+            diagnose_report(report, res, title=f"estcal diagnose — {rob.name}, {where}")
             typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
         if json_path:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
         if save_model:
-            try:
-                res.save_model(save_model, {"robot": robot})
-            except (ValueError, OSError) as exc:
-                _fail(f"--save-model {save_model}: {exc}")
-            typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
+            typer.echo(save_model_or_fail(res, save_model, robot))

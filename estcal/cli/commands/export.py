@@ -51,6 +51,9 @@ def register(app: typer.Typer) -> None:
         what = (f"origins of {len(res.changed)} joints changed, every other element of {from_urdf.name} kept"
                 if from_urdf is not None else f"{model.n_joints} joints, origins carry the calibration")
         typer.echo(f"wrote {urdf} ({what}); tool frame: --root {res.root} --tip {res.tip}")
+        if from_urdf is None and model.convention == "urdf":
+            typer.echo("note: this model's frames are URDF joints; --from-urdf ORIGINAL.urdf writes a calibrated "
+                       "copy of the original instead (its links, visuals, collisions and inertials kept)")
         for w in res.warnings:
             typer.echo(f"warning: {w}", err=True)
         if json_path is not None:

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail
+from estcal.cli.common import fail, message
 from estcal.io.atomic import atomic_write
 from estcal.io.jsonio import write_json
 
@@ -49,7 +49,7 @@ def register(app: typer.Typer) -> None:
             rb.kinematics(ds.readings[:1], context={k: np.asarray(v)[:1] if np.ndim(v) else v
                                                     for k, v in ctx.items()}, jacobian=False)  # errors early
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         from estcal.kinematics.chunked import CHUNK, tool_poses
 
         names = list(rb.joint_names) if with_joints else []

@@ -30,6 +30,7 @@ from typing import Optional
 import typer
 
 from estcal.cli.common import fail
+from estcal.cli.units import MILLI, deprecated_option, noise_pos_option, noise_rot_option, resolve
 
 __all__ = ["register"]
 
@@ -72,8 +73,10 @@ def register(app: typer.Typer) -> None:
         estimator: str = typer.Option("lm", "--estimator", help="Estimator name (as estcal calibrate)."),
         diagnose: bool = typer.Option(False, "--diagnose", help="Run estcal diagnose on each robot (named "
                                       "non-geometric causes; the saved model includes them)."),
-        noise_pos: float = typer.Option(1e-4, "--noise-pos", help="Position noise std (m)."),
-        noise_rot: float = typer.Option(1e-3, "--noise-rot", help="Orientation noise std (rad)."),
+        noise_pos_mm: float = noise_pos_option(0.1),
+        noise_rot_mrad: float = noise_rot_option(1.0),
+        old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+        old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
         known_noise: bool = typer.Option(False, "--known-noise", help="Trust the noise values."),
         save_models: Optional[Path] = typer.Option(None, "--save-models", help="Folder for the saved models "
                                                    "(<robot>.yaml robot files with a calibration: block)."),
@@ -91,6 +94,8 @@ def register(app: typer.Typer) -> None:
         from estcal.scale.fleet import FleetError, FleetOptions, run_fleet
         from estcal.scale.runner import check_scheduler
 
+        noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.1)
+        noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 1.0)
         try:
             check_scheduler(scheduler)
         except ValueError as exc:

@@ -38,6 +38,8 @@ def _plane(text: Optional[str]):
         raise ValueError(f"--plane expects three numbers a,b,c (a x + b y + c z + 1 = 0, 1/m), got {text!r}") from None
     if len(vals) != 3:
         raise ValueError(f"--plane expects three numbers a,b,c, got {len(vals)}")
+    if not all(v == v and abs(v) != float("inf") for v in vals) or not any(vals):
+        raise ValueError(f"--plane {text}: a, b, c must be finite and not all zero (a x + b y + c z + 1 = 0, 1/m)")
     return vals
 
 

@@ -79,9 +79,9 @@ def register(app: typer.Typer) -> None:
             nxt = propose_next_pose(model, st, crit, q_test=q_test, candidates=cand, n_candidates=n_candidates,
                                     rng=seed, refine=refine)
         except (ValueError, KeyError, FileNotFoundError, np.linalg.LinAlgError) as exc:
-            from estcal.cli.common import fail
+            from estcal.cli.common import fail, message
 
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         console.print(f"robot {rb.name}, method {method}, {len(st.parameters)} parameters in the state")
         console.print("next pose (" + ", ".join(rb.joint_names) + "):")
         console.print("  " + format_readings(nxt.readings, rb)[0])

@@ -1,6 +1,7 @@
 """``estcal online``: recursive (Kalman) calibration of a dataset streamed row by row."""
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Optional
@@ -10,6 +11,7 @@ from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_opti
 from estcal.io.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+_BINARY = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f]")  # never in CSV text (tab, LF, CR allowed)
 
 
 def _row_dataset(header, values, robot, where, line, delimiter=",", allow_none: bool = False, header_line: int = 1):
@@ -213,9 +215,13 @@ def register(app: typer.Typer) -> None:
             src = enumerate(lines if lines is not None else sys.stdin, start=1)
             while True:
                 try:
-                    item = next(src)
-                    hasher.update(item[1].encode("utf-8"))  # the consumed prefix, named in checkpoints
-                    yield item
+                    ln, text = next(src)
+                    bad = _BINARY.search(text)
+                    if bad:
+                        fail(f"{where}, line {ln}, column {bad.start() + 1}: control character "
+                             f"0x{ord(bad.group()):02x} — binary data, not CSV text")
+                    hasher.update(text.encode("utf-8"))  # the consumed prefix, named in checkpoints
+                    yield ln, text
                 except StopIteration:
                     return
                 except UnicodeDecodeError:

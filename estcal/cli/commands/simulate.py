@@ -5,6 +5,8 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+
+from estcal.cli.common import fail, message
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.io.jsonio import write_json
 
@@ -28,15 +30,10 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
-    from estcal.io.textinput import read_json, read_text
+    from estcal.io.textinput import read_json, read_yaml
 
     if p.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            d = yaml.safe_load(read_text(p, "errors", ValueError))
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{p}: invalid YAML ({' '.join(str(exc).split())})") from None
+        d = read_yaml(p, "errors", ValueError)
     else:
         d = read_json(p, "errors JSON", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
@@ -221,12 +218,10 @@ def register(app: typer.Typer) -> None:
                                                 resolution=resolution, distribution=noise_dist),
                                seed=seed, margin=margin, dt=dt, temperature=temp, payload=pay,
                                record_approach=approach, n_points=n_points, effect_params=eparams)
-        except typer.BadParameter:
-            raise
+        except typer.BadParameter as exc:
+            fail(exc.format_message())
         except (ValueError, KeyError, FileNotFoundError) as exc:
-            from estcal.cli.common import fail
-
-            fail(str(exc).strip(chr(39)))
+            fail(message(exc))
         csv_path = truth_path = None
         if output is not None:
             csv_path, truth_path = res.write(output, truth)

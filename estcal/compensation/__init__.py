@@ -1,6 +1,6 @@
 """Compensation: corrected joint commands from a calibrated model (docs/compensation.md).
 
->>> from estcal.compensate import compensate        # doctest: +SKIP
+>>> from estcal.compensation import compensate        # doctest: +SKIP
 >>> res = compensate("model.yaml", targets, q_start)  # doctest: +SKIP
 >>> res.readings, res.reachable, res.error_mm, res.std_mm  # doctest: +SKIP
 """

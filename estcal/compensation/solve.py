@@ -1,6 +1,6 @@
 """Numerical core of compensation: joint readings that make a model reach given targets.
 
-Pure functions on arrays; no file handling (see :mod:`estcal.compensate.core`).
+Pure functions on arrays; no file handling (see :mod:`estcal.compensation.core`).
 
 Task
 ----
@@ -25,8 +25,8 @@ call per iteration for every row still iterating, batched (n × n) solves):
 columns ``a_j × (x − o_j)`` / ``a_j`` through the current joint axes) and
 ``M = C_j diag(K) C_m`` the linear reading→joint map (GECARO eq. 4). The
 effects' own dependence on the readings (a gravity torque changing with the
-posture, a gear harmonic of the reading) is left out of ``J_r``: it is 1e-3–1e-2
-of ``M`` for the built-in effects, so the iteration stays a contraction and,
+posture, a gear harmonic of the reading) is left out of ``J_r``: it is small
+against ``M`` (compliance: c·∂τ/∂q ≈ 1e-3), so the iteration stays a contraction and,
 because the residual itself is always the full model (effects included), the
 fixed point is exact; only the rate becomes linear near the solution.
 

@@ -8,7 +8,7 @@ thermal expansion with ``temperature`` …) reaches the target, starting from
 ``q_start`` (which fixes the inverse-kinematics branch), plus the residual of
 the solve and, when the model carries a ``calibration:`` block, the predicted
 position uncertainty of the reached point. The numerical core is
-:mod:`estcal.compensate.solve`; the method is documented in docs/compensation.md.
+:mod:`estcal.compensation.solve`; the method is documented in docs/compensation.md.
 """
 from __future__ import annotations
 
@@ -157,6 +157,9 @@ def compensate(robot, targets, q_start, orientations=None, context: dict | None 
     lines = np.arange(2, N + 2) if lines is None else np.asarray(lines, int)
     use_marker = robot.n_markers > 0
     ctx = dict(context or {})
+    for k, v in ctx.items():
+        if np.ndim(v) and np.size(v) != N:
+            raise ValueError(f"context {k!r} has {np.size(v)} values for {N} targets (give one per row or a scalar)")
     lo, hi = robot.limits[:, 0], robot.limits[:, 1]
     start_outside = np.any((q0 < lo) | (q0 > hi), axis=1)
     sol = solve_readings(robot, x, q0, R, ctx, rot_weight=rot_weight_m, use_marker=use_marker,
