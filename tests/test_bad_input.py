@@ -284,7 +284,7 @@ DATA_CASES = {
 # degenerate data: numerical refusals (exit 3) for the commands that fit
 FIT_CASES = {
     "identical-rows": (_d_identical, r"same\.csv: all rows have the same joint readings \(12 rows, lines 2–13\)", 3),
-    "dof-zero": (_d_three_rows, r"three\.csv: 9 residuals for 9 estimated parameters \(dof = 0\)", 3),
+    "dof-zero": (_d_three_rows, r"three\.csv: 3 poses give 9 equations for 9 free parameters \(degrees of freedom 0", 3),
 }
 
 DATA_COMMANDS = {
@@ -537,7 +537,7 @@ OPTION_CASES = {
     "calibrate-free-unknown": ("calibrate", ["--free", "nosuch_param"], r"--free: .*nosuch_param"),
     "calibrate-regularize": ("calibrate", ["--regularize", "-1"], r"--regularize"),
     "calibrate-option-syntax": ("calibrate", ["--option", "q"], r"--option 'q': expected KEY=VALUE"),
-    "calibrate-robust": ("calibrate", ["--robust", "huber"], r"--robust needs a factor-graph estimator"),
+    "calibrate-robust": ("calibrate", ["--robust", "huber", "--estimator", "ukf"], r"--robust: the UKF has no robust update"),
     "calibrate-validate-missing": ("calibrate", ["--validate", "{tmp}/nope.csv"], r"nope\.csv: dataset file not found"),
     "calibrate-validate-folder": ("calibrate", ["--validate", "{folder}"], r"folder: is a folder, not a dataset file"),
     "fk-output-is-input": ("fk", ["-o", "{pos}"], r"--output .*pos\.csv: is also an input file of this command"),

@@ -244,10 +244,11 @@ def test_unknown_estimator_option_names_the_estimator_and_keys(puma_pose):
     r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--estimator", "kalman",
                          "--option", "passes=2", "--option", "qq=1"])
     assert r.exit_code == 2 and "'kalman' has no option 'qq'" in r.output and "(did you mean 'q'?)" in r.output
-    r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--option", "max_iter=3"])
+    r = RUN.invoke(app, ["calibrate", str(train), "--robot", "puma560", "--option", "max_iter=3",
+                         "--allow-ill-conditioned"])  # 3 iterations may stop before convergence: allowed
     assert r.exit_code == 0, r.output
     r = RUN.invoke(app, ["estimators", "kalman"])
-    assert r.exit_code == 0 and "passes=1" in r.output and "q=0.0" in r.output
+    assert r.exit_code == 0 and "passes=None" in r.output and "q=0.0" in r.output  # None: 1, or 3 when robust
 
 
 def test_lumped_mass_model_keeps_the_tool_link_mass(tmp_path):
