@@ -210,3 +210,26 @@ def test_experiment_quick_smoke(tmp_path):
     d = json.loads(out.read_text())
     assert d["totals"]["gecaro"] == d["published_totals"]
     assert d["all_differences_explained"]
+
+
+def test_sequential_rank_structural_vs_data_tolerance():
+    """One scan, two decisions: a column at angle 1e-6 from the span of the earlier ones is
+    structurally independent (kept at STRUCTURAL_TOL) but not data-identifiable (dropped at
+    DATA_TOL); an exact combination is dependent at both; |R_jj| is the sine of that angle,
+    checked against the SVD of the two unit columns (σ_min = √2 · sin(angle/2))."""
+    from estcal.identify.core import DATA_TOL, STRUCTURAL_TOL, sequential_rank
+
+    rng = np.random.default_rng(0)
+    a, b, c = np.linalg.qr(rng.standard_normal((50, 3)))[0].T
+    W = np.column_stack([a, b, 3 * a - 2 * b, a + 1e-6 * c, np.zeros(50), 5 * c])
+    s = sequential_rank(W, STRUCTURAL_TOL)
+    assert s.kept == [0, 1, 3] and s.dependent == [2, 5] and s.no_effect == [4]  # 5c: in span(a, b, a + 1e-6 c)
+    ang = np.arctan2(1e-6, 1.0)
+    assert s.r_diag[3] == pytest.approx(np.sin(ang), rel=1e-6)
+    sv = np.linalg.svd(np.column_stack([a, W[:, 3] / np.linalg.norm(W[:, 3])]), compute_uv=False)
+    assert sv[-1] == pytest.approx(np.sqrt(2) * np.sin(ang / 2), rel=1e-6)
+    d = sequential_rank(W, DATA_TOL)
+    assert d.kept == [0, 1, 5] and d.dependent == [2, 3] and d.no_effect == [4]
+    r = sequential_rank(W, DATA_TOL, order=[5, 4, 3, 2, 1, 0])  # the order decides which is kept
+    assert r.kept == [5, 3, 2] and r.dependent == [1, 0]
+    np.testing.assert_allclose(r.Q.T @ r.Q, np.eye(3), atol=1e-12)

@@ -44,7 +44,9 @@ def test_same_seed_same_results_on_every_scheduler(client):
     kids = np.random.SeedSequence(42).spawn(len(tasks))
     expected = [math.sqrt(x) + np.random.default_rng(k).normal() for x, k in zip(tasks, kids)]
     assert serial.values() == expected
-    for sched, kw in (("processes", {"n_workers": 2}), (client, {"chunksize": 3}), (client, {"chunksize": 1})):
+    # a Dask Client, and the scheduler's address (what --scheduler tcp://host:8786 gives)
+    for sched, kw in (("processes", {"n_workers": 2}), (client, {"chunksize": 3}), (client, {"chunksize": 1}),
+                      (client.scheduler.address, {})):
         out = run_tasks(_noisy_root, tasks, scheduler=sched, seed=42, **kw)
         assert out.values() == serial.values(), sched
     assert run_tasks(_noisy_root, tasks, seed=43).values() != serial.values()

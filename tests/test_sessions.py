@@ -50,6 +50,20 @@ def test_three_formulations_agree_on_the_linear_model(q):
         np.testing.assert_allclose(u, ref[2], atol=1e-6 * max(1.0, np.abs(ref[2]).max()))
 
 
+def test_kalman_within_session_drift():
+    """Pose-by-pose processing with zero within-session drift is the session-batch filter (and
+    GLS); a within-session drift widens the last session's deviation uncertainty."""
+    A_list, r_list, S, q = _linear_case(seed=5, m=30)
+    ref = solve_kalman(A_list, r_list, S, q)
+    same = solve_kalman(A_list, r_list, S, q, q_within=np.zeros(3), rows_per_pose=3)
+    sd = np.sqrt(np.diag(ref[1]))
+    assert np.max(np.abs(same[0] - ref[0]) / sd) < 1e-6  # round-off of the diffuse prior, in σ
+    np.testing.assert_allclose(np.sqrt(np.diag(same[1])), sd, rtol=1e-6)
+    drift = solve_kalman(A_list, r_list, S, q, q_within=np.full(3, 0.05), rows_per_pose=3)
+    assert np.all(np.diag(drift[1]) >= np.diag(ref[1]) * (1 - 1e-9))
+    assert not np.allclose(drift[0], ref[0])
+
+
 def test_reml_objective_matches_dense_formula():
     """−2ℓ_R from the Woodbury blocks equals the textbook dense expression (Harville 1977)."""
     A_list, r_list, S, q = _linear_case(seed=3)
@@ -230,3 +244,37 @@ def test_diagnose_takes_several_sessions(tmp_path):
     per = stack_sessions([derive_approach(d) for d in ds])
     first2 = ds[0].n
     assert all(per.columns[c][first2] == 0 for c in per.columns if c.startswith("approach_"))
+
+
+def test_calibrate_takes_several_sessions(tmp_path):
+    """`estcal calibrate A.csv B.csv` fits one parameter set to both sessions: the same estimate as
+    the concatenated file, and the saved model lists both files with their sha256."""
+    import hashlib
+    import json
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+    from estcal.io.dataset import write_dataset
+    from estcal.sessions.data import stack_sessions
+
+    robot = puma560()
+    ds, _ = simulate_sessions(robot, 2, 15, {}, noise=5e-5, seed=7, error_std=2e-4)
+    files = [tmp_path / "a.csv", tmp_path / "b.csv"]
+    for f, d in zip(files, ds):
+        write_dataset(f, d)
+    write_dataset(tmp_path / "ab.csv", stack_sessions(ds))
+    common = ["--robot", "puma560", "--free", "base_*,offset_2,offset_3,a_2,a_3", "--noise-pos-mm", "0.05",
+              "--known-noise"]
+    r = CliRunner().invoke(app, ["calibrate", *map(str, files), *common, "--json", str(tmp_path / "s.json"),
+                                 "--save-model", str(tmp_path / "m.yaml")])
+    assert r.exit_code == 0, r.output
+    r2 = CliRunner().invoke(app, ["calibrate", str(tmp_path / "ab.csv"), *common, "--json", str(tmp_path / "c.json")])
+    assert r2.exit_code == 0, r2.output
+    a, b = (json.loads((tmp_path / n).read_text())["parameters"] for n in ("s.json", "c.json"))
+    for n in a:
+        assert abs(a[n]["estimate"] - b[n]["estimate"]) <= 1e-9 * a[n]["std"] + 1e-15
+    block = yaml.safe_load((tmp_path / "m.yaml").read_text())["calibration"]
+    assert [e["sha256"] for e in block["data"] if e["role"] == "train"] == \
+        [hashlib.sha256(f.read_bytes()).hexdigest() for f in files]

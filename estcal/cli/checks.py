@@ -36,7 +36,7 @@ NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
     (r"--(n|n-poses|n-candidates|restarts|random-plans|every|max-effects|points|walkers|steps|n-jobs|"
      r"workers|chunk|n-samples|samples|max-iter|fleet)$", None, ("int", 1)),
     (r"--folds$", None, ("int", 2)),
-    (r"--(show|map|burn-in|seed)$", None, ("int", 0)),
+    (r"--(show|map|burn-in|seed|recalibrate)$", None, ("int", 0)),
     (r"--(noise|sigma|prior-std|error)[a-z-]*$", ("simulate",), ("ge", 0.0)),
     (r"--(noise|sigma|prior-std)[a-z-]*$", None, ("gt", 0.0)),
     (r"--(q|q-[a-z]+|resolution[a-z-]*|error-[a-z-]+|tau-floor)$", None, ("ge", 0.0)),

@@ -34,8 +34,8 @@ def message(exc: BaseException) -> str:
 
 
 def refuse(msg):
-    """A numerical refusal: ``error: msg`` to stderr, exit code 3."""
-    fail(msg, EXIT_REFUSED)
+    """A numerical refusal: ``error: numerical refusal: msg`` to stderr, exit code 3."""
+    fail(f"numerical refusal: {msg}", EXIT_REFUSED)
 
 
 def warn(msg) -> None:
@@ -92,18 +92,6 @@ def check_distinct_poses(ds, minimum: int = 2) -> None:
         what = "all rows have the same joint readings" if distinct == 1 else f"only {distinct} different poses"
         refuse(f"{ds.where}: {what} ({ds.n} rows, lines {ds.lines[0]}–{ds.lines[-1]}) — a calibration needs "
                f"at least {minimum} different poses; measure the robot in other configurations")
-
-
-def check_dof(res, data_path, known_noise: bool = False) -> None:
-    """Refuse (exit 3) a fit without residual degrees of freedom: σ0 and the standard
-    deviations scaled by it are undefined (0/0), so no uncertainty can be reported."""
-    dof = getattr(res, "dof", None)
-    if dof is None or dof > 0 or known_noise:
-        return
-    p = len(res.names)
-    refuse(f"{data_path}: {p + dof} residuals for {p} estimated parameters (dof = {dof}): σ0 and every standard "
-           f"deviation are undefined — measure more poses, estimate fewer parameters (--level joint_offset or "
-           f"--free), or give --known-noise")
 
 
 def save_model_or_fail(result, path, robot_spec) -> str:

@@ -57,6 +57,7 @@ DIMENSIONLESS = {
     "--steps": "number of MCMC steps",
     "--max-iter": "number of iterations",
     "--recalibrate": "number of re-measured poses",
+    "--checkpoint-every": "rows between checkpoints",
 }
 
 # A unit written in an option's name (suffix) or help: "(mm)", "mrad", "deg", "°C", "kg", "s" …

@@ -219,15 +219,15 @@ class DesignModel:
 
 
 def identifiable_subset(robot: SerialRobot, method: str = "position", candidates=None, n_poses: int = 60,
-                        rng=0, tol: float = 1e-8, exclude=("gain_*",), prefer=None) -> list[str]:
+                        rng=0, tol: float | None = None, exclude=("gain_*",), prefer=None) -> list[str]:
     """A set of free parameters with independent Jacobian columns (a base set).
 
     The stacked Jacobian over ``n_poses`` random poses (or ``candidates``) is
     analysed by :func:`estcal.identify.core.identifiable` (GECARO App. III,
     priority-ordered sequential QR on unit-norm columns) with priorities
     ``prefer`` (highest, in the given order) > joint offsets > geometric >
-    base > tool > markers. Without that module a column-pivoted QR of the
-    unit-norm columns is used (``|R_kk| > tol``).
+    base > tool > markers; ``tol`` is its structural tolerance on the unit-norm columns
+    (:data:`estcal.identify.core.STRUCTURAL_TOL`).
 
     Parameters whose names match ``exclude`` patterns are not considered.
     Returns the selected names in the robot's parameter order.
@@ -244,23 +244,10 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
     for i, nm in enumerate(prefer or []):
         if nm in names:
             pri[names.index(nm)] = 100 + len(prefer) - i
-    try:
-        from estcal.identify.core import identifiable
-    except ImportError:  # pragma: no cover - depends on the tree state
-        identifiable = None
-    if identifiable is not None:
-        res = identifiable(J, names, priorities=pri)
-        keep = set(res.identifiable)
-        return [n for n in robot.params.names if n in keep]
-    from scipy.linalg import qr
+    from estcal.identify.core import STRUCTURAL_TOL, identifiable
 
-    norms = np.linalg.norm(J, axis=0)
-    ok = norms > 1e-12 * max(norms.max(), 1e-300)
-    order = [j for j in np.argsort(-pri, kind="stable") if ok[j]]
-    Js = J[:, order] / norms[order]
-    _, R, piv = qr(Js, mode="economic", pivoting=True)
-    k = int(np.sum(np.abs(np.diag(R)) > tol))
-    keep = {names[order[i]] for i in piv[:k]}
+    res = identifiable(J, names, priorities=pri, tau_floor=STRUCTURAL_TOL if tol is None else tol)
+    keep = set(res.identifiable)
     return [n for n in robot.params.names if n in keep]
 
 

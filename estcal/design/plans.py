@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.io.jsonio import to_jsonable
+
 from .criteria import (criterion_loss, criterion_value, evaluate_all, larger_is_better,
                        normalise_criterion)
 from .model import DesignModel
@@ -61,24 +63,12 @@ class Plan:
     def to_dict(self) -> dict:
         return {"criterion": self.criterion, "value": float(self.value), "method": self.method, "m": self.m,
                 "joint_names": list(self.joint_names), "readings_rad": self.readings.tolist(),
-                "readings_deg": np.degrees(self.readings).tolist(), "info": _jsonable(self.info)}
+                "readings_deg": np.degrees(self.readings).tolist(), "info": to_jsonable(self.info)}
 
     def __str__(self) -> str:
         head = f"{self.method} plan, m={self.m}, {self.criterion} = {self.value:.6g}"
         rows = ["  " + " ".join(f"{v:9.3f}" for v in np.degrees(r)) for r in self.readings]
         return head + "\n  joint readings (deg; prismatic in m·57.3):\n" + "\n".join(rows)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    return x
 
 
 @dataclass

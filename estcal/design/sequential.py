@@ -104,7 +104,7 @@ class CalibrationState:
         from estcal.io.textinput import read_json
 
         path = Path(path)
-        return cls.from_dict(read_json(path, "state JSON", ValueError), str(path))
+        return cls.from_dict(read_json(path, "state", ValueError), str(path))
 
     @classmethod
     def from_result(cls, result) -> "CalibrationState":

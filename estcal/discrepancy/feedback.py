@@ -30,7 +30,7 @@ def load_fit(fit) -> dict:
     from estcal.io.textinput import read_json
 
     path = Path(fit)
-    d = read_json(path, "diagnosis fit JSON", ValueError)
+    d = read_json(path, "diagnosis fit", ValueError)
     if not isinstance(d, dict) or not isinstance(d.get("model"), dict) or "theta" not in d["model"]:
         raise ValueError(f"{path}: not a diagnosis fit (needs the 'model' written by `estcal diagnose --json`)")
     return d

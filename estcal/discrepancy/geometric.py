@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from estcal.estimate import calibrate_lsq, register_base
+from estcal.identify.core import DATA_TOL, sequential_rank
 from estcal.kinematics.transforms import rpy_to_matrix
 from estcal.methods import Problem
 
@@ -57,37 +58,22 @@ def orthonormal_basis(A, tol: float = 1e-9):
     return U[:, S > tol * max(S.max(), 1e-300)]
 
 
-def identifiable_subset(A, names, tol: float = 1e-4):
+def identifiable_subset(A, names, tol: float = DATA_TOL):
     """Columns of ``A`` kept in the given (priority) order when they add rank.
 
-    A column is kept when the norm of its component orthogonal to the kept
-    columns is at least ``tol`` times its own norm (a relative numerical zero,
-    cf. GECARO eq. [34]); columns without effect are dropped.
+    :func:`estcal.identify.core.sequential_rank` with the *data-level* tolerance
+    :data:`~estcal.identify.core.DATA_TOL` (1e-4): a column is kept when the norm of its
+    component orthogonal to the kept columns is above ``tol`` times its own norm — the
+    diagnosis fits only what the data pin down, not every structurally independent column.
+    Columns without effect (:data:`~estcal.identify.core.STRUCTURAL_TOL`) are dropped.
 
     Returns
     -------
     keep : list of names, dropped : list of names
     """
-    M = A.shape[0]
-    Q = np.zeros((M, 0))
-    keep, dropped = [], []
-    scale = np.linalg.norm(A, axis=0).max() if A.size else 0.0
-    for j, n in enumerate(names):
-        c = A[:, j]
-        nc = np.linalg.norm(c)
-        if nc <= 1e-12 * max(scale, 1e-300):
-            dropped.append(n)
-            continue
-        c = c / nc
-        c = c - Q @ (Q.T @ c)
-        c = c - Q @ (Q.T @ c)  # re-orthogonalise (classical Gram–Schmidt twice)
-        r = np.linalg.norm(c)
-        if r >= tol:
-            keep.append(n)
-            Q = np.c_[Q, c / r]
-        else:
-            dropped.append(n)
-    return keep, dropped
+    scan = sequential_rank(A, tol)
+    kept = set(scan.kept)
+    return [n for j, n in enumerate(names) if j in kept], [n for j, n in enumerate(names) if j not in kept]
 
 
 def with_effect_context(robot, data):
@@ -162,7 +148,7 @@ def gravity_ready(robot, theta=None, nominal_theta=None):
     return new, lumped
 
 
-def fit_geometric(robot, data, noise, free=None, tol: float = 1e-4, register: bool = True, max_iter: int = 100,
+def fit_geometric(robot, data, noise, free=None, tol: float = DATA_TOL, register: bool = True, max_iter: int = 100,
                   level: str = "full"):
     """The standard geometric calibration of ``robot`` on ``data``.
 

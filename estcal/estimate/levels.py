@@ -7,8 +7,9 @@ data only: columns of the weighted observation matrix in priority order
 (markers and method unknowns, base, offsets, geometric, tool — GECARO's
 "offsets before geometry before base/tool", with the registration set nested
 first because the data frame is unknown); a column is kept when its component
-orthogonal to the kept ones is not numerically zero (GECARO App. III, relative
-tolerance 1e-8 on unit-norm columns). Dropped columns are reported as *no
+orthogonal to the kept ones is not numerically zero (GECARO App. III, the shared
+:func:`estcal.identify.core.sequential_rank` with the structural tolerance
+:data:`~estcal.identify.core.STRUCTURAL_TOL` on unit-norm columns). Dropped columns are reported as *no
 effect* or *regrouped* with ``a_j = Σ β_k a_k`` (β = R1⁻¹R2). ``criterion="aic"``
 / ``"bic"`` additionally prunes, greedily, candidates that do not lower the
 information criterion of the linearised fit (opt-in).
@@ -25,7 +26,6 @@ import numpy as np
 __all__ = ["LEVELS", "Selection", "level_candidates", "select_free", "run_calibration"]
 
 LEVELS = ("registration", "joint_offset", "full")
-_REL_TOL = 1e-8
 
 # --------------------------------------------------------------------------- selection
 @dataclass
@@ -119,9 +119,9 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     exclude : names reported as *no effect* without looking at their columns (e.g. the
         parameters a structural analysis on consistent simulated data found without effect)
 
-    The ordered Gram–Schmidt below is QR without pivoting on the priority-sorted,
-    unit-norm columns: ``|R_jj| ≤ 1e-8`` marks a dependent column (GECARO App. III,
-    with the priority order of §1.5 deciding which of dependent columns is kept).
+    The scan is :func:`estcal.identify.core.sequential_rank` — QR without pivoting on the
+    priority-sorted, unit-norm columns: ``|R_jj| ≤ STRUCTURAL_TOL`` marks a dependent column
+    (GECARO App. III, with the priority order of §1.5 deciding which of dependent columns is kept).
     """
     if criterion not in ("structural", "aic", "bic"):
         raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural', 'aic' or 'bic'")
@@ -135,10 +135,6 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     theta = pv.values.copy() if theta is None else np.asarray(theta, float)
     A, b, M, rss = _weighted_matrix(problem, theta)
     norms = np.linalg.norm(A, axis=0)
-    scale = max(float(norms.max()), 1e-300)
-    kept: list[int] = []
-    Q = np.zeros((A.shape[0], 0))
-    no_effect, regrouped_idx = [], []
     first = set(pv.indices(groups[0])) if groups and groups[0] else set()
     order = [pv.index(n) for g in groups for n in g]
     if known_noise is None:
@@ -156,38 +152,31 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
                 theta = r0.theta
                 A, b, M, rss = _weighted_matrix(problem, theta)
                 norms = np.linalg.norm(A, axis=0)
-                scale = max(float(norms.max()), 1e-300)
             except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
                 pass
-    rejected = []
+    from estcal.identify.core import STRUCTURAL_TOL, sequential_rank
 
+    n_kept = 0
     pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
 
     def aic(r, p):
         return r + pen * p if known_noise else M * np.log(max(r, 1e-300) / M) + pen * p
 
-    for i in order:
-        if norms[i] <= 1e-12 * scale:
-            no_effect.append(pv.names[i])
-            continue
-        a = A[:, i] / norms[i]
-        v = a - Q @ (Q.T @ a)
-        v -= Q @ (Q.T @ v)  # re-orthogonalise (classical Gram–Schmidt twice is stable)
-        nv = float(np.linalg.norm(v))
-        if nv <= _REL_TOL:
-            regrouped_idx.append(i)
-            continue
-        u = v / nv
-        if criterion != "structural" and i not in first:
-            r_new = rss - float(u @ b) ** 2
-            if not aic(r_new, len(kept) + 1) < aic(rss, len(kept)):
-                rejected.append(pv.names[i])
-                continue
-            rss = r_new
-        elif criterion != "structural":
-            rss -= float(u @ b) ** 2
-        kept.append(i)
-        Q = np.column_stack([Q, u])
+    def accept(i, u):
+        # information criterion on the new orthonormal direction u: RSS drops by (uᵀb)²
+        nonlocal rss, n_kept
+        if criterion == "structural":
+            return True
+        r_new = rss - float(u @ b) ** 2
+        if i not in first and not aic(r_new, n_kept + 1) < aic(rss, n_kept):
+            return False
+        rss, n_kept = r_new, n_kept + 1
+        return True
+
+    scan = sequential_rank(A, STRUCTURAL_TOL, order, accept=accept)
+    kept, regrouped_idx = scan.kept, scan.dependent
+    no_effect = [pv.names[i] for i in scan.no_effect]
+    rejected = [pv.names[i] for i in scan.rejected]
     regrouped = {}
     if kept and regrouped_idx:
         Ak = A[:, kept] / norms[kept]
@@ -204,7 +193,6 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     # estimation order: the vector's own order (stable, readable tables)
     names = [pv.names[i] for i in sorted(kept)]
     return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
-
 
 
 def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",

@@ -104,3 +104,9 @@ def check_options(name: str, options) -> None:
         raise ValueError(f"estimator {name!r} has no option {bad[0]!r}"
                          f"{f' (did you mean {hint[0]!r}?)' if hint else ''}; valid keys: "
                          f"{', '.join(sorted(valid))} (see `estcal estimators`)")
+    # a number where the default is a number (bools are not numbers here)
+    for k, v in (options or {}).items():
+        d = valid[k]
+        if isinstance(d, (int, float)) and not isinstance(d, bool) and not (
+                isinstance(v, (int, float)) and not isinstance(v, bool)):
+            raise ValueError(f"estimator {name!r}, option {k!r}: expected a number (default {d!r}), got {v!r}")

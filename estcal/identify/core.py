@@ -15,9 +15,8 @@ Why a *sequential* QR without pivoting
 --------------------------------------
 GECARO sorts the columns by decreasing priority and keeps "the first ``b``
 independent columns". QR with column pivoting reorders the columns by the
-norm of their remaining part and therefore ignores the priorities (the
-issue text mentions pivoting; it is offered as ``pivoting=True``, and the
-result says which was used). A plain Householder QR of a rank-deficient
+norm of their remaining part and therefore ignores the priorities (it is
+offered as ``pivoting=True``, and the result says which was used). A plain Householder QR of a rank-deficient
 matrix is not reliable either: after a dependent column the reflector is
 built from round-off, and that random direction can absorb part of a later
 independent column. So the default is the QR built column by column: column
@@ -62,9 +61,24 @@ from typing import Mapping, Sequence
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["IdentifiabilityResult", "identifiable", "resolve_priorities", "format_relation"]
+__all__ = ["IdentifiabilityResult", "identifiable", "resolve_priorities", "format_relation", "sequential_rank",
+           "RankScan", "STRUCTURAL_TOL", "DATA_TOL"]
 
 EPS = np.finfo(float).eps
+
+#: Structural rank: |R_jj| (sine of the angle between a unit-norm column and the span of the
+#: kept ones) below which a column is dependent, and relative column norm below which a
+#: parameter has no effect. The Jacobian is exact up to round-off, and the measured gap
+#: between kept and rejected |R_jj| spans 1e-2 … 1e-14 (module docstring), so 1e-10 sits
+#: inside it: used by :func:`identifiable`, ``estcal.estimate.levels.select_free`` and the
+#: design and parallel-robot analyses.
+STRUCTURAL_TOL = 1e-10
+#: Data-level identifiability: a column whose independent part is below 1e-4 of its norm is
+#: *not* estimable from noisy data even though it is structurally independent — its standard
+#: deviation is amplified ≥ 10⁴ over a well-conditioned one and its estimate absorbs model
+#: errors of the other parameters. A different decision from the structural rank (used by the
+#: discrepancy diagnosis, ``estcal.discrepancy.geometric``, to fit only what the data pin down).
+DATA_TOL = 1e-4
 
 
 @dataclass
@@ -212,31 +226,78 @@ def format_relation(base: str, terms: Mapping[str, float], digits: int = 6) -> s
     return out
 
 
-def _sequential_qr(Ws: np.ndarray, tau_factor: float, tau_floor: float):
-    """Greedy CGS2 QR on the ordered, unit-norm columns: returns (kept mask, |R_jj|, τ)."""
-    M, c = Ws.shape
-    Q = np.empty((M, c))
+@dataclass
+class RankScan:
+    """Outcome of :func:`sequential_rank`; indices are columns of the input matrix.
+
+    kept : independent columns, in scan order; dependent : columns within ``tol`` of the span
+    of the kept ones; no_effect : zero columns; rejected : independent columns refused by the
+    ``accept`` test; r_diag : |R_jj| of every scanned column on the unit-norm scale (0 for zero
+    columns); norms : column norms; Q : orthonormal basis of the kept columns (M, len(kept)).
+    """
+
+    kept: list
+    dependent: list
+    no_effect: list
+    rejected: list
+    r_diag: np.ndarray
+    norms: np.ndarray
+    Q: np.ndarray
+
+
+def sequential_rank(W, tol: float = STRUCTURAL_TOL, order=None, *, zero_tol: float = STRUCTURAL_TOL,
+                    accept=None) -> RankScan:
+    """Priority-ordered QR without pivoting of the unit-norm columns of ``W`` (GECARO App. III).
+
+    The one implementation of the rank scan behind every identifiability decision. Columns
+    are visited in ``order`` (default: the given order; columns not listed are not scanned).
+    A column with ``‖w_j‖ ≤ zero_tol · max_k ‖w_k‖`` has no effect. Otherwise it is scaled to
+    unit norm and orthogonalised against the kept columns by classical Gram–Schmidt applied
+    twice (CGS2, orthogonal to working precision — Giraud et al., *Numer. Math.* 101, 2005);
+    the norm of the remainder ``|R_jj|`` is the sine of the angle between the column and the
+    span of the kept ones. It is dependent when ``|R_jj| ≤ tol``, else it is kept — unless
+    ``accept(j, u)`` (u: the new orthonormal direction) returns False (e.g. an information
+    criterion, ``estcal.estimate.levels``).
+
+    tol : the decision the caller makes. :data:`STRUCTURAL_TOL` (1e-10) is the structural
+        rank — is the column a combination of the others, to round-off? :data:`DATA_TOL`
+        (1e-4) is data-level identifiability — can the data estimate it with a usable
+        variance? The two answer different questions, hence one named argument, not two
+        functions.
+    """
+    W = np.asarray(W, float)
+    M, c = W.shape
+    order = range(c) if order is None else [int(i) for i in order]
+    norms = np.linalg.norm(W, axis=0)
+    scale = max(float(norms.max()) if c else 0.0, 1e-300)
+    Q = np.empty((M, min(M, c)))
     k = 0
-    rdiag = np.zeros(c)
-    # First pass: residual norms against the kept basis; τ depends on max|R_jj|, which
-    # is the first non-zero column's norm (= 1 after scaling), so one pass suffices.
-    for j in range(c):
-        v = Ws[:, j].copy()
-        for _ in range(2):  # CGS2: re-orthogonalise once, orthogonal to working precision
+    kept, dependent, no_effect, rejected = [], [], [], []
+    r_diag = np.zeros(c)
+    for j in order:
+        if norms[j] <= zero_tol * scale:
+            no_effect.append(j)
+            continue
+        v = W[:, j] / norms[j]
+        for _ in range(2):  # CGS2: re-orthogonalise once
             if k:
-                v -= Q[:, :k] @ (Q[:, :k].T @ v)
-        rdiag[j] = np.linalg.norm(v)
-        tau = max(tau_factor * EPS, tau_floor) * rdiag.max()
-        if rdiag[j] > tau and rdiag[j] > 0:
-            Q[:, k] = v / rdiag[j]
-            k += 1
-    tau = max(tau_factor * EPS, tau_floor) * rdiag.max()
-    # A column kept early with |R_jj| ≤ final τ cannot happen: max|R_jj| is the first column's.
-    return rdiag > tau, rdiag, tau
+                v = v - Q[:, :k] @ (Q[:, :k].T @ v)
+        r_diag[j] = float(np.linalg.norm(v))
+        if r_diag[j] <= tol or k == Q.shape[1]:
+            dependent.append(j)
+            continue
+        u = v / r_diag[j]
+        if accept is not None and not accept(j, u):
+            rejected.append(j)
+            continue
+        Q[:, k] = u
+        k += 1
+        kept.append(j)
+    return RankScan(kept, dependent, no_effect, rejected, r_diag, norms, Q[:, :k])
 
 
 def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = False, tol_factor: float = 1.0,
-                 tau_floor: float = 1e-10, rel_coef_tol: float = 1e-9,
+                 tau_floor: float = STRUCTURAL_TOL, rel_coef_tol: float = 1e-9,
                  meta: dict | None = None, n_rows: int | None = None) -> IdentifiabilityResult:
     """Identifiable parameters of the observation matrix ``W`` (GECARO App. III).
 
@@ -251,8 +312,8 @@ def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = Fals
     pivoting : use QR with column pivoting instead of the priority-ordered
         sequential QR (the base set then follows column norms, not priorities).
     tol_factor : multiplies τ = c·ε·max|R_jj| (eq. [34]).
-    tau_floor : lower bound of τ on the unit-norm columns (default 1e-10, see module
-        docstring); 0 gives eq. [34] exactly.
+    tau_floor : lower bound of τ on the unit-norm columns (default :data:`STRUCTURAL_TOL`,
+        see module docstring); 0 gives eq. [34] exactly.
     rel_coef_tol : regrouping coefficients below this (relative to unit-norm columns) are dropped.
 
     Returns
@@ -276,7 +337,8 @@ def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = Fals
     if c == 0:
         raise ValueError("no parameter to analyse (all priorities are 0)")
     norms = np.linalg.norm(Wu, axis=0)
-    zero = norms <= max(tol_factor * c * EPS, tau_floor) * max(norms.max(), 1e-300)
+    tau = max(tol_factor * c * EPS, tau_floor)  # eq. [34] with the structural floor (module docstring)
+    zero = norms <= tau * max(norms.max(), 1e-300)
     # Stable sort by decreasing priority among the non-zero columns.
     order = [i for i in np.argsort(-prio[use], kind="stable") if not zero[i]]
     Ws = Wu[:, order] / norms[order]
@@ -284,16 +346,16 @@ def identifiable(W, names: Sequence[str], priorities=None, pivoting: bool = Fals
     if pivoting:
         _, R, piv = sla.qr(Ws, mode="economic", pivoting=True)
         d = np.abs(np.diag(R))
-        tau = max(tol_factor * c * EPS, tau_floor) * (d.max() if d.size else 0.0)
+        tau = tau * (d.max() if d.size else 0.0)
         rank = int(np.sum(d > tau))
         kept_pos = np.sort(piv[:rank])
         for pos, dv in zip(piv, d):
             r_diag[cols[order[pos]]] = float(dv)
         qr_name = "column-pivoted Householder QR (scipy), priorities ignored"
     else:
-        kept, d, tau = _sequential_qr(Ws, tol_factor * c, tau_floor)
-        kept_pos = np.flatnonzero(kept)
-        for pos, dv in enumerate(d):
+        scan = sequential_rank(Ws, tau, zero_tol=0.0)  # unit columns: max|R_jj| = 1, τ absolute
+        kept_pos = np.array(scan.kept, int)
+        for pos, dv in enumerate(scan.r_diag):
             r_diag[cols[order[pos]]] = float(dv)
         qr_name = "sequential QR in priority order, no pivoting (GECARO App. III)"
     dep_pos = np.setdiff1d(np.arange(len(order)), kept_pos)

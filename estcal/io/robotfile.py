@@ -563,16 +563,10 @@ def robot_to_dict(robot: SerialRobot) -> dict:
 
 
 def _plain(x):
-    """YAML-safe plain data (numpy arrays and scalars to lists and floats)."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
+    """YAML-safe plain data (numpy arrays and scalars to lists and floats; the JSON rules)."""
+    from estcal.io.jsonio import to_jsonable
+
+    return to_jsonable(x)
 
 
 def save_robot(robot: SerialRobot, path) -> Path:

@@ -80,6 +80,8 @@ def calibration_block(*, estimator: str, train, validation=(), free=(), covarian
     from estcal import __version__
 
     trains = train if isinstance(train, (list, tuple)) else [train]
+    # stacked sessions (estcal.sessions.data.stack_sessions) are listed file by file
+    trains = [s for d in trains for s in (getattr(d, "sessions", None) or [d])]
     out: dict = {"estcal_version": __version__,
                  "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                  "estimator": estimator,

@@ -165,32 +165,51 @@ def read_csv(path, what: str = "dataset", error=InputError) -> CsvTable:
     return parse_csv_text(read_text(p, what, error), str(p), what, error)
 
 
+def _syntax_json(exc):
+    import json
+
+    if isinstance(exc, json.JSONDecodeError):
+        return exc.lineno, exc.colno, exc.msg
+    return None
+
+
+def _syntax_yaml(exc):
+    import yaml
+
+    if isinstance(exc, yaml.YAMLError):
+        mark = getattr(exc, "problem_mark", None)
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        return (mark.line + 1, mark.column + 1, problem) if mark is not None else (None, None, problem)
+    return None
+
+
+def _read_parsed(path, what, error, parse, syntax, kind):
+    """``parse`` the text of ``path``; its syntax errors (``syntax(exc)`` → line, column,
+    problem) become one-line ``error`` messages with the position."""
+    p = Path(path)
+    text = read_text(p, what, error)
+    try:
+        return parse(text)
+    except RecursionError:
+        raise error(f"{p}: invalid {kind} in the {what} file (nested too deeply)") from None
+    except Exception as exc:  # noqa: BLE001 - only the parser's syntax errors are translated
+        found = syntax(exc)
+        if found is None:
+            raise
+        line, col, problem = found
+        at = f", line {line}, column {col}" if line is not None else ""
+        raise error(f"{p}{at}: invalid {kind} in the {what} file ({problem})") from None
+
+
 def read_json(path, what: str = "JSON", error=InputError):
     """Parse the JSON file ``path``; a syntax error names its line and column."""
     import json
 
-    p = Path(path)
-    text = read_text(p, what, error)
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise error(f"{p}, line {exc.lineno}, column {exc.colno}: not valid JSON ({exc.msg})") from None
-    except RecursionError:
-        raise error(f"{p}: not valid JSON (nested too deeply)") from None
+    return _read_parsed(path, what, error, json.loads, _syntax_json, "JSON")
 
 
 def read_yaml(path, what: str = "YAML", error=InputError):
     """Parse the YAML file ``path`` (safe loader); a syntax error names its line and column."""
     import yaml
 
-    p = Path(path)
-    text = read_text(p, what, error)
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
-        raise error(f"{p}{at}: invalid YAML in the {what} file ({problem})") from None
-    except RecursionError:
-        raise error(f"{p}: invalid YAML in the {what} file (nested too deeply)") from None
+    return _read_parsed(path, what, error, yaml.safe_load, _syntax_yaml, "YAML")

@@ -182,6 +182,9 @@ def _rot_mat(R, C):
 def _rot_vec(R, v):
     """R (3, 3, N) @ v (3,) -> (3, N); or v (3, W), one per walker (poses walker-major)."""
     if v.ndim == 1:
+        if R.shape[2] <= 16:
+            # a few poses (a stream of single poses): one matmul call, not five array temporaries
+            return (R.transpose(2, 0, 1) @ v).T
         return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
     R4 = R.reshape(3, 3, v.shape[1], -1)
     return (R4[:, 0] * v[0][:, None] + R4[:, 1] * v[1][:, None] + R4[:, 2] * v[2][:, None]).reshape(3, -1)
@@ -592,32 +595,60 @@ class SerialRobot:
 
     def _segment(self, const, elems, theta, R, p, W, O, is_rot, k):
         """Compose ``const`` and ``elems`` locally; record each motion's world axis/point."""
-        LR = np.eye(3) if const is None else const[:3, :3].copy()
-        Lp = np.zeros(3) if const is None else const[:3, 3].copy()
-        if not elems:
+        LR, Lp, A, Oloc, rot = self._segment_local(const, elems, theta)
+        if A is None:
             return LR, Lp, k
         m = len(elems)
-        A = np.empty((m, 3))
-        Oloc = np.empty((m, 3))
-        for i, e in enumerate(elems):
-            ai = "xyz".index(e.axis)
-            A[i] = LR[:, ai]
-            Oloc[i] = Lp
-            is_rot[k + i] = e.kind == "R"
-            v = float(theta[e.param])
-            if e.kind == "R":
-                # scalar rotation: right-multiplying by Rot(axis, v) mixes the two other columns
-                c, s_ = math.cos(v), math.sin(v)
-                i1, i2 = _OTHER[ai]
-                a1, a2 = LR[:, i1].copy(), LR[:, i2]
-                LR = LR.copy()
-                LR[:, i1] = c * a1 + s_ * a2
-                LR[:, i2] = c * a2 - s_ * a1
-            else:
-                Lp = Lp + LR[:, ai] * v
+        is_rot[k:k + m] = rot
         W[:, k:k + m] = A @ R  # (3, m, N): world axis = R @ a_local
         O[:, k:k + m] = p[:, None, :] + Oloc @ R
         return LR, Lp, k + m
+
+    def _segment_local(self, const, elems, theta):
+        """Local part of :meth:`_segment`, a function of θ alone: composed rotation/translation,
+        the motions' local axes and points, and which are rotations. Cached for the last θ —
+        a stream of single poses at one linearisation point (Kalman, iSAM2) evaluates the chain
+        with the same θ many times, and for one pose this per-motion Python work is most of the cost."""
+        key = (theta.tobytes(), id(self.links), len(self.links))
+        cache = self.__dict__.get("_local_cache")
+        if cache is None or cache[0] != key:
+            cache = (key, {})
+            self.__dict__["_local_cache"] = cache
+        ck = (id(const), id(elems), len(elems or ()))  # a robot being built appends motions in place
+        hit = cache[1].get(ck)
+        if hit is not None and hit[0] is const and hit[1] is elems:
+            return hit[2]
+        LR = np.eye(3) if const is None else const[:3, :3].copy()
+        Lp = np.zeros(3) if const is None else const[:3, 3].copy()
+        if not elems:
+            out = (LR, Lp, None, None, None)
+        else:
+            m = len(elems)
+            A = np.empty((m, 3))
+            Oloc = np.empty((m, 3))
+            rot = np.empty(m, bool)
+            for i, e in enumerate(elems):
+                ai = "xyz".index(e.axis)
+                A[i] = LR[:, ai]
+                Oloc[i] = Lp
+                rot[i] = e.kind == "R"
+                v = float(theta[e.param])
+                if e.kind == "R":
+                    # scalar rotation: right-multiplying by Rot(axis, v) mixes the two other columns
+                    c, s_ = math.cos(v), math.sin(v)
+                    i1, i2 = _OTHER[ai]
+                    a1, a2 = LR[:, i1].copy(), LR[:, i2]
+                    LR = LR.copy()
+                    LR[:, i1] = c * a1 + s_ * a2
+                    LR[:, i2] = c * a2 - s_ * a1
+                else:
+                    Lp = Lp + LR[:, ai] * v
+            out = (LR, Lp, A, Oloc, rot)
+        for a in out:
+            if a is not None:
+                a.flags.writeable = False  # shared between calls
+        cache[1][ck] = (const, elems, out)
+        return out
 
     # ------------------------------------------------------------- helpers
     def fk(self, readings, theta=None, context=None):

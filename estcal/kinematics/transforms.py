@@ -86,50 +86,28 @@ def matrix_to_rpy(R):
     return np.stack([roll, pitch, yaw], -1)
 
 
+def _scipy_rotation(x, tail: int):
+    """``(scipy Rotation, leading shape)`` for arrays (..., k) / (..., 3, 3) of any leading shape."""
+    from scipy.spatial.transform import Rotation
+
+    x = np.asarray(x, dtype=float)
+    lead = x.shape[:-tail]
+    return Rotation, x.reshape((-1,) + x.shape[len(lead):]), lead
+
+
 def quat_to_matrix(q):
-    """Unit quaternion (..., 4) scalar-first -> rotation matrix (..., 3, 3). Normalises the input."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    """Unit quaternion (..., 4) scalar-first -> rotation matrix (..., 3, 3). Normalises the input.
+
+    Conversion (I/O, not a hot path): ``scipy.spatial.transform.Rotation``."""
+    Rotation, q, lead = _scipy_rotation(q, 1)
+    return Rotation.from_quat(q, scalar_first=True).as_matrix().reshape(lead + (3, 3))
 
 
 def matrix_to_quat(R):
-    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4), scalar-first, w >= 0.
-
-    Uses the largest-diagonal branch per element (Shepperd's method) so it is
-    accurate for every rotation, vectorised without Python loops.
-    """
-    R = np.asarray(R, dtype=float)
-    batch = R.shape[:-2]
-    R = R.reshape(-1, 3, 3)
-    tr = np.trace(R, axis1=1, axis2=2)
-    d = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
-    k = np.argmax(d, axis=1)
-    q = np.empty((R.shape[0], 4))
-    # branch 0: w largest
-    m = k == 0
-    s = np.sqrt(1.0 + tr[m]) * 2
-    q[m] = np.stack([0.25 * s, (R[m, 2, 1] - R[m, 1, 2]) / s, (R[m, 0, 2] - R[m, 2, 0]) / s,
-                     (R[m, 1, 0] - R[m, 0, 1]) / s], 1)
-    m = k == 1
-    s = np.sqrt(1.0 + R[m, 0, 0] - R[m, 1, 1] - R[m, 2, 2]) * 2
-    q[m] = np.stack([(R[m, 2, 1] - R[m, 1, 2]) / s, 0.25 * s, (R[m, 0, 1] + R[m, 1, 0]) / s,
-                     (R[m, 0, 2] + R[m, 2, 0]) / s], 1)
-    m = k == 2
-    s = np.sqrt(1.0 + R[m, 1, 1] - R[m, 0, 0] - R[m, 2, 2]) * 2
-    q[m] = np.stack([(R[m, 0, 2] - R[m, 2, 0]) / s, (R[m, 0, 1] + R[m, 1, 0]) / s, 0.25 * s,
-                     (R[m, 1, 2] + R[m, 2, 1]) / s], 1)
-    m = k == 3
-    s = np.sqrt(1.0 + R[m, 2, 2] - R[m, 0, 0] - R[m, 1, 1]) * 2
-    q[m] = np.stack([(R[m, 1, 0] - R[m, 0, 1]) / s, (R[m, 0, 2] + R[m, 2, 0]) / s,
-                     (R[m, 1, 2] + R[m, 2, 1]) / s, 0.25 * s], 1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q.reshape(batch + (4,))
+    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4), scalar-first, w >= 0
+    (``scipy.spatial.transform.Rotation``, canonical sign)."""
+    Rotation, R, lead = _scipy_rotation(R, 2)
+    return Rotation.from_matrix(R).as_quat(canonical=True, scalar_first=True).reshape(lead + (4,))
 
 
 def so3_exp(w):

@@ -2,7 +2,7 @@
 
 Daney's paper gives platform orientations as Euler angles without naming the
 convention; estcal uses ZYX: ``R = Rz(ψ) Ry(θ) Rx(φ)`` for ``(ψ, θ, φ)`` (the URDF
-roll–pitch–yaw in reverse order), written out in closed form below.
+roll–pitch–yaw in reverse order), converted by ``scipy.spatial.transform.Rotation``.
 """
 from __future__ import annotations
 
@@ -14,27 +14,20 @@ __all__ = ["skew", "so3_exp", "so3_log", "euler_zyx_to_matrix", "matrix_to_euler
 
 
 def euler_zyx_to_matrix(angles: np.ndarray) -> np.ndarray:
-    """``R = Rz(ψ) Ry(θ) Rx(φ)`` for ``angles = (ψ, θ, φ)`` in rad, shape (..., 3)."""
+    """``R = Rz(ψ) Ry(θ) Rx(φ)`` for ``angles = (ψ, θ, φ)`` in rad, shape (..., 3): intrinsic
+    Z-Y′-X″ Euler angles, ``scipy.spatial.transform.Rotation.from_euler("ZYX", …)``."""
+    from scipy.spatial.transform import Rotation
+
     a = np.asarray(angles, dtype=float)
-    ps, th, ph = a[..., 0], a[..., 1], a[..., 2]
-    cps, sps, cth, sth, cph, sph = np.cos(ps), np.sin(ps), np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
-    return np.stack(
-        [
-            np.stack([cps * cth, cps * sth * sph - sps * cph, cps * sth * cph + sps * sph], -1),
-            np.stack([sps * cth, sps * sth * sph + cps * cph, sps * sth * cph - cps * sph], -1),
-            np.stack([-sth, cth * sph, cth * cph], -1),
-        ],
-        -2,
-    )
+    return Rotation.from_euler("ZYX", a.reshape(-1, 3)).as_matrix().reshape(a.shape[:-1] + (3, 3))
 
 
 def matrix_to_euler_zyx(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`euler_zyx_to_matrix` (θ in (−π/2, π/2))."""
+    """Inverse of :func:`euler_zyx_to_matrix` (θ in [−π/2, π/2])."""
+    from scipy.spatial.transform import Rotation
+
     R = np.asarray(R, dtype=float)
-    ps = np.arctan2(R[..., 1, 0], R[..., 0, 0])
-    th = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
-    ph = np.arctan2(R[..., 2, 1], R[..., 2, 2])
-    return np.stack([ps, th, ph], -1)
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZYX").reshape(R.shape[:-2] + (3,))
 
 
 def make_T(P, R) -> np.ndarray:

@@ -18,10 +18,10 @@ are ``sigma_rho`` for IK (optionally inflated by the propagated pose noise,
 Covariance of the estimate: ``Σ_θ = s² (Jᵀ W J)⁻¹`` with ``s² = χ²/(m − p)``
 when no absolute noise level is given (``scale_covariance=True``), else 1.
 
-Identifiability uses a column-pivoted QR of the (weighted) stacked Jacobian
-with threshold ``τ = c · ε · max|R_jj|`` (``c = max(m, p)`` by default):
-columns with zero norm have *no effect*; columns whose pivot falls below τ
-are *regrouped* into the identifiable ones (coefficients ``R11⁻¹ R12``).
+Identifiability is the shared priority-ordered QR of the (weighted) stacked
+Jacobian, :func:`estcal.identify.core.identifiable` (GECARO App. III): columns
+with zero norm have *no effect*; dependent columns are *regrouped* into the
+identifiable ones (coefficients ``R11⁻¹ R12``).
 """
 from __future__ import annotations
 
@@ -34,6 +34,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from estcal.kinematics.transforms import so3_right_jacobian_inv
+
 from ._rot import euler_zyx_to_matrix, make_T, matrix_to_euler_zyx, so3_exp, so3_log
 from .daney import generate_random_poses
 from .gough import N_LEGS, GoughPlatform, load_gough, split_pose
@@ -44,7 +46,6 @@ __all__ = [
     "GoughCalibrationResult",
     "simulate_gough_data",
     "load_gough_data",
-    "identifiability_qr",
     "identifiable_gough",
     "calibrate_gough",
     "ESTIMATORS",
@@ -182,18 +183,6 @@ def simulate_gough_data(
     P, R = split_pose(T)
     Tm = make_T(P + rng.normal(0, sigma_p, P.shape), so3_exp(rng.normal(0, sigma_r, P.shape)) @ R)
     return GoughData(Tm, rho, sigma_rho or None, sigma_p or None, sigma_r or None, "simulated")
-
-
-def _so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
-    """``J_r⁻¹(w) = I + ½[w]x + (1/θ² − (1 + cos θ)/(2θ sin θ)) [w]x²`` (n, 3, 3)."""
-    from ._rot import skew
-
-    th = np.linalg.norm(w, axis=-1)[:, None, None]
-    K = skew(w)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + c * (K @ K)
 
 
 # ---------------------------------------------------------------- problem
@@ -342,7 +331,7 @@ class GoughProblem:
                 Jt, Jx = self.robot.leg_jacobians(Tf, theta)
                 dx = np.linalg.solve(Jx, Jt)  # = -∂x_fk/∂θ
                 # exact derivative of log(exp(e) exp(-δ)) w.r.t. δ is -J_r⁻¹(e) (right Jacobian of SO(3))
-                dx[:, 3:] = np.einsum("nij,njk->nik", _so3_right_jacobian_inv(e[ok, 3:]), dx[:, 3:])
+                dx[:, 3:] = np.einsum("nij,njk->nik", so3_right_jacobian_inv(e[ok, 3:]), dx[:, 3:])
                 J[ok] = dx
             dE = J.reshape(-1, 42)
         return e.reshape(-1), dE, s, pose, kind
@@ -465,67 +454,17 @@ class GoughEstimationProblem:
 
 
 # ---------------------------------------------------------------- identifiability
-def identifiability_qr(J: np.ndarray, names: Sequence[str], c: float | None = None) -> dict:
-    """Identifiable parameters of a stacked Jacobian by column-pivoted QR.
-
-    ``τ = c · ε · max|R_jj|`` with ``c = max(m, p)`` by default. Returns a dict
-    with ``n_parameters, n_identifiable, identifiable, no_effect, regrouped``
-    (list of ``{parameter, combination: {name: coefficient}}`` for dependent
-    columns: moving it is equivalent to moving the identifiable ones by
-    ``coefficient ×`` its change), ``rank`` and ``condition_number`` (of the
-    identifiable columns) and the ``tolerance`` used.
-    """
-    J = np.asarray(J, float)
-    m, p = J.shape
-    names = list(names)
-    eps = np.finfo(float).eps
-    c = float(max(m, p)) if c is None else float(c)
-    colnorm = np.linalg.norm(J, axis=0)
-    scale = colnorm.max() if colnorm.size and colnorm.max() > 0 else 1.0
-    no_effect = [n for n, cn in zip(names, colnorm) if cn <= c * eps * scale]
-    _, Rq, piv = scipy.linalg.qr(J, mode="economic", pivoting=True)
-    d = np.abs(np.diag(Rq))
-    tol = c * eps * (d.max() if d.size else 0.0)
-    rank = int(np.sum(d > tol))
-    ident_idx = np.sort(piv[:rank])
-    dep = [j for j in piv[rank:] if names[j] not in no_effect]
-    regrouped = []
-    if dep and rank:
-        # express the dependent columns in the identifiable ones: J_dep = J_id C
-        C = scipy.linalg.lstsq(J[:, ident_idx], J[:, dep])[0]
-        for col, j in enumerate(dep):
-            comb = {names[i]: float(C[r, col]) for r, i in enumerate(ident_idx) if abs(C[r, col]) > 1e-9}
-            regrouped.append({"parameter": names[j], "combination": comb})
-    sv = np.linalg.svd(J[:, ident_idx], compute_uv=False) if rank else np.array([1.0])
-    return {
-        "n_parameters": p,
-        "n_identifiable": rank,
-        "identifiable": [names[i] for i in ident_idx],
-        "no_effect": no_effect,
-        "regrouped": regrouped,
-        "rank": rank,
-        "condition_number": float(sv[0] / sv[-1]),
-        "tolerance": float(tol),
-    }
-
-
 def _identify(J: np.ndarray, names: Sequence[str]) -> dict:
     """Identifiability of the columns of the whitened Jacobian ``J``: the shared
-    :func:`estcal.identify.core.identifiable` (GECARO App. III, sequential QR in
-    parameter order) when available, else :func:`identifiability_qr`.
-    Both return ``n_parameters, n_identifiable, identifiable, no_effect,
-    regrouped ({parameter, relation: {base: coefficient}}), condition_number``."""
-    try:
-        from estcal.identify.core import identifiable
-    except ImportError:
-        out = identifiability_qr(J, names)
-        for g in out["regrouped"]:
-            g["relation"] = dict(g["combination"])
-        out["backend"] = "estcal.parallel.calibration.identifiability_qr"
-        return out
+    :func:`estcal.identify.core.identifiable` (GECARO App. III, sequential QR in parameter
+    order, structural tolerance :data:`estcal.identify.core.STRUCTURAL_TOL`). Returns its dict
+    (``n_parameters, n_identifiable, identifiable, no_effect, regrouped ({parameter,
+    relation: {base: coefficient}}), condition_number`` …)."""
+    from estcal.identify.core import identifiable
+
     out = identifiable(J, list(names)).to_dict()
     for g in out["regrouped"]:
-        g.setdefault("combination", dict(g["relation"]))  # same key as the local fallback
+        g.setdefault("combination", dict(g["relation"]))  # key of the earlier Gough-only analysis
     out["backend"] = "estcal.identify"
     return out
 
@@ -543,8 +482,7 @@ def identifiable_gough(
 
     Uses the measured poses of ``data`` if given, else ``n_poses`` random
     workspace poses (noise-free, from ``seed``). The analysis is the shared
-    :func:`estcal.identify.core.identifiable` on the whitened Jacobian (fallback
-    :func:`identifiability_qr`). Returns its dict (``n_parameters,
+    :func:`estcal.identify.core.identifiable` on the whitened Jacobian. Returns its dict (``n_parameters,
     n_identifiable, identifiable, no_effect, regrouped, condition_number`` …)
     plus ``robot``, ``model``, ``residual``, ``n_poses``.
     """

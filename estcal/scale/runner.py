@@ -148,11 +148,11 @@ def _run_one(fn, index, task, seed):
 def _run_chunk(fn, chunk):
     """Run a chunk ``[(index, task, seed), …]``; module level so that every pool can pickle it.
 
-    Progress bars inside a task stay quiet (the runner's own bar counts the tasks).
     BLAS runs single-threaded on every scheduler: a worker process is one core's
     worth of work, the result does not depend on BLAS's thread count (its
     reductions' order), and OpenBLAS's spinning threads do not slow a serial run
-    on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md)."""
+    on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md).
+    Progress bars inside a task stay quiet (the runner's own bar counts the tasks)."""
     from estcal.estimate.lsq import single_thread_blas
     from estcal.progress import nested
 

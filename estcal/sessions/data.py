@@ -44,6 +44,7 @@ def stack_sessions(datasets, names=None):
                   np.concatenate([d.lines for d in datasets]), " + ".join(d.where for d in datasets))
     out.warnings = [w for d in datasets for w in d.warnings]
     out.session_names = names
+    out.sessions = list(datasets)  # the parts, for provenance (a saved model lists every file)
     return out
 
 

@@ -72,12 +72,17 @@ def solve_factor_graph(A_list, r_list, S, q, s2=1.0):
     return delta, cov, u
 
 
-def solve_kalman(A_list, r_list, S, q, s2=1.0, diffuse: float = 1e8):
+def solve_kalman(A_list, r_list, S, q, s2=1.0, diffuse: float = 1e8, q_within=None, rows_per_pose=None):
     """``(δθ, cov, u)`` from a filterpy Kalman filter with process noise Q at each session boundary.
 
     The diffuse prior is ``diffuse / (Σ AᵀA)_jj`` per column (centred on the
     linearisation point), so its weight is 1/``diffuse`` of the data's on every
     parameter whatever its units.
+
+    ``q_within`` (k,) adds the within-session random walk of the drift model
+    (:mod:`estcal.estimate.kalman`, ``estcal online --q``): the session's parameters
+    ``v`` then also diffuse by ``q_within`` between consecutive poses (``rows_per_pose``
+    rows each), processed pose by pose. With ``q_within = 0`` this is the same filter.
     """
     from filterpy.kalman import KalmanFilter
 
@@ -96,13 +101,24 @@ def solve_kalman(A_list, r_list, S, q, s2=1.0, diffuse: float = 1e8):
     F[p + np.arange(k), S] = 1.0  # v := δθ_S at the start of every session
     Qp = np.zeros((n, n))
     Qp[p:, p:] = np.diag(np.maximum(np.asarray(q, float), 0.0))
+    Qw = None
+    if q_within is not None and k:
+        Qw = np.zeros((n, n))
+        Qw[p:, p:] = np.diag(np.maximum(np.asarray(q_within, float), 0.0))
     for A, r in zip(A_list, r_list):
         kf.predict(F=F, Q=Qp)
         H = np.zeros((A.shape[0], n))
         H[:, :p] = A
         H[:, S] = 0.0
         H[:, p:] = A[:, S]
-        kf.update(r[:, None], R=s2 * np.eye(A.shape[0]), H=H)
+        if Qw is None:
+            kf.update(r[:, None], R=s2 * np.eye(A.shape[0]), H=H)
+            continue
+        d = int(rows_per_pose or A.shape[0])
+        for a in range(0, A.shape[0], d):
+            if a:
+                kf.predict(F=np.eye(n), Q=Qw)  # within-session drift between poses
+            kf.update(r[a:a + d, None], R=s2 * np.eye(len(r[a:a + d])), H=H[a:a + d])
     x = kf.x.ravel()
     cov = 0.5 * (kf.P[:p, :p] + kf.P[:p, :p].T)
     # The filter's v is the last session's; the earlier sessions' u_s given all the data

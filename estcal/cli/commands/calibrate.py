@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import (check_distinct_poses, check_dof, count_point_columns, fail, robot_for_data,
+from estcal.cli.common import (count_point_columns, fail, robot_for_data,
                                save_model_or_fail, warn, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
@@ -168,7 +168,9 @@ _fail = fail
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     def calibrate(
-        data: Path = typer.Argument(..., help="Calibration dataset (CSV: joint columns + x,y,z / x1..zk / pose)."),
+        data: list[Path] = typer.Argument(..., help="Calibration dataset (CSV: joint columns + x,y,z / x1..zk / "
+                                                    "pose); several files are several sessions, fitted with one "
+                                                    "parameter set (per-session deviations: estcal sessions)."),
         robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
@@ -273,8 +275,12 @@ def register(app: typer.Typer) -> None:
             _fail("give either --free or --level, not both")
         if level is not None and level not in LEVELS:
             _fail(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
-        if not data.exists():
-            _fail(f"{data}: dataset file not found")
+        session_paths = list(data)
+        data = session_paths[0]
+        data_label = " + ".join(str(p) for p in session_paths)
+        for p in session_paths:
+            if not p.exists():
+                _fail(f"{p}: dataset file not found")
 
         # Gough platforms have their own calibration entry point
         try:
@@ -284,6 +290,8 @@ def register(app: typer.Typer) -> None:
         if is_gough_file is not None and is_gough_file(robot):
             from estcal.parallel.calibration import calibrate_gough
 
+            if len(session_paths) > 1:
+                _fail("several data files are not supported for Gough platforms: give one file")
             free_list = [s.strip() for s in free.split(",") if s.strip()] if free else None
             try:
                 gres = calibrate_gough(robot, data, method=estimator, free=free_list, residual=residual,
@@ -307,14 +315,22 @@ def register(app: typer.Typer) -> None:
 
         rob, n_markers = robot_for_data(robot, data, root=root, tip=tip, points=points)
         try:
-            ds = load_dataset(data, rob, points=n_markers)
+            parts = [load_dataset(p, rob, points=n_markers) for p in session_paths]
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
-        for d in [ds] + vals:
+        if len(parts) > 1:
+            from estcal.sessions.data import stack_sessions
+
+            try:
+                ds = stack_sessions(parts)
+            except ValueError as exc:
+                _fail(str(exc))
+        else:
+            ds = parts[0]
+        for d in parts + vals:
             for w in d.warnings:
                 warn(f"{d.where}: {w}")
-        check_distinct_poses(ds)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:
@@ -367,10 +383,9 @@ def register(app: typer.Typer) -> None:
                       f"--option batch_size=…)", code=3)
             _fail(f"estimator {estimator!r} failed: {first} — try another estimator (e.g. --estimator lm) "
                   f"or check the free set with `estcal identifiable`")
-        check_dof(res, data, known_noise)
         measure_name = problem.terms[0].method.name
-        _print_report(console, res, sel, rob, str(data), [str(v) for v in validate], measure_name, estimator)
-        res.extra.update(robot=robot, data=str(data), validate=[str(v) for v in validate],
+        _print_report(console, res, sel, rob, data_label, [str(v) for v in validate], measure_name, estimator)
+        res.extra.update(robot=robot, data=data_label, validate=[str(v) for v in validate],
                          measure=measure_name, estimator=estimator, noise=noise.to_dict(), points=n_markers)
         if json_path:
             res.to_json(json_path)
@@ -379,7 +394,7 @@ def register(app: typer.Typer) -> None:
             from estcal.report.calibration import calibration_report
 
             rep = calibration_report(report, res, problem, vals, unit=lambda n: _unit(n, rob),
-                                     label=sel.regroup_label if sel is not None else None, data_path=str(data),
+                                     label=sel.regroup_label if sel is not None else None, data_path=data_label,
                                      validate_paths=[str(v) for v in validate], result_dict=res.to_dict(),
                                      title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
             console.print(f"report: {report}/index.html ({len(rep.files)} figures)")

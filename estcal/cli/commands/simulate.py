@@ -35,7 +35,7 @@ def _load_errors(errors: str):
     if p.suffix.lower() in (".yaml", ".yml"):
         d = read_yaml(p, "errors", ValueError)
     else:
-        d = read_json(p, "errors JSON", ValueError)
+        d = read_json(p, "errors", ValueError)
     if isinstance(d, dict) and "errors" in d and isinstance(d["errors"], dict):
         d = d["errors"]  # a truth JSON from an earlier run
     if not isinstance(d, dict):
@@ -124,6 +124,9 @@ def register(app: typer.Typer) -> None:
         tip: Optional[str] = typer.Option(None, help="URDF tip link."),
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="Dataset CSV to write."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth JSON to write."),
+        true_model: Optional[Path] = typer.Option(
+            None, "--true-model", help="Robot file (.yaml) to write with the true robot (nominal + errors + "
+                                       "effects), for --robot: e.g. run compensated commands on it with estcal fk."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON."),
         old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
         old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
@@ -172,6 +175,8 @@ def register(app: typer.Typer) -> None:
         error_offset = resolve(error_offset_mrad, MILLI, old_error_offset, "--error-offset", "--error-offset-mrad",
                                "rad or m", 1.0, 1.0)
         console = Console()
+        if true_model is not None and true_model.suffix.lower() not in (".yaml", ".yml"):
+            fail(f"--true-model {true_model}: a robot file must end in .yaml or .yml")
         if fleet is not None:
             _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
                             json_path)
@@ -228,6 +233,10 @@ def register(app: typer.Typer) -> None:
         elif truth is not None:
             write_json(truth, res.truth)
             truth_path = truth
+        if true_model is not None:
+            from estcal.io.robotfile import save_robot
+
+            save_robot(res.true_robot, true_model)
         table = Table(title=f"estcal simulate — {res.summary.robot}", show_header=False)
         table.add_column("item", style="bold")
         table.add_column("value")
@@ -237,6 +246,8 @@ def register(app: typer.Typer) -> None:
             table.add_row("dataset", str(csv_path))
         if truth_path:
             table.add_row("ground truth", str(truth_path))
+        if true_model is not None:
+            table.add_row("true robot file", str(true_model))
         console.print(table)
         for note in res.summary.notes:
             console.print("[yellow]note:[/yellow] " + escape(note))
