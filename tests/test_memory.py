@@ -95,3 +95,15 @@ def test_chunked_least_squares_equals_unchunked():
         assert np.allclose(b.estimate, a.estimate, rtol=1e-10, atol=1e-10 * np.abs(a.estimate).max()), method
         assert np.allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-10 * np.abs(a.covariance).max())
         assert b.dof == a.dof and np.isclose(b.chi2, a.chi2, rtol=1e-10)
+
+
+def test_online_default_free_set_unchanged_by_chunking(monkeypatch):
+    """`estcal online FILE` without --free picks an identifiable set from the whole file: on large
+    files from the chunked R factor — the same set (forced here with a 100-pose chunk)."""
+    import estcal.estimate.reduced as red
+    from estcal.estimate._common import identifiable_free
+
+    prob, _ = _problem(n=300, seed=6)
+    a = identifiable_free(prob)
+    monkeypatch.setattr(red, "CHUNK_POSES", 100)
+    assert identifiable_free(prob) == a and len(a) > 20

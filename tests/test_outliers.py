@@ -41,7 +41,7 @@ def data(tmp_path_factory):
 
 
 CASES = [("lm", "cauchy", []), ("lm", "huber", []), ("gtsam", "cauchy", []),
-         ("kalman", "cauchy", []), ("gtsam-timevarying", "cauchy", ["--option", "q=1e-6"])]
+         ("kalman", "cauchy", []), ("gtsam-timevarying", "cauchy", ["--option", "q=0.000001"])]
 
 
 @pytest.mark.parametrize("estimator, kernel, extra", CASES)

@@ -39,7 +39,7 @@ def test_calibrate_json_feeds_next_pose(data, tmp_path, estimator):
     if estimator == "mcmc":
         args += ["--option", "max_steps=400", "--option", "target_ess=200"]
     if estimator == "gtsam-timevarying":
-        args += ["--option", "q=1e-7"]
+        args += ["--option", "q=0.0000001"]
     r = runner.invoke(app, args)
     assert r.exit_code == 0, r.output
     st = CalibrationState.from_json(out)

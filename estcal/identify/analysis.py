@@ -344,9 +344,16 @@ def select_identifiable(problem, candidates=None, priorities=None, rules: str = 
         names = expand_patterns(pv.names, candidates)
     extras = [n for n, k in zip(pv.names, pv.kinds) if k == "other" and n not in names]
     names = [n for n in pv.names if n in set(names) | set(extras)]
-    W, names = observation_matrix(problem, names, theta)
+    from estcal.estimate.reduced import use_chunks
+
+    ck = use_chunks(problem)
+    if ck is not None:  # large data: the R factor, built chunk by chunk (same analysis, bounded memory)
+        W, names, m = reduced_observation_matrix(problem, names, theta, chunk=ck)
+    else:
+        W, names = observation_matrix(problem, names, theta)
+        m = None
     prio = _merge_priorities(problem, names, priorities, rules)
-    return identifiable(W, names, prio, tol_factor=tol_factor, tau_floor=tau_floor).identifiable
+    return identifiable(W, names, prio, tol_factor=tol_factor, tau_floor=tau_floor, n_rows=m).identifiable
 
 
 def gecaro_table2_priorities(robot) -> dict:

@@ -74,7 +74,7 @@ def register(app: typer.Typer) -> None:
                                                   "`estcal next-pose --state`."),
         resume: Optional[Path] = typer.Option(None, "--resume", help="Continue from this checkpoint (same input and "
                                               "options; checkpoints keep going to it unless --state is given)."),
-        checkpoint_every: int = typer.Option(100, "--checkpoint-every", help="Rows between checkpoints."),
+        checkpoint_every: int = typer.Option(100, "--checkpoint-every", help="Rows between checkpoints (count)."),
         throttle: float = typer.Option(0.0, "--throttle", help="Seconds to wait after each row (replay a file "
                                        "as a slow live stream)."),
     ) -> None:
