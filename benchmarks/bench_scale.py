@@ -63,6 +63,16 @@ def calibrate(task):
     return calibrate_lsq(prob, "lm", free=names).estimate
 
 
+def calibrate_seed(task):
+    """Monte-Carlo style: the task is a seed; the worker simulates its PUMA problem and calibrates
+    it (small task input, as in a coverage or detection-power study)."""
+    from bench_calibration import puma_problem
+
+    seed, names = task
+    prob, _ = puma_problem(50, seed, names)
+    return calibrate((prob, names))
+
+
 def noop(x):
     return x
 
@@ -108,13 +118,22 @@ def bench_calibrations(client, n, workers):
     wcpu = worker_cpu(client) - w0
     dsk1, td1, _, ld1 = timed(run_tasks, calibrate, tasks, scheduler=client, chunksize=1, progress=False)
     same = all(np.array_equal(a, b) for r in (prc, dsk, dsk1) for a, b in zip(ser.values(), r.values()))
+    # the same calibrations with the simulation inside the task (a seed in, an estimate out)
+    seeds = [(i, tasks[0][1]) for i in range(n)]
+    calibrate_seed(seeds[0])
+    sser, tss, _, lss = timed(run_tasks, calibrate_seed, seeds, progress=False)
+    run_tasks(calibrate_seed, seeds[: 2 * workers], scheduler=client, chunksize=1, progress=False)
+    sdsk, tsd, _, lsd = timed(run_tasks, calibrate_seed, seeds, scheduler=client, progress=False)
+    same = same and all(np.array_equal(a, b) for a, b in zip(sser.values(), sdsk.values()))
     return {"n": n, "poses": 50, "n_parameters": len(tasks[0][1]), "build_s": build,
             "serial_s": ts, "serial_cpu_s": cs, "serial_ms_per_task": 1e3 * ts / n, "load_serial": ls,
             "processes_s": tp, "processes_speedup": ts / tp, "load_processes": lp,
             "dask_s": td, "dask_speedup": ts / td, "load_dask": ld, "dask_worker_cpu_s": wcpu,
             "dask_cpu_efficiency": cs / wcpu,
             "dask_chunksize1_s": td1, "dask_chunksize1_speedup": ts / td1, "load_dask_chunksize1": ld1,
-            "identical_to_serial": bool(same), "workers": workers}
+            "identical_to_serial": bool(same), "workers": workers,
+            "seeded_serial_s": tss, "load_seeded_serial": lss, "seeded_dask_s": tsd,
+            "seeded_dask_speedup": tss / tsd, "load_seeded_dask": lsd}
 
 
 def bench_overhead(client, n):
@@ -205,6 +224,9 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
     import dask
 
+    # the workers import bench_calibration (seeded tasks) like this process does
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO / "benchmarks"), str(REPO),
+                                                os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     with dask.config.set({"distributed.worker.profile.enabled": False}), \
             LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
                          dashboard_address=":0") as cluster, Client(cluster) as client:
@@ -219,6 +241,9 @@ def main(argv=None) -> dict:
               f"{c['identical_to_serial']}; cluster start {out['cluster_start_s']:.1f} s; CPU: serial "
               f"{c['serial_cpu_s']:.2f} s, Dask workers {c['dask_worker_cpu_s']:.2f} s (efficiency "
               f"{c['dask_cpu_efficiency']:.2f})")
+        print(f"  the same with the simulation inside each task (a seed in, an estimate out): serial "
+              f"{c['seeded_serial_s']:.2f} s (load {c['load_seeded_serial']}), Dask LocalCluster×{args.workers} "
+              f"{c['seeded_dask_s']:.2f} s = {c['seeded_dask_speedup']:.2f}× (load {c['load_seeded_dask']})")
         out["overhead"] = o = bench_overhead(client, args.noop)
         print(f"per-task overhead ({o['n']} empty tasks): Dask one task per job {o['dask_ms_per_task_chunksize1']:.2f} ms "
               f"(load {o['load_dask_chunksize1']}), chunked {o['dask_ms_per_task_chunked']:.3f} ms; processes "
