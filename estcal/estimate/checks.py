@@ -103,11 +103,16 @@ def scaled_condition(A) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
+GENERIC_POSES_MAX = 5000
+
+
 def _generic_dataset(robot, data, theta, n_min: int, seed: int = 0):
     """Same kind of data on uniform random poses, measured exactly at ``theta``."""
     from estcal.io.dataset import dataset_from_arrays
 
-    n = max(int(data.n), n_min)
+    # as many poses as the data, capped: a few thousand uniform random poses identify whatever
+    # this kind of measurement can identify, and the reference must not cost memory on 10⁶-pose data
+    n = max(min(int(data.n), GENERIC_POSES_MAX), n_min)
     rng = np.random.default_rng(seed)
     q = robot.random_readings(n, rng)
     ctx = {k: np.asarray(v)[np.arange(n) % data.n] for k, v in data.context.items()}
