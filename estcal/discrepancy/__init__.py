@@ -1,5 +1,5 @@
 """What the simulation gets wrong: diagnose measured data, name the non-geometric cause,
-extend the model and measure the gain (issue 6).
+extend the model and measure the gain (docs/discrepancy.md).
 
 >>> from estcal.discrepancy import diagnose            # doctest: +SKIP
 >>> res = diagnose(robot, data, validate=[data2], noise=2e-4)

@@ -1,6 +1,6 @@
 """Diagnose measured data: where the geometric model fails, which physical effect explains it, and the gain.
 
-Workflow of :func:`diagnose` (issue 6):
+Workflow of :func:`diagnose` (docs/discrepancy.md):
 
 1. **Geometric fit** — registration, then every identifiable base, marker/tool,
    joint-offset and link parameter (:func:`~estcal.discrepancy.geometric.fit_geometric`);
