@@ -101,3 +101,57 @@ def test_resume_refuses_other_input_or_options(data, tmp_path):
     r = runner.invoke(app, _args(grown, "--resume", str(state), "--json", str(tmp_path / "g.json")))
     assert r.exit_code == 0, r.output
     assert json.loads(state.read_text())["rows"] == N and state.read_bytes() != before
+
+
+def _final(path):
+    d = json.loads(Path(path).read_text())
+    est = np.array([v["estimate"] for v in d["parameters"].values()])
+    return est, np.array(d["covariance"]), d["innovation"], d["history"]
+
+
+def test_journal_tail_from_a_kill_is_cut_and_a_changed_journal_refused(data, tmp_path):
+    """A kill between the journal append and the checkpoint rename leaves journal bytes the
+    checkpoint does not name: resume ignores and cuts them. A journal that does not match its
+    checkpoint (edited, missing) is refused with the file named; resuming into another --state
+    path copies the checkpointed part of the journal."""
+    from estcal.estimate.checkpoint import journal_path
+
+    full = tmp_path / "full.json"
+    assert runner.invoke(app, _args(data, "--every", "7", "--json", str(full))).exit_code == 0
+    lines = data.read_text().splitlines(keepends=True)
+    part = tmp_path / "part.csv"
+    part.write_text("".join(lines[:41]))
+    state = tmp_path / "s.json"
+    r = runner.invoke(app, _args(part, "--every", "7", "--state", str(state)))
+    assert r.exit_code == 0, r.output
+    jp = journal_path(state)
+    ck = json.loads(state.read_text())
+    assert ck["journal"]["bytes"] == jp.stat().st_size > 0 and ck["journal"]["steps"] == 40
+    good = jp.read_bytes()
+    # a resume into another path copies the journal; the original pair stays untouched
+    other = tmp_path / "other.json"
+    r = runner.invoke(app, _args(data, "--every", "7", "--resume", str(state), "--state", str(other),
+                                 "--json", str(tmp_path / "o.json")))
+    assert r.exit_code == 0, r.output
+    assert jp.read_bytes() == good and journal_path(other).read_bytes()[:len(good)] == good
+    for x, y in zip(_final(full), _final(tmp_path / "o.json")):
+        assert (np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y)
+    # garbage after the checkpointed bytes (a half-written append): cut on resume
+    jp.write_bytes(good + np.arange(13, dtype="<f8").tobytes()[:-3])
+    resumed = tmp_path / "r.json"
+    r = runner.invoke(app, _args(data, "--every", "7", "--resume", str(state), "--json", str(resumed)))
+    assert r.exit_code == 0, r.output
+    for x, y in zip(_final(full), _final(resumed)):
+        assert (np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y)
+    fin = json.loads(state.read_text())["journal"]
+    assert jp.stat().st_size == fin["bytes"] and fin["steps"] == N
+    # an edited journal, then a missing one: refused, naming the journal
+    raw = bytearray(jp.read_bytes())
+    raw[100] ^= 1
+    jp.write_bytes(bytes(raw))
+    r = runner.invoke(app, _args(data, "--resume", str(state)))
+    assert r.exit_code == 2 and "does not match its checkpoint" in " ".join(r.output.split()), r.output
+    jp.unlink()
+    r = runner.invoke(app, _args(data, "--resume", str(state)))
+    out = " ".join(r.output.split())
+    assert r.exit_code == 2 and "cannot read the journal" in out and jp.name in out, r.output

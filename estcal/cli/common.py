@@ -47,10 +47,10 @@ def count_point_columns(path) -> tuple[int, bool, bool]:
     """(k points x1..zk, has x,y,z, has quaternion) from a CSV header (exits with a
     clear message when the file cannot be read as a dataset)."""
     from estcal.io.dataset import DatasetError
-    from estcal.io.textinput import read_csv
+    from estcal.io.textinput import read_csv_header
 
     try:
-        header = read_csv(path, "dataset", DatasetError).header
+        header = read_csv_header(path, "dataset", DatasetError)
     except DatasetError as exc:
         fail(exc)
     k = 0

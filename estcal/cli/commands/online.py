@@ -26,16 +26,33 @@ def _row_dataset(header, values, robot, where, line, delimiter=",", allow_none: 
     return ds
 
 
-def _lines(data: str):
-    """Lines of the input: a file is read and checked by the input layer (folder, binary,
-    encoding); standard input is read as it comes."""
+def _lines(data: str, block: int = 1 << 20):
+    """Lines of the input as they come, in bounded memory (a 10⁶-row file is never held whole).
+
+    A file has been read and checked by the input layer already (folder, binary, encoding):
+    here it is decoded block by block — UTF-8 with or without BOM, or UTF-16 with BOM — and
+    split exactly as ``str.splitlines(keepends=True)`` splits the whole text (a block's last,
+    possibly incomplete line, or a ``\r`` whose ``\n`` may start the next block, is carried
+    over)."""
     if data == "-":
         yield from sys.stdin
-    else:
-        from estcal.io.dataset import DatasetError
-        from estcal.io.textinput import read_text
+        return
+    import codecs
 
-        yield from read_text(data, "dataset", DatasetError).splitlines(keepends=True)
+    with open(data, "rb") as fh:
+        bom = fh.read(2)
+    enc = "utf-16" if bom in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+    with open(data, encoding=enc, newline="") as fh:
+        carry = ""
+        while True:
+            text = fh.read(block)
+            if not text:
+                break
+            parts = (carry + text).splitlines(keepends=True)
+            carry = parts.pop()
+            yield from parts
+        if carry:
+            yield from carry.splitlines(keepends=True)
 
 
 def register(app: typer.Typer) -> None:
@@ -123,9 +140,10 @@ def register(app: typer.Typer) -> None:
             fail(exc)
         noise = NoiseModel(sigma_p, sigma_r, known=True)
         from estcal.estimate._common import PER_POSE_METHODS
-        from estcal.estimate.checkpoint import (CheckpointError, PrefixHasher, file_sha256, filter_checkpoint,
-                                                load_checkpoint, option_differences, restore_filter,
-                                                save_checkpoint)
+        from estcal.estimate.checkpoint import (CheckpointError, Journal, PrefixHasher, file_sha256,
+                                                filter_checkpoint, load_checkpoint, option_differences,
+                                                restore_filter, save_checkpoint)
+        from estcal.estimate.innovation import GrowingArray
 
         if checkpoint_every < 1:
             fail(f"--checkpoint-every must be ≥ 1, got {checkpoint_every}")
@@ -159,6 +177,7 @@ def register(app: typer.Typer) -> None:
             fail(f"method {meth.name!r} compares several rows (groups/pairs); `estcal online` streams one row "
                  f"at a time and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate --method kalman`")
         ds_all = None
+        n_total = None  # data rows of a file (for the progress bar)
         if data != "-":
             # a file is checked as a whole first (the loader's unit, range, duplicate and spread
             # checks), so that the stream below never runs on data the batch commands refuse
@@ -170,6 +189,7 @@ def register(app: typer.Typer) -> None:
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
             check_distinct_poses(ds_all)
+            n_total = ds_all.n
         if saved is not None:
             names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
         elif free:
@@ -182,8 +202,10 @@ def register(app: typer.Typer) -> None:
                 names_pat = identifiable_free(prob_all)
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
+            del prob_all
         else:
             names_pat = rb.params.free_names
+        del ds_all  # checked; the rows are streamed below
         try:
             rb = rb.copy(rb.params.with_free(names_pat))
         except KeyError as exc:
@@ -199,20 +221,20 @@ def register(app: typer.Typer) -> None:
         P0 = np.eye(len(names)) * prior_std ** 2
         try:
             flt = ParameterFilter(pv.values, fidx, P0, Q, kind=filter_kind, names=names)
-            if saved is not None:
-                restore_filter(flt, saved)
+            history = restore_filter(flt, saved, resume) if saved is not None else []
+            journal = None
+            if state_path is not None:
+                journal = Journal.resume(state_path, saved, resume) if saved is not None else Journal.start(state_path)
         except (ValueError, CheckpointError) as exc:
             fail(exc)
+        except OSError as exc:
+            fail(f"--state {state_path}: cannot write its journal ({exc.strerror or exc})")
         input_sha = file_sha256(data) if data != "-" else None
         hasher = PrefixHasher()
         where = "<stdin>" if data == "-" else data
-        try:
-            lines = list(_lines(data)) if data != "-" else None
-        except DatasetError as exc:
-            fail(exc)
 
         def numbered():
-            src = enumerate(lines if lines is not None else sys.stdin, start=1)
+            src = enumerate(_lines(data), start=1)
             while True:
                 try:
                     ln, text = next(src)
@@ -239,22 +261,22 @@ def register(app: typer.Typer) -> None:
         first = first.lstrip("\ufeff")
         delim = sniff_delimiter(first)
         header = [h.strip() for h in next(csv.reader([first], delimiter=delim))]
-        history = []
-        trace_x, trace_s = [], []  # every row's estimate and std, for --report
+        trace_x = GrowingArray(float, len(names))  # every row's estimate and std, for --report
+        trace_s = GrowingArray(float, len(names))
         burn = None
         rows_done, last_line = 0, header_line
         skip = 0
         if saved is not None:
-            history = list(saved["history"])
             burn = saved["burn"]
             skip = int(saved["rows"])
 
         def checkpoint(finished=False):
             if state_path is None or rows_done < skip:  # still replaying the checkpointed rows: keep it
                 return
+            ptr = journal.append(flt.monitor, history)  # first the journal, then the checkpoint naming it
             save_checkpoint(state_path, filter_checkpoint(
                 flt, options=run_options, rows=rows_done, line=last_line, hasher=hasher, input_sha256=input_sha,
-                burn=burn, history=history, finished=finished))
+                burn=burn, journal=ptr, finished=finished))
         shown = list(range(min(show, len(names))))
 
         def live_table():
@@ -303,12 +325,17 @@ def register(app: typer.Typer) -> None:
             checkpoint()
             fail(msg)
 
+        from estcal.progress import progress
+
+        # a bar on a terminal when the status lines are sparse (the live table shows its own count)
+        bar = progress(total=n_total, desc="online", unit="row", enabled=False if live or n_total is None else None)
         try:
             if saved is not None and skip == 0:
                 check_prefix()
             for ln, line in rows:
                 if not line.strip():
                     continue
+                bar.update(1)
                 if rows_done < skip:  # already in the checkpoint: hashed, not processed again
                     rows_done, last_line = rows_done + 1, ln
                     if rows_done == skip:
@@ -330,7 +357,7 @@ def register(app: typer.Typer) -> None:
                     stop(exc)
                 rows_done, last_line = rows_done + 1, ln
                 if report is not None:
-                    trace_x.append(flt.x)
+                    trace_x.append(flt.f.x)
                     trace_s.append(flt.std)
                 if burn is None and flt.n_rows >= 2 * len(names):
                     burn = flt.n_steps
@@ -363,6 +390,7 @@ def register(app: typer.Typer) -> None:
                           f"continue with --resume {state_path}")
             raise typer.Exit(130)
         finally:
+            bar.close()
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
         checkpoint(finished=True)
@@ -399,7 +427,7 @@ def register(app: typer.Typer) -> None:
             from estcal.report.online import online_report
             from estcal.report.units import display_unit
 
-            online_report(report, names, pv.values[fidx], trace_x, trace_s, flt.monitor.nis, flt.monitor.dims, tests,
+            online_report(report, names, pv.values[fidx], trace_x.values, trace_s.values, flt.monitor.nis, flt.monitor.dims, tests,
                           unit=lambda n: display_unit(n, rb), title=f"estcal online — {rb.name}, {where}",
                           result_dict=out)
             console.print(f"report -> {report}/index.html")
