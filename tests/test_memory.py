@@ -95,6 +95,17 @@ def test_chunked_least_squares_equals_unchunked():
         assert np.allclose(b.estimate, a.estimate, rtol=1e-10, atol=1e-10 * np.abs(a.estimate).max()), method
         assert np.allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-10 * np.abs(a.covariance).max())
         assert b.dof == a.dof and np.isclose(b.chi2, a.chi2, rtol=1e-10)
+        assert b.problem is not None and np.array_equal(b.robot().params.values, b.theta)
+    # with a Gaussian prior (MAP): the prior rows are appended to R as they are to the full system
+    tau = {n: 1e-4 for n in sel.identifiable if not n.startswith("base_")}
+    a = calibrate_lsq(start, "lm", free=sel.identifiable, prior_std=tau)
+    b = calibrate_lsq(start, "lm", free=sel.identifiable, prior_std=tau, chunk=100)
+    assert "chunk_poses" in b.extra and a.n_iterations == b.n_iterations
+    assert np.allclose(b.estimate, a.estimate, rtol=1e-10, atol=1e-10 * np.abs(a.estimate).max())
+    assert np.allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-10 * np.abs(a.covariance).max())
+    pa, pb = a.extra["prior"], b.extra["prior"]
+    assert np.isclose(pa["effective_parameters"], pb["effective_parameters"], rtol=1e-9)
+    assert pa["effective_parameters"] < len(sel.identifiable) - 1  # the prior is felt
 
 
 def test_online_default_free_set_unchanged_by_chunking(monkeypatch):

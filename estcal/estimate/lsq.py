@@ -198,7 +198,7 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
     robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel (scalar threshold in σ): iteratively
         reweighted least squares, :func:`estcal.estimate.robust.calibrate_irls`
     chunk : poses per chunk of the bounded-memory path (:mod:`estcal.estimate.reduced`; default:
-        automatic above ``CHUNK_POSES`` poses for lm / gauss-newton / iterated-lls without prior)
+        automatic above ``CHUNK_POSES`` poses for lm / gauss-newton / iterated-lls, with or without prior)
 
     Returns
     -------
@@ -212,12 +212,10 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
                               prior_std=prior_std, prior_mean=prior_mean)
     from .reduced import use_chunks
 
-    ck = use_chunks(problem, chunk) if (prior_std is None and method != "scipy-lm") else None
+    ck = use_chunks(problem, chunk) if method != "scipy-lm" else None
     with single_thread_blas(single_thread):
-        if ck is not None:
-            return _calibrate_lsq_reduced(problem, method, free, max_iter, tol, theta0, validation, check, ck)
         return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
-                              prior_std, prior_mean)
+                              prior_std, prior_mean, ck)
 
 
 def prior_arrays(names, prior_std, prior_mean, start) -> tuple[np.ndarray, np.ndarray]:
@@ -248,8 +246,69 @@ def prior_arrays(names, prior_std, prior_mean, start) -> tuple[np.ndarray, np.nd
     return 1.0 / tau, mu
 
 
+class _DenseSystem:
+    """The weighted data rows of the whole problem: ``A = H_free/σ``, ``b = e/σ`` (M × p)."""
+
+    def __init__(self, problem, fidx):
+        self.problem, self.fidx = problem, fidx
+        self.m = 0
+        self._trial = None  # (θ, rows) of the last trial evaluated with its Jacobian
+
+    def linear(self, theta):
+        """``(A, b, bᵀb)`` at θ (reusing the trial's rows when the trial was accepted)."""
+        if self._trial is not None and np.array_equal(self._trial[0], theta):
+            rows = self._trial[1]
+        else:
+            rows = self.problem.evaluate(theta)
+        self._trial = None
+        A, b = _weighted(rows, self.fidx)
+        self.m = rows.e.size
+        return A, b, float(b @ b)
+
+    def cost(self, theta, jacobian: bool) -> float:
+        """``Σ (e/σ)²`` at a trial θ; with ``jacobian`` the rows are kept, so that an accepted
+        step (the common case) needs no second forward-kinematics pass."""
+        rows = self.problem.evaluate(theta, jacobian=jacobian)
+        if jacobian:
+            self._trial = (theta.copy(), rows)
+        return float(np.sum((rows.e / rows.sigma) ** 2))
+
+
+class _ReducedSystem:
+    """The same least-squares problem as its triangular factor ``(R, Qᵀb)``, built ``chunk`` poses
+    at a time (:mod:`estcal.estimate.reduced`): every quantity below is unchanged, the memory is
+    O(chunk · p) instead of O(M · p)."""
+
+    def __init__(self, problem, fidx, chunk: int):
+        self.problem, self.fidx, self.chunk = problem, fidx, int(chunk)
+        self.m = 0
+
+    def linear(self, theta):
+        from .reduced import reduce_system
+
+        R, c, rss, self.m = reduce_system(self.problem, theta, self.fidx, self.chunk)
+        return R, c, rss
+
+    def cost(self, theta, jacobian: bool) -> float:
+        from .reduced import chunked_cost
+
+        return chunked_cost(self.problem, theta, self.chunk)
+
+
+def _covariance(A) -> np.ndarray:
+    """Σ = (AᵀA)⁻¹ via the QR factor of the column-scaled A (stable for poorly scaled columns)."""
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    _, R = np.linalg.qr(A / s)
+    Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
+    return (Rinv @ Rinv.T) / np.outer(s, s)
+
+
 def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
-                   prior_std=None, prior_mean=None):
+                   prior_std=None, prior_mean=None, chunk=None):
+    """Gauss–Newton / Levenberg–Marquardt / iterated linear least squares on the weighted system
+    of :class:`_DenseSystem`, or of :class:`_ReducedSystem` when ``chunk`` is given (the same
+    iterations, steps and covariance in bounded memory); scipy's LM on the dense system."""
     if method not in LSQ_METHODS:
         raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
     problem, fidx, names = resolve_free(problem, free)
@@ -264,29 +323,27 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
         P[np.arange(pk.size), pk] = winv[pk]
     else:
         pk = np.zeros(0, int)
+    system = _DenseSystem(problem, fidx) if chunk is None else _ReducedSystem(problem, fidx, chunk)
 
-    def weighted(rows, th):
-        """Data rows, then the prior rows (μ − θ)/τ of the penalised parameters."""
-        A_, b_ = _weighted(rows, fidx)
+    def prior_cost(th):
+        return float(np.sum(((th[fidx][pk] - mu_p[pk]) * winv[pk]) ** 2)) if pk.size else 0.0
+
+    def linear(th):
+        """``(A, b, cost, data rows of A, data χ²)``: the data system, then the prior rows
+        ``(μ − θ)/τ`` of the penalised parameters."""
+        A_, b_, rss = system.linear(th)
+        n_data = A_.shape[0]
         if pk.size:
             A_ = np.vstack([A_, P])
             b_ = np.concatenate([b_, (mu_p[pk] - th[fidx][pk]) * winv[pk]])
-        return A_, b_
+        return A_, b_, rss + prior_cost(th), n_data, rss
 
-    def total_cost(rows, th):
-        c = float(np.sum((rows.e / rows.sigma) ** 2))
-        if pk.size:
-            c += float(np.sum(((th[fidx][pk] - mu_p[pk]) * winv[pk]) ** 2))
-        return c
-
-    rows = problem.evaluate(theta)
-    A, b = weighted(rows, theta)
-    if A.shape[0] < A.shape[1]:  # fewer equations than unknowns: singular whatever the data
-        raise UnidentifiableError(f"{A.shape[0]} equations for {A.shape[1]} free parameters — measure more poses "
+    A, b, cost, n_data, rss = linear(theta)
+    if system.m + pk.size < fidx.size:  # fewer equations than unknowns: singular whatever the data
+        raise UnidentifiableError(f"{system.m + pk.size} equations for {fidx.size} free parameters — measure more poses "
                                   f"or estimate fewer parameters")
     if check:
         check_identifiable(A, names)
-    cost = float(b @ b)
     converged = False
     it = 0
     if method == "scipy-lm":
@@ -310,22 +367,19 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                             gtol=tol, max_nfev=max_iter * 10)
         theta[fidx] = sol.x
         it, converged = int(sol.njev or sol.nfev), bool(sol.success)
+        A, b, cost, n_data, rss = linear(theta)
     else:
         mu, nu = 1e-2, 10.0
         from estcal.progress import progress
 
         with progress(total=max_iter, desc=f"calibrate ({method}, {fidx.size} parameters)", unit="iter") as bar:
             for it in range(1, max_iter + 1):
-                r_t = None
                 if method == "lm":
                     while True:
                         dx = _solve(A, b, mu)
                         trial = theta.copy()
                         trial[fidx] += dx
-                        # Jacobian computed with the trial residuals: an accepted step (the
-                        # common case) then needs no second forward-kinematics pass
-                        r_t = problem.evaluate(trial, jacobian=True)
-                        c_t = total_cost(r_t, trial)
+                        c_t = system.cost(trial, jacobian=True) + prior_cost(trial)
                         if c_t <= cost or mu > 1e12:
                             break
                         mu *= nu
@@ -335,11 +389,9 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                     step = 1.0
                     trial = theta.copy()
                     trial[fidx] += dx
-                    r_t = None
                     if method == "gauss-newton":
                         while True:
-                            r_t = problem.evaluate(trial, jacobian=step == 1.0)
-                            c_t = total_cost(r_t, trial)
+                            c_t = system.cost(trial, jacobian=step == 1.0) + prior_cost(trial)
                             if c_t <= cost or step < 1e-6:
                                 break
                             step *= 0.5
@@ -347,9 +399,7 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                             trial[fidx] += step * dx
                         dx = step * dx
                 theta = trial
-                rows = r_t if (r_t is not None and r_t.H is not None) else problem.evaluate(theta)
-                A, b = weighted(rows, theta)
-                new_cost = float(b @ b)
+                A, b, new_cost, n_data, rss = linear(theta)
                 scale = np.maximum(np.abs(theta[fidx]), 1e-3)
                 small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
                 small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
@@ -361,23 +411,14 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                 if small_step or small_cost:
                     converged = True
                     break
-    if method == "scipy-lm":  # the loop above leaves rows/A/b at the final theta otherwise
-        rows = problem.evaluate(theta)
-        A, b = weighted(rows, theta)
-    m_data = rows.e.size
-    chi2 = float(b[:m_data] @ b[:m_data])  # the data part (the prior rows are not measurements)
-    dof = int(m_data - fidx.size)
-    # Σ = (HᵀWH)⁻¹ via the scaled QR factor (stable for poorly scaled columns)
-    s = np.linalg.norm(A, axis=0)
-    s[s == 0] = 1.0
-    _, R = np.linalg.qr(A / s)
-    Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
-    cov = (Rinv @ Rinv.T) / np.outer(s, s)
+    chi2 = float(rss)  # the data part (the prior rows are not measurements)
+    dof = int(system.m - fidx.size)
+    cov = _covariance(A)
     p_eff = float(fidx.size)
     if pk.size:  # effective number of parameters tr(Σ HᵀWH) of the regularised fit
-        Ad = A[:m_data]
+        Ad = A[:n_data]
         p_eff = float(np.einsum("ij,ji->", cov, Ad.T @ Ad))
-        dof_eff = m_data - p_eff
+        dof_eff = system.m - p_eff
     else:
         dof_eff = dof
     known = noise_known(problem)
@@ -389,78 +430,12 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
                             covariance_source="model" if known else "scaled by sigma0^2",
                             problem=problem, validation_data=list(validation))
     res.extra["time_s"] = time.perf_counter() - t0
+    if chunk is not None:
+        res.extra["chunk_poses"] = int(chunk)
     if pk.size:
         res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},
                               "mean": {names[k]: float(mu_p[k]) for k in pk},
                               "effective_parameters": p_eff, "dof_effective": dof_eff}
-    res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
-    return res
-
-
-def _calibrate_lsq_reduced(problem, method, free, max_iter, tol, theta0, validation, check, chunk):
-    """:func:`_calibrate_lsq` on the reduced system (R, c) built chunk by chunk
-    (:mod:`estcal.estimate.reduced`): the same iterations, steps and covariance, in O(chunk · P) memory."""
-    from .reduced import chunked_cost, reduce_system
-
-    problem, fidx, names = resolve_free(problem, free)
-    pv = problem.params
-    theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
-    nominal = theta[fidx].copy()
-    t0 = time.perf_counter()
-    A, b, cost, m = reduce_system(problem, theta, fidx, chunk)
-    if check:
-        check_identifiable(A, names)
-    converged, it = False, 0
-    mu, nu = 1e-2, 10.0
-    for it in range(1, max_iter + 1):
-        if method == "lm":
-            while True:
-                dx = _solve(A, b, mu)
-                trial = theta.copy()
-                trial[fidx] += dx
-                c_t = chunked_cost(problem, trial, chunk)
-                if c_t <= cost or mu > 1e12:
-                    break
-                mu *= nu
-            mu = max(mu / nu, 1e-12)
-        else:
-            dx = _solve(A, b)
-            step = 1.0
-            trial = theta.copy()
-            trial[fidx] += dx
-            if method == "gauss-newton":
-                while True:
-                    c_t = chunked_cost(problem, trial, chunk)
-                    if c_t <= cost or step < 1e-6:
-                        break
-                    step *= 0.5
-                    trial = theta.copy()
-                    trial[fidx] += step * dx
-                dx = step * dx
-        theta = trial
-        A, b, new_cost, m = reduce_system(problem, theta, fidx, chunk)
-        scale = np.maximum(np.abs(theta[fidx]), 1e-3)
-        small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
-        small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
-        cost = new_cost
-        if small_step or small_cost:
-            converged = True
-            break
-    chi2, dof = float(cost), int(m - fidx.size)
-    s = np.linalg.norm(A, axis=0)
-    s[s == 0] = 1.0
-    _, R = np.linalg.qr(A / s)
-    Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
-    cov = (Rinv @ Rinv.T) / np.outer(s, s)
-    known = noise_known(problem)
-    if not known and dof > 0:
-        cov = cov * (chi2 / dof)
-    res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
-                            std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
-                            all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
-                            covariance_source="model" if known else "scaled by sigma0^2")
-    res.extra["time_s"] = time.perf_counter() - t0
-    res.extra["chunk_poses"] = int(chunk)
     res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
     return res
 
