@@ -705,6 +705,28 @@ def test_subprocess_exit_codes_and_streams(base, tmp_path):
     assert r.returncode == 3 and "only 1 distinct joint configuration" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("args,pattern", [
+    (["calibrate", "--nosuch"], r"error: estcal calibrate: No such option: --nosuch — see `estcal calibrate --help`"),
+    (["calibrate", "d.csv", "--robot", "puma560", "--noise-pos-mm", "abc"],
+     r"error: estcal calibrate: Invalid value for '--noise-pos-mm': .*number — see `estcal calibrate --help`"),
+    (["nosuchcommand"], r"error: estcal: No such command 'nosuchcommand' — see `estcal --help`"),
+    (["fk", "d.csv", "--robot", "puma560"], r"error: estcal fk: Missing option '--output' / '-o' — see `estcal fk --help`"),
+])
+def test_usage_errors_are_one_line(args, pattern):
+    """Click's own usage errors (unknown option or command, a value of the wrong type, a missing
+    option) come as one line on stderr with exit code 2, like estcal's own messages."""
+    r = _run(*args)
+    assert r.returncode == 2 and r.stdout == "", r
+    assert len(r.stderr.strip().splitlines()) == 1 and re.fullmatch(pattern, r.stderr.strip()), r.stderr
+
+
+def test_help_and_bare_command_still_show_help():
+    r = _run("fk", "--help")
+    assert r.returncode == 0 and "Usage: estcal fk" in r.stdout
+    r = _run()
+    assert "Usage: estcal" in r.stdout and "Traceback" not in r.stderr
+
+
 def test_subprocess_online_stdin(base):
     """The streaming path gets the loader's checks: a row in degrees is refused with its line."""
     ls = lines_of(base)

@@ -41,6 +41,22 @@ def _mount() -> None:
 _mount()
 
 
+def _usage_error(exc) -> int:
+    """A command-line usage error as one line on stderr (Click draws a box of several lines):
+    ``error: estcal calibrate: No such option: --nosuch — see `estcal calibrate --help```.
+    Returns the exit code (2). Running ``estcal`` alone still shows the help."""
+    import sys
+
+    ctx = getattr(exc, "ctx", None)
+    if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:
+        print(ctx.get_help())
+        return exc.exit_code
+    path = ctx.command_path if ctx is not None else "estcal"
+    msg = " ".join(exc.format_message().split()).rstrip(".")
+    print(f"error: {path}: {msg} — see `{path} --help`", file=sys.stderr)
+    return exc.exit_code
+
+
 def main() -> None:  # pragma: no cover - thin entry point (tested through a subprocess)
     """Run the CLI; an unexpected exception becomes a one-line message and exit code 1
     (``ESTCAL_DEBUG=1`` shows the traceback). Expected problems exit with 2 or 3 before
@@ -48,8 +64,19 @@ def main() -> None:  # pragma: no cover - thin entry point (tested through a sub
     import os
     import sys
 
+    from typer._click import exceptions as click_exceptions
+
     try:
-        app()
+        rc = app(prog_name="estcal", standalone_mode=False)
+        sys.exit(rc if isinstance(rc, int) else 0)
+    except click_exceptions.UsageError as exc:
+        sys.exit(_usage_error(exc))
+    except click_exceptions.ClickException as exc:  # e.g. a file Click itself could not open
+        print(f"error: {exc.format_message()}", file=sys.stderr)
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        print("error: aborted", file=sys.stderr)
+        sys.exit(1)
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         sys.exit(130)
