@@ -25,6 +25,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from estcal.kinematics.chain import SerialRobot
+from estcal.kinematics.chunked import tool_poses
 from estcal.kinematics.transforms import pose_error, so3_exp
 
 from .strategies import generate_poses
@@ -428,7 +429,9 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
 
     # ---- measurements
     ctx_all = {**context, **columns}
-    kin = true.kinematics(r_true, context=ctx_all, jacobian=False)
+    # tool frames and points only, 20,000 poses at a time (a million poses would otherwise hold
+    # every link frame of every pose: ~3.5 kB per pose)
+    kin = tool_poses(true, r_true, context=ctx_all, fields=("R", "p", "points"))
     true_points = true_R = true_p = None
     pts = R = p = None
     if measure == "pose":
@@ -455,7 +458,7 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
                              columns=columns, path=None)
 
     # ---- how wrong is the nominal model (at the recorded readings) w.r.t. the true measurement
-    kn = nominal.kinematics(rec, jacobian=False)
+    kn = tool_poses(nominal, rec, fields=("R", "p", "points"))
     rot_rms = rot_max = None
     if measure == "pose":
         e = pose_error(true_R, true_p, kn.R, kn.p)
