@@ -7,8 +7,10 @@ a PUMA 560 pose dataset of N rows simulated once per size (noise 0.05 mm / 0.5 m
     python benchmarks/bench_memory.py --n 20000 100000 --json out.json
     python benchmarks/bench_memory.py --quick            # N = 5000, for a smoke run
 
-Commands measured: ``fk``, ``identifiable --data``, ``online --free (5 parameters)`` and
-``calibrate`` (full level, LM). Figures: docs/benchmarks.md ("Memory on large datasets").
+Commands measured: ``simulate`` (always: it writes the dataset), ``fk``, ``identifiable --data``,
+``online --free (5 parameters)``, ``online-state`` (the same with ``--state``: a checkpoint every
+100 rows, the journal appended) and ``calibrate`` (full level, LM). Figures: docs/benchmarks.md
+("Memory on large datasets").
 """
 from __future__ import annotations
 
@@ -48,7 +50,8 @@ def run(args, timeout):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="+", default=[20000, 100000], help="dataset sizes (poses)")
-    ap.add_argument("--commands", nargs="+", default=["fk", "identifiable", "online", "calibrate"])
+    ap.add_argument("--commands", nargs="+", default=["fk", "identifiable", "online", "calibrate"],
+                    choices=["fk", "identifiable", "online", "online-state", "calibrate"])
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per command")
     ap.add_argument("--quick", action="store_true", help="N = 5000 only")
     ap.add_argument("--json", type=Path)
@@ -62,10 +65,16 @@ def main(argv=None):
                                  "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5", "--seed", "1", "-o", str(data)],
                                 a.timeout)
             assert rc == 0, f"simulate failed for N = {n}"
+            out.append({"command": "simulate", "n_poses": n, "file_mb": data.stat().st_size / 2**20,
+                        "peak_rss_mb": rss, "wall_s": wall, "exit_code": rc})
+            print(f"{'simulate':13s} N={n:8d}  file {out[-1]['file_mb']:7.1f} MB  peak RSS {rss:8.1f} MB  "
+                  f"{wall:8.1f} s  exit {rc}", flush=True)
             cmds = {
                 "fk": ["fk", str(data), "--robot", "puma560", "-o", str(Path(d) / "fk.csv")],
                 "identifiable": ["identifiable", "--robot", "puma560", "--data", str(data)],
                 "online": ["online", str(data), "--robot", "puma560", "--free", FREE, "--every", "1000000"],
+                "online-state": ["online", str(data), "--robot", "puma560", "--free", FREE, "--every", "1000000",
+                                 "--state", str(Path(d) / f"state{n}.json")],
                 "calibrate": ["calibrate", str(data), "--robot", "puma560"],
             }
             for c in a.commands:
