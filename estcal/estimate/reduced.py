@@ -10,13 +10,15 @@ whole matrix) — so memory is O(chunk · P) instead of O(M · P): a 6-axis pose
 rows would need 2.6 GB for H alone.
 
 Used automatically above :data:`CHUNK_POSES` poses (single-term problems of per-pose methods:
-position, location, points), or with ``chunk=N`` in :func:`estcal.estimate.lsq.calibrate_lsq`.
+position, location, points — also with the row weights of iteratively reweighted robust fits,
+:class:`estcal.estimate.robust.WeightedProblem`), or with ``chunk=N`` in
+:func:`estcal.estimate.lsq.calibrate_lsq`.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "reduce_system", "chunked_cost", "n_rows"]
+__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "evaluate_chunks", "reduce_system", "chunked_cost", "n_rows"]
 
 #: poses per chunk (≈ 60 MB of Jacobian and kinematics for a 6-axis arm with 54 parameters)
 CHUNK_POSES = 20_000
@@ -27,7 +29,7 @@ def chunkable(problem) -> bool:
 
     terms = getattr(problem, "terms", None)
     return (bool(terms) and len(terms) == 1 and hasattr(terms[0].data, "subset")
-            and getattr(terms[0].method, "name", "") in PER_POSE_METHODS and not hasattr(problem, "row_scale"))
+            and getattr(terms[0].method, "name", "") in PER_POSE_METHODS)
 
 
 def use_chunks(problem, chunk=None):
@@ -52,14 +54,28 @@ def subproblems(problem, chunk: int):
         yield sub
 
 
+def evaluate_chunks(problem, theta, chunk: int, jacobian: bool = True):
+    """``(first pose, rows)`` of every chunk, in order; a problem with ``row_scale`` (IRLS weights)
+    has its rows' σ scaled by the matching slice, as its own ``evaluate`` would."""
+    scale = getattr(problem, "row_scale", None)
+    off = 0
+    for k, sub in enumerate(subproblems(problem, chunk)):
+        rows = sub.evaluate(theta, jacobian=jacobian)
+        if scale is not None:
+            rows.sigma = rows.sigma * scale[off:off + rows.e.size]
+        off += rows.e.size
+        yield k * chunk, rows
+    if scale is not None and off != scale.size:
+        raise ValueError(f"row weights for {scale.size} rows, the chunks have {off}")
+
+
 def reduce_system(problem, theta, cols, chunk: int):
     """``(R, c, rss, m)``: triangular factor and ``c = Qᵀb`` of the weighted system of columns
     ``cols`` at ``theta``, ``rss = bᵀb`` and the number of rows ``m``."""
     p = len(cols)
     Rt = np.zeros((0, p + 1))
     rss, m = 0.0, 0
-    for sub in subproblems(problem, chunk):
-        rows = sub.evaluate(theta)
+    for _, rows in evaluate_chunks(problem, theta, chunk):
         w = 1.0 / rows.sigma
         Ab = np.column_stack([rows.H[:, cols] * w[:, None], rows.e * w])
         rss += float(Ab[:, -1] @ Ab[:, -1])
@@ -72,12 +88,8 @@ def reduce_system(problem, theta, cols, chunk: int):
 
 def chunked_cost(problem, theta, chunk: int) -> float:
     """``Σ (e/σ)²`` without Jacobians, chunk by chunk."""
-    c = 0.0
-    for sub in subproblems(problem, chunk):
-        r = sub.evaluate(theta, jacobian=False)
-        c += float(np.sum((r.e / r.sigma) ** 2))
-    return c
+    return sum(float(np.sum((r.e / r.sigma) ** 2)) for _, r in evaluate_chunks(problem, theta, chunk, False))
 
 
 def n_rows(problem, theta, chunk: int) -> int:
-    return sum(len(sub.evaluate(theta, jacobian=False).e) for sub in subproblems(problem, chunk))
+    return sum(r.e.size for _, r in evaluate_chunks(problem, theta, chunk, False))

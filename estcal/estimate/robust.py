@@ -74,7 +74,11 @@ def group_norms(problem, theta):
     """``(r, dims, lines, row_group)``: whitened residual norm and row count of every measurement
     group at ``theta``, the CSV line of its first dataset row, and the group of every row."""
     from ._common import GroupedProblem
+    from .reduced import use_chunks
 
+    ck = use_chunks(problem)
+    if ck is not None:
+        return _pose_norms_chunked(problem, theta, ck)
     gp = GroupedProblem(problem)
     rows = problem.evaluate(theta, jacobian=False)
     w = rows.e / rows.sigma
@@ -87,6 +91,27 @@ def group_norms(problem, theta):
         ln = getattr(data, "lines", None)
         lines.append(int(ln[g.pose]) if ln is not None else g.pose + 2)
     return np.sqrt(r2), dims, np.asarray(lines), gp.row_group
+
+
+def _pose_norms_chunked(problem, theta, chunk):
+    """:func:`group_norms` of a large per-pose problem (one group per pose, in file order),
+    evaluated ``chunk`` poses at a time: memory O(rows), not O(rows × kinematics)."""
+    from .reduced import evaluate_chunks
+
+    (t,) = problem.terms
+    n = t.data.n
+    r2 = np.zeros(n)
+    dims = np.zeros(n, int)
+    row_group = []
+    for a, rows in evaluate_chunks(problem, theta, chunk, jacobian=False):
+        w = rows.e / rows.sigma
+        pose = np.asarray(rows.pose, int) + a
+        r2 += np.bincount(pose, weights=w * w, minlength=n)
+        dims += np.bincount(pose, minlength=n)
+        row_group.append(pose)
+    ln = getattr(t.data, "lines", None)
+    lines = np.asarray(ln, int)[:n] if ln is not None else np.arange(n) + 2
+    return np.sqrt(r2), dims, lines, np.concatenate(row_group) if row_group else np.zeros(0, int)
 
 
 def outlier_report(problem, theta, kernel: str, k: float | None = None, n_params: int = 0,
@@ -212,8 +237,14 @@ def calibrate_irls(problem, method: str = "lm", free=None, robust: str = "huber"
     res.converged = bool(done)
     res.method = method
     # χ² and accuracy of the unweighted data (the report adds the split with / without outliers)
-    rows = problem.evaluate(theta, jacobian=False)
-    res.chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    from .reduced import chunked_cost, use_chunks
+
+    ck = use_chunks(problem)
+    if ck is not None:
+        res.chi2 = chunked_cost(problem, theta, ck)
+    else:
+        rows = problem.evaluate(theta, jacobian=False)
+        res.chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
     res.covariance_source = f"weighted LS at the robust ({kernel}) weights"
     res.accuracy = score(problem, theta_before, theta, validation)
     res.extra["robust_outer_iterations"] = it
