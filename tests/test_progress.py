@@ -71,3 +71,31 @@ def test_on_a_terminal_only_the_outermost_bar_draws(clean_env):
     assert not isinstance(again, prog._Quiet)
     again.close()
     assert prog._open_auto == 0
+
+
+def test_large_data_commands_show_a_bar(clean_env, tmp_path, capsys):
+    """fk, identifiable, calibrate and online draw a bar on large files (here: forced, with the
+    chunk size lowered so that a 300-pose file is "large"); stdout stays the result alone."""
+    from typer.testing import CliRunner
+
+    import estcal.estimate.reduced as red
+    import estcal.kinematics.chunked as chk
+    from estcal.cli.main import app
+
+    runner = CliRunner()
+    data = tmp_path / "d.csv"
+    r = runner.invoke(app, ["simulate", "--robot", "puma560", "--n", "300", "--measure", "pose", "--seed", "2",
+                            "-o", str(data)])
+    assert r.exit_code == 0, r.output
+    clean_env.setattr(red, "CHUNK_POSES", 100)
+    clean_env.setattr(chk, "CHUNK", 100)
+    clean_env.setenv("ESTCAL_PROGRESS", "1")
+    runs = {"fk": ["fk", str(data), "--robot", "puma560", "-o", str(tmp_path / "fk.csv")],
+            "poses (Jacobian)": ["identifiable", "--robot", "puma560", "--data", str(data)],
+            "calibrate (lm": ["calibrate", str(data), "--robot", "puma560", "--allow-ill-conditioned"],
+            "online": ["online", str(data), "--robot", "puma560", "--free", "offset_2,a_2", "--every", "1000"]}
+    for label, args in runs.items():
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0, (args, r.output)
+        assert f"{label}" in r.stderr and "%|" in r.stderr, (label, r.stderr[-300:])
+        assert "%|" not in r.stdout  # the bar never mixes into the result

@@ -57,14 +57,20 @@ def subproblems(problem, chunk: int):
 def evaluate_chunks(problem, theta, chunk: int, jacobian: bool = True):
     """``(first pose, rows)`` of every chunk, in order; a problem with ``row_scale`` (IRLS weights)
     has its rows' σ scaled by the matching slice, as its own ``evaluate`` would."""
+    from estcal.progress import progress
+
     scale = getattr(problem, "row_scale", None)
     off = 0
-    for k, sub in enumerate(subproblems(problem, chunk)):
-        rows = sub.evaluate(theta, jacobian=jacobian)
-        if scale is not None:
-            rows.sigma = rows.sigma * scale[off:off + rows.e.size]
-        off += rows.e.size
-        yield k * chunk, rows
+    n = problem.terms[0].data.n
+    # a bar on a terminal for passes over large data (quiet inside an outer bar, e.g. the LM iterations)
+    with progress(total=-(-n // chunk), desc="poses" + (" (Jacobian)" if jacobian else ""), unit="chunk") as bar:
+        for k, sub in enumerate(subproblems(problem, chunk)):
+            rows = sub.evaluate(theta, jacobian=jacobian)
+            if scale is not None:
+                rows.sigma = rows.sigma * scale[off:off + rows.e.size]
+            off += rows.e.size
+            bar.update(1)
+            yield k * chunk, rows
     if scale is not None and off != scale.size:
         raise ValueError(f"row weights for {scale.size} rows, the chunks have {off}")
 

@@ -142,36 +142,20 @@ def expand_patterns(names: Sequence[str], patterns) -> list[str]:
     return [n for n in names if n in keep]
 
 
-#: poses per chunk of :func:`reduced_observation_matrix`; datasets above it are reduced
-CHUNK_POSES = 20_000
-
-
 def reduced_observation_matrix(problem, names: Sequence[str] | None = None, theta=None,
-                               chunk: int = CHUNK_POSES):
+                               chunk: int | None = None):
     """``(R, names, n_rows)``: the triangular factor of ``W`` (``W = Q R``) built ``chunk`` poses at a
     time (R ← qr([R; W_chunk])), so that memory stays O(chunk · P) whatever the number of poses.
 
     Every quantity :func:`estcal.identify.core.identifiable` computes — column norms, the
     sequential QR's ``|R_jj|``, regrouping coefficients, singular values — is invariant under
     ``W → QᵀW``, so the analysis of R is that of W (tested to 1e-10 in
-    ``tests/test_memory.py``). Single-term problems with a splittable dataset only."""
-    from estcal.methods.problem import Problem, Term
+    ``tests/test_memory.py``). Single-term problems with a splittable dataset only; the factor
+    is the leading block of :func:`estcal.estimate.reduced.reduce_system`'s (QR of ``[W b]``)."""
+    from estcal.estimate.reduced import CHUNK_POSES, reduce_system
 
-    pv = problem.params
-    names = list(pv.free_names if names is None else names)
-    cols = pv.indices(names)
-    (t,) = problem.terms
-    n = t.data.n
-    R = np.zeros((0, len(names)))
-    m = 0
-    for a in range(0, n, chunk):
-        sub = Problem.__new__(Problem)
-        sub.robot = problem.robot
-        sub.terms = [Term(t.method, t.data.subset(np.arange(a, min(a + chunk, n))), t.noise)]
-        rows = sub.evaluate(theta)
-        W = rows.H[:, cols] / rows.sigma[:, None]
-        m += W.shape[0]
-        R = np.linalg.qr(np.vstack([R, W]), mode="r")
+    names = list(problem.params.free_names if names is None else names)
+    R, _, _, m = reduce_system(problem, theta, problem.params.indices(names), chunk or CHUNK_POSES)
     return R, names, m
 
 
@@ -287,12 +271,13 @@ def identify(robot, method: str | None = "position", data=None, n_poses: int = 6
         mname = m.name
         meta["method"] = mname
         names = _candidates(problem, robot, candidates)
-        from estcal.estimate._common import PER_POSE_METHODS
+        from estcal.estimate.reduced import use_chunks
 
         n_rows = None
-        if data.n > CHUNK_POSES and len(problem.terms) == 1 and hasattr(data, "subset") \
-                and mname in PER_POSE_METHODS:
-            W, names, n_rows = reduced_observation_matrix(problem, names)  # bounded memory
+
+        ck = use_chunks(problem)  # large per-pose data: the R factor (same analysis, bounded memory)
+        if ck is not None:
+            W, names, n_rows = reduced_observation_matrix(problem, names, chunk=ck)
         else:
             W, names = observation_matrix(problem, names)
         meta.update({"source": data.where, "n_poses": int(data.n)})

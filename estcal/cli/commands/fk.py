@@ -63,9 +63,12 @@ def register(app: typer.Typer) -> None:
         against = _AgainstFile(rb, ds)
         fields = ("R", "p", "points") if want_points or against.needs_points else ("R", "p")
         # written CHUNK rows at a time: memory stays bounded whatever the number of rows
-        with atomic_write(output) as fh:
+        from estcal.progress import progress
+
+        with atomic_write(output) as fh, progress(total=-(-n // CHUNK), desc="fk", unit="chunk") as bar:
             fh.write(",".join(names) + "\n")
             for a in range(0, n, CHUNK):
+                bar.update(1)
                 sl = slice(a, min(a + CHUNK, n))
                 c = {k: np.asarray(v)[sl] if np.ndim(v) and np.shape(v)[0] == n else v for k, v in ctx.items()}
                 k = tool_poses(rb, ds.readings[sl], context=c, fields=fields)
