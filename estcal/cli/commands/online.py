@@ -75,7 +75,8 @@ def register(app: typer.Typer) -> None:
         old_sigma_p: Optional[float] = deprecated_option("--sigma-p"),
         old_sigma_r: Optional[float] = deprecated_option("--sigma-r"),
         old_prior_std: Optional[float] = deprecated_option("--prior-std"),
-        every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows."),
+        every: int = typer.Option(10, "--every", help="Print a status line (or refresh the live table) every N rows; with N ≥ 100 and a file "
+                              "as input, a progress bar is also drawn on a terminal."),
         live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
         show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
         root: Optional[str] = typer.Option(None, help="URDF root link."),
@@ -327,8 +328,10 @@ def register(app: typer.Typer) -> None:
 
         from estcal.progress import progress
 
-        # a bar on a terminal when the status lines are sparse (the live table shows its own count)
-        bar = progress(total=n_total, desc="online", unit="row", enabled=False if live or n_total is None else None)
+        # a bar (rows done, rate, time left) on a terminal when the status lines are sparse — with
+        # a line every few rows those lines already show the progress, and the live table its count
+        quiet = live or n_total is None or every < 100
+        bar = progress(total=n_total, desc="online", unit="row", enabled=False if quiet else None)
         try:
             if saved is not None and skip == 0:
                 check_prefix()
