@@ -95,6 +95,7 @@ class Journal:
         self.path = Path(path)
         self.steps, self.entries, self.bytes = steps, entries, nbytes
         self.h = hasher or hashlib.sha256()
+        self._off = None
 
     @classmethod
     def start(cls, state_path) -> "Journal":
@@ -144,7 +145,9 @@ class Journal:
         """Write the innovation steps and history entries not yet in the journal; fsync."""
         parts = []
         nis, dims, white = monitor.nis, monitor.dims, monitor.white_flat
-        off = int(np.sum(dims[:self.steps], dtype=np.int64))
+        if self._off is None:  # whitened components already in the journal (once; then kept up to date)
+            self._off = int(np.sum(dims[:self.steps], dtype=np.int64))
+        off = self._off
         for k in range(self.steps, len(nis)):
             m = int(dims[k])
             parts.append(np.concatenate([[_INNOVATION, m + 1.0, nis[k]], white[off:off + m]]))
@@ -160,7 +163,7 @@ class Journal:
                 os.fsync(fh.fileno())
             self.h.update(raw)
             self.bytes += len(raw)
-        self.steps, self.entries = len(nis), len(history)
+        self.steps, self.entries, self._off = len(nis), len(history), off
         return {"file": self.path.name, "bytes": self.bytes, "sha256": self.h.hexdigest(), "steps": self.steps,
                 "history": self.entries}
 
