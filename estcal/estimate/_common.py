@@ -175,14 +175,14 @@ class GroupedProblem:
             return
         groups, self.unit_of = [], []
         for ti, t in enumerate(terms):
-            u = _units(t, t.data.n)
+            u = _units(t, t.data.n)  # ids 0 … U−1
             _, first = np.unique(u, return_index=True)
-            order = np.argsort(first)
+            order = np.argsort(first)  # units in the order of their first row
             gid = np.empty(u.max() + 1 if u.size else 0, int)
-            for k, uu in enumerate(order):
-                gid[uu] = len(groups) + k
-            for uu in order:
-                groups.append(Group(ti, np.flatnonzero(u == uu)))
+            gid[order] = len(groups) + np.arange(order.size)
+            # the rows of every unit in one stable sort (ascending within a unit), not one scan per unit
+            rows_of_unit = np.split(np.argsort(u, kind="stable"), np.cumsum(np.bincount(u))[:-1]) if u.size else []
+            groups.extend(Group(ti, rows_of_unit[uu]) for uu in order)
             self.unit_of.append(gid[u])
         if all("t" in getattr(t.data, "context", {}) for t in terms):
             tmin = [terms[g.term].data.context["t"][g.poses].min() for g in groups]
@@ -192,7 +192,10 @@ class GroupedProblem:
             groups = [groups[i] for i in perm]
             self.unit_of = [remap[a] for a in self.unit_of]
         self.groups = groups
-        self.row_group = np.array([self.unit_of[a][b] for a, b in zip(term.tolist(), rows.pose.tolist())], int)
+        self.row_group = np.empty(len(term), int)
+        for a in range(len(terms)):
+            m = term == a
+            self.row_group[m] = self.unit_of[a][np.asarray(rows.pose)[m]]
         used = np.unique(self.row_group)
         if used.size < len(groups):  # units without rows (a singleton link group): drop them
             remap = np.full(len(groups), -1)
