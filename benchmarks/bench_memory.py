@@ -10,7 +10,8 @@ a PUMA 560 pose dataset of N rows simulated once per size (noise 0.05 mm / 0.5 m
 Commands measured: ``simulate`` (always: it writes the dataset), ``fk``, ``identifiable --data``,
 ``online --free (5 parameters)``, ``online-state`` (the same with ``--state``: a checkpoint every
 100 rows, the journal appended), ``calibrate`` (full level, LM) and ``calibrate-robust`` (the same
-with ``--robust huber``: iteratively reweighted). Figures: docs/benchmarks.md
+with ``--robust huber``: iteratively reweighted), ``calibrate-gtsam`` and ``calibrate-kalman``
+(the same with ``--estimator gtsam`` / ``kalman``). Figures: docs/benchmarks.md
 ("Memory on large datasets").
 """
 from __future__ import annotations
@@ -52,7 +53,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="+", default=[20000, 100000], help="dataset sizes (poses)")
     ap.add_argument("--commands", nargs="+", default=["fk", "identifiable", "online", "calibrate"],
-                    choices=["fk", "identifiable", "online", "online-state", "calibrate", "calibrate-robust"])
+                    choices=["fk", "identifiable", "online", "online-state", "calibrate", "calibrate-robust",
+                             "calibrate-gtsam", "calibrate-kalman"])
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per command")
     ap.add_argument("--quick", action="store_true", help="N = 5000 only")
     ap.add_argument("--json", type=Path)
@@ -78,6 +80,8 @@ def main(argv=None):
                                  "--state", str(Path(d) / f"state{n}.json")],
                 "calibrate": ["calibrate", str(data), "--robot", "puma560"],
                 "calibrate-robust": ["calibrate", str(data), "--robot", "puma560", "--robust", "huber"],
+                "calibrate-gtsam": ["calibrate", str(data), "--robot", "puma560", "--estimator", "gtsam"],
+                "calibrate-kalman": ["calibrate", str(data), "--robot", "puma560", "--estimator", "kalman"],
             }
             for c in a.commands:
                 rss, wall, rc = run(cmds[c], a.timeout)

@@ -163,7 +163,14 @@ class GroupedProblem:
         self.problem = problem
         terms = getattr(problem, "terms", None)
         self.splittable = bool(terms) and all(hasattr(t.data, "subset") for t in terms)
-        rows = problem.evaluate(jacobian=False)
+        from .reduced import evaluate_chunks, use_chunks
+
+        ck = use_chunks(problem) if terms else None
+        if ck is not None:  # large per-pose data: the row → pose map chunk by chunk (bounded memory)
+            pose = np.concatenate([np.asarray(r.pose, int) + a for a, r in evaluate_chunks(problem, None, ck, False)])
+            rows = _PoseRows(pose)
+        else:
+            rows = problem.evaluate(jacobian=False)
         term = rows.term if rows.term is not None else np.zeros(len(rows.e), int)
         self.n_rows = len(rows.e)
         if not self.splittable:
@@ -213,14 +220,12 @@ class GroupedProblem:
 
     def subproblem(self, ids):
         """An object with ``evaluate(theta, jacobian)`` returning exactly the rows of groups ``ids``."""
-        return self.subproblem_rows(ids)[0]
-
-    def subproblem_rows(self, ids):
-        """``(sub, row_group)``: the sub-problem of groups ``ids`` and the group id of each of its rows."""
         ids = np.atleast_1d(np.asarray(ids, int))
         if not self.splittable:
-            idx = self.rows_of(ids)
-            return _SelectRows(self.problem, idx), self.row_group[idx]
+            return _SelectRows(self.problem, self.rows_of(ids))
+        return self._split(ids)[0]
+
+    def _split(self, ids):
         from estcal.methods.problem import Problem, Term
 
         terms, back = [], []
@@ -233,9 +238,27 @@ class GroupedProblem:
         sub = Problem.__new__(Problem)
         sub.robot = self.problem.robot
         sub.terms = terms
+        return sub, back
+
+    def subproblem_rows(self, ids):
+        """``(sub, row_group)``: the sub-problem of groups ``ids`` and the group id of each of its rows."""
+        ids = np.atleast_1d(np.asarray(ids, int))
+        if not self.splittable:
+            idx = self.rows_of(ids)
+            return _SelectRows(self.problem, idx), self.row_group[idx]
+        sub, back = self._split(ids)
         r = sub.evaluate(jacobian=False)
         tt = r.term if r.term is not None else np.zeros(len(r.e), int)
         return sub, np.array([back[a][b] for a, b in zip(tt.tolist(), r.pose.tolist())], int)
+
+
+class _PoseRows:
+    """The ``pose`` / ``term`` / ``e`` layout of a single-term problem's rows, without values."""
+
+    def __init__(self, pose):
+        self.pose = pose
+        self.term = None
+        self.e = pose  # only its length is used
 
 
 class _SelectRows:
@@ -266,9 +289,10 @@ def finish_result(problem, method, names, fidx, estimate, cov, theta_full, nomin
     from .lsq import score
     from .result import CalibrationResult
 
-    rows = problem.evaluate(theta_full, jacobian=False)
-    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
-    dof = int(len(rows.e) - len(fidx))
+    from .reduced import chi2_and_rows
+
+    chi2, m = chi2_and_rows(problem, theta_full)
+    dof = int(m - len(fidx))
     cov = np.asarray(cov, float)
     res = CalibrationResult(method=method, names=list(names), estimate=np.asarray(estimate, float).copy(),
                             std=np.sqrt(np.clip(np.diag(cov), 0, None)), covariance=cov,

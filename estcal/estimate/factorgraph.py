@@ -241,8 +241,10 @@ def _prior_std(problem, names, prior_std):
 
 def _check(problem, fidx, names, theta):
     from .lsq import _weighted, check_identifiable
+    from .reduced import reduce_system, use_chunks
 
-    A, _ = _weighted(problem.evaluate(theta), fidx)
+    ck = use_chunks(problem)  # large data: R has A's rank and conditioning
+    A = reduce_system(problem, theta, fidx, ck)[0] if ck is not None else _weighted(problem.evaluate(theta), fidx)[0]
     check_identifiable(A, names)
 
 
@@ -493,25 +495,36 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
     *Methods for non-linear least squares problems*, 2004, §3.2). The covariance is
     ``gtsam.Marginals`` of the undamped graph at the solution. Returns
     ``(x, cov, iterations, info)``.
+
+    On large per-pose data (:func:`estcal.estimate.reduced.use_chunks`) the block is built from
+    the triangular factor ``[R c]`` of ``[A b]`` instead (``RᵀR = AᵀA``, ``Rᵀc = Aᵀb``; the
+    constant is the true ``bᵀb``), chunk by chunk: the same graph in O(chunk · p) memory.
     """
+    from .reduced import chunked_cost, reduce_system, use_chunks
+
     gtsam = _gtsam()
+    ck = use_chunks(problem)
     X = gtsam.symbol("x", 0)
     th = theta.copy()
     p = len(fidx)
     t_lin = [0.0]
 
     def linearise(x, jacobian=True):
+        """``(A, b, bᵀb)`` at x (``(R, c, bᵀb)`` on large data; ``A``, ``b`` None without Jacobian)."""
         t = time.perf_counter()
         th[fidx] = x
-        rows = problem.evaluate(th, jacobian=jacobian)
-        w = 1.0 / rows.sigma
-        b = rows.e * w
-        A = rows.H[:, fidx] * w[:, None] if jacobian else None
+        if ck is not None:
+            out = reduce_system(problem, th, fidx, ck)[:3] if jacobian else (None, None, chunked_cost(problem, th, ck))
+        else:
+            rows = problem.evaluate(th, jacobian=jacobian)
+            w = 1.0 / rows.sigma
+            b = rows.e * w
+            out = (rows.H[:, fidx] * w[:, None] if jacobian else None, b, float(b @ b))
         t_lin[0] += time.perf_counter() - t
-        return A, b
+        return out
 
-    def cost(x, b):
-        c = float(b @ b)
+    def cost(x, f):
+        c = float(f)
         if prior is not None:
             c += float(np.sum(((x - prior[0]) / prior[1]) ** 2))
         return c
@@ -530,12 +543,12 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
 
     t_solve = 0.0
     x = np.asarray(x0, float).copy()
-    A, b = linearise(x)
-    c = cost(x, b)
+    A, b, f = linearise(x)
+    c = cost(x, f)
     lam = 1e-3
     it, converged = 0, False
     for it in range(1, max_iter + 1):
-        G, gv, f = A.T @ A, A.T @ b, float(b @ b)
+        G, gv = A.T @ A, A.T @ b
         scale = np.sqrt(np.maximum(np.diag(G), 1e-300))
         # the parameters' standard deviations at this linearisation (data only), to measure steps in σ
         try:
@@ -552,8 +565,7 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
                 converged = True
                 break
             xn = x + dx
-            _, bn = linearise(xn, jacobian=False)  # trial: residuals only
-            cn = cost(xn, bn)
+            cn = cost(xn, linearise(xn, jacobian=False)[2])  # trial: residuals only
             if cn <= c:
                 accepted = True
                 break
@@ -565,7 +577,7 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
             break
         small = step < 1e-8 or c - cn <= rtol * max(c, 1e-300)
         x, c = xn, cn
-        A, b = linearise(x)
+        A, b, f = linearise(x)
         lam = max(lam / 10.0, 1e-12)
         if small:
             converged = True
@@ -573,16 +585,15 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
     # one undamped Gauss–Newton step to finish: the damped steps stop short of the minimum by
     # about λ times their length; near the minimum Gauss–Newton converges quadratically
     G, gv = A.T @ A, A.T @ b
-    dx = np.asarray(graph(x, G, gv, float(b @ b)).optimize().at(X))
-    _, bn = linearise(x + dx, jacobian=False)
-    cn = cost(x + dx, bn)
+    dx = np.asarray(graph(x, G, gv, f).optimize().at(X))
+    cn = cost(x + dx, linearise(x + dx, jacobian=False)[2])
     if cn <= c * (1.0 + 1e-12):
         x, c = x + dx, cn
-        A, b = linearise(x)
+        A, b, f = linearise(x)
     cov = np.full((p, p), np.nan)
     t_m = time.perf_counter()
     if marginals:
-        fg = graph(x, A.T @ A, A.T @ b, float(b @ b))
+        fg = graph(x, A.T @ A, A.T @ b, f)
         cov = np.asarray(gtsam.Marginals(fg, fg.optimize()).marginalCovariance(X))
     info = {"converged": converged, "linearise_time_s": t_lin[0], "solve_time_s": t_solve,
             "marginals_time_s": time.perf_counter() - t_m, "final_lambda": lam, "n_factors": 1 + (prior is not None)}

@@ -259,9 +259,13 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     Q = process_noise(names, q)
     gp = GroupedProblem(problem)
     ng = len(gp)
-    batches = [list(range(i, min(i + batch_size, ng))) for i in range(0, ng, batch_size)]
-    subs = [gp.subproblem(b) for b in batches]
-    lin_traj = None
+    starts = range(0, ng, batch_size)
+
+    def subs():  # built as they are used: 10⁶ sub-problems held at once would cost GBs
+        for i in starts:
+            yield gp.subproblem(list(range(i, min(i + batch_size, ng))))
+
+    x_lin = None
     hist_x, hist_s = [], []
     if passes is None:
         passes = 3 if robust not in (None, "none") and filter == "ekf" else 1
@@ -269,14 +273,12 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     from estcal.progress import progress
 
     n_pass = 1 if filter == "ukf" else passes
-    with progress(total=n_pass * len(subs), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
+    with progress(total=n_pass * len(starts), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
         for it in range(passes):
             flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha, robust=robust,
                                   robust_k=robust_k)
-            traj = []
-            for k, sub in enumerate(subs):
-                flt.step(sub, None if lin_traj is None else lin_traj[k], None if weights is None else weights[k])
-                traj.append(flt.x)
+            for k, sub in enumerate(subs()):
+                flt.step(sub, x_lin, None if weights is None else weights[k])
                 bar.update(1)
                 if history and it == passes - 1:
                     hist_x.append(flt.x)
@@ -284,22 +286,23 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
             if filter == "ukf":
                 break
             # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
-            lin_traj = [traj[-1]] * len(traj)
+            x_lin = flt.x
             if flt.robust is not None:  # IRLS: weights from the residuals at this pass's estimate
                 from .robust import kernel_threshold, kernel_weight
 
                 weights = []
-                for sub in subs:
-                    r = sub.evaluate(flt.full(traj[-1]), jacobian=False)
+                for sub in subs():
+                    r = sub.evaluate(flt.full(x_lin), jacobian=False)
                     rn = float(np.linalg.norm(r.e / r.sigma))
                     weights.append(float(kernel_weight(flt.robust, rn,
                                                        kernel_threshold(flt.robust, r.e.size, robust_k))))
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
     known = noise_known(problem)
-    rows = problem.evaluate(theta_full, jacobian=False)
-    chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
-    dof = len(rows.e) - len(fidx)
+    from .reduced import chi2_and_rows
+
+    chi2, m_rows = chi2_and_rows(problem, theta_full)
+    dof = m_rows - len(fidx)
     if scale_covariance is None:
         scale_covariance = not known
     src = "model (filter P)"

@@ -237,14 +237,9 @@ def calibrate_irls(problem, method: str = "lm", free=None, robust: str = "huber"
     res.converged = bool(done)
     res.method = method
     # χ² and accuracy of the unweighted data (the report adds the split with / without outliers)
-    from .reduced import chunked_cost, use_chunks
+    from .reduced import chi2_and_rows
 
-    ck = use_chunks(problem)
-    if ck is not None:
-        res.chi2 = chunked_cost(problem, theta, ck)
-    else:
-        rows = problem.evaluate(theta, jacobian=False)
-        res.chi2 = float(np.sum((rows.e / rows.sigma) ** 2))
+    res.chi2 = chi2_and_rows(problem, theta)[0]
     res.covariance_source = f"weighted LS at the robust ({kernel}) weights"
     res.accuracy = score(problem, theta_before, theta, validation)
     res.extra["robust_outer_iterations"] = it
