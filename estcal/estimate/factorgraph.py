@@ -227,10 +227,12 @@ def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
 
 def _fit_statistics(problem, theta, fidx, x):
     """The full parameter vector with the free values ``x``, its χ² and dof = M − p."""
+    from .reduced import chi2_and_rows
+
     theta_full = theta.copy()
     theta_full[fidx] = x
-    rows = problem.evaluate(theta_full, jacobian=False)
-    return theta_full, float(np.sum((rows.e / rows.sigma) ** 2)), len(rows.e) - len(fidx)
+    chi2, m = chi2_and_rows(problem, theta_full)  # chunk by chunk on large data
+    return theta_full, chi2, m - len(fidx)
 
 
 def _prior_std(problem, names, prior_std):
