@@ -69,7 +69,7 @@ def test_tiago_mocap_quick(tiago_dir, tmp_path):
     jo = runs[(1, "joint_offset", "structural")]
     assert jo["n_parameters"] == 14  # FIGAROH's joint_offset count
     assert jo["train_rmse_mm"] == pytest.approx(2.88, abs=0.01)
-    # issue 3: the procedure fixed on 11-30 only (structural QR set + ridge, τ by leave-one-pose-out)
+    # docs/calibration.md, "TIAGo motion capture": the procedure fixed on 11-30 only (structural QR set + ridge, τ by leave-one-pose-out)
     ridge = runs[(1, "full", "structural+ridge")]
     g = ridge["regularization"]
     assert g["loo_rmse_mm"] < g["loo_rmse_unregularised_mm"]  # the training-only evidence for it

@@ -1,4 +1,4 @@
-"""Statistical efficiency of the batch least-squares estimators (issue 3, "Validation").
+"""Statistical efficiency of the batch least-squares estimators (docs/calibration.md, "Statistical efficiency").
 
 With Gaussian measurement noise of known covariance, well-excited poses and an
 identifiable parameter set, the weighted least-squares estimate is (to first
