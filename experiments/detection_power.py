@@ -1,4 +1,4 @@
-"""Detection power of `estcal diagnose` (issue 6): how large must a hidden effect be to be named?
+"""Detection power of `estcal diagnose` (docs/discrepancy.md): how large must a hidden effect be to be named?
 
 For several robots (PUMA 560 with the packaged masses, the Stanford arm with
 the lumped unit-mass model, and the TIAGo URDF chain with its URDF masses and

@@ -1,4 +1,4 @@
-"""What the geometric model of TIAGo gets wrong (issue 6), on the real mocap data.
+"""What the geometric model of TIAGo gets wrong (docs/discrepancy.md), on the real mocap data.
 
 Data: ``../shared/data/tiago`` — fit on 2021-11-30 (37 postures), validate on
 2021-11-26 (62 postures), all four points of the hand's rigid body (6-D pose).
