@@ -166,19 +166,20 @@ class GroupedProblem:
         from .reduced import evaluate_chunks, use_chunks
 
         ck = use_chunks(problem) if terms else None
-        if ck is not None:  # large per-pose data: the row → pose map chunk by chunk (bounded memory)
+        if ck is not None:  # large per-pose data (one term): the row → pose map chunk by chunk
             pose = np.concatenate([np.asarray(r.pose, int) + a for a, r in evaluate_chunks(problem, None, ck, False)])
-            rows = _PoseRows(pose)
+            term = np.zeros(pose.size, int)
         else:
             rows = problem.evaluate(jacobian=False)
-        term = rows.term if rows.term is not None else np.zeros(len(rows.e), int)
-        self.n_rows = len(rows.e)
+            pose = np.asarray(rows.pose, int)
+            term = rows.term if rows.term is not None else np.zeros(pose.size, int)
+        self.n_rows = pose.size
         if not self.splittable:
-            keys = sorted(set(zip(term.tolist(), rows.pose.tolist())))
+            keys = sorted(set(zip(term.tolist(), pose.tolist())))
             self.groups = [Group(int(a), np.array([b])) for a, b in keys]
             self.unit_of = None
             index = {(g.term, g.pose): i for i, g in enumerate(self.groups)}
-            self.row_group = np.array([index[(a, b)] for a, b in zip(term.tolist(), rows.pose.tolist())])
+            self.row_group = np.array([index[(a, b)] for a, b in zip(term.tolist(), pose.tolist())])
             return
         groups, self.unit_of = [], []
         for ti, t in enumerate(terms):
@@ -202,7 +203,7 @@ class GroupedProblem:
         self.row_group = np.empty(len(term), int)
         for a in range(len(terms)):
             m = term == a
-            self.row_group[m] = self.unit_of[a][np.asarray(rows.pose)[m]]
+            self.row_group[m] = self.unit_of[a][pose[m]]
         used = np.unique(self.row_group)
         if used.size < len(groups):  # units without rows (a singleton link group): drop them
             remap = np.full(len(groups), -1)
@@ -250,15 +251,6 @@ class GroupedProblem:
         r = sub.evaluate(jacobian=False)
         tt = r.term if r.term is not None else np.zeros(len(r.e), int)
         return sub, np.array([back[a][b] for a, b in zip(tt.tolist(), r.pose.tolist())], int)
-
-
-class _PoseRows:
-    """The ``pose`` / ``term`` / ``e`` layout of a single-term problem's rows, without values."""
-
-    def __init__(self, pose):
-        self.pose = pose
-        self.term = None
-        self.e = pose  # only its length is used
 
 
 class _SelectRows:

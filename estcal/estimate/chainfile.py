@@ -23,12 +23,9 @@ loses at most the steps since the last block.
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -121,10 +118,10 @@ def _backend_class():
                 return
             t0 = time.monotonic()
             n = len(self._buf)
+            from estcal.io.atomic import atomic_path
+
             path = Path(self.filename)
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-            os.close(fd)
-            try:
+            with atomic_path(path) as tmp:
                 shutil.copyfile(path, tmp)
                 shutil.copymode(path, tmp)
                 with h5py.File(tmp, "a") as f:
@@ -138,13 +135,6 @@ def _backend_class():
                     for i, v in enumerate(self._buf[-1][3]):
                         g.attrs[f"random_state_{i}"] = v
                     g.attrs["iteration"] = it + n
-                with open(tmp, "rb+") as fh:
-                    os.fsync(fh.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-                raise
             self._buf = []
             self._last_flush = time.monotonic()
             self._flush_cost = self._last_flush - t0

@@ -157,10 +157,9 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     t = problem.terms[0]
     data = t.data
     theta = sel.theta if (sel is not None and sel.theta is not None) else pv.values
-    from estcal.estimate.reduced import n_rows, use_chunks
+    from estcal.estimate.reduced import chi2_and_rows
 
-    ck = use_chunks(problem)
-    m = n_rows(problem, theta, ck) if ck is not None else len(problem.evaluate(theta, jacobian=False).e)
+    m = chi2_and_rows(problem, theta)[1]
     p = len(free)
     out.figures.update(rows=int(m), n_parameters=int(p), dof=int(m - p))
     n_distinct = None

@@ -502,10 +502,12 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
     the triangular factor ``[R c]`` of ``[A b]`` instead (``RᵀR = AᵀA``, ``Rᵀc = Aᵀb``; the
     constant is the true ``bᵀb``), chunk by chunk: the same graph in O(chunk · p) memory.
     """
-    from .reduced import chunked_cost, reduce_system, use_chunks
+    from .lsq import _DenseSystem, _ReducedSystem
+    from .reduced import use_chunks
 
     gtsam = _gtsam()
     ck = use_chunks(problem)
+    system = _DenseSystem(problem, fidx) if ck is None else _ReducedSystem(problem, fidx, ck)
     X = gtsam.symbol("x", 0)
     th = theta.copy()
     p = len(fidx)
@@ -515,13 +517,7 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
         """``(A, b, bᵀb)`` at x (``(R, c, bᵀb)`` on large data; ``A``, ``b`` None without Jacobian)."""
         t = time.perf_counter()
         th[fidx] = x
-        if ck is not None:
-            out = reduce_system(problem, th, fidx, ck)[:3] if jacobian else (None, None, chunked_cost(problem, th, ck))
-        else:
-            rows = problem.evaluate(th, jacobian=jacobian)
-            w = 1.0 / rows.sigma
-            b = rows.e * w
-            out = (rows.H[:, fidx] * w[:, None] if jacobian else None, b, float(b @ b))
+        out = system.linear(th) if jacobian else (None, None, system.cost(th, jacobian=False))
         t_lin[0] += time.perf_counter() - t
         return out
 

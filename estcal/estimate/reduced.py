@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "evaluate_chunks", "reduce_system", "chunked_cost", "chi2_and_rows",
-           "n_rows"]
+__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "evaluate_chunks", "reduce_system", "chunked_cost",
+           "chi2_and_rows"]
 
 #: poses per chunk (≈ 60 MB of Jacobian and kinematics for a 6-axis arm with 54 parameters)
 CHUNK_POSES = 20_000
@@ -93,23 +93,23 @@ def reduce_system(problem, theta, cols, chunk: int):
     return Rt[:p, :p], Rt[:p, p], rss, m
 
 
-def chunked_cost(problem, theta, chunk: int) -> float:
-    """``Σ (e/σ)²`` without Jacobians, chunk by chunk."""
-    return sum(float(np.sum((r.e / r.sigma) ** 2)) for _, r in evaluate_chunks(problem, theta, chunk, False))
-
-
-def chi2_and_rows(problem, theta) -> tuple[float, int]:
-    """``(Σ (e/σ)², number of rows)`` at ``theta``: chunk by chunk on large data, else in one evaluation."""
-    ck = use_chunks(problem) if getattr(problem, "terms", None) else None
-    if ck is None:
-        r = problem.evaluate(theta, jacobian=False)
-        return float(np.sum((r.e / r.sigma) ** 2)), int(r.e.size)
+def _chi2_rows_chunked(problem, theta, chunk: int) -> tuple[float, int]:
     c, m = 0.0, 0
-    for _, r in evaluate_chunks(problem, theta, ck, False):
+    for _, r in evaluate_chunks(problem, theta, chunk, False):
         c += float(np.sum((r.e / r.sigma) ** 2))
         m += r.e.size
     return c, m
 
 
-def n_rows(problem, theta, chunk: int) -> int:
-    return sum(r.e.size for _, r in evaluate_chunks(problem, theta, chunk, False))
+def chunked_cost(problem, theta, chunk: int) -> float:
+    """``Σ (e/σ)²`` without Jacobians, chunk by chunk."""
+    return _chi2_rows_chunked(problem, theta, chunk)[0]
+
+
+def chi2_and_rows(problem, theta) -> tuple[float, int]:
+    """``(Σ (e/σ)², number of rows)`` at ``theta``: chunk by chunk on large data, else in one evaluation."""
+    ck = use_chunks(problem) if getattr(problem, "terms", None) else None
+    if ck is not None:
+        return _chi2_rows_chunked(problem, theta, ck)
+    r = problem.evaluate(theta, jacobian=False)
+    return float(np.sum((r.e / r.sigma) ** 2)), int(r.e.size)

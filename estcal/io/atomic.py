@@ -21,7 +21,28 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_write", "atomic_write_text", "atomic_write_bytes", "atomic_savefig"]
+__all__ = ["atomic_path", "atomic_write", "atomic_write_text", "atomic_write_bytes", "atomic_savefig"]
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """Context manager yielding the path of a temporary file beside ``path`` that replaces
+    ``path`` on success (fsync'ed, then renamed), for writers that open the file themselves
+    (h5py, a copy to edit). On an exception the temporary file is removed and ``path`` is
+    left untouched. Its parent folders are created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 @contextlib.contextmanager
@@ -37,24 +58,13 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
     encoding, newline : passed to :func:`open` in text mode.
 
     On an exception inside the ``with`` block the temporary file is removed and
-    ``path`` is left untouched.
+    ``path`` is left untouched (:func:`atomic_path`).
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write: mode must be 'w' or 'wb', got {mode!r}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        kw = {} if "b" in mode else {"encoding": encoding, "newline": newline}
-        with os.fdopen(fd, mode, **kw) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    kw = {} if "b" in mode else {"encoding": encoding, "newline": newline}
+    with atomic_path(path) as tmp, open(tmp, mode, **kw) as fh:
+        yield fh
 
 
 def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
