@@ -51,3 +51,20 @@ def test_bad_mode():
     with pytest.raises(ValueError, match="mode"):
         with atomic_write("x", "a"):
             pass
+
+
+def test_new_file_has_the_permissions_of_a_plain_write(tmp_path):
+    """A temporary file is created 0600; the renamed output must not be (others could not read it)."""
+    plain = tmp_path / "plain.txt"
+    with open(plain, "w") as fh:  # what the user's umask gives an ordinary write
+        fh.write("x")
+    atomic_write_text(tmp_path / "atomic.txt", "x")
+    assert (tmp_path / "atomic.txt").stat().st_mode & 0o7777 == plain.stat().st_mode & 0o7777
+
+
+def test_replaced_file_keeps_its_permissions(tmp_path):
+    target = tmp_path / "out.csv"
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    atomic_write_text(target, "new")
+    assert target.read_text() == "new" and target.stat().st_mode & 0o7777 == 0o640

@@ -544,6 +544,16 @@ OPTION_CASES = {
     "calibrate-robust": ("calibrate", ["--robust", "tukey"], r"--robust must be huber or cauchy"),
     "calibrate-validate-missing": ("calibrate", ["--validate", "{tmp}/nope.csv"], r"nope\.csv: dataset file not found"),
     "calibrate-validate-folder": ("calibrate", ["--validate", "{folder}"], r"folder: is a folder, not a dataset file"),
+    "calibrate-validate-is-data": ("calibrate", ["--validate", "{pos}"],
+                                   r"--validate .*pos\.csv: all its 24 poses are also in .*pos\.csv .*held-out"),
+    "calibrate-free-summary": ("calibrate", ["--free", "theta_9"],
+                               r"--free: unknown parameter 'theta_9'.* 54 parameters: .*theta.*_\{1, 2, 3, 4, 5, 6\}"),
+    "diagnose-validate-is-data": ("diagnose", ["--validate", "{pos}"], r"--validate .*pos\.csv: all its 24 poses"),
+    "identifiable-free-unknown": ("identifiable", ["--free", "nosuch"], r"--free: unknown parameter 'nosuch'\. "
+                                                                        r"This model has 54 parameters"),
+    "fk-output-stdout": ("fk", ["-o", "-"], r"--output -: output files are written atomically and cannot go to "
+                                            r"standard output"),
+    "simulate-json-stdout": ("simulate", ["--json", "-"], r"--json -: .*give a file name"),
     "fk-output-is-input": ("fk", ["-o", "{pos}"], r"--output .*pos\.csv: is also an input file of this command"),
     "fk-output-folder": ("fk", ["-o", "{folder}"], r"--output .*folder: is a folder"),
     "fk-json-folder": ("fk", ["--json", "{folder}"], r"--json .*folder: is a folder"),
@@ -640,14 +650,34 @@ def test_bad_other_file(tmp_path, case):
                                                          r".*robot\.urdf\)"),
     (["export", "-r", "{folder}", "--urdf", "{tmp}/r.urdf"], r"folder: is a folder, not a robot"),
     (["simulate", "--fleet", "2", "--out", "{pos}"], r"--out .*pos\.csv: is a file — give a folder"),
+    (["sessions", "{pos}", "{copy}", "-r", "puma560"], r"session .*copy\.csv: all its 24 poses are also in "
+                                                        r".*pos\.csv .*give each session's own file"),
+    (["sessions", "{pos}", "-r", "puma560", "--validate", "{copy}"], r"--validate .*copy\.csv: all its 24 poses"),
 ], ids=["compensate-folder", "compensate-binary", "compensate-output-is-input", "compensate-tol", "export-urdf-folder",
-        "export-robot-folder", "fleet-out-is-file"])
+        "export-robot-folder", "fleet-out-is-file", "sessions-same-file-twice", "sessions-validate-copy"])
 def test_other_commands_share_the_checks(base, tmp_path, args, pattern):
     """Commands of other work packages get the same input layer and option checks."""
     (tmp_path / "bin.csv").write_bytes(b"\x00" * 30)
+    (tmp_path / "copy.csv").write_bytes((base / "pos.csv").read_bytes())
     fill = {"folder": str(base / "folder"), "pos": str(base / "pos.csv"), "tmp": str(tmp_path),
-            "bin": str(tmp_path / "bin.csv")}
+            "bin": str(tmp_path / "bin.csv"), "copy": str(tmp_path / "copy.csv")}
     check(runner.invoke(app, [a.format(**fill) for a in args]), 2, pattern)
+
+
+def test_validation_sharing_some_fitted_rows_is_named(base, tmp_path):
+    """A validation file that repeats some fitted poses is scored, with a warning naming their lines."""
+    lines = lines_of(base)
+    rb = load_robot("puma560")
+    q = rb.random_readings(10, np.random.default_rng(7))
+    new = tmp_path / "new.csv"
+    write_dataset(new, dataset_from_arrays(rb.joint_names, q, points=rb.kinematics(q, jacobian=False).p))
+    mixed = new.read_text().splitlines() + [lines[3], lines[5]]  # fitted rows 3 and 5 appended as lines 12, 13
+    v = write(tmp_path, "mixed.csv", csv_from(mixed))
+    r = runner.invoke(app, ["calibrate", str(base / "pos.csv"), "-r", "puma560", "--level", "joint_offset",
+                            "--validate", v])
+    assert r.exit_code == 0, r.output
+    assert re.search(r"warning: --validate .*mixed\.csv: 2 of its 12 poses \(lines 12, 13\) are also in .*pos\.csv",
+                     r.stderr), r.stderr
 
 
 # ------------------------------------------------------------------ outputs

@@ -31,11 +31,12 @@ def hidden_case():
 
 def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
     sim, truth = hidden_case
-    csv = write_dataset(tmp_path / "data.csv", sim.dataset)
+    csv = write_dataset(tmp_path / "data.csv", sim.dataset.subset(slice(0, 32)))
+    held = write_dataset(tmp_path / "held_out.csv", sim.dataset.subset(slice(32, None)))
     out = tmp_path / "fit.json"
     r = CliRunner().invoke(app, ["diagnose", str(csv), "--robot", "puma560_masses", "--noise-pos-mm", str(SIGMA * 1e3),
                                  "--json", str(out), "--report", str(tmp_path / "rep"),
-                                 "--validate", str(csv)])
+                                 "--validate", str(held)])
     assert r.exit_code == 0, r.output
     assert "joint_compliance" in r.output
     d = json.loads(out.read_text())

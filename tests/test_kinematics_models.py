@@ -133,3 +133,48 @@ def test_tiago_urdf_link_masses_include_everything_attached(tiago_dir):
     assert sum(lk.mass for lk in robot.links) == pytest.approx(total, rel=1e-12)
     # the hand (> 1 kg) hangs from arm_7
     assert robot.links[robot._joint_link[7]].mass > 1.0
+
+
+def _expand_summary(text: str) -> list[str]:
+    """Inverse of ``summarize_names``, written from its documented grammar only."""
+    import re
+
+    out = []
+    for part in re.split(r",\s*(?![^{]*\})", text):
+        m = re.fullmatch(r"(.*)_(\d+)…(\d+)", part)
+        if m:
+            out += [f"{m[1]}_{i}" for i in range(int(m[2]), int(m[3]) + 1)]
+            continue
+        m = re.fullmatch(r"([^{]*)_\{(.*)\}", part)
+        if m:
+            out += [f"{k}_{t}" for k in m[1].split("/") for t in m[2].split(", ")]
+            continue
+        head, sep, tails = part.rpartition("_")
+        if sep and "/" in tails:
+            out += [f"{head}_{t}" for t in tails.split("/")]
+        elif "/" in part and "_" in part:  # keys merged before one suffix: a/b_T
+            keys, tail = part.split("_", 1)
+            out += [f"{k}_{tail}" for k in keys.split("/")]
+        else:
+            out.append(part)
+    return out
+
+
+@pytest.mark.parametrize("factory", [planar2, puma560, puma560_fu, stanford])
+def test_summarized_names_recover_every_name(factory):
+    """The one-line summary in an unknown-parameter message names each parameter exactly once."""
+    from estcal.kinematics.parameters import summarize_names
+
+    names = factory().params.names
+    text = summarize_names(names)
+    assert sorted(_expand_summary(text)) == sorted(names)
+    assert len(text) < sum(len(n) + 2 for n in names)
+
+
+def test_summarized_urdf_names_recover_every_name():
+    from estcal.kinematics.parameters import summarize_names
+
+    joints = ["torso_lift_joint", "arm_1_joint", "arm_2_joint"]
+    names = [f"base_{c}" for c in ("tx", "ty", "rz")] + [f"{k}_{j}" for j in joints for k in ("tx", "rz")] \
+        + [f"offset_{j}" for j in joints] + ["compliance_2"]
+    assert sorted(_expand_summary(summarize_names(names))) == sorted(names)

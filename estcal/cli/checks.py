@@ -122,8 +122,11 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[st
         except OSError:
             continue
     for opt, p in outputs.items():
-        if p is None or str(p) == "-":
+        if p is None:
             continue
+        if str(p) == "-":  # without this, a file literally named '-'
+            fail(f"{opt} -: output files are written atomically and cannot go to standard output — give a file "
+                 f"name (the summary is printed on standard output)")
         p = Path(p)
         if p.is_dir():
             example = _EXAMPLE_NAME.get(opt, "out.csv")

@@ -14,7 +14,7 @@ import typer
 from estcal.io.jsonio import write_json
 
 __all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
-           "EXIT_REFUSED", "save_model_or_fail"]
+           "EXIT_REFUSED", "save_model_or_fail", "check_held_out"]
 
 EXIT_INPUT = 2
 EXIT_REFUSED = 3
@@ -92,6 +92,36 @@ def check_distinct_poses(ds, minimum: int = 2) -> None:
         what = "all rows have the same joint readings" if distinct == 1 else f"only {distinct} different poses"
         refuse(f"{ds.where}: {what} ({ds.n} rows, lines {ds.lines[0]}–{ds.lines[-1]}) — a calibration needs "
                f"at least {minimum} different poses; measure the robot in other configurations")
+
+
+def check_held_out(fitted, held_out, role: str = "--validate") -> None:
+    """Keep fit and validation data apart: refuse (exit 2) a held-out dataset whose every
+    pose is also a fitted pose (the same file given twice, or a copy), and warn, naming
+    the lines, when some of its poses are (a validation score on them is a training score).
+
+    ``fitted``: datasets that enter the fit; ``held_out``: datasets scored only. With
+    ``role="session"`` the datasets of ``fitted`` are checked against each other instead
+    (two sessions that are one measurement).
+    """
+    import numpy as np
+
+    from estcal.io.dataset import shared_rows
+
+    pairs = ([(a, b) for i, a in enumerate(fitted) for b in fitted[i + 1:]] if role == "session"
+             else [(a, b) for b in held_out for a in fitted])
+    for a, b in pairs:
+        idx = shared_rows(a, b)
+        if idx.size == 0:
+            continue
+        what = (f"session {b.where}" if role == "session" else f"{role} {b.where}")
+        if idx.size == b.n:
+            fail(f"{what}: all its {b.n} poses are also in {a.where} (the same measurements, bit for bit) — "
+                 + ("give each session's own file" if role == "session" else
+                    "validation must use poses that were not fitted: give a held-out file"))
+        at = b.lines if b.lines is not None else np.arange(b.n) + 2  # header is line 1
+        lines = ", ".join(str(int(x)) for x in at[idx[:6]]) + (" …" if idx.size > 6 else "")
+        warn(f"{what}: {idx.size} of its {b.n} poses (lines {lines}) are also in {a.where} — "
+             + ("they are counted twice" if role == "session" else "their score is a training score, not a validation"))
 
 
 def save_model_or_fail(result, path, robot_spec) -> str:

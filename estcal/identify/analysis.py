@@ -39,6 +39,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .core import IdentifiabilityResult, identifiable, resolve_priorities
+from ..kinematics.parameters import summarize_names, unknown_name_message
 
 __all__ = ["gecaro_priorities", "priorities_from_matrix", "load_priorities", "observation_matrix", "identify",
            "select_identifiable", "expand_patterns", "gecaro_table2_priorities"]
@@ -134,10 +135,11 @@ def expand_patterns(names: Sequence[str], patterns) -> list[str]:
     for p in patterns:
         hit = [n for n in names if fnmatch.fnmatchcase(n, p)]
         if not hit and not any(ch in p for ch in "*?["):
-            raise ValueError(f"unknown parameter {p!r}; parameters are {list(names)}")
+            raise ValueError(unknown_name_message(p, names))
         out += hit
     if not out:
-        raise ValueError(f"patterns {list(patterns)} match no parameter; parameters are {list(names)}")
+        raise ValueError(f"patterns {list(patterns)} match no parameter. This model has {len(names)} parameters: "
+                         f"{summarize_names(names)}")
     keep = set(out)
     return [n for n in names if n in keep]
 

@@ -24,6 +24,24 @@ from pathlib import Path
 __all__ = ["atomic_path", "atomic_write", "atomic_write_text", "atomic_write_bytes", "atomic_savefig"]
 
 
+def _umask() -> int:
+    mask = os.umask(0)  # the only portable read of the umask is to set it
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _umask()
+
+
+def _final_mode(path: Path) -> int:
+    """The permission bits the file would have had if written in place: those of the file it
+    replaces, else the usual ``0o666 & ~umask`` (``mkstemp`` creates ``0o600``)."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_UMASK
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Context manager yielding the path of a temporary file beside ``path`` that replaces
@@ -38,6 +56,7 @@ def atomic_path(path):
         yield Path(tmp)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp, _final_mode(path))
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

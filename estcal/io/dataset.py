@@ -31,7 +31,8 @@ import numpy as np
 
 from estcal.io.textinput import CsvTable, read_csv
 
-__all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table"]
+__all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table",
+           "shared_rows"]
 
 CONTEXT_COLUMNS = ("t", "temperature", "payload")
 QUAT_COLUMNS = ("qw", "qx", "qy", "qz")
@@ -114,6 +115,29 @@ class Dataset:
     def __repr__(self) -> str:
         return (f"Dataset({self.where!r}, {self.n} poses, kind={self.kind!r}, points={self.n_points}, "
                 f"context={sorted(self.context)})")
+
+
+def _row_keys(ds: Dataset) -> np.ndarray:
+    """One opaque key per pose: its readings and measurements, bit for bit."""
+    cols = [ds.readings.reshape(ds.n, -1)]
+    for a in (ds.points, ds.R, ds.p):
+        if a is not None:
+            cols.append(np.asarray(a, float).reshape(ds.n, -1))
+    M = np.ascontiguousarray(np.hstack(cols), dtype=float) + 0.0  # + 0.0: -0.0 and 0.0 are one value
+    return M.view(np.dtype((np.void, M.dtype.itemsize * M.shape[1]))).ravel()
+
+
+def shared_rows(reference: Dataset, other: Dataset) -> np.ndarray:
+    """Indices of the poses of ``other`` that also occur in ``reference`` with identical joint
+    readings and identical measurements (bit for bit): rows a held-out file must not share
+    with the data that were fitted. Files of different layout share none. Vectorised
+    (``np.isin`` on row keys)."""
+    if reference.n == 0 or other.n == 0 or reference.kind != other.kind \
+            or reference.readings.shape[1] != other.readings.shape[1] \
+            or any((a is None) != (b is None) or (a is not None and np.shape(a)[1:] != np.shape(b)[1:])
+                   for a, b in ((reference.points, other.points), (reference.R, other.R), (reference.p, other.p))):
+        return np.zeros(0, int)
+    return np.flatnonzero(np.isin(_row_keys(other), _row_keys(reference)))
 
 
 def _point_columns(header: list[str]) -> int:

@@ -31,7 +31,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["ParameterVector", "ParameterError"]
+__all__ = ["ParameterVector", "ParameterError", "summarize_names", "unknown_name_message"]
 
 KINDS = ("geometric", "offset", "gain", "base", "tool", "marker", "effect", "other")
 
@@ -41,6 +41,55 @@ class ParameterError(KeyError):
 
     def __str__(self) -> str:  # KeyError quotes its message; we want plain text
         return str(self.args[0]) if self.args else ""
+
+
+def summarize_names(names: Sequence[str]) -> str:
+    """A one-line summary of parameter names for error messages, every name recoverable.
+
+    Two foldings are tried and the shorter is kept: by the last ``_`` (numbered Khalil/DH
+    names as a range, ``theta_1…6``; others by suffix, ``base_tx/ty/tz``) and by the first
+    ``_`` with equal suffix lists merged (URDF names: ``tx/ty/offset_{arm_1_joint, arm_2_joint}``).
+    """
+    last: dict[str, list[str]] = {}
+    for n in names:
+        head, sep, tail = n.rpartition("_")
+        last.setdefault(head + sep if sep else n, []).append(tail if sep else "")
+    parts = []
+    for key, tails in last.items():
+        if tails == [""]:
+            parts.append(key)
+        elif len(tails) > 2 and all(t.isdigit() for t in tails) and \
+                [int(t) for t in tails] == list(range(int(tails[0]), int(tails[0]) + len(tails))):
+            parts.append(f"{key}{tails[0]}…{tails[-1]}")
+        else:
+            parts.append(key + "/".join(tails))
+    by_last = ", ".join(parts)
+
+    first: dict[str, list[str]] = {}
+    for n in names:
+        head, sep, tail = n.partition("_")
+        first.setdefault(head, []).append(tail if sep else "")
+    merged: dict[tuple, list[str]] = {}
+    for key, tails in first.items():
+        merged.setdefault(tuple(tails), []).append(key)
+    parts = []
+    for tails, keys in merged.items():
+        if tails == ("",):
+            parts += keys
+        else:
+            parts.append("/".join(keys) + "_" + (tails[0] if len(tails) == 1 else "{" + ", ".join(tails) + "}"))
+    by_first = ", ".join(parts)
+    return min(by_last, by_first, key=len)
+
+
+def unknown_name_message(name: str, names: Sequence[str]) -> str:
+    """``unknown parameter 'x'. Did you mean …? This model has P parameters: …`` (one line)."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(names), n=5, cutoff=0.6)
+    hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    return (f"unknown parameter {name!r}.{hint} This model has {len(names)} parameters: "
+            f"{summarize_names(names)}")
 
 
 @dataclass
@@ -103,14 +152,7 @@ class ParameterVector:
         try:
             return self._index[name]
         except KeyError:
-            import difflib
-
-            close = difflib.get_close_matches(name, self.names, n=5, cutoff=0.6)
-            hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
-            raise ParameterError(
-                f"unknown parameter {name!r}.{hint} This model has {len(self.names)} parameters "
-                f"(see `ParameterVector.names`)."
-            ) from None
+            raise ParameterError(unknown_name_message(name, self.names)) from None
 
     def indices(self, names: Iterable[str]) -> np.ndarray:
         return np.array([self.index(n) for n in names], dtype=int)

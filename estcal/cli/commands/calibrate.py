@@ -325,6 +325,10 @@ def register(app: typer.Typer) -> None:
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
+        from estcal.cli.common import check_held_out
+
+        check_held_out(parts, [], "session")
+        check_held_out(parts, vals)
         if len(parts) > 1:
             from estcal.sessions.data import stack_sessions
 

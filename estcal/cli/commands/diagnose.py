@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import check_distinct_poses, fail, refuse, robot_for_data, save_model_or_fail, warn
+from estcal.cli.common import check_distinct_poses, check_held_out, fail, refuse, robot_for_data, save_model_or_fail, warn
 
 __all__ = ["register"]
 
@@ -101,6 +101,8 @@ def register(app: typer.Typer) -> None:
                 _fail(f"--effects: unknown effect(s) {bad}; registered: {', '.join(sorted(EFFECTS))}")
         for d in sessions:
             check_distinct_poses(d)  # after the option checks: usage errors first
+        check_held_out(sessions, [], "session")
+        check_held_out(sessions, vals)
         ds = sessions[0] if len(sessions) == 1 else sessions
         n_poses = sum(d.n for d in sessions)
         where = ", ".join(str(d) for d in data)

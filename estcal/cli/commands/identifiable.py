@@ -179,6 +179,9 @@ def register(app: typer.Typer) -> None:
             msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
             from estcal.cli.common import fail
 
+            if free is not None and msg.startswith(("unknown parameter", "patterns ")):
+                msg = f"--free: {msg}"
+
             fail(msg)
         _print(console, res)
         if json_path is not None:

@@ -22,7 +22,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail, refuse, robot_for_data, warn
+from estcal.cli.common import check_held_out, fail, refuse, robot_for_data, warn
 
 __all__ = ["register"]
 
@@ -93,6 +93,8 @@ def register(app: typer.Typer) -> None:
         for d in loaded + vals:
             for w in d.warnings:
                 warn(f"{d.where}: {w}")
+        check_held_out(loaded, [], "session")
+        check_held_out(loaded, vals)
         names = [session_name(s, i) for i, s in enumerate(sessions)]
         if len(set(names)) < len(names):
             names = [f"{n}#{i + 1}" for i, n in enumerate(names)]
