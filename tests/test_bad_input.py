@@ -599,6 +599,9 @@ OPTION_CASES = {
     "next-pose-state-bad-json": ("next-pose", ["--state", "{badjson}"],
                                  r"bad\.json, line 1, column \d+: invalid JSON in the state file"),
     "next-pose-state-binary": ("next-pose", ["--state", "{binjson}"], r"bin\.json: binary file"),
+    "next-pose-state-other-robot": ("next-pose", ["--state", "{stanford_state}"],
+                                    r"stanford_state\.json: 2 of the state's 3 parameters are not parameters of robot "
+                                    r"'puma560' \(r_1, alpha_0\) — was the state written for another robot\?"),
     "next-pose-sigma": ("next-pose", ["--state", "{badjson}", "--sigma", "-1"], r"--sigma -1: must be a number > 0"),
 }
 
@@ -608,8 +611,12 @@ def test_bad_option(base, tmp_path, case):
     cmd, extra, pattern = OPTION_CASES[case]
     (tmp_path / "bad.json").write_text('{"parameters": [1, 2,,]}')
     (tmp_path / "bin.json").write_bytes(b"\x00" * 20)
+    (tmp_path / "stanford_state.json").write_text(json.dumps({"parameters": ["r_1", "alpha_0", "theta_1"],
+                                                               "estimate": [0, 0, 0], "covariance": np.eye(3).tolist(),
+                                                               "robot": "stanford"}))
     fill = {"folder": str(base / "folder"), "pos": str(base / "pos.csv"), "tmp": str(tmp_path),
-            "badjson": str(tmp_path / "bad.json"), "binjson": str(tmp_path / "bin.json")}
+            "badjson": str(tmp_path / "bad.json"), "binjson": str(tmp_path / "bin.json"),
+            "stanford_state": str(tmp_path / "stanford_state.json")}
     args = [a.format(**fill) for a in extra]
     base_args = _opt(cmd, base, tmp_path)
     if "--state" in extra and "--state" in base_args:  # the case's state file replaces the default one
@@ -777,3 +784,16 @@ def test_online_stdin_header_checked(base):
     r = runner.invoke(app, ["online", "-", "--robot", "puma560", "--free", "base_*"],
                       input=csv_from([ls[0] + ",x"] + ls[1:3]))
     check(r, 2, r"<stdin>, line 1: columns 7 and 10 are both named 'x'")
+
+
+def test_next_pose_warns_when_the_state_names_another_robot(tmp_path):
+    """A state whose names all exist in the robot but that was computed for another one is used, with a warning."""
+    names = ["theta_2", "d_3"]
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"parameters": names, "estimate": [0, 0], "covariance": (1e-6 * np.eye(2)).tolist(),
+                             "robot": "puma560"}))
+    r = runner.invoke(app, ["next-pose", "-r", "puma560_fu", "--state", str(f), "--n-candidates", "20"])
+    assert r.exit_code == 0, r.output
+    assert re.search(r"warning: .*s\.json: the state was computed for robot 'puma560', not 'puma560_fu'", r.stderr)
+    r = runner.invoke(app, ["next-pose", "-r", "puma560", "--state", str(f), "--n-candidates", "20"])
+    assert r.exit_code == 0 and "warning" not in r.stderr, r.stderr

@@ -7,14 +7,12 @@ go to stderr, results to stdout.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import typer
 
 from estcal.io.jsonio import write_json
 
 __all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
-           "EXIT_REFUSED", "save_model_or_fail", "check_held_out"]
+           "EXIT_REFUSED", "save_model_or_fail", "check_held_out", "check_input_files"]
 
 EXIT_INPUT = 2
 EXIT_REFUSED = 3
@@ -92,6 +90,19 @@ def check_distinct_poses(ds, minimum: int = 2) -> None:
         what = "all rows have the same joint readings" if distinct == 1 else f"only {distinct} different poses"
         refuse(f"{ds.where}: {what} ({ds.n} rows, lines {ds.lines[0]}–{ds.lines[-1]}) — a calibration needs "
                f"at least {minimum} different poses; measure the robot in other configurations")
+
+
+def check_input_files(paths, what: str = "dataset", option: str = "") -> None:
+    """Fail (exit 2) unless every path is a readable file — before any work, with the message of
+    the input layer (:func:`estcal.io.textinput.check_input_file`: folder, missing file,
+    standard input, permission)."""
+    from estcal.io.textinput import InputError, check_input_file
+
+    for p in paths:
+        try:
+            check_input_file(p, what, InputError)
+        except InputError as exc:
+            fail(f"{option} {exc}" if option else str(exc))
 
 
 def check_held_out(fitted, held_out, role: str = "--validate") -> None:

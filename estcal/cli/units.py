@@ -39,7 +39,6 @@ DIMENSIONLESS = {
     "--map": "number of poses of the accuracy map",
     "--points": "number of measured / simulated points",
     "--seed": "random seed",
-    "--checkpoint-every": "number of rows between checkpoints",
     "--folds": "cross-validation folds",
     "--max-effects": "number of effects",
     "--every": "rows between status lines",

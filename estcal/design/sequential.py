@@ -46,12 +46,14 @@ class CalibrationState:
 
     JSON form: ``{"parameters": [names], "estimate": [...], "covariance": [[...]]}``.
     :meth:`from_json` also reads a :class:`~estcal.estimate.result.CalibrationResult`
-    JSON (``parameters`` as ``{name: {"estimate": ...}}`` plus ``covariance``).
+    JSON (``parameters`` as ``{name: {"estimate": ...}}`` plus ``covariance``); its
+    ``robot`` key, when present, is kept as :attr:`robot` (the robot it was computed for).
     """
 
     parameters: list
     estimate: np.ndarray
     covariance: np.ndarray
+    robot: str | None = None
 
     def __post_init__(self):
         self.parameters = list(self.parameters)
@@ -94,8 +96,9 @@ class CalibrationState:
             if "estimate" not in d:
                 raise ValueError(f"{where}: key 'estimate' missing")
             est = d["estimate"]
+        robot = d.get("robot") if isinstance(d.get("robot"), str) else None
         try:
-            return cls(names, est, d["covariance"])
+            return cls(names, est, d["covariance"], robot)
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from None
 
@@ -122,8 +125,11 @@ class CalibrationState:
         return cls(list(model.free), model.theta[model.robot.params.indices(model.free)], np.diag(s ** 2))
 
     def to_dict(self) -> dict:
-        return {"parameters": self.parameters, "estimate": self.estimate.tolist(),
-                "covariance": self.covariance.tolist(), "std": self.std.tolist()}
+        d = {"parameters": self.parameters, "estimate": self.estimate.tolist(),
+             "covariance": self.covariance.tolist(), "std": self.std.tolist()}
+        if self.robot is not None:
+            d["robot"] = self.robot
+        return d
 
     def to_json(self, path) -> Path:
         from estcal.io.jsonio import write_json

@@ -43,6 +43,9 @@ class InputError(ValueError):
 def check_input_file(path, what: str = "input", error=InputError) -> Path:
     """``path`` as a Path if it is a readable regular file, else ``error`` with a clear message."""
     p = Path(path)
+    if str(path) == "-":  # the rows of a batch command are read several times (header, units, data)
+        raise error(f"-: only `estcal online` reads rows from standard input — save the {what} to a file "
+                    f"and give its path")
     if p.is_dir():
         raise error(f"{p}: is a folder, not a {what} file — give the path of the file itself")
     if not p.exists():

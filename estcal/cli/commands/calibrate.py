@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from estcal.cli.common import (count_point_columns, fail, robot_for_data,
+from estcal.cli.common import (check_held_out, check_input_files, count_point_columns, fail, robot_for_data,
                                save_model_or_fail, warn, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
@@ -284,9 +284,7 @@ def register(app: typer.Typer) -> None:
         session_paths = list(data)
         data = session_paths[0]
         data_label = " + ".join(str(p) for p in session_paths)
-        for p in session_paths:
-            if not p.exists():
-                _fail(f"{p}: dataset file not found")
+        check_input_files(session_paths + list(validate))
 
         # Gough platforms have their own calibration entry point
         try:
@@ -325,7 +323,6 @@ def register(app: typer.Typer) -> None:
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
-        from estcal.cli.common import check_held_out
 
         check_held_out(parts, [], "session")
         check_held_out(parts, vals)

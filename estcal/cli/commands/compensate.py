@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail, warn
+from estcal.cli.common import check_input_files, fail, warn
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -73,8 +73,7 @@ def register(app: typer.Typer) -> None:
         from estcal.io.robotfile import load_robot
 
         console = Console(stderr=False, width=120)
-        if not targets.exists():
-            fail(f"{targets}: file not found")
+        check_input_files([targets], "targets")
         # outputs equal to TARGETS or to each other are refused by estcal.cli.checks.guard
         for opt, v in (("--tol-mm", tol_mm), ("--tol-mrad", tol_mrad), ("--rot-weight-m", rot_weight_m)):
             if not v > 0:

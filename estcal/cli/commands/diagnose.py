@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import check_distinct_poses, check_held_out, fail, refuse, robot_for_data, save_model_or_fail, warn
+from estcal.cli.common import check_distinct_poses, check_held_out, check_input_files, fail, refuse, robot_for_data, save_model_or_fail, warn
 
 __all__ = ["register"]
 
@@ -75,9 +75,7 @@ def register(app: typer.Typer) -> None:
 
         noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
             resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
-        for d in data:
-            if not d.exists():
-                _fail(f"{d}: dataset file not found")
+        check_input_files(list(data) + list(validate))
         rob, n_markers = robot_for_data(robot, data[0], root=root, tip=tip, points=points)
         if urdf_masses and rob.meta.get("urdf"):
             from estcal.discrepancy.masses import with_urdf_masses

@@ -28,13 +28,12 @@ def register(app: typer.Typer) -> None:
         What a URDF cannot hold (gains ≠ 1, coupling, effects, markers) is named in a warning.
         Check the result with `estcal fk DATA --robot OUT.urdf --root ROOT --tip TIP`.
         """
-        from estcal.cli.common import fail, write_json
+        from estcal.cli.common import check_input_files, fail, write_json
         from estcal.io.robotfile import load_robot
         from estcal.kinematics.urdf_export import export_urdf
 
         if from_urdf is not None:
-            if not from_urdf.exists():
-                fail(f"--from-urdf {from_urdf}: file not found")
+            check_input_files([from_urdf], "URDF", "--from-urdf")
             if urdf.resolve() == from_urdf.resolve():
                 fail(f"--urdf {urdf} is the original URDF; write the calibrated copy to another file "
                      f"(inputs are never overwritten)")

@@ -22,7 +22,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import check_held_out, fail, refuse, robot_for_data, warn
+from estcal.cli.common import check_held_out, check_input_files, fail, refuse, robot_for_data, warn
 
 __all__ = ["register"]
 
@@ -77,9 +77,7 @@ def register(app: typer.Typer) -> None:
         if recalibrate < 0:
             fail("--recalibrate must be ≥ 0")
         check_outputs({"--json": json_path}, list(data) + list(validate))
-        for d in list(data) + list(validate):
-            if not d.exists():
-                fail(f"{d}: file not found")
+        check_input_files(list(data) + list(validate))
         rob, n_markers = robot_for_data(robot, data[0], root=root, tip=tip, points=points)
         try:
             loaded = [load_dataset(d, rob, points=n_markers) for d in data]
