@@ -52,7 +52,8 @@ OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state
                   "--html", "--urdf")
 
 
-_EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml"}
+_EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml",
+                 "--chain": "chain.h5", "--option chain": "chain.h5"}
 
 
 def _describe(rule) -> str:

@@ -153,9 +153,14 @@ def open_chain(path, *, names, fp: str, n_walkers: int, ndim: int):
     import h5py
 
     path = Path(path)
+    if path.is_dir():
+        raise ChainFileError(f"{path}: is a folder — give a file name for the chain (e.g. {path / 'chain.h5'})")
     backend = BufferedHDFBackend(str(path))
     if not path.exists() or path.stat().st_size == 0:
         return backend, None
+    if not h5py.is_hdf5(path):
+        raise ChainFileError(f"{path}: not an HDF5 file — estcal creates the chain file: give a new file name, or "
+                             f"the file of an earlier chain to continue it")
     try:
         with h5py.File(path, "r") as f:
             if "mcmc" not in f or int(f["mcmc"].attrs.get("iteration", 0)) == 0:

@@ -7,6 +7,7 @@ Modules are imported lazily so optional backends cost nothing until used.
 from __future__ import annotations
 
 import importlib
+import math
 
 __all__ = ["ESTIMATORS", "get_estimator", "register_estimator", "estimator_names", "estimator_options",
            "check_options"]
@@ -93,6 +94,20 @@ def estimator_options(name: str) -> dict:
     return out
 
 
+#: accepted values of numeric estimator options, by name (``--option KEY=VALUE``): counts are
+#: integers ≥ 1, tolerances and scales are > 0; any other number must be finite
+OPTION_RANGES = [
+    ({"batch_size", "check_every", "lags", "max_iter", "max_steps", "min_steps", "n_walkers", "passes",
+      "poses_per_factor", "chunk"}, (lambda v: v >= 1 and float(v).is_integer(), "an integer ≥ 1")),
+    ({"burn_in", "seed"}, (lambda v: v >= 0 and float(v).is_integer(), "an integer ≥ 0")),
+    ({"final_sigma", "init_scale", "proposal_scale", "relinearize_sigma", "relinearize_threshold", "robust_k",
+      "target_ess", "tau_factor", "tol", "ukf_alpha", "noise_scale", "encoder_std", "prior_std"},
+     (lambda v: math.isfinite(v) and v > 0, "a finite number > 0")),
+    ({"q"}, (lambda v: math.isfinite(v) and v >= 0, "a finite number ≥ 0")),
+    ({"level"}, (lambda v: 0 < v < 1, "a number strictly between 0 and 1")),
+]
+
+
 def check_options(name: str, options) -> None:
     """Raise ``ValueError`` naming the estimator and its valid keys when an option is unknown."""
     import difflib
@@ -110,3 +125,8 @@ def check_options(name: str, options) -> None:
         if isinstance(d, (int, float)) and not isinstance(d, bool) and not (
                 isinstance(v, (int, float)) and not isinstance(v, bool)):
             raise ValueError(f"estimator {name!r}, option {k!r}: expected a number (default {d!r}), got {v!r}")
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            rule = next((r for keys, r in OPTION_RANGES if k in keys), None)
+            if not math.isfinite(v) or (rule is not None and not rule[0](v)):
+                raise ValueError(f"estimator {name!r}, option {k}={v!r}: must be "
+                                 f"{rule[1] if rule else 'a finite number'}")

@@ -349,6 +349,11 @@ def register(app: typer.Typer) -> None:
             if estimator != "mcmc":
                 _fail(f"--chain stores an MCMC chain: it needs --method mcmc, not {estimator!r}")
             options["chain"] = str(chain)
+        if options.get("chain") is not None:  # read to continue, rewritten every block: an output path
+            from estcal.cli.checks import check_outputs
+
+            check_outputs({"--chain" if chain is not None else "--option chain": Path(str(options["chain"]))},
+                          session_paths + list(validate) + ([Path(robot)] if Path(robot).is_file() else []))
         reg_value = _regularize(regularize)
         if robust is not None:
             if robust not in ("huber", "cauchy"):
