@@ -417,6 +417,19 @@ ROBOT_CASES = {
                  r"inf\.yaml: joint 'j1': 'd' must be finite"),
     "ragged-coupling": (_r("coup", lambda b: _yaml(b) + "coupling: {joint: [[1, 0], [0]]}\n"),
                         r"coup\.yaml: coupling: 'joint' must be a 6x6 matrix of numbers"),
+    "gain-zero": (_r("gain0", lambda b: _yaml(b).replace("  gain: 1.0\n", "  gain: 0.0\n", 1)),
+                  r"gain0\.yaml: joint 'j1': 'gain' must be non-zero"),
+    "length-in-mm": (_r("mm", lambda b: _yaml(b).replace("  d: 0.3728974\n", "  d: 372.8974\n", 1)),
+                     r"mm\.yaml: joint 'j1': 'd' reaches 372\.897 m, beyond 50 m — are the lengths in millimetres\? "
+                     r"add `units: \{length: mm\}`"),
+    "angle-in-degrees": (_r("deg", lambda b: re.sub(r"  alpha: -1\.5707963\d*\n", "  alpha: -90\n", _yaml(b), count=1)),
+                         r"deg\.yaml: joint 'j1': 'alpha' reaches 90 rad, beyond ±2π — are the angles in degrees\?"),
+    "limits-in-degrees": (_r("limdeg", lambda b: re.sub(r"limits: \[(-[0-9.e-]+), ([0-9.e-]+)\]", "limits: [-160, 160]",
+                                                        _yaml(b), count=1)),
+                          r"limdeg\.yaml: joint 'j1': 'limits' reaches 160 rad, beyond ±4π"),
+    "tool-in-mm": (_r("toolmm", lambda b: re.sub(r"tool:\n  xyz: \[[^]]*\]", "tool:\n  xyz: [0, 0, 56.25]", _yaml(b),
+                                                 count=1)),
+                   r"toolmm\.yaml: tool: 'xyz' reaches 56\.25 m, beyond 50 m"),
     "unknown-unit": (_r("unit", lambda b: _yaml(b).replace("name: puma560\n", "name: p\nunits: {length: ft}\n")),
                      r"unit\.yaml: units: unknown length unit 'ft'"),
 }
@@ -479,9 +492,14 @@ URDF_CASES = {
     "binary": (b"\x00\xff" * 100, [], r"bin\.urdf: binary file"),
     "zero-axis": (GOOD_URDF.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>', 1), [],
                   r"axis\.urdf: joint 'a': <axis xyz> must be a non-zero 3-vector"),
+    "origin-in-mm": (GOOD_URDF.replace('<origin xyz="0 0 0.1"', '<origin xyz="0 0 100"', 1), [],
+                     r"mm\.urdf: joint 'a': <origin xyz> reaches 100 m, beyond 50 m — URDF lengths are metres"),
+    "limit-in-degrees": (GOOD_URDF.replace('lower="-1" upper="1"', 'lower="-170" upper="170"', 1), [],
+                         r"deg\.urdf: joint 'a': <limit> \[-170, 170\] is beyond ±4π rad — URDF angles are radians"),
 }
 _URDF_FILE = {"two-parents": "two", "bad-xml": "bad", "not-a-robot": "foo", "joint-without-child": "nochild", "no-limit": "nolim", "undeclared-link": "undecl",
-              "wrong-tip": "good", "wrong-root": "good", "binary": "bin", "zero-axis": "axis"}
+              "wrong-tip": "good", "wrong-root": "good", "binary": "bin", "zero-axis": "axis",
+              "origin-in-mm": "mm", "limit-in-degrees": "deg"}
 
 
 @pytest.mark.parametrize("case", URDF_CASES)

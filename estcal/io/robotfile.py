@@ -95,6 +95,26 @@ class _Ctx:
                 raise self.err(where, f"unknown key {k!r}{_suggest(k, valid)}; valid keys: {', '.join(valid)}")
 
 
+#: physical range of a robot-file value once in SI; beyond it the file's unit is wrong (a length in
+#: millimetres, an angle in degrees without a ``units:`` line). Joint limits may span several turns.
+MAX_LENGTH_M = 50.0
+MAX_ANGLE_RAD = 2 * np.pi
+MAX_LIMIT_RAD = 4 * np.pi
+
+
+def _check_unit(ctx: _Ctx, where: str, key: str, value_si, angle: bool, limit: bool = False) -> None:
+    """Refuse a value beyond the physical range of its unit, naming the likely mistake."""
+    v = np.max(np.abs(np.atleast_1d(value_si)))
+    if angle:
+        top = MAX_LIMIT_RAD if limit else MAX_ANGLE_RAD
+        if v > top:
+            raise ctx.err(where, f"{key!r} reaches {v:.6g} rad, beyond ±{'4π' if limit else '2π'} — are the angles "
+                                 f"in degrees? add `units: {{angle: deg}}` at the top of the file, or convert")
+    elif v > MAX_LENGTH_M:
+        raise ctx.err(where, f"{key!r} reaches {v:.6g} m, beyond {MAX_LENGTH_M:g} m — are the lengths in "
+                             f"millimetres? add `units: {{length: mm}}` at the top of the file, or convert")
+
+
 def _frame6(ctx: _Ctx, d, key: str, lu: float, au: float) -> dict:
     """``{xyz, rpy}`` -> SI dict (both optional, default zero)."""
     if d is None:
@@ -165,6 +185,9 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
                 raise ctx.err(where, "no 'origin' {xyz, rpy} — give it ({xyz: [0, 0, 0], rpy: [0, 0, 0]} where "
                                      "the joint frame is the parent's) so that a missing line is not read as zeros")
             o = _frame6(ctx, jd.get("origin"), f"{where}: origin", lu, au)
+            if strict:
+                _check_unit(ctx, f"{where}: origin", "xyz", o["xyz"], False)
+                _check_unit(ctx, f"{where}: origin", "rpy", o["rpy"], True)
             f["origin"] = make_transform(rpy_to_matrix(o["rpy"]), o["xyz"])
             ax = ctx.vector(jd.get("axis", [0, 0, 1]), 3, where, "axis")
             if np.linalg.norm(ax) == 0:
@@ -183,6 +206,8 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
             for k in _CONV_KEYS[conv]:
                 if k in jd:
                     f[k] = ctx.number(jd[k], where, k) * (au if k in _ANGLE_KEYS else lu)
+                    if strict:
+                        _check_unit(ctx, where, k, f[k], k in _ANGLE_KEYS)
         ju = au if jtype == "revolute" else lu  # unit of the joint variable
         if jtype == "fixed":
             for k in ("offset", "gain", "limits", "gear_ratio"):
@@ -191,12 +216,19 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
         else:
             if "offset" in jd:
                 f["offset"] = ctx.number(jd["offset"], where, "offset") * ju
+                if strict:
+                    _check_unit(ctx, where, "offset", f["offset"], jtype == "revolute")
             if "gain" in jd:
                 f["gain"] = ctx.number(jd["gain"], where, "gain")
+                if f["gain"] == 0:
+                    raise ctx.err(where, "'gain' must be non-zero (q = gain · reading + offset: a zero gain "
+                                         "freezes the joint; 1 for a transmission without error)")
             if "limits" in jd:
                 lim = ctx.vector(jd["limits"], 2, where, "limits") * ju
                 if not lim[0] < lim[1]:
                     raise ctx.err(where, f"'limits' must be [lower, upper] with lower < upper, got {jd['limits']}")
+                if strict:
+                    _check_unit(ctx, where, "limits", lim, jtype == "revolute", limit=True)
                 f["limits"] = lim.tolist()
             elif jtype == "prismatic":
                 raise ctx.err(where, "a prismatic joint needs 'limits' (metres)")
@@ -262,9 +294,16 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
         if tool_mass[0] < 0:
             raise ctx.err("tool", f"'mass' must be >= 0 kg, got {tool_mass[0]}")
         tool_d = {k: v for k, v in tool_d.items() if k in ("xyz", "rpy")}
+    base_f, tool_f = _frame6(ctx, d.get("base"), "base", lu, au), _frame6(ctx, tool_d, "tool", lu, au)
+    if strict:
+        for key, fr in (("base", base_f), ("tool", tool_f)):
+            _check_unit(ctx, key, "xyz", fr["xyz"], False)
+            _check_unit(ctx, key, "rpy", fr["rpy"], True)
+        if markers is not None:
+            _check_unit(ctx, "markers", "marker", markers, False)
     try:
-        robot = build_robot(name, frames, base=_frame6(ctx, d.get("base"), "base", lu, au),
-                            tool=_frame6(ctx, tool_d, "tool", lu, au), markers=markers,
+        robot = build_robot(name, frames, base=base_f,
+                            tool=tool_f, markers=markers,
                             gravity=gravity, payload=payload, coupling=coupling, convention=convention,
                             tool_const=_tool_const(ctx, d.get("tool_origin"), lu, au), meta=meta)
     except ValueError as exc:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.io.robotfile import RobotFileError
+from estcal.io.robotfile import MAX_LENGTH_M, MAX_LIMIT_RAD, RobotFileError
 
 from .builder import build_robot
 from .chain import SerialRobot
@@ -97,6 +97,11 @@ def _check_tree(urdf, path) -> None:
             raise RobotFileError(f"{path}: link {j.child!r} has two parent joints ({parent_of[j.child]!r} and "
                                  f"{j.name!r}) — a URDF must be a tree; remove one")
         parent_of[j.child] = j.name
+        if j.origin is not None:
+            t = np.abs(np.asarray(j.origin, float)[:3, 3]).max()
+            if t > MAX_LENGTH_M:
+                raise RobotFileError(f"{path}: joint {j.name!r}: <origin xyz> reaches {t:g} m, beyond {MAX_LENGTH_M:g} m "
+                                     f"— URDF lengths are metres (is the file in millimetres?)")
 
 
 def root_links(urdf) -> list[str]:
@@ -201,6 +206,12 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
             lo, hi = float(j.limit.lower), float(j.limit.upper)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
                 raise RobotFileError(f"{path}: joint {j.name!r}: <limit> needs lower < upper, got [{lo:g}, {hi:g}]")
+            if j.type == "revolute" and max(abs(lo), abs(hi)) > MAX_LIMIT_RAD:
+                raise RobotFileError(f"{path}: joint {j.name!r}: <limit> [{lo:g}, {hi:g}] is beyond ±4π rad — URDF "
+                                     f"angles are radians (degrees?)")
+            if j.type == "prismatic" and max(abs(lo), abs(hi)) > MAX_LENGTH_M:
+                raise RobotFileError(f"{path}: joint {j.name!r}: <limit> [{lo:g}, {hi:g}] is beyond {MAX_LENGTH_M:g} m "
+                                     f"— URDF lengths are metres (millimetres?)")
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], float)
         if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
             raise RobotFileError(f"{path}: joint {j.name!r}: <axis xyz> must be a non-zero 3-vector, got {j.axis}")
