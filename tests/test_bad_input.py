@@ -828,3 +828,53 @@ def test_next_pose_warns_when_the_state_names_another_robot(tmp_path):
     assert re.search(r"warning: .*s\.json: the state was computed for robot 'puma560', not 'puma560_fu'", r.stderr)
     r = runner.invoke(app, ["next-pose", "-r", "puma560", "--state", str(f), "--n-candidates", "20"])
     assert r.exit_code == 0 and "warning" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("args,pattern", [
+    (["demo", "--n", "4"], r"numerical refusal: --n 4: the simulated calibration set: 4 poses give 24 equations for "
+                           r"24 free parameters \(degrees of freedom 0 ≤ 0\)"),
+    (["design", "-r", "puma560", "--n", "30", "--candidates", "{five}"],
+     r"numerical refusal: --candidates .*five\.csv: its 5 poses \(5 distinct\) determine only 15 of the 25 free "
+     r"parameters"),
+], ids=["demo-dof-zero", "design-candidates-rank"])
+def test_degenerate_requests_are_refused(base, tmp_path, args, pattern):
+    """Simulated or candidate data that cannot determine the parameters: exit 3, not a printed result."""
+    five = write(tmp_path, "five.csv", csv_from(lines_of(base)[:6]))
+    check(runner.invoke(app, [a.format(five=five) for a in args]), 3, pattern)
+
+
+def test_identifiable_from_too_few_rows_warns(base, tmp_path):
+    """A data-level analysis on fewer equations than parameters says that the data, not the robot, limit it."""
+    two = write(tmp_path, "two.csv", csv_from(lines_of(base)[:3]))
+    r = runner.invoke(app, ["identifiable", "-r", "puma560", "--data", two])
+    assert r.exit_code == 0, r.output
+    assert re.search(r"warning: .*two\.csv: 6 equations \(2 poses\) for 54 parameters — at most 6 can be identifiable",
+                     r.stderr), r.stderr
+    assert "6 of 54 parameters identifiable" in r.stdout
+    r = runner.invoke(app, ["identifiable", "-r", "puma560", "--data", str(base / "pos.csv")])
+    assert r.exit_code == 0 and "warning" not in r.stderr, r.stderr
+
+
+def test_simulate_refuses_what_memory_cannot_hold(tmp_path, monkeypatch):
+    """The estimate (bytes per pose × --n) against the memory available: refused before the work."""
+    import estcal.cli.commands.simulate as sim
+
+    monkeypatch.setattr(sim, "_available_memory", lambda: 10 * 1000 * sim.BYTES_PER_POSE)  # room for 8,000 poses
+    out = tmp_path / "s.csv"
+    r = runner.invoke(app, ["simulate", "--n", "9000", "-o", str(out)])
+    check(r, 2, r"--n 9000: simulating 9,000 poses needs about 0\.0 GB of memory and 0\.0 GB are available")
+    assert not out.exists()
+    r = runner.invoke(app, ["simulate", "--n", "7000", "-o", str(out)])
+    assert r.exit_code == 0 and out.exists(), r.output
+
+
+def test_available_memory_reads_meminfo():
+    import estcal.cli.commands.simulate as sim
+
+    avail = sim._available_memory()
+    if avail is None:
+        pytest.skip("no /proc/meminfo")
+    import os
+
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")  # an independent reading
+    assert 0 < avail <= total

@@ -26,6 +26,7 @@ def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos
     nominal = load_robot(robot)
     noise = {"position": sigma_pos, "orientation": sigma_rot}
     train = simulate(nominal, n_poses=n_poses, measure="pose", errors="random", noise=noise, seed=seed)
+    train.dataset.path = "the simulated calibration set"  # named in messages
     # the same true robot, other poses: simulate with the train truth as explicit errors
     truth = {n: v for n, v in zip(nominal.params.names, train.true_robot.params.values - nominal.params.values)
              if v != 0.0}
@@ -33,7 +34,8 @@ def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos
     res, sel, problem = run_calibration(
         nominal, train.dataset, level="full", validate=[valid.dataset],
         noise=NoiseModel(position=sigma_pos, orientation=sigma_rot, known=True), estimator=estimator,
-        selection="structural")  # the full identifiable set (QR), as the textbook counts it
+        selection="structural",  # the full identifiable set (QR), as the textbook counts it
+        checks=True)  # the refusals of `estcal calibrate` (dof ≤ 0, non-convergence, ill-conditioning)
     # The estimated (base) parameters absorb the errors of the regrouped ones, so the
     # truth to compare with is the same model fitted to noise-free measurements.
     from estcal.estimate import calibrate_lsq
@@ -73,8 +75,14 @@ def register(app: typer.Typer) -> None:
 
         from estcal.cli.common import fail, message
 
+        from estcal.estimate.checks import NumericalRefusal
+
         try:
             out = run_demo(robot, n, seed, estimator=estimator)
+        except NumericalRefusal as exc:
+            from estcal.cli.common import refuse
+
+            refuse(f"--n {n}: {exc} (here: raise --n)")
         except (ValueError, KeyError, FileNotFoundError) as exc:
             fail(message(exc))
         res = out.pop("result")

@@ -99,6 +99,18 @@ def register(app: typer.Typer) -> None:
             if q_test is None and CRITERIA[crit][1]:
                 q_test = default_test_pose(rb)
             cand = None if candidates is None else load_candidates(candidates, rb, degrees)
+            if cand is not None and model.prior_information is None:
+                # a plan drawn from candidates can determine no more than the candidates together
+                J = model.jacobian(cand).reshape(-1, model.p)
+                scale = np.linalg.norm(J, axis=0)
+                r = int(np.linalg.matrix_rank(J / np.where(scale > 0, scale, 1.0))) if J.size else 0
+                if r < model.p:
+                    from estcal.cli.common import refuse
+
+                    n_distinct = len(np.unique(np.asarray(cand), axis=0))
+                    refuse(f"--candidates {candidates}: its {len(cand)} poses ({n_distinct} distinct) determine "
+                           f"only {r} of the {model.p} free parameters — every plan drawn from them has a singular "
+                           f"information matrix; give more and better-spread candidates, or fewer --free parameters")
             if algorithm == "continuous":
                 if cand is not None:
                     raise ValueError("--candidates applies to the discrete algorithms, not 'continuous'")

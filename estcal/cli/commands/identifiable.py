@@ -183,6 +183,12 @@ def register(app: typer.Typer) -> None:
                 msg = f"--free: {msg}"
 
             fail(msg)
+        if data is not None and not isinstance(res, dict) and res.n_rows < res.n_parameters:
+            from estcal.cli.common import warn
+
+            warn(f"{data}: {res.n_rows} equations ({res.meta.get('n_poses')} poses) for {res.n_parameters} "
+                 f"parameters — at most {res.n_rows} can be identifiable from these data, whatever the robot; "
+                 f"without --data the structural analysis uses random configurations (--n-poses)")
         _print(console, res)
         if json_path is not None:
             d = res if isinstance(res, dict) else res.to_dict()

@@ -48,6 +48,34 @@ def _load_errors(errors: str):
     return out
 
 
+#: measured peak memory of `estcal simulate` per pose (0.8 kB position, 1.0 kB three points at 2·10⁵
+#: poses; docs/benchmarks.md "Memory on large datasets"), with a margin for effects and context columns
+BYTES_PER_POSE = 1500
+
+
+def _available_memory() -> int | None:
+    """MemAvailable of /proc/meminfo in bytes (None where there is no such file)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(n: int) -> None:
+    """Refuse, before the work, a simulation that would not fit in the memory available now
+    (the dataset is built whole, then written atomically): a clear message instead of the
+    operating system killing the process after minutes."""
+    avail = _available_memory()
+    need = n * BYTES_PER_POSE
+    if avail is not None and need > 0.8 * avail:
+        fail(f"--n {n}: simulating {n:,} poses needs about {need / 1e9:.1f} GB of memory and {avail / 1e9:.1f} GB "
+             f"are available — simulate several smaller files (different --seed) or lower --n")
+
+
 def _simulate_fleet(console, n_robots, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler, json_path):
     from estcal.cli.common import fail
     from estcal.scale.runner import check_scheduler
@@ -177,6 +205,7 @@ def register(app: typer.Typer) -> None:
         console = Console()
         if true_model is not None and true_model.suffix.lower() not in (".yaml", ".yml"):
             fail(f"--true-model {true_model}: a robot file must end in .yaml or .yml")
+        check_memory(n * (fleet or 1))
         if fleet is not None:
             _simulate_fleet(console, fleet, out, robot, n, measure, noise_pos, noise_rot, seed, scheduler,
                             json_path)
