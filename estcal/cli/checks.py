@@ -53,7 +53,8 @@ OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state
 
 
 _EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml",
-                 "--chain": "chain.h5", "--option chain": "chain.h5"}
+                 "--chain": "chain.h5", "--option chain": "chain.h5",
+                 "--state": "online.state"}
 
 
 def _describe(rule) -> str:

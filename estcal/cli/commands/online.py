@@ -55,6 +55,28 @@ def _lines(data: str, block: int = 1 << 20):
             yield from carry.splitlines(keepends=True)
 
 
+def _check_free_identifiable(problem, where) -> None:
+    """An explicit ``--free`` set must be identifiable from the whole file, as in ``estcal
+    calibrate`` (a filter would otherwise print prior-only parameters and drifting
+    combinations as estimates). Large files: the chunked R factor (same column relations)."""
+    from estcal.cli.common import fail
+    from estcal.estimate.lsq import UnidentifiableError, check_identifiable
+    from estcal.estimate.reduced import reduce_system, use_chunks
+
+    pv = problem.params
+    fidx = pv.free_indices
+    ck = use_chunks(problem)
+    if ck is not None:
+        A = reduce_system(problem, pv.values, fidx, ck)[0]
+    else:
+        rows = problem.evaluate(pv.values)
+        A = rows.H[:, fidx] / rows.sigma[:, None]
+    try:
+        check_identifiable(A, pv.free_names)
+    except UnidentifiableError as exc:
+        fail(f"--free: {where}: {exc}")
+
+
 def register(app: typer.Typer) -> None:
     @app.command("online")
     def online_cmd(
@@ -166,7 +188,11 @@ def register(app: typer.Typer) -> None:
                      f"{'; '.join(diff)} — give the same options to continue it")
             if state_path is None:
                 state_path = resume
-        elif state_path is not None and state_path.exists():
+        if state_path is not None:  # a folder, an input file, an unwritable place: before the work
+            from estcal.cli.checks import check_outputs
+
+            check_outputs({"--state": state_path}, [Path(data)] if data != "-" else [])
+        if resume is None and state_path is not None and state_path.exists():
             fail(f"--state {state_path}: the file exists (a previous run's checkpoint?) — continue it with "
                  f"--resume {state_path}, or remove it / choose another path")
 
@@ -206,11 +232,13 @@ def register(app: typer.Typer) -> None:
             del prob_all
         else:
             names_pat = rb.params.free_names
-        del ds_all  # checked; the rows are streamed below
         try:
             rb = rb.copy(rb.params.with_free(names_pat))
         except KeyError as exc:
-            fail(exc)
+            fail(f"--free: {exc}" if free else exc)
+        if free and saved is None and ds_all is not None:
+            _check_free_identifiable(Problem(rb, [(meth, ds_all, noise)]), data)
+        del ds_all  # checked; the rows are streamed below
         pv = rb.params
         fidx = pv.free_indices
         names = pv.free_names
