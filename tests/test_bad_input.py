@@ -885,3 +885,23 @@ def test_available_memory_reads_meminfo():
 
     total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")  # an independent reading
     assert 0 < avail <= total
+
+
+def test_fleet_outputs_never_land_on_a_robots_inputs(tmp_path):
+    """The files the fleet's robots read are inputs; a broken robot is reported by its loader's message."""
+    fl = tmp_path / "fl"
+    assert runner.invoke(app, ["simulate", "--fleet", "2", "--out", str(fl), "--n", "20"]).exit_code == 0
+    data = fl / "robot_0000" / "data.csv"
+    before = data.read_bytes()
+    check(runner.invoke(app, ["fleet", str(fl), "--json", str(data)]), 2,
+          r"--json .*robot_0000/data\.csv: is also an input file of this command")
+    check(runner.invoke(app, ["fleet", str(fl), "--save-models", str(data)]), 2,
+          r"--save-models .*data\.csv: is a file — give a folder")
+    assert data.read_bytes() == before
+    (fl / "robot_0001" / "data.csv").write_bytes(b"\x00\x00")
+    r = runner.invoke(app, ["fleet", str(fl), "--json", str(fl / "summary.json")])
+    assert r.exit_code == 0, r.output
+    assert re.search(r"failed: robot_0001 .*DatasetError: .*robot_0001/data\.csv: binary file", r.stderr), r.stderr
+    assert "Exit" not in r.stderr
+    failures = json.loads((fl / "summary.json").read_text())["failures"]
+    assert "binary file" in json.dumps(failures)

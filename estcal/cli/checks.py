@@ -47,7 +47,7 @@ NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)
-OUTPUT_FOLDER_OPTIONS = ("--report", "--out", "--out-dir", "--output-dir")
+OUTPUT_FOLDER_OPTIONS = ("--report", "--out", "--out-dir", "--output-dir", "--save-models")
 OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
                   "--html", "--urdf")
 

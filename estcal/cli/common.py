@@ -44,17 +44,12 @@ def warn(msg) -> None:
 def count_point_columns(path) -> tuple[int, bool, bool]:
     """(k points x1..zk, has x,y,z, has quaternion) from a CSV header (exits with a
     clear message when the file cannot be read as a dataset)."""
-    from estcal.io.dataset import DatasetError
-    from estcal.io.textinput import read_csv_header
+    from estcal.io.dataset import DatasetError, measurement_layout
 
     try:
-        header = read_csv_header(path, "dataset", DatasetError)
+        return measurement_layout(path)
     except DatasetError as exc:
         fail(exc)
-    k = 0
-    while all(f"{c}{k + 1}" in header for c in "xyz"):
-        k += 1
-    return k, all(c in header for c in "xyz"), all(c in header for c in ("qw", "qx", "qy", "qz"))
 
 
 def robot_for_data(spec, data, root=None, tip=None, points=None):

@@ -147,6 +147,18 @@ def _point_columns(header: list[str]) -> int:
     return k
 
 
+def measurement_layout(path) -> tuple[int, bool, bool]:
+    """``(k, has_xyz, has_quaternion)`` of a dataset file from its header alone: ``k`` numbered
+    points ``x1,y1,z1 … xk,yk,zk``, a single point ``x,y,z``, a quaternion ``qw,qx,qy,qz``.
+    Reads the header line only (:func:`estcal.io.textinput.read_csv_header`); raises
+    :class:`DatasetError` naming the file."""
+    from estcal.io.textinput import read_csv_header
+
+    header = read_csv_header(path, "dataset", DatasetError)
+    return (_point_columns(header), all(c in header for c in "xyz"),
+            all(c in header for c in ("qw", "qx", "qy", "qz")))
+
+
 def dataset_from_arrays(joint_names, readings, points=None, R=None, p=None, context=None, columns=None,
                         path=None) -> Dataset:
     """Build a :class:`Dataset` from arrays (kind inferred from what is given)."""

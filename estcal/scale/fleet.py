@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 __all__ = ["FleetJob", "FleetOptions", "FleetSummary", "FleetError", "discover_fleet", "process_robot",
            "run_fleet"]
@@ -105,11 +104,11 @@ def discover_fleet(root) -> list[FleetJob]:
 
 
 def _load(job: FleetJob):
-    from estcal.cli.common import count_point_columns
     from estcal.io import load_dataset
+    from estcal.io.dataset import measurement_layout
     from estcal.io.robotfile import load_robot
 
-    k, _, has_quat = count_point_columns(job.data)
+    k, _, has_quat = measurement_layout(job.data)
     n_markers = k if k and not has_quat else None
     rob = load_robot(job.robot, n_markers=n_markers)
     ds = load_dataset(job.data, rob, points=n_markers)

@@ -109,6 +109,14 @@ def register(app: typer.Typer) -> None:
         opts = FleetOptions(level=level, estimator=estimator, diagnose=diagnose, noise_pos=noise_pos,
                             noise_rot=noise_rot, known_noise=known_noise,
                             save_models=str(save_models) if save_models else None, seed=seed)
+        try:  # the files the robots' jobs read are inputs: outputs must not land on them
+            from estcal.cli.checks import check_outputs
+            from estcal.scale.fleet import discover_fleet
+
+            read = [Path(f) for j in discover_fleet(folder) for f in (j.data, j.robot, *j.validate) if f]
+        except FleetError:
+            read = []  # no robot folder: run_fleet says so below
+        check_outputs({"--json": json_path}, read)
         try:
             summary = run_fleet(folder, opts, scheduler=scheduler, n_workers=workers)
         except FleetError as exc:
