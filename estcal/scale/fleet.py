@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 __all__ = ["FleetJob", "FleetOptions", "FleetSummary", "FleetError", "discover_fleet", "process_robot",
            "run_fleet"]
 
