@@ -673,9 +673,16 @@ OTHER_FILE_CASES = {
     "errors-not-number": (["simulate", "--n", "5", "--errors", "{f}"], '{"theta_2": "big"}',
                           r"error of 'theta_2' must be a finite number"),
     "from-fit-not-fit": (["simulate", "--n", "5", "--from-fit", "{f}"], '{"a": 1}', r"not a diagnosis fit"),
+    "errors-degrees": (["simulate", "--n", "5", "--errors", "{f}"], '{"theta_2": 90}',
+                       r"in\.json: the error of 'theta_2' is 90 rad \(degrees\?\) — the file is in SI units"),
+    "errors-millimetres": (["simulate", "--n", "5", "--errors", "{f}"], '{"d_3": 2.5}',
+                           r"in\.json: the error of 'd_3' is 2\.5 m \(millimetres\?\)"),
+    "errors-unknown-name": (["simulate", "--n", "5", "--errors", "{f}"], '{"theta_9": 0.001}',
+                            r"in\.json: unknown parameter 'theta_9'\. Did you mean"),
 }
 _OTHER_EXT = {"candidates-binary": ".csv", "errors-yaml-syntax": ".yaml", "errors-not-number": ".json",
-              "from-fit-not-fit": ".json"}
+              "from-fit-not-fit": ".json", "errors-degrees": ".json", "errors-millimetres": ".json",
+              "errors-unknown-name": ".json"}
 
 
 @pytest.mark.parametrize("case", OTHER_FILE_CASES)

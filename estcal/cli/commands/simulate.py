@@ -48,6 +48,26 @@ def _load_errors(errors: str):
     return out
 
 
+def _check_errors(errs: dict, robot, where) -> None:
+    """The names of an errors file must be the robot's, and its values SI: an angle error beyond
+    π, a length error beyond 1 m or a relative gain error beyond 1 is a unit mistake (degrees,
+    millimetres, per cent), not a robot to calibrate."""
+    import math
+
+    from estcal.cli.units import display_unit
+    from estcal.kinematics.parameters import unknown_name_message
+
+    for k, v in errs.items():
+        if k not in robot.params:
+            raise ValueError(f"{where}: {unknown_name_message(k, robot.params.names)}")
+        unit = display_unit(k, robot)[0]
+        limit, what = {"mrad": (math.pi, "rad (degrees?)"), "mm": (1.0, "m (millimetres?)"),
+                       "": (1.0, "(relative; per cent?)")}.get(unit, (math.inf, ""))
+        if abs(v) > limit:
+            raise ValueError(f"{where}: the error of {k!r} is {v:g} {what} — the file is in SI units "
+                             f"(m, rad, relative gain); beyond ±{limit:g} no calibration model applies")
+
+
 #: measured peak memory of `estcal simulate` per pose (0.8 kB position, 1.0 kB three points at 2·10⁵
 #: poses; docs/benchmarks.md "Memory on large datasets"), with a margin for effects and context columns
 BYTES_PER_POSE = 1500
@@ -244,7 +264,10 @@ def register(app: typer.Typer) -> None:
                     seed=seed, context={"temperature": temp, "payload": pay}, margin=margin, dt=dt,
                     record_approach=approach)
             else:
-                res = simulate(nominal, n_poses=n, strategy=strategy, measure=measure, errors=_load_errors(errors),
+                errs = _load_errors(errors)
+                if isinstance(errs, dict):
+                    _check_errors(errs, nominal, errors)
+                res = simulate(nominal, n_poses=n, strategy=strategy, measure=measure, errors=errs,
                                error_std=ErrorModel(angle=error_angle, length=error_length, offset=error_offset,
                                                     gain=error_gain),
                                effects=specs,
