@@ -912,3 +912,63 @@ def test_fleet_outputs_never_land_on_a_robots_inputs(tmp_path):
     assert "Exit" not in r.stderr
     failures = json.loads((fl / "summary.json").read_text())["failures"]
     assert "binary file" in json.dumps(failures)
+
+
+# ------------------------------------------------------------------ datasets built in Python
+def _arrays():
+    rb = load_robot("puma560")
+    q = rb.random_readings(10, np.random.default_rng(0))
+    k = rb.kinematics(q, jacobian=False)
+    return rb.joint_names, q, k
+
+
+@pytest.mark.parametrize("case,pattern", [
+    ("joints", r"readings must have shape \(N, 6\) — one column per joint of .* got \(10, 5\)"),
+    ("names", r"readings must have shape \(N, 2\) .* got \(10, 6\)"),
+    ("repeated-name", r"joint names repeated: \['j1'\]"),
+    ("points-rows", r"points must have shape \(N, 3\) or \(N, k, 3\) with N = 10 poses, got \(5, 3\)"),
+    ("points-cols", r"points must have shape .* got \(10, 2\)"),
+    ("nan-reading", r"readings of pose 3 is not finite \(1 pose\(s\) with NaN or inf\)"),
+    ("inf-point", r"points of pose 7 is not finite"),
+    ("R-shape", r"R must have shape \(N, 3, 3\) with N = 10 poses, got \(3, 3\)"),
+    ("R-without-p", r"a full-pose dataset \(R given\) needs the positions p"),
+    ("context-length", r"context\['t'\] must have one value per pose \(N = 10\), got shape \(9,\)"),
+])
+def test_dataset_from_arrays_refuses_inconsistent_arrays(case, pattern):
+    """The checks of the CSV loader, for data built in Python (notebooks): a DatasetError naming the array."""
+    from estcal.io.dataset import DatasetError
+
+    names, q, k = _arrays()
+    args = {"joint_names": names, "readings": q, "points": k.p}
+    if case == "joints":
+        args["readings"] = q[:, :5]
+    elif case == "names":
+        args["joint_names"] = ["a", "b"]
+    elif case == "repeated-name":
+        args["joint_names"] = ["j1"] + names[1:5] + ["j1"]
+    elif case == "points-rows":
+        args["points"] = k.p[:5]
+    elif case == "points-cols":
+        args["points"] = k.p[:, :2]
+    elif case == "nan-reading":
+        args["readings"] = q.copy()
+        args["readings"][3, 2] = np.nan
+    elif case == "inf-point":
+        args["points"] = k.p.copy()
+        args["points"][7, 0] = np.inf
+    elif case == "R-shape":
+        args.update(points=None, R=np.eye(3), p=k.p)
+    elif case == "R-without-p":
+        args.update(points=None, R=k.R)
+    elif case == "context-length":
+        args["context"] = {"t": np.arange(9.0)}
+    with pytest.raises(DatasetError, match=pattern):
+        dataset_from_arrays(**args)
+
+
+def test_dataset_from_arrays_accepts_consistent_arrays():
+    names, q, k = _arrays()
+    ds = dataset_from_arrays(names, q, R=k.R, p=k.p, context={"t": np.arange(10.0)})
+    assert ds.kind == "pose" and ds.n == 10
+    ds = dataset_from_arrays(names, q, points=k.p)
+    assert ds.kind == "position" and ds.points.shape == (10, 1, 3)

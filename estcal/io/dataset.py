@@ -161,21 +161,67 @@ def measurement_layout(path) -> tuple[int, bool, bool]:
 
 def dataset_from_arrays(joint_names, readings, points=None, R=None, p=None, context=None, columns=None,
                         path=None) -> Dataset:
-    """Build a :class:`Dataset` from arrays (kind inferred from what is given)."""
+    """Build a :class:`Dataset` from arrays (kind inferred from what is given).
+
+    Shapes (N poses, n joints, k points; SI units): ``readings`` (N, n) in the order of
+    ``joint_names``; ``points`` (N, 3) or (N, k, 3); ``R`` (N, 3, 3) with ``p`` (N, 3) for
+    full poses; ``context`` and ``columns`` values (N,). Inconsistent shapes, repeated joint
+    names and non-finite readings or measurements raise :class:`DatasetError` naming the
+    array and, for values, the first bad pose — the checks the CSV loader makes, for data
+    built in Python.
+    """
+    where = path or "dataset_from_arrays"
+    names = list(joint_names)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise DatasetError(f"{where}: joint names repeated: {dup}")
     readings = np.asarray(readings, float)
+    if readings.ndim != 2 or readings.shape[1] != len(names):
+        raise DatasetError(f"{where}: readings must have shape (N, {len(names)}) — one column per joint of "
+                           f"{names} — got {readings.shape}")
+    N = readings.shape[0]
+
+    def _check(name, a, tail):
+        if a.shape[0] != N or a.shape[1:] != tail:
+            want = ", ".join(["N"] + [str(t) for t in tail])
+            raise DatasetError(f"{where}: {name} must have shape ({want}) with N = {N} poses, got {a.shape}")
+        bad = ~np.isfinite(a.reshape(N, -1)).all(axis=1)
+        if bad.any():
+            raise DatasetError(f"{where}: {name} of pose {int(np.argmax(bad))} is not finite "
+                               f"({int(bad.sum())} pose(s) with NaN or inf)")
+
+    _check("readings", readings, (len(names),))
+    given = None if points is None else np.shape(points)  # as the caller wrote it, for the message
     if R is not None:
         kind = "pose"
+        R = np.asarray(R, float)
+        _check("R", R, (3, 3))
+        if p is None:
+            raise DatasetError(f"{where}: a full-pose dataset (R given) needs the positions p (N, 3) too")
         points = None if points is None else np.asarray(points, float)
     elif points is not None:
         points = np.asarray(points, float)
         if points.ndim == 2:
             points = points[:, None, :]
-        kind = "position" if points.shape[1] == 1 else "points"
+        kind = "position" if points.ndim == 3 and points.shape[1] == 1 else "points"
     else:
         kind = "none"
-    return Dataset(list(joint_names), readings, kind, points, None if R is None else np.asarray(R, float),
-                   None if p is None else np.asarray(p, float), dict(context or {}), dict(columns or {}),
-                   path=path)
+    if points is not None:
+        pts = np.asarray(points, float)
+        if pts.ndim not in (2, 3) or pts.shape[0] != N or pts.shape[-1] != 3:
+            raise DatasetError(f"{where}: points must have shape (N, 3) or (N, k, 3) with N = {N} poses, "
+                               f"got {given}")
+        points = pts if pts.ndim == 3 else pts[:, None, :]
+        _check("points", points, points.shape[1:])
+    if p is not None:
+        p = np.asarray(p, float)
+        _check("p", p, (3,))
+    for group, d in (("context", context or {}), ("columns", columns or {})):
+        for k, v in d.items():
+            if np.shape(v)[:1] != (N,):
+                raise DatasetError(f"{where}: {group}[{k!r}] must have one value per pose (N = {N}), "
+                                   f"got shape {np.shape(v)}")
+    return Dataset(names, readings, kind, points, R, p, dict(context or {}), dict(columns or {}), path=path)
 
 
 def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
