@@ -85,7 +85,8 @@ def robot_and_data(robot, data, validate=(), points: int | None = None, root=Non
 
 def calibrate(robot, data, method: str = "lm", *, free=None, level: str = "full", selection: str | None = None,
               measure: str | None = None, validate=(), noise=None, known_noise: bool = False, regularize=None,
-              points: int | None = None, root: str | None = None, tip: str | None = None, **options):
+              points: int | None = None, root: str | None = None, tip: str | None = None, checks: bool = True,
+              allow_ill_conditioned: bool = False, **options):
     """Estimate the robot's parameters from measurements — ``estcal calibrate`` in Python.
 
     Parameters
@@ -104,6 +105,12 @@ def calibrate(robot, data, method: str = "lm", *, free=None, level: str = "full"
     regularize : ``None``, ``"loo"`` or a prior std (SI) toward the nominal joint model.
     points : use the first N measured points.
     root, tip : URDF links delimiting the chain.
+    checks : the numerical refusals of ``estcal calibrate`` (docs/reliability.md, "Numerical
+        refusals"): :class:`~estcal.estimate.checks.NumericalRefusal` (a ``ValueError``) when the
+        degrees of freedom are ≤ 0, the poses are repeated or degenerate, the estimator did not
+        converge or the problem is ill-conditioned; ``False`` returns whatever the estimator gives.
+    allow_ill_conditioned : turn the rank, convergence and conditioning refusals into warnings
+        (``result.extra["reliability"]``), as ``--allow-ill-conditioned``.
     **options : estimator options (``max_iter=50``, ``q=1e-6`` …); ``estcal estimators`` lists them.
 
     Returns
@@ -116,7 +123,8 @@ def calibrate(robot, data, method: str = "lm", *, free=None, level: str = "full"
     rob, ds, vals = robot_and_data(robot, data, validate, points, root, tip)
     res, _, _ = run_calibration(rob, ds, measure=measure, estimator=method, free=free,
                                 level=None if free is not None else level, selection=selection, validate=vals,
-                                noise=as_noise(noise, known_noise), options=options, regularize=regularize)
+                                noise=as_noise(noise, known_noise), options=options, regularize=regularize,
+                                checks=checks, allow_ill_conditioned=allow_ill_conditioned)
     return res
 
 

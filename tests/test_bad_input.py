@@ -972,3 +972,16 @@ def test_dataset_from_arrays_accepts_consistent_arrays():
     assert ds.kind == "pose" and ds.n == 10
     ds = dataset_from_arrays(names, q, points=k.p)
     assert ds.kind == "position" and ds.points.shape == (10, 1, 3)
+
+
+def test_python_calibrate_refuses_like_the_command(base):
+    """estcal.calibrate (notebooks) runs the numerical refusals by default; checks=False opts out."""
+    import estcal
+    from estcal.estimate.checks import NumericalRefusal
+
+    rb = estcal.load_robot("puma560")
+    few = estcal.load_dataset(base / "pos.csv", rb).subset(slice(0, 3))
+    with pytest.raises(NumericalRefusal, match=r"3 poses give 9 equations for 9 free parameters"):
+        estcal.calibrate(rb, few)
+    res = estcal.calibrate(rb, few, checks=False)
+    assert res.dof == 0
