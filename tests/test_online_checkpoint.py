@@ -155,3 +155,25 @@ def test_journal_tail_from_a_kill_is_cut_and_a_changed_journal_refused(data, tmp
     r = runner.invoke(app, _args(data, "--resume", str(state)))
     out = " ".join(r.output.split())
     assert r.exit_code == 2 and "cannot read the journal" in out and jp.name in out, r.output
+
+
+def test_a_running_state_is_locked_against_a_second_run(data, tmp_path):
+    """One writer per checkpoint: a second run on the state of a running one is refused with its pid;
+    the lock goes with the run (no lock file left, and none needed after a kill -9: above)."""
+    state = tmp_path / "state.json"
+    p = subprocess.Popen([ESTCAL, *_args(data, "--state", str(state), "--throttle", "0.05")],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        t0 = time.time()
+        while not (tmp_path / "state.json.lock").exists() and time.time() - t0 < 30:
+            time.sleep(0.01)
+        for extra in (["--resume", str(state)], ["--state", str(state)]):
+            r = runner.invoke(app, _args(data, *extra))
+            assert r.exit_code == 2, r.output
+            assert f"in use by another running estcal process (pid {p.pid})" in " ".join(r.stderr.split())
+    finally:
+        p.wait(timeout=60)
+    assert p.returncode == 0, p.stderr.read()
+    assert not (tmp_path / "state.json.lock").exists()
+    r = runner.invoke(app, _args(data, "--resume", str(state)))  # free again
+    assert r.exit_code == 0, r.output

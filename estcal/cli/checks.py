@@ -186,7 +186,12 @@ def guard(command: str, func):
                     folders[opt] = Path(v)
                 elif isinstance(v, (str, Path)) and v and str(v) != "-":
                     inputs.append(Path(v))
-        check_outputs(outputs, inputs, folders)
-        return func(*args, **kwargs)
+        from estcal.cli.common import run_exit_hooks
+
+        try:
+            check_outputs(outputs, inputs, folders)
+            return func(*args, **kwargs)
+        finally:
+            run_exit_hooks()
 
     return wrapper

@@ -18,6 +18,25 @@ EXIT_INPUT = 2
 EXIT_REFUSED = 3
 
 
+_ON_EXIT: list = []
+
+
+def on_exit(fn) -> None:
+    """Run ``fn()`` when the current subcommand ends, however it ends (a lock to release …);
+    :func:`estcal.cli.checks.guard` runs them. Also right for in-process runs (tests, notebooks)
+    where the process — and with it what the kernel would release — lives on."""
+    _ON_EXIT.append(fn)
+
+
+def run_exit_hooks() -> None:
+    while _ON_EXIT:
+        fn = _ON_EXIT.pop()
+        try:
+            fn()
+        except Exception:  # noqa: BLE001 - one failing clean-up must not hide the command's outcome
+            pass
+
+
 def fail(msg, code: int = EXIT_INPUT):
     """Print ``error: msg`` to stderr and exit with ``code`` (no traceback)."""
     typer.echo(f"error: {msg}", err=True)

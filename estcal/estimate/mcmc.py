@@ -218,7 +218,36 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     chain of the same target, sampling continues it (``max_steps`` counts the stored steps too).
     ``progress`` : bar of the steps on stderr (None: only on a terminal, not in CI —
     :func:`estcal.progress.progress`; True forces it, False suppresses it).
+    A ``chain`` file is locked for the run (:class:`estcal.io.lock.RunLock`): a second run on the
+    same file raises :class:`~estcal.estimate.chainfile.ChainFileError` at once.
     """
+    kw = dict(prior_std=prior_std, noise_scale=noise_scale, n_walkers=n_walkers, target_ess=target_ess,
+              max_steps=max_steps, min_steps=min_steps, check_every=check_every, seed=seed, progress=progress,
+              moves=moves, theta0=theta0, center=center, covariance=covariance, tau_factor=tau_factor,
+              proposal_scale=proposal_scale, init_scale=init_scale, chain=chain)
+    if chain is None:
+        return _sample_posterior(problem, free, **kw)
+    from estcal.io.lock import LockedError, RunLock
+
+    from .chainfile import ChainFileError
+
+    from pathlib import Path
+
+    if Path(chain).is_dir():
+        raise ChainFileError(f"{chain}: is a folder — give a file name for the chain (e.g. {Path(chain) / 'chain.h5'})")
+    try:
+        lock = RunLock(chain, "--chain").acquire()
+    except LockedError as exc:
+        raise ChainFileError(str(exc)) from None
+    try:
+        return _sample_posterior(problem, free, **kw)
+    finally:
+        lock.release()
+
+
+def _sample_posterior(problem, free, *, prior_std, noise_scale, n_walkers, target_ess, max_steps, min_steps,
+                      check_every, seed, progress, moves, theta0, center, covariance, tau_factor, proposal_scale,
+                      init_scale, chain) -> PosteriorSamples:
     import emcee
 
     t0 = time.perf_counter()

@@ -55,6 +55,20 @@ def _lines(data: str, block: int = 1 << 20):
             yield from carry.splitlines(keepends=True)
 
 
+def _hold_lock(path, fail) -> None:
+    """Lock ``path`` for this run (:class:`estcal.io.lock.RunLock`), released when the command ends."""
+    from estcal.cli.common import on_exit
+    from estcal.io.lock import LockedError, RunLock
+
+    try:
+        lock = RunLock(path, "--state").acquire()
+    except LockedError as exc:
+        fail(f"--state: {exc}")
+    except OSError as exc:
+        fail(f"--state {path}: cannot create its lock file ({exc.strerror or exc})")
+    on_exit(lock.release)
+
+
 def _check_free_identifiable(problem, where) -> None:
     """An explicit ``--free`` set must be identifiable from the whole file, as in ``estcal
     calibrate`` (a filter would otherwise print prior-only parameters and drifting
@@ -176,6 +190,14 @@ def register(app: typer.Typer) -> None:
         run_options = {"--robot": robot, "--root": root, "--tip": tip, "--free": free, "q (SI)": q,
                        "--q-params": q_params, "--filter": filter_kind, "--method": method, "noise-pos (m)": sigma_p,
                        "noise-rot (rad)": sigma_r, "prior-std (SI)": prior_std}
+        if state_path is not None:  # a folder, an input file, an unwritable place: before the work
+            from estcal.cli.checks import check_outputs
+
+            check_outputs({"--state": state_path}, [Path(data)] if data != "-" else [])
+        if resume is not None and resume.is_dir():
+            fail(f"--resume {resume}: is a folder — give the checkpoint file written by --state")
+        for held in {p for p in (state_path, resume) if p is not None}:  # one writer per checkpoint
+            _hold_lock(held, fail)
         saved = None
         if resume is not None:
             try:
@@ -188,10 +210,6 @@ def register(app: typer.Typer) -> None:
                      f"{'; '.join(diff)} — give the same options to continue it")
             if state_path is None:
                 state_path = resume
-        if state_path is not None:  # a folder, an input file, an unwritable place: before the work
-            from estcal.cli.checks import check_outputs
-
-            check_outputs({"--state": state_path}, [Path(data)] if data != "-" else [])
         if resume is None and state_path is not None and state_path.exists():
             fail(f"--state {state_path}: the file exists (a previous run's checkpoint?) — continue it with "
                  f"--resume {state_path}, or remove it / choose another path")
