@@ -242,8 +242,24 @@ def _d_three_rows(b, t):
     return write(t, "three.csv", csv_from(lines_of(b)[:4]))
 
 
+def _with_column(name, values):
+    def build(b, t):
+        ls = lines_of(b)
+        out = [ls[0] + f",{name}"] + [f"{line},{values(i)}" for i, line in enumerate(ls[1:])]
+        return write(t, f"ctx_{name}.csv", csv_from(out))
+    return build
+
+
 DATA_CASES = {
     # id: (builder, message regex, exit code)
+    "temperature-kelvin": (_with_column("temperature", lambda i: 293.15 + 0.1 * i),
+                           r"ctx_temperature\.csv, line 2, column 'temperature': 293\.15 is outside \[-90, 200\] °C "
+                           r"\(Kelvin\? subtract 273\.15\)", 2),
+    "payload-negative": (_with_column("payload", lambda i: 2.0 if i != 4 else -1.5),
+                         r"ctx_payload\.csv, line 6, column 'payload': -1\.5 kg — a mass cannot be negative", 2),
+    "approach-not-sign": (_with_column("approach_j2", lambda i: 1 if i != 2 else 0),
+                          r"ctx_approach_j2\.csv, line 4, column 'approach_j2': value 0 — an approach direction is "
+                          r"\+1 or -1", 2),
     "folder": (_d_folder, r"folder: is a folder, not a dataset file", 2),
     "missing": (_d_missing, r"nope\.csv: dataset file not found", 2),
     "binary": (_d_binary, r"bin\.csv: binary file \(NUL byte at line 1\)", 2),
@@ -985,3 +1001,13 @@ def test_python_calibrate_refuses_like_the_command(base):
         estcal.calibrate(rb, few)
     res = estcal.calibrate(rb, few, checks=False)
     assert res.dof == 0
+
+
+def test_time_running_backwards_is_a_warning_in_every_command(base, tmp_path):
+    ls = lines_of(base)
+    ts = [0, 1, 2, 1.5] + list(range(3, len(ls) - 4))
+    path = write(tmp_path, "t.csv", csv_from([ls[0] + ",t"] + [f"{line},{t}" for line, t in zip(ls[1:], ts)]))
+    for args in (["calibrate", path, "-r", "puma560"], ["online", path, "-r", "puma560"]):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0, r.output
+        assert re.search(r"warning: .*t\.csv: column 't' goes back in time at line 5 \(2 s, then 1\.5 s\)", r.stderr)

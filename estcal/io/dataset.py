@@ -283,6 +283,35 @@ def _read_numeric(path):
     return CsvTable(header, None, np.arange(2, 2 + data.shape[0]), 1, delim, str(path), numeric=data)
 
 
+#: physical range of the context columns (SI / °C): beyond it the column's unit is wrong
+TEMPERATURE_RANGE_C = (-90.0, 200.0)
+PAYLOAD_MAX_KG = 10_000.0
+
+
+def _check_context(context: dict, where: str, lines, warnings: list) -> None:
+    """Units and range of ``temperature`` (°C), ``payload`` (kg) and ``t`` (s): a Kelvin or
+    Fahrenheit temperature, a payload in grams or negative, a time that is not finite are
+    refused with the line; a time that runs backwards is a warning (rows out of time order:
+    drift and thermal models sort by ``t``)."""
+    lo, hi = TEMPERATURE_RANGE_C
+    T = context.get("temperature")
+    if T is not None and np.any((T < lo) | (T > hi)):
+        b = int(np.flatnonzero((T < lo) | (T > hi))[0])
+        hint = " (Kelvin? subtract 273.15)" if 200 < T[b] < 600 else ""
+        raise DatasetError(f"{where}, line {lines[b]}, column 'temperature': {T[b]:g} is outside "
+                           f"[{lo:g}, {hi:g}] °C{hint} — the column is in degrees Celsius")
+    m = context.get("payload")
+    if m is not None and np.any((m < 0) | (m > PAYLOAD_MAX_KG)):
+        b = int(np.flatnonzero((m < 0) | (m > PAYLOAD_MAX_KG))[0])
+        why = "a mass cannot be negative" if m[b] < 0 else f"beyond {PAYLOAD_MAX_KG:g} kg (grams?)"
+        raise DatasetError(f"{where}, line {lines[b]}, column 'payload': {m[b]:g} kg — {why}; the column is in kg")
+    t = context.get("t")
+    if t is not None and t.size > 1 and np.any(np.diff(t) < 0):
+        b = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
+        warnings.append(f"column 't' goes back in time at line {lines[b]} ({t[b - 1]:g} s, then {t[b]:g} s): "
+                        f"the rows are not in time order")
+
+
 def _decimal_hint(txt: str, delimiter: str) -> str:
     if "," in txt and delimiter != ",":
         try:
@@ -451,10 +480,15 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
             need([c])
             context[c] = col[c].copy()
             used.add(c)
+    _check_context(context, where, lines, warnings)
     # approach direction of each joint (±1) drives direction-dependent backlash
     for h in header:
         if h.startswith("approach_") and h not in used:
             need([h])
+            if not np.all(np.isin(col[h], (-1.0, 1.0))):
+                b = int(np.flatnonzero(~np.isin(col[h], (-1.0, 1.0)))[0])
+                raise DatasetError(f"{where}, line {lines[b]}, column {h!r}: value {col[h][b]:g} — an approach "
+                                   f"direction is +1 or -1 (the sign of the joint's last motion)")
             context[h] = col[h].copy()
             used.add(h)
     if "t" not in context and "t_start_robot" in header and "t_end_robot" in header:

@@ -234,6 +234,10 @@ def register(app: typer.Typer) -> None:
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
             check_distinct_poses(ds_all)
+            from estcal.cli.common import warn
+
+            for w in ds_all.warnings:  # the same warnings as the batch commands
+                warn(f"{ds_all.where}: {w}")
             n_total = ds_all.n
         if saved is not None:
             names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)
