@@ -1011,3 +1011,35 @@ def test_time_running_backwards_is_a_warning_in_every_command(base, tmp_path):
         r = runner.invoke(app, args)
         assert r.exit_code == 0, r.output
         assert re.search(r"warning: .*t\.csv: column 't' goes back in time at line 5 \(2 s, then 1\.5 s\)", r.stderr)
+
+
+def test_python_results_never_write_over_their_inputs(base, tmp_path):
+    """result.save_model / to_json and export_urdf refuse the files the result came from."""
+    import shutil
+
+    import estcal
+
+    data = tmp_path / "d.csv"
+    shutil.copy(base / "pos.csv", data)
+    robot = tmp_path / "r.yaml"
+    shutil.copy(base / "robot.yaml", robot)
+    before = data.read_bytes(), robot.read_bytes()
+    res = estcal.calibrate(str(robot), str(data), level="joint_offset")
+    for write_it, target in ((res.save_model, data), (res.to_json, data), (res.save_model, robot),
+                             (lambda p: estcal.export_urdf(estcal.load_robot(str(robot)), p), robot)):
+        with pytest.raises(ValueError, match=r"inputs are never overwritten"):
+            write_it(str(target))
+    assert (data.read_bytes(), robot.read_bytes()) == before
+    assert res.to_json(tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("kw,pattern", [({"tol_mm": -1}, r"tol_mm must be a finite number > 0, got -1"),
+                                        ({"tol_mrad": float("nan")}, r"tol_mrad must be a finite number > 0"),
+                                        ({"max_iter": 0}, r"max_iter must be an integer ≥ 1, got 0")])
+def test_python_compensate_checks_its_numbers(kw, pattern):
+    import estcal
+
+    rb = estcal.load_robot("puma560")
+    q = rb.random_readings(3, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=pattern):
+        estcal.compensate(rb, rb.kinematics(q, jacobian=False).p, q, **kw)

@@ -148,6 +148,13 @@ def compensate(robot, targets, q_start, orientations=None, context: dict | None 
     """
     from estcal.io.robotfile import calibration_covariance, load_robot
 
+    import math
+
+    for name, v in (("tol_mm", tol_mm), ("tol_mrad", tol_mrad), ("rot_weight_m", rot_weight_m)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be an integer ≥ 1, got {max_iter!r}")
     robot = load_robot(robot)
     x, R = split_targets(targets, orientations)
     N = x.shape[0]

@@ -250,9 +250,16 @@ class DiagnosisResult:
     def save_model(self, path, provenance: dict | None = None):
         """Write the identified robot (geometry + named effects at the joint estimate) as a
         robot file with a ``calibration:`` block (docs/robot-file.md, "Saved models")."""
+        from estcal.io.atomic import refuse_input
         from estcal.io.savedmodel import save_diagnosis
 
+        refuse_input(path, self._inputs())
         return save_diagnosis(self, path, provenance)
+
+    def _inputs(self) -> list:
+        meta = getattr(self.robot, "meta", None) or {}
+        return [getattr(d, "path", None) for d in [self.train_data, *self.validation_data] if d is not None] + \
+            [meta.get("robot_file"), meta.get("urdf")]
 
     def prepare(self, data):
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
@@ -287,8 +294,10 @@ class DiagnosisResult:
                        "report_files": self.report_files})
 
     def to_json(self, path) -> Path:
+        from estcal.io.atomic import refuse_input
         from estcal.io.jsonio import write_json
 
+        refuse_input(path, self._inputs())
         return write_json(path, self.to_dict())
 
     def __str__(self) -> str:

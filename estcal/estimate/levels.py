@@ -195,6 +195,28 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
 
 
+def _saved_free_set(robot, problem, level, selection) -> list[str] | None:
+    """The free set a saved model was identified with, when this calibration asks for the same
+    level, criterion and measurement method.
+
+    The structural selection (GECARO priorities and the QR of App. III) is meant for the
+    *designed* geometry: at a calibrated one, zero lengths and right angles are off by the
+    calibration errors (PUMA ``d_2`` = −0.95 mm, ``alpha_1`` = −π/2 + 1 mrad), the priorities
+    change and near-dependent parameters (``beta_1`` of perpendicular axes, |R_jj| ~ 1e-5) pass
+    the numerical-zero test — a recalibration would fit a set with condition number ~10⁵.
+    The set identified at the design stays identifiable at the calibrated point."""
+    cal = robot.meta.get("calibration") or {}
+    saved = cal.get("free")
+    if not saved or cal.get("level") != (level or "full") or \
+            cal.get("selection_criterion", "structural") != (selection or "structural"):
+        return None
+    term = problem.terms[0]
+    name = getattr(term.method, "name", None)
+    if cal.get("measure") not in (None, name) or not all(n in problem.params for n in saved):
+        return None
+    return list(saved)
+
+
 def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
                     free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
                     validate=(), noise=None, register: bool = True, options: dict | None = None,
@@ -226,6 +248,9 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     theta0 = pv.values.copy()
     base_free = True
     sel = None
+    reused = free is None and _saved_free_set(robot, problem, level, selection)
+    if reused:
+        free = reused
     if free is not None:
         problem.with_free(free)  # raises ParameterError naming an unknown parameter / pattern
         # register only when the whole base frame is estimated: Kabsch moves all six
@@ -292,6 +317,9 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         res.nominal = theta0[problem.params.indices(res.names)]
     if sel is not None:
         res.extra["selection"] = sel.to_dict()
+    elif reused:
+        res.extra["selection"] = {"level": level or "full", "criterion": selection or "structural",
+                                  "identifiable": list(free), "source": "the saved model's free set"}
     if user_options:
         res.extra["options"] = user_options
     if regularize is not None:
@@ -308,6 +336,8 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
             raise NumericalRefusal("\n".join(assessment.refusals))
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
+    res.inputs = tuple(p for p in [getattr(data, "path", None), *(getattr(v, "path", None) for v in validate),
+                                   robot.meta.get("robot_file"), robot.meta.get("urdf")] if p)
     return res, sel, problem
 
 

@@ -98,6 +98,8 @@ class CalibrationResult:
     accuracy: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
     samples: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: files the result was computed from (dataset, validation files, robot file): never written over
+    inputs: tuple = field(default=(), repr=False, compare=False)
     # What the fit was run on, for :meth:`save_model` (not serialised by to_dict):
     # the Problem (robot, datasets, noise) and the validation datasets.
     problem: object = field(default=None, repr=False, compare=False)
@@ -133,8 +135,10 @@ class CalibrationResult:
         ``provenance`` adds or overrides keys of the block (e.g. ``level``, ``options``).
         Returns the path.
         """
+        from estcal.io.atomic import refuse_input
         from estcal.io.savedmodel import save_calibration
 
+        refuse_input(path, self.inputs)
         return save_calibration(self, path, provenance)
 
     def to_dict(self) -> dict:
@@ -163,6 +167,9 @@ class CalibrationResult:
         return d
 
     def to_json(self, path) -> Path:
+        from estcal.io.atomic import refuse_input
+
+        refuse_input(path, self.inputs)
         return write_json(path, self.to_dict())
 
     def table(self) -> str:

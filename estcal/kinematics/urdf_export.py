@@ -420,6 +420,11 @@ def export_urdf(robot: SerialRobot, path, from_urdf=None, root: str | None = Non
     import yourdfpy
 
     path = Path(path)
+    for what, src in (("the robot file the model was loaded from", robot.meta.get("robot_file")),
+                      ("the URDF the model was loaded from", robot.meta.get("urdf")),
+                      ("the original URDF (from_urdf)", from_urdf)):
+        if src and path.resolve() == Path(src).resolve():
+            raise ValueError(f"{path}: is {what} — write the URDF to another file (inputs are never overwritten)")
     theta = robot.params.values
     warn_list = _unexpressible(robot)
     header = _provenance(robot, source)

@@ -84,6 +84,10 @@ def _print_report(console, res, sel, robot, data_path, validate_paths, measure_n
         if sel.rejected:
             msg += f"\n  identifiable but not supported by AIC (kept nominal): {', '.join(sel.rejected)}"
         console.print(msg)
+    elif (res.extra.get("selection") or {}).get("source"):
+        s = res.extra["selection"]
+        console.print(f"selection: level {s['level']}, criterion {s['criterion']}: {s['source']} "
+                      f"({len(s['identifiable'])} parameters, as identified at the design geometry)")
     reg = res.extra.get("regularization")
     prior = res.extra.get("prior")
     if prior:
