@@ -2,7 +2,6 @@
 in atomic blocks); ``kill -9`` mid-run, run again: the stored part is kept bit for bit and sampling
 continues; a chain of other data is refused."""
 import os
-import shutil
 import signal
 import subprocess
 import sys

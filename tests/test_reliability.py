@@ -84,6 +84,7 @@ def test_condition_number_matches_numpy(files, tmp_path):
 
     out = tmp_path / "n.json"
     r = _cal(files["near"], "--allow-ill-conditioned", "--json", str(out))
+    assert r.exit_code == 0, r.output
     d = json.loads(out.read_text())
     rb = get_builtin("puma560")
     ds = load_dataset(files["near"], rb)

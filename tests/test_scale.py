@@ -5,10 +5,8 @@ the same pickling path as a real cluster, started once (~1–2 s).
 """
 from __future__ import annotations
 
-import functools
 import json
 import math
-import shutil
 import sys
 
 import numpy as np

@@ -10,7 +10,6 @@ screening step relinearises at the current fit (:func:`fit_sessions`).
 """
 from __future__ import annotations
 
-import numpy as np
 from scipy import stats
 
 from .fit import fit_sessions
