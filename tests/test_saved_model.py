@@ -324,3 +324,31 @@ def test_recalibrating_a_saved_model_reuses_its_free_set(tmp_path):
     ds = load_dataset(data, rob)
     sel = select_free(Problem(rob, [(None, ds, None)]), "full", "structural")
     assert set(sel.identifiable) != set(saved) and sel.condition_number > COND_MAX
+
+
+def test_identifiability_of_a_saved_model_is_that_of_its_design(tmp_path):
+    """`identifiable` and the online default free set analyse a saved model at its design geometry:
+    the same identifiable set as the nominal robot (at the calibrated geometry the QR would keep
+    near-dependent parameters: |R_jj| ~ 1e-10, condition ~1e16)."""
+    from estcal.identify import identify
+    from estcal.io.savedmodel import design_values
+
+    tr = simulate("puma560", n_poses=60, seed=0, errors="random", noise={"position": 5e-5})
+    data = write_dataset(tmp_path / "d.csv", tr.dataset)
+    model = tmp_path / "m.yaml"
+    assert RUN.invoke(app, ["calibrate", str(data), "-r", "puma560", "--save-model", str(model)]).exit_code == 0
+    saved, nominal = load_robot(str(model)), load_robot("puma560")
+    dv = design_values(saved)
+    kinds = dict(zip(saved.params.names, saved.params.kinds))
+    joint_model = [i for i, n in enumerate(saved.params.names) if kinds[n] != "marker"]
+    np.testing.assert_array_equal(dv[joint_model], nominal.params.values[joint_model])
+    a = identify(saved, "position", n_poses=60, seed=3)
+    b = identify(nominal, "position", n_poses=60, seed=3)
+    assert a.identifiable == b.identifiable and a.condition_number == pytest.approx(b.condition_number, rel=1e-9)
+    bare = saved.copy(saved.params)
+    bare.meta = {}
+    calibrated = identify(bare, "position", n_poses=60, seed=3)  # what the calibrated geometry alone gives
+    assert calibrated.condition_number > 1e6
+    r = RUN.invoke(app, ["online", str(data), "-r", str(model)])
+    assert r.exit_code == 0, r.output
+    assert f"{len(b.identifiable)} free parameters" in " ".join(r.output.split())

@@ -252,6 +252,13 @@ def identify(robot, method: str | None = "position", data=None, n_poses: int = 6
             raise ValueError(f"unknown measurement method {method!r}; available: {sorted(METHODS)}")
     meta = {"robot": robot.name, "method": mname}
     notes = []
+    from estcal.io.savedmodel import design_values
+
+    dv = design_values(robot)
+    if dv is not None:  # a saved model: the structure of its design, not of its calibrated geometry
+        robot = robot.with_values(dv)
+        notes.append(f"a saved model: analysed at the design geometry of {robot.meta['calibration']['robot']!r} "
+                     f"(joint model at design values, markers and effects as estimated)")
     if data is None:
         if mname is None:
             raise ValueError("give a method name or a dataset")
@@ -324,6 +331,14 @@ def select_identifiable(problem, candidates=None, priorities=None, rules: str = 
     the method unknowns (plane, normal) are always included. Returns names in
     parameter-vector order; use with ``Problem.with_free`` or ``calibrate_lsq(free=...)``.
     """
+    if theta is None:  # a saved model: the structure of its design (estcal.io.savedmodel.design_values)
+        from estcal.io.savedmodel import design_values
+
+        dv = design_values(problem.robot)
+        if dv is not None:
+            th = problem.params.values.copy()
+            th[problem.params.indices(problem.robot.params.names)] = dv
+            problem = problem.with_values(th)
     pv = problem.params
     if candidates is None:
         names = pv.free_names
