@@ -352,3 +352,6 @@ def test_identifiability_of_a_saved_model_is_that_of_its_design(tmp_path):
     r = RUN.invoke(app, ["online", str(data), "-r", str(model)])
     assert r.exit_code == 0, r.output
     assert f"{len(b.identifiable)} free parameters" in " ".join(r.output.split())
+    from estcal.design.model import identifiable_subset
+
+    assert identifiable_subset(saved, "position") == identifiable_subset(nominal, "position")  # design's set

@@ -234,7 +234,12 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
     """
     import fnmatch
 
+    from estcal.io.savedmodel import design_values
+
     names = [nm for nm in robot.params.free_names if not any(fnmatch.fnmatchcase(nm, e) for e in exclude or ())]
+    dv = design_values(robot)  # a saved model: the structure of its design geometry
+    if dv is not None:
+        robot = robot.with_values(dv)
     model = DesignModel(robot, method, names, sigma=1.0, sigma_rot=1.0 if method == "pose" else None)
     Q = model.random_readings(n_poses, rng) if candidates is None else np.asarray(candidates, float)
     J = model.jacobian(Q).reshape(-1, model.p)
