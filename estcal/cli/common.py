@@ -7,6 +7,8 @@ go to stderr, results to stdout.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from estcal.io.jsonio import write_json
@@ -149,11 +151,15 @@ def check_held_out(fitted, held_out, role: str = "--validate") -> None:
              + ("they are counted twice" if role == "session" else "their score is a training score, not a validation"))
 
 
-def save_model_or_fail(result, path, robot_spec) -> str:
+def save_model_or_fail(result, path, robot_spec, root=None, tip=None) -> str:
     """``result.save_model(path)`` (calibration or diagnosis) with the robot spec in the
-    provenance; a clear error on failure. Returns the line to print."""
+    provenance — a file as an absolute path, with the URDF chain's ``root``/``tip``, so that the
+    design robot can be found again from anywhere (:func:`estcal.io.savedmodel.design_values`);
+    a clear error on failure. Returns the line to print."""
+    spec = str(Path(robot_spec).resolve()) if Path(str(robot_spec)).is_file() else robot_spec
+    prov = {"robot": spec, **{k: v for k, v in (("root", root), ("tip", tip)) if v}}
     try:
-        result.save_model(path, {"robot": robot_spec})
+        result.save_model(path, prov)
     except (ValueError, OSError) as exc:
         fail(f"--save-model {path}: {exc}")
     return f"wrote {path} (load it with --robot {path})"

@@ -59,7 +59,7 @@ def design_values(robot):
     try:
         from estcal.io.robotfile import load_robot
 
-        nominal = load_robot(spec)
+        nominal = load_robot(spec, root=cal.get("root"), tip=cal.get("tip"))
     except Exception:  # noqa: BLE001 - a design that cannot be loaded: analyse as given
         return None
     nominal_values = design_values(nominal) if nominal.meta.get("calibration") else None

@@ -415,4 +415,4 @@ def register(app: typer.Typer) -> None:
                                      title=f"estcal calibrate — {rob.name}, {measure_name}, {estimator}")
             console.print(f"report: {report}/index.html ({len(rep.files)} figures)")
         if save_model:
-            console.print(save_model_or_fail(res, save_model, robot))
+            console.print(save_model_or_fail(res, save_model, robot, root, tip))

@@ -128,4 +128,4 @@ def register(app: typer.Typer) -> None:
             res.to_json(json_path)
             typer.echo(f"wrote {json_path}")
         if save_model:
-            typer.echo(save_model_or_fail(res, save_model, robot))
+            typer.echo(save_model_or_fail(res, save_model, robot, root, tip))
