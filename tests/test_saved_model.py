@@ -355,3 +355,25 @@ def test_identifiability_of_a_saved_model_is_that_of_its_design(tmp_path):
     from estcal.design.model import identifiable_subset
 
     assert identifiable_subset(saved, "position") == identifiable_subset(nominal, "position")  # design's set
+
+
+def test_saved_model_finds_its_design_robot_from_another_folder(tmp_path, monkeypatch):
+    """The design robot is recorded as an absolute path: design_values works from any folder."""
+    from estcal.io.robotfile import save_robot
+    from estcal.io.savedmodel import design_values
+
+    work = tmp_path / "work"
+    work.mkdir()
+    save_robot(load_robot("puma560"), work / "base.yaml")
+    tr = simulate("puma560", n_poses=30, seed=2, errors="random", noise={"position": 5e-5})
+    write_dataset(work / "d.csv", tr.dataset)
+    monkeypatch.chdir(work)
+    r = RUN.invoke(app, ["calibrate", "d.csv", "-r", "base.yaml", "--level", "joint_offset", "--save-model", "m.yaml"])
+    assert r.exit_code == 0, r.output
+    block = yaml.safe_load((work / "m.yaml").read_text())["calibration"]
+    assert block["robot"] == str((work / "base.yaml").resolve())
+    monkeypatch.chdir(tmp_path)
+    saved = load_robot(str(work / "m.yaml"))
+    dv = design_values(saved)
+    assert dv is not None
+    np.testing.assert_array_equal(dv, load_robot("puma560").params.values)  # no markers: all design values
