@@ -207,6 +207,13 @@ def test_sessions_cli_and_session_column(tmp_path):
         assert abs(v["estimate"] - b["parameters"][n]["estimate"]) < 1e-6 * v["std"] + 1e-12
     r = CliRunner().invoke(app, ["sessions", str(files[0]), *common, "--vary", "offset_9"])
     assert r.exit_code == 2 and "offset_9" in r.output
+    # a pattern selects among the free parameters (offset_1, offset_5, offset_6 are fixed here)
+    r = CliRunner().invoke(app, ["sessions", *map(str, files[:5]), *common, "--vary", "offset_*", "--json",
+                                 str(tmp_path / "c.json")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "c.json").read_text())["vary"] == ["offset_2", "offset_3", "offset_4"]
+    r = CliRunner().invoke(app, ["sessions", *map(str, files[:2]), *common, "--vary", "gain_*"])
+    assert r.exit_code == 2 and "['gain_*'] match no free parameter" in r.output
 
 
 def test_diagnose_takes_several_sessions(tmp_path):

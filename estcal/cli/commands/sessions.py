@@ -40,7 +40,7 @@ def register(app: typer.Typer) -> None:
         free: Optional[str] = typer.Option(None, "--free", help="Explicit free set (names or patterns, "
                                                               "comma-separated) instead of --level."),
         vary: str = typer.Option("auto", "--vary", help="Parameters that vary between sessions (comma-separated "
-                                                        "names or patterns), 'auto' (REML likelihood-ratio "
+                                                        "names, or patterns matched among the free parameters), 'auto' (REML likelihood-ratio "
                                                         "selection among the free offsets and base) or 'none'."),
         formulation: str = typer.Option("gls", "--formulation", help="gls, gtsam (factor graph) or kalman "
                                                                      "(filterpy); they agree."),
@@ -122,15 +122,22 @@ def register(app: typer.Typer) -> None:
             elif vary == "none":
                 vary_names = []
             else:
+                import fnmatch
+
                 pats = [v.strip() for v in vary.split(",") if v.strip()]
                 try:
-                    vary_names = prob.with_free(pats).params.free_names
-                except (ValueError, KeyError) as exc:  # ParameterError: unknown name / pattern
+                    prob.with_free(pats)  # ParameterError naming an unknown name / pattern
+                except (ValueError, KeyError) as exc:
                     fail(f"--vary: {exc.args[0] if exc.args else exc}")
-                bad = [n for n in vary_names if n not in free_names]
-                if bad:
-                    fail(f"--vary: {bad} are not free parameters (a varying parameter must be estimated); "
-                         f"the free set is {free_names}")
+                # a pattern selects among the estimated parameters; a name must be one of them
+                wild = [p for p in pats if any(ch in p for ch in "*?[")]
+                bad = [p for p in pats if p not in wild and p not in free_names]
+                empty = [p for p in wild if not any(fnmatch.fnmatchcase(n, p) for n in free_names)]
+                if bad or empty:
+                    what = f"{bad} are not free parameters" if bad else f"{empty} match no free parameter"
+                    fail(f"--vary: {what} (a varying parameter must be estimated); the free set is "
+                         f"{', '.join(free_names)}")
+                vary_names = [n for n in free_names if n in pats or any(fnmatch.fnmatchcase(n, p) for p in wild)]
             fit = fit_sessions(rob, sessions, free_names, vary_names, noise=noise, formulation=formulation,
                                theta=theta0, session_names=names)
         except ValueError as exc:
