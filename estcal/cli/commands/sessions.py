@@ -40,8 +40,9 @@ def register(app: typer.Typer) -> None:
         free: Optional[str] = typer.Option(None, "--free", help="Explicit free set (names or patterns, "
                                                               "comma-separated) instead of --level."),
         vary: str = typer.Option("auto", "--vary", help="Parameters that vary between sessions (comma-separated "
-                                                        "names, or patterns matched among the free parameters), 'auto' (REML likelihood-ratio "
-                                                        "selection among the free offsets and base) or 'none'."),
+                                                        "names, or patterns matched among the free parameters), "
+                                                        "'auto' (REML likelihood-ratio selection among the free "
+                                                        "offsets and base) or 'none'."),
         formulation: str = typer.Option("gls", "--formulation", help="gls, gtsam (factor graph) or kalman "
                                                                      "(filterpy); they agree."),
         noise_pos_mm: float = typer.Option(0.1, "--noise-pos-mm", help="Position noise std per coordinate (mm)."),
