@@ -241,6 +241,11 @@ def _d_three_rows(b, t):
     return write(t, "three.csv", csv_from(lines_of(b)[:4]))
 
 
+def _d_concatenated(b, t):
+    ls = lines_of(b)
+    return write(t, "cat.csv", csv_from(ls[:8] + ls))  # `cat a.csv b.csv`: a header on line 9
+
+
 def _with_column(name, values):
     def build(b, t):
         ls = lines_of(b)
@@ -251,6 +256,8 @@ def _with_column(name, values):
 
 DATA_CASES = {
     # id: (builder, message regex, exit code)
+    "concatenated-files": (_d_concatenated, r"cat\.csv, line 9, column 'j1': value is 'j1', not a finite number — "
+                                            r"the header is repeated here \(files concatenated", 2),
     "temperature-kelvin": (_with_column("temperature", lambda i: 293.15 + 0.1 * i),
                            r"ctx_temperature\.csv, line 2, column 'temperature': 293\.15 is outside \[-90, 200\] °C "
                            r"\(Kelvin\? subtract 273\.15\)", 2),

@@ -440,6 +440,8 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
                 txt = raw[h][b].strip()
                 what = "is empty" if txt == "" else f"is {txt!r}, not a finite number" + _decimal_hint(
                     txt, table.delimiter)
+                if txt == h:  # `cat a.csv b.csv`: the second file's header inside the data
+                    what += " — the header is repeated here (files concatenated with their headers?); remove it"
                 raise DatasetError(f"{where}, line {lines[b]}, column {h!r}: value {what}")
 
     need(names)

@@ -426,8 +426,10 @@ def register(app: typer.Typer) -> None:
                     else:
                         par = "  ".join(f"{names[i]}={x[i] * units[i][1]:.6g}±{s[i] * units[i][1]:.2g}"
                                         f"{(' ' + units[i][0]) if units[i][0] else ''}" for i in shown)
-                        console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) "
-                                      f"{run['nis_per_row']:.3f}  {par}", soft_wrap=True)
+                        avg = run["nis_per_row"]  # undefined until the burn-in is over
+                        avg = f"{avg:.3f}" if np.isfinite(avg) else "— (burn-in)"
+                        console.print(f"row {k:5d}  NIS {step.nis:7.2f}/{step.y.size}  NIS/row(avg) {avg}  {par}",
+                                      soft_wrap=True)
                 if rows_done % checkpoint_every == 0:
                     checkpoint()
                 if throttle:
