@@ -9,6 +9,7 @@ docs/api.md.
 """
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 
 __all__ = ["calibrate", "diagnose", "as_noise", "robot_and_data"]
@@ -63,6 +64,8 @@ def robot_and_data(robot, data, validate=(), points: int | None = None, root=Non
     from estcal.io.dataset import Dataset, load_dataset
     from estcal.io.robotfile import load_robot
 
+    if points is not None and (isinstance(points, bool) or not isinstance(points, numbers.Integral) or points < 1):
+        raise ValueError(f"points must be an integer ≥ 1 (the first N measured points), got {points!r}")
     k = None
     if isinstance(data, Dataset):
         k = data.n_points if data.kind == "points" else None

@@ -1049,3 +1049,14 @@ def test_python_compensate_checks_its_numbers(kw, pattern):
     q = rb.random_readings(3, np.random.default_rng(0))
     with pytest.raises(ValueError, match=pattern):
         estcal.compensate(rb, rb.kinematics(q, jacobian=False).p, q, **kw)
+
+
+def test_python_entry_points_check_effects_and_points(base):
+    import estcal
+
+    with pytest.raises(ValueError, match=r"unknown effect\(s\) \['nosuch'\]; registered: backlash"):
+        estcal.diagnose("puma560", str(base / "pos.csv"), effects=["nosuch"])
+    with pytest.raises(ValueError, match=r"points must be an integer ≥ 1 .* got 0"):
+        estcal.calibrate("puma560", str(base / "pos.csv"), points=0)
+    res = estcal.calibrate("puma560", str(base / "pts.csv"), points=np.int64(2), level="joint_offset")
+    assert res.dof > 0

@@ -123,6 +123,9 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     from estcal.effects import EFFECTS
 
     names = list(EFFECTS) if effects is None else list(effects)
+    unknown = [e for e in names if e not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; registered: {', '.join(sorted(EFFECTS))} (docs/effects.md)")
     ctx = data.context
     tau = None
     if any(n in ("joint_compliance", "backlash") for n in names):
