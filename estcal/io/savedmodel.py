@@ -29,6 +29,7 @@ from the posture order — is recorded in ``data_preparation`` and re-applied by
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 from datetime import datetime, timezone
 from pathlib import Path
@@ -57,21 +58,39 @@ def design_values(robot):
     if not isinstance(spec, str) or not spec:
         return None
     try:
-        from estcal.io.robotfile import load_robot
-
-        nominal = load_robot(spec, root=cal.get("root"), tip=cal.get("tip"))
-    except Exception:  # noqa: BLE001 - a design that cannot be loaded: analyse as given
+        mtime = Path(spec).stat().st_mtime_ns if Path(spec).is_file() else None
+    except OSError:
+        mtime = None
+    design = _design(spec, cal.get("root"), cal.get("tip"), mtime)
+    if design is None:
         return None
-    nominal_values = design_values(nominal) if nominal.meta.get("calibration") else None
-    if nominal_values is None:
-        nominal_values = nominal.params.values
+    nominal_names, nominal_values = design
     pv = robot.params
     names = [n for n, k in zip(pv.names, pv.kinds) if k in ("geometric", "base", "tool", "offset", "gain")]
-    if not names or not all(n in nominal.params for n in names):
+    index = {n: i for i, n in enumerate(nominal_names)}
+    if not names or not all(n in index for n in names):
         return None
     theta = np.array(pv.values, float)
-    theta[pv.indices(names)] = np.asarray(nominal_values)[nominal.params.indices(names)]
+    theta[pv.indices(names)] = nominal_values[[index[n] for n in names]]
     return theta
+
+
+@functools.lru_cache(maxsize=16)
+def _design(spec, root, tip, mtime):
+    """``(names, values)`` of the design robot ``spec`` (cached per file version: a URDF takes
+    ~0.1 s to parse and the identifiability helpers ask once per call)."""
+    try:
+        from estcal.io.robotfile import load_robot
+
+        nominal = load_robot(spec, root=root, tip=tip)
+    except Exception:  # noqa: BLE001 - a design that cannot be loaded: analyse as given
+        return None
+    values = design_values(nominal) if nominal.meta.get("calibration") else None
+    if values is None:
+        values = nominal.params.values
+    values = np.array(values, float)
+    values.flags.writeable = False  # shared by the cache
+    return tuple(nominal.params.names), values
 
 
 def file_sha256(path) -> str:
