@@ -14,7 +14,8 @@ import typer
 from estcal.io.jsonio import write_json
 
 __all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
-           "EXIT_REFUSED", "save_model_or_fail", "check_held_out", "check_input_files"]
+           "EXIT_REFUSED", "save_model_or_fail", "check_held_out", "check_input_files",
+           "warn_datasets"]
 
 EXIT_INPUT = 2
 EXIT_REFUSED = 3
@@ -60,6 +61,13 @@ def refuse(msg):
 def warn(msg) -> None:
     """``warning: msg`` to stderr (results stay alone on stdout)."""
     typer.echo(f"warning: {msg}", err=True)
+
+
+def warn_datasets(datasets) -> None:
+    """The loader's warnings of each dataset (``Dataset.warnings``), as ``warning: FILE: …`` on stderr."""
+    for d in datasets:
+        for w in d.warnings:
+            warn(f"{d.where}: {w}")
 
 
 def count_point_columns(path) -> tuple[int, bool, bool]:

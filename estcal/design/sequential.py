@@ -78,6 +78,18 @@ class CalibrationState:
                              f"{self.parameters[j]}] differ by {asym[i, j]:.2g} on the correlation scale)")
         self.covariance = 0.5 * (self.covariance + self.covariance.T)
 
+    def check_robot(self, robot, where: str = "state") -> None:
+        """Raise ``ValueError`` when parameter names of the state are not ``robot``'s (a state
+        written for another robot), naming ``where`` (the file), the foreign names and the robot's."""
+        unknown = [n for n in self.parameters if n not in robot.params]
+        if unknown:
+            from estcal.kinematics.parameters import summarize_names
+
+            raise ValueError(
+                f"{where}: {len(unknown)} of the state's {len(self.parameters)} parameters are not parameters of "
+                f"robot {robot.name!r} ({', '.join(unknown[:4])}{' …' if len(unknown) > 4 else ''}) — was the "
+                f"state written for another robot? {robot.name} has: {summarize_names(robot.params.names)}")
+
     @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
@@ -139,9 +151,7 @@ class CalibrationState:
 
 def model_for_state(model: DesignModel, state: CalibrationState) -> DesignModel:
     """``model`` with free parameters = the state's, linearised at the state's estimate."""
-    unknown = [n for n in state.parameters if n not in model.robot.params]
-    if unknown:
-        raise ValueError(f"state parameters {unknown} are not parameters of robot {model.robot.name!r}")
+    state.check_robot(model.robot)
     theta = model.theta.copy()
     theta[model.robot.params.indices(state.parameters)] = state.estimate
     return DesignModel(model.robot, model.method, list(state.parameters), model.sigma, model.sigma_rot, None, theta)

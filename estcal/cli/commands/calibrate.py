@@ -44,7 +44,7 @@ import numpy as np
 import typer
 
 from estcal.cli.common import (check_held_out, check_input_files, count_point_columns, fail, robot_for_data,
-                               save_model_or_fail, warn, write_json)
+                               save_model_or_fail, warn, warn_datasets, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
 from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
@@ -339,9 +339,7 @@ def register(app: typer.Typer) -> None:
                 _fail(str(exc))
         else:
             ds = parts[0]
-        for d in parts + vals:
-            for w in d.warnings:
-                warn(f"{d.where}: {w}")
+        warn_datasets(parts + vals)
         noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
         free_list = None
         if free is not None:

@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.cli.common import check_distinct_poses, check_held_out, check_input_files, fail, refuse, robot_for_data, save_model_or_fail, warn
+from estcal.cli.common import (check_distinct_poses, check_held_out, check_input_files, fail, refuse, robot_for_data,
+                               save_model_or_fail, warn_datasets)
 
 __all__ = ["register"]
 
@@ -86,9 +87,7 @@ def register(app: typer.Typer) -> None:
             vals = [load_dataset(v, rob, points=n_markers) for v in validate]
         except (DatasetError, FileNotFoundError) as exc:
             _fail(str(exc))
-        for d in sessions + vals:
-            for w in d.warnings:
-                warn(f"{d.where}: {w}")
+        warn_datasets(sessions + vals)
         cands = None
         if effects:
             from estcal.effects import EFFECTS

@@ -69,14 +69,7 @@ def register(app: typer.Typer) -> None:
         try:
             rb = resolve_robot(robot)
             st = CalibrationState.from_json(state)
-            unknown = [n for n in st.parameters if n not in rb.params]
-            if unknown:
-                from estcal.kinematics.parameters import summarize_names
-
-                raise ValueError(
-                    f"{state}: {len(unknown)} of the state's {len(st.parameters)} parameters are not parameters of "
-                    f"robot {rb.name!r} ({', '.join(unknown[:4])}{' …' if len(unknown) > 4 else ''}) — was the "
-                    f"state written for another robot? {rb.name} has: {summarize_names(rb.params.names)}")
+            st.check_robot(rb, str(state))
             if st.robot is not None and st.robot not in (robot, rb.name):
                 from estcal.cli.common import warn
 

@@ -74,17 +74,13 @@ def _check_free_identifiable(problem, where) -> None:
     calibrate`` (a filter would otherwise print prior-only parameters and drifting
     combinations as estimates). Large files: the chunked R factor (same column relations)."""
     from estcal.cli.common import fail
-    from estcal.estimate.lsq import UnidentifiableError, check_identifiable
-    from estcal.estimate.reduced import reduce_system, use_chunks
+    from estcal.estimate.lsq import UnidentifiableError, _DenseSystem, _ReducedSystem, check_identifiable
+    from estcal.estimate.reduced import use_chunks
 
     pv = problem.params
-    fidx = pv.free_indices
     ck = use_chunks(problem)
-    if ck is not None:
-        A = reduce_system(problem, pv.values, fidx, ck)[0]
-    else:
-        rows = problem.evaluate(pv.values)
-        A = rows.H[:, fidx] / rows.sigma[:, None]
+    system = _DenseSystem(problem, pv.free_indices) if ck is None else _ReducedSystem(problem, pv.free_indices, ck)
+    A = system.linear(pv.values)[0]
     try:
         check_identifiable(A, pv.free_names)
     except UnidentifiableError as exc:
@@ -234,10 +230,9 @@ def register(app: typer.Typer) -> None:
             except (ValueError, FileNotFoundError) as exc:
                 fail(exc)
             check_distinct_poses(ds_all)
-            from estcal.cli.common import warn
+            from estcal.cli.common import warn_datasets
 
-            for w in ds_all.warnings:  # the same warnings as the batch commands
-                warn(f"{ds_all.where}: {w}")
+            warn_datasets([ds_all])  # the same warnings as the batch commands
             n_total = ds_all.n
         if saved is not None:
             names_pat = list(saved["parameters"])  # the free set the run started with (a file may have grown)

@@ -22,7 +22,7 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import check_held_out, check_input_files, fail, refuse, robot_for_data, warn
+from estcal.cli.common import check_held_out, check_input_files, fail, refuse, robot_for_data, warn, warn_datasets
 
 __all__ = ["register"]
 
@@ -89,9 +89,7 @@ def register(app: typer.Typer) -> None:
             sessions = [s for d in loaded for s in split_sessions(d)]
         except ValueError as exc:
             fail(str(exc))
-        for d in loaded + vals:
-            for w in d.warnings:
-                warn(f"{d.where}: {w}")
+        warn_datasets(loaded + vals)
         check_held_out(loaded, [], "session")
         check_held_out(loaded, vals)
         names = [session_name(s, i) for i, s in enumerate(sessions)]
