@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ChainFileError", "BufferedHDFBackend", "open_chain", "fingerprint"]
+__all__ = ["ChainFileError", "BufferedHDFBackend", "check_chain_path", "open_chain", "fingerprint"]
 
 
 class ChainFileError(ValueError):
@@ -147,14 +147,20 @@ def BufferedHDFBackend(filename, name="mcmc"):  # noqa: N802 - a factory standin
     return _backend_class()(filename, name=name)
 
 
+def check_chain_path(path) -> Path:
+    """``path`` as a Path, or :class:`ChainFileError` when it is a folder."""
+    path = Path(path)
+    if path.is_dir():
+        raise ChainFileError(f"{path}: is a folder — give a file name for the chain (e.g. {path / 'chain.h5'})")
+    return path
+
+
 def open_chain(path, *, names, fp: str, n_walkers: int, ndim: int):
     """``(backend, saved)``: the chain backend for ``path`` and the stored frame ``{center, covariance}``
     when the file holds a chain this run can continue (None for a new chain)."""
     import h5py
 
-    path = Path(path)
-    if path.is_dir():
-        raise ChainFileError(f"{path}: is a folder — give a file name for the chain (e.g. {path / 'chain.h5'})")
+    path = check_chain_path(path)
     backend = BufferedHDFBackend(str(path))
     if not path.exists() or path.stat().st_size == 0:
         return backend, None

@@ -229,12 +229,9 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
         return _sample_posterior(problem, free, **kw)
     from estcal.io.lock import LockedError, RunLock
 
-    from .chainfile import ChainFileError
+    from .chainfile import ChainFileError, check_chain_path
 
-    from pathlib import Path
-
-    if Path(chain).is_dir():
-        raise ChainFileError(f"{chain}: is a folder — give a file name for the chain (e.g. {Path(chain) / 'chain.h5'})")
+    check_chain_path(chain)  # before the lock file is made beside it
     try:
         lock = RunLock(chain, "--chain").acquire()
     except LockedError as exc:
