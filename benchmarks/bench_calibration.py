@@ -37,12 +37,12 @@ sys.path.insert(0, str(REPO))
 
 from estcal.estimate.levels import select_free  # noqa: E402
 from estcal.estimate import calibrate_lsq  # noqa: E402
-from estcal.estimate.lsq import single_thread_blas  # noqa: E402
+from estcal.base.blas import single_thread_blas  # noqa: E402
 from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import puma560  # noqa: E402
 from estcal.kinematics.transforms import so3_exp  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 
 CPU_MS = {}  # last CPU-time median per call site (process time: robust to other processes' load)

@@ -35,7 +35,7 @@ def main(argv=None) -> dict:
 
     from estcal.compensation import compensate
     from estcal.effects import make_effect
-    from estcal.io.jsonio import write_json
+    from estcal.base.jsonio import write_json
     from estcal.kinematics.transforms import matrix_to_quat
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

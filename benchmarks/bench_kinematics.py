@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estcal.io.robotfile import load_robot  # noqa: E402
 from estcal.kinematics.transforms import so3_log  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 
 def _times(fn, repeats: int) -> np.ndarray:

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_calibration import puma_problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.scale import run_tasks  # noqa: E402
 
 # Assumed infrastructure of a production cluster (not measured here; stated in docs/scaling.md)

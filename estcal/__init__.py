@@ -13,7 +13,7 @@ The Python API in a few names (docs/api.md)::
 Names are resolved lazily (module ``__getattr__``), so ``import estcal`` imports no
 numerical library; gtsam / filterpy / emcee load only when their estimator runs.
 """
-__version__ = "0.1.0"
+from estcal.base.version import __version__
 
 # public name -> "module:attribute", imported on first access
 _API = {

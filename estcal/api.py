@@ -109,7 +109,7 @@ def calibrate(robot, data, method: str = "lm", *, free=None, level: str = "full"
     points : use the first N measured points.
     root, tip : URDF links delimiting the chain.
     checks : the numerical refusals of ``estcal calibrate`` (docs/reliability.md, "Numerical
-        refusals"): :class:`~estcal.estimate.checks.NumericalRefusal` (a ``ValueError``) when the
+        refusals"): :class:`~estcal.base.errors.NumericalRefusal` (a ``ValueError``) when the
         degrees of freedom are ≤ 0, the poses are repeated or degenerate, the estimator did not
         converge or the problem is ill-conditioned; ``False`` returns whatever the estimator gives.
     allow_ill_conditioned : turn the rank, convergence and conditioning refusals into warnings

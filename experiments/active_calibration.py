@@ -44,7 +44,7 @@ from estcal.design.model import DesignModel, identifiable_subset  # noqa: E402
 from estcal.design.plans import greedy, optimise_discrete  # noqa: E402
 from estcal.design.sequential import CalibrationState, active_calibration  # noqa: E402
 from estcal.kinematics.robots import puma560  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 Q_TEST = np.array([[10, -60, 120, 0, 30, 0], [-40, -90, 150, 20, -40, 10], [60, -30, 60, -30, 60, 0]]) * DEG

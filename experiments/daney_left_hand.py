@@ -65,7 +65,7 @@ from estcal.parallel.daney import (  # noqa: E402
     solve_type3,
 )
 from estcal.parallel.gough import GoughPlatform, Workspace, left_hand  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 CM = 0.01
 K = 2  # leg 3, 0-based

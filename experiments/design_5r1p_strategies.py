@@ -47,7 +47,7 @@ from estcal.design.model import DesignModel  # noqa: E402
 from estcal.design.plans import optimise_discrete  # noqa: E402
 from estcal.kinematics.robots import INCH, robot_5r1p  # noqa: E402
 from estcal.simulate.strategies import generate_poses  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 PARAMS = ["theta_1", "d_1", "a_1", "alpha_1", "theta_2", "d_2", "a_2", "alpha_2", "theta_3", "d_3", "alpha_3",

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 from estcal.scale import run_tasks
 
 REPO = Path(__file__).resolve().parents[1]

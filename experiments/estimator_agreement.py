@@ -41,7 +41,7 @@ from estcal.estimate.kalman import calibrate_kalman  # noqa: E402
 from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
 from estcal.estimate.mcmc import calibrate_mcmc  # noqa: E402
 from estcal.estimate.testproblems import simulated_problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 SIG = 1e-4
 

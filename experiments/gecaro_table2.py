@@ -53,7 +53,7 @@ from estcal.identify import gecaro_table2_priorities, identify  # noqa: E402
 from estcal.kinematics.robots import stanford  # noqa: E402
 from estcal.methods.generate import branch_report, link_data  # noqa: E402
 from estcal.methods.links import GECARO_METHODS  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 PARAMS = (["theta_0", "r_0"] + [f"{p}_{j}" for j in range(1, 8) for p in ("alpha", "d", "theta", "r", "beta")]
           + [f"gain_{j}" for j in range(1, 7)])

@@ -46,7 +46,7 @@ from estcal.design.model import DesignModel  # noqa: E402
 from estcal.design.montecarlo import monte_carlo_test_pose_error  # noqa: E402
 from estcal.design.plans import optimise_continuous  # noqa: E402
 from estcal.kinematics.robots import planar2  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 SIGMA = 1e-3

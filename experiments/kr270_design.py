@@ -59,7 +59,7 @@ from estcal.design.model import DesignModel, ToolBox, identifiable_subset  # noq
 from estcal.design.montecarlo import monte_carlo_test_pose_error  # noqa: E402
 from estcal.design.plans import optimise_continuous, optimise_discrete, random_baseline, replicate  # noqa: E402
 from estcal.kinematics.builder import build_robot  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 DEG = np.pi / 180
 SIGMA = 0.03e-3

@@ -28,7 +28,7 @@ from estcal.estimate._common import resolve_free  # noqa: E402
 from estcal.estimate.lsq import calibrate_lsq  # noqa: E402
 from estcal.estimate.mcmc import sample_posterior  # noqa: E402
 from estcal.estimate.testproblems import simulated_problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 
 class _Rows:

@@ -35,7 +35,7 @@ from estcal.estimate.kalman import ParameterFilter, process_noise  # noqa: E402
 from estcal.estimate.riccati import (covariance_sequence, periodic_steady_state, planned_jacobians,  # noqa: E402
                                      stopping_index_sequence)
 from estcal.estimate.testproblems import simulated_problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 
 def main(argv=None) -> dict:

@@ -56,7 +56,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import puma560  # noqa: E402
 from estcal.kinematics.transforms import matrix_to_rpy, pose_error, rot_x, rot_y, rot_z, so3_exp  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 IN = 0.0254
 DEG = np.pi / 180

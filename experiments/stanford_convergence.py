@@ -45,7 +45,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import stanford  # noqa: E402
 from estcal.kinematics.transforms import so3_exp  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 ESTIMATORS = ("iterated-lls", "gauss-newton", "lm")
 ANGLE = ("alpha", "theta", "beta", "base_rx", "base_ry", "base_rz", "tool_rx", "tool_ry", "tool_rz")

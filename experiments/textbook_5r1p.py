@@ -59,7 +59,7 @@ from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import robot_5r1p  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
 from estcal.simulate.strategies import generate_poses  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 IN = 0.0254
 DEG = np.pi / 180

@@ -44,7 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

@@ -49,7 +49,7 @@ from estcal.estimate.levels import run_calibration  # noqa: E402
 from estcal.io import load_dataset  # noqa: E402
 from estcal.io.robotfile import load_robot  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data" / "tiago"
 TRAIN = "qualisys_2021-11-30_static_postures.csv"

@@ -60,7 +60,7 @@ from estcal.discrepancy.geometric import derive_approach  # noqa: E402
 from estcal.discrepancy.masses import with_urdf_masses  # noqa: E402
 from estcal.estimate.levels import select_free  # noqa: E402
 from estcal.io import load_dataset  # noqa: E402
-from estcal.io.jsonio import write_json  # noqa: E402
+from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.kinematics.robots import shared_dir, tiago  # noqa: E402
 from estcal.methods import NoiseModel, Problem  # noqa: E402
 from estcal.sessions import choose_vary, fit_sessions, predict_session, recalibration_curve  # noqa: E402

@@ -1,4 +1,4 @@
-"""Atomic output files (estcal.io.atomic): complete file or the old one, never a partial one."""
+"""Atomic output files (estcal.base.atomic): complete file or the old one, never a partial one."""
 import os
 import subprocess
 import sys
@@ -6,7 +6,7 @@ import textwrap
 
 import pytest
 
-from estcal.io.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from estcal.base.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 
 
 def test_replaces_content_and_leaves_no_temporary(tmp_path):
@@ -36,7 +36,7 @@ def test_killed_writer_leaves_old_file(tmp_path):
     atomic_write_text(p, "old")
     code = textwrap.dedent(f"""
         import os, signal
-        from estcal.io.atomic import atomic_write
+        from estcal.base.atomic import atomic_write
         with atomic_write({str(p)!r}) as fh:
             fh.write("x" * 1_000_000)
             fh.flush()

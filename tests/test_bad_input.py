@@ -773,7 +773,7 @@ def test_json_is_strict_when_values_are_undefined(base, tmp_path):
 
 
 def test_write_json_strict(tmp_path):
-    from estcal.io.jsonio import write_json
+    from estcal.base.jsonio import write_json
 
     p = write_json(tmp_path / "a.json", {"a": float("nan"), "b": [np.inf, 1.0], "c": np.array([np.nan, 2.0]),
                                          "d": np.float64("-inf")})
@@ -999,7 +999,7 @@ def test_dataset_from_arrays_accepts_consistent_arrays():
 def test_python_calibrate_refuses_like_the_command(base):
     """estcal.calibrate (notebooks) runs the numerical refusals by default; checks=False opts out."""
     import estcal
-    from estcal.estimate.checks import NumericalRefusal
+    from estcal.base.errors import NumericalRefusal
 
     rb = estcal.load_robot("puma560")
     few = estcal.load_dataset(base / "pos.csv", rb).subset(slice(0, 3))

@@ -113,7 +113,7 @@ def test_header_read_and_streamed_lines_match_the_whole_file_readers(tmp_path, p
     the streamed lines of ``estcal online`` are ``splitlines(keepends=True)`` of the whole text,
     even with a block size that cuts lines and ``\\r\\n`` pairs."""
     from estcal.cli.commands.online import _lines
-    from estcal.io.textinput import read_csv, read_csv_header, read_text
+    from estcal.base.textinput import read_csv, read_csv_header, read_text
 
     body = newline.join(["", "", "j1;j2; x ;y;z", *[f"{k};{k / 3};1;2;{k}" for k in range(40)], ""])
     raw = body.encode(enc) if enc == "utf-16" else prefix + body.encode(enc)
@@ -130,7 +130,7 @@ def test_header_read_does_not_read_the_rest_of_the_file(tmp_path):
     names it (the header reader's errors are the loader's errors for the first lines)."""
     from estcal.io import load_dataset
     from estcal.io.dataset import DatasetError
-    from estcal.io.textinput import read_csv_header
+    from estcal.base.textinput import read_csv_header
 
     f = tmp_path / "d.csv"
     f.write_bytes(b"j1,x,y,z\n0.1,1,2,3\n0.2,1,\x00,3\n")

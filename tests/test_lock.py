@@ -1,4 +1,4 @@
-"""The run lock of state and chain files (estcal.io.lock, docs/reliability.md "Resuming interrupted work")."""
+"""The run lock of state and chain files (estcal.base.lock, docs/reliability.md "Resuming interrupted work")."""
 from __future__ import annotations
 
 import os
@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from estcal.io.lock import LockedError, RunLock, lock_path
+from estcal.base.lock import LockedError, RunLock, lock_path
 
 
 def test_second_holder_is_refused_and_release_frees(tmp_path):
@@ -26,7 +26,7 @@ def test_second_holder_is_refused_and_release_frees(tmp_path):
 def test_lock_of_a_killed_process_is_free(tmp_path):
     """The kernel drops a flock with its process: a kill -9 leaves a lock file, not a lock."""
     f = tmp_path / "s.json"
-    code = f"from estcal.io.lock import RunLock; import os; RunLock({str(f)!r}).acquire(); os._exit(0)"
+    code = f"from estcal.base.lock import RunLock; import os; RunLock({str(f)!r}).acquire(); os._exit(0)"
     subprocess.run([sys.executable, "-c", code], check=True)
     assert lock_path(f).exists()
     with RunLock(f):

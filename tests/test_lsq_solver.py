@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estcal.estimate.lsq import _blas_thread_setters, _solve, single_thread_blas
+from estcal.base.blas import _blas_thread_setters, single_thread_blas
+from estcal.estimate.lsq import _solve
 
 
 @pytest.mark.parametrize("mu", [0.0, 1e-3, 10.0])

@@ -48,7 +48,7 @@ def test_chunked_tool_poses_are_identical():
 
 
 def test_numeric_fast_path_gives_the_text_path_dataset(tmp_path):
-    from estcal.io.textinput import read_csv
+    from estcal.base.textinput import read_csv
 
     _, sim = _problem(n=6000, seed=4)  # > 1 MiB: the fast path is taken
     path = tmp_path / "big.csv"

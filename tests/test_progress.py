@@ -5,8 +5,8 @@ import io
 
 import pytest
 
-import estcal.progress as prog
-from estcal.progress import progress, progress_enabled
+import estcal.base.progress as prog
+from estcal.base.progress import progress, progress_enabled
 
 
 class _TTY(io.StringIO):

@@ -22,7 +22,7 @@ from test_calibrate_cli import TRUE_DELTA, _simulate  # the same simulated PUMA 
 from estcal.cli.main import app
 from estcal.io.dataset import write_dataset
 from estcal.kinematics import puma560
-from estcal.report.units import display_unit
+from estcal.base.units import display_unit
 
 FREE = ",".join(TRUE_DELTA)  # every perturbed parameter of the simulated truth
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

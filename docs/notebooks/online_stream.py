@@ -33,7 +33,7 @@ import numpy as np
 
 import estcal  # top-level API: load_robot, NoiseModel (docs/api.md); the filter pieces from their modules
 from estcal.estimate.kalman import ParameterFilter, default_burn_in, process_noise
-from estcal.io.atomic import atomic_write_text
+from estcal.base.atomic import atomic_write_text
 from estcal.io.dataset import dataset_from_arrays
 from estcal.kinematics.transforms import quat_to_matrix
 from estcal.methods.base import method_for_dataset

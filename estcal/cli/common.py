@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 __all__ = ["fail", "message", "refuse", "warn", "write_json", "count_point_columns", "robot_for_data", "EXIT_INPUT",
            "EXIT_REFUSED", "save_model_or_fail", "check_held_out", "check_input_files",
@@ -118,9 +118,9 @@ def check_distinct_poses(ds, minimum: int = 2) -> None:
 
 def check_input_files(paths, what: str = "dataset", option: str = "") -> None:
     """Fail (exit 2) unless every path is a readable file — before any work, with the message of
-    the input layer (:func:`estcal.io.textinput.check_input_file`: folder, missing file,
+    the input layer (:func:`estcal.base.textinput.check_input_file`: folder, missing file,
     standard input, permission)."""
-    from estcal.io.textinput import InputError, check_input_file
+    from estcal.base.textinput import InputError, check_input_file
 
     for p in paths:
         try:

@@ -25,9 +25,8 @@ from __future__ import annotations
 
 import typer
 
-__all__ = ["MILLI", "resolve", "DIMENSIONLESS", "UNIT_PATTERN", "display_unit"]
+__all__ = ["resolve", "DIMENSIONLESS", "UNIT_PATTERN", "noise_pos_option", "noise_rot_option", "deprecated_option"]
 
-MILLI = 1e-3  # mm -> m, mrad -> rad
 
 # Numeric options without a physical unit (option name: what it counts or measures).
 DIMENSIONLESS = {
@@ -80,24 +79,6 @@ def resolve(value: float, scale: float, old_value, old_option: str, new_option: 
     typer.echo(f"warning: {old_option} ({old_unit}) is deprecated; use {new_option} {new_value:g} "
                f"(docs/conventions.md, 'Units on the command line')", err=True)
     return old_value * old_scale
-
-
-def display_unit(name: str, robot) -> tuple[str, float]:
-    """Printed unit and factor from SI of parameter ``name``: mrad for angles (and offsets of
-    revolute joints), mm for lengths, none for gains and other dimensionless parameters."""
-    head = name.split("_")[0]
-    if name.startswith(("base_r", "tool_r")) or head in ("alpha", "theta", "beta", "rx", "ry", "rz"):
-        return "mrad", 1e3
-    if head == "gain":
-        return "", 1.0
-    if head == "offset":
-        for j, li in enumerate(robot.offset_idx):
-            if robot.params.names[li] == name:
-                return ("mm", 1e3) if robot.joint_types[j] == "prismatic" else ("mrad", 1e3)
-    kinds = dict(zip(robot.params.names, robot.params.kinds))
-    if kinds.get(name) == "effect":
-        return "SI", 1.0
-    return "mm", 1e3
 
 
 # The same declaration in every subcommand, so the name, unit and help cannot drift apart.

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.io.jsonio import to_jsonable
+from estcal.base.jsonio import to_jsonable
 
 from .criteria import (criterion_loss, criterion_value, evaluate_all, larger_is_better,
                        normalise_criterion)
@@ -135,7 +135,7 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
     import io
     from pathlib import Path
 
-    from estcal.io.textinput import read_text, sniff_delimiter
+    from estcal.base.textinput import read_text, sniff_delimiter
 
     path = Path(path)
     text = read_text(path, "candidates", ValueError)  # folder, binary, encoding: one clear message
@@ -411,7 +411,7 @@ def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidat
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     best_idx, best = None, np.inf
     history = []
-    from estcal.progress import progress
+    from estcal.base.progress import progress
 
     n_runs = 1 if algorithm == "greedy" else max(1, restarts)
     with progress(total=n_runs, desc=f"design ({algorithm}, m={m})", unit="restart") as bar:

@@ -116,7 +116,7 @@ class CalibrationState:
 
     @classmethod
     def from_json(cls, path) -> "CalibrationState":
-        from estcal.io.textinput import read_json
+        from estcal.base.textinput import read_json
 
         path = Path(path)
         return cls.from_dict(read_json(path, "state", ValueError), str(path))
@@ -144,7 +144,7 @@ class CalibrationState:
         return d
 
     def to_json(self, path) -> Path:
-        from estcal.io.jsonio import write_json
+        from estcal.base.jsonio import write_json
 
         return write_json(path, self.to_dict())
 

@@ -51,7 +51,7 @@ from scipy import stats
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
-from estcal.progress import progress
+from estcal.base.progress import progress
 
 from .analysis import residual_analysis, save_plots
 from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
@@ -253,7 +253,7 @@ class DiagnosisResult:
     def save_model(self, path, provenance: dict | None = None):
         """Write the identified robot (geometry + named effects at the joint estimate) as a
         robot file with a ``calibration:`` block (docs/robot-file.md, "Saved models")."""
-        from estcal.io.atomic import refuse_input
+        from estcal.base.atomic import refuse_input
         from estcal.io.savedmodel import save_diagnosis
 
         refuse_input(path, self._inputs())
@@ -297,8 +297,8 @@ class DiagnosisResult:
                        "report_files": self.report_files})
 
     def to_json(self, path) -> Path:
-        from estcal.io.atomic import refuse_input
-        from estcal.io.jsonio import write_json
+        from estcal.base.atomic import refuse_input
+        from estcal.base.jsonio import write_json
 
         refuse_input(path, self._inputs())
         return write_json(path, self.to_dict())
@@ -739,7 +739,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                                extended=(cur_problem, cur_theta) if causes else None)
         result.report_files = files + ["diagnosis.json", "summary.txt"]
         result.to_json(folder / "diagnosis.json")
-        from estcal.io.atomic import atomic_write_text
+        from estcal.base.atomic import atomic_write_text
 
         atomic_write_text(folder / "summary.txt", str(result) + "\n")
     return result

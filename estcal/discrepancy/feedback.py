@@ -27,7 +27,7 @@ def load_fit(fit) -> dict:
         return fit.to_dict()
     if isinstance(fit, dict):
         return fit
-    from estcal.io.textinput import read_json
+    from estcal.base.textinput import read_json
 
     path = Path(fit)
     d = read_json(path, "diagnosis fit", ValueError)

@@ -31,10 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.errors import InputError
 __all__ = ["ChainFileError", "BufferedHDFBackend", "check_chain_path", "open_chain", "fingerprint"]
 
 
-class ChainFileError(ValueError):
+class ChainFileError(InputError):
     """A chain file that cannot be continued by this run."""
 
 
@@ -118,7 +119,7 @@ def _backend_class():
                 return
             t0 = time.monotonic()
             n = len(self._buf)
-            from estcal.io.atomic import atomic_path
+            from estcal.base.atomic import atomic_path
 
             path = Path(self.filename)
             with atomic_path(path) as tmp:

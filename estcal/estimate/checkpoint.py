@@ -1,6 +1,6 @@
 """Checkpoints of a recursive (Kalman) calibration, so a killed ``estcal online`` loses nothing.
 
-A checkpoint is one JSON file written atomically (:mod:`estcal.io.atomic`: temp file,
+A checkpoint is one JSON file written atomically (:mod:`estcal.base.atomic`: temp file,
 fsync, rename — a ``kill -9`` at any instant leaves the previous complete checkpoint or the
 new one). It holds everything the next filter step depends on, so that a resumed run
 performs exactly the same floating-point operations as an uninterrupted one and ends with
@@ -136,7 +136,7 @@ class Journal:
                 fh.truncate(len(data))
                 os.fsync(fh.fileno())
         else:
-            from estcal.io.atomic import atomic_write_bytes
+            from estcal.base.atomic import atomic_write_bytes
 
             atomic_write_bytes(path, data)
         return cls(path, int(ptr["steps"]), int(ptr["history"]), len(data), h)
@@ -211,7 +211,7 @@ def filter_checkpoint(flt, *, options: dict, rows: int, line: int, hasher: Prefi
 
 def save_checkpoint(path, state: dict) -> Path:
     """Write ``state`` atomically (never a partial file)."""
-    from estcal.io.atomic import atomic_write_text
+    from estcal.base.atomic import atomic_write_text
 
     return atomic_write_text(path, json.dumps(state))
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["NumericalRefusal", "Assessment", "COND_MAX", "NOMINAL_SCALE", "SHIFT_MULTIPLE", "precheck",
+__all__ = ["Assessment", "COND_MAX", "NOMINAL_SCALE", "SHIFT_MULTIPLE", "precheck",
            "postcheck", "distinct_poses", "generic_identifiable", "scaled_condition"]
 
 #: refusal threshold on the condition number of the column-scaled weighted observation matrix
@@ -54,10 +54,6 @@ NOMINAL_SCALE = 0.01
 #: warn when |estimate − initial| exceeds this many scales (prior std or NOMINAL_SCALE)
 SHIFT_MULTIPLE = 3.0
 _EXEMPT_KINDS = ("base", "marker", "other")
-
-
-class NumericalRefusal(ValueError):
-    """The data or the fit cannot support an honest estimate (CLI exit code 3)."""
 
 
 @dataclass

@@ -42,6 +42,8 @@ import time
 
 import numpy as np
 
+from estcal.base.blas import single_thread_blas
+
 from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
 
 __all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise", "rpy_rate_matrix"]
@@ -330,8 +332,6 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     if check:
-        from .lsq import single_thread_blas
-
         with single_thread_blas():  # a QR of a tall thin matrix: BLAS threads only spin
             _check(problem, fidx, names, theta)
     plain = robust is None and not latent_joints and not base_pose3 and not tool_pose3 and optimizer == "lm"
@@ -343,7 +343,6 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
                              "optimizer 'lm'")
         prior = (nominal.copy(), _prior_std(problem, names, prior_std)) if (use_prior or prior_std is not None) \
             else None
-        from .lsq import single_thread_blas
 
         with single_thread_blas():  # tall thin matrices: BLAS threads only spin (see single_thread_blas)
             x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior,

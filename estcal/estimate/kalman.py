@@ -270,7 +270,7 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
     if passes is None:
         passes = 3 if robust not in (None, "none") and filter == "ekf" else 1
     weights = None
-    from estcal.progress import progress
+    from estcal.base.progress import progress
 
     n_pass = 1 if filter == "ukf" else passes
     with progress(total=n_pass * len(starts), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:

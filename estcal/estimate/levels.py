@@ -230,7 +230,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     never penalised. Needs a least-squares estimator.
 
     ``checks``: run :mod:`estcal.estimate.checks` — raise
-    :class:`~estcal.estimate.checks.NumericalRefusal` on degenerate data (dof ≤ 0, repeated
+    :class:`~estcal.base.errors.NumericalRefusal` on degenerate data (dof ≤ 0, repeated
     poses, rank loss beyond the generic identifiable set) and, unless ``allow_ill_conditioned``,
     on non-convergence or a condition number above ``COND_MAX``; the figures and warnings go to
     ``result.extra["reliability"]``.
@@ -273,7 +273,8 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         start = problem.with_values(sel.theta)  # staged: start from the registration fit
     assessment = None
     if checks:
-        from estcal.estimate.checks import NumericalRefusal, precheck
+        from estcal.base.errors import NumericalRefusal
+        from estcal.estimate.checks import precheck
 
         assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
                               sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
@@ -328,7 +329,8 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     if options.get("robust"):
         res.extra["robust_report"] = robust_report(problem, res, options["robust"], options.get("robust_k"))
     if checks:
-        from estcal.estimate.checks import NumericalRefusal, postcheck
+        from estcal.base.errors import NumericalRefusal
+        from estcal.estimate.checks import postcheck
 
         assessment = assessment.merge(postcheck(problem, res, allow_ill_conditioned=allow_ill_conditioned))
         res.extra["reliability"] = assessment.to_dict()

@@ -217,8 +217,8 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
     ``chain`` : HDF5 file holding the chain (:mod:`estcal.estimate.chainfile`); when it holds a
     chain of the same target, sampling continues it (``max_steps`` counts the stored steps too).
     ``progress`` : bar of the steps on stderr (None: only on a terminal, not in CI —
-    :func:`estcal.progress.progress`; True forces it, False suppresses it).
-    A ``chain`` file is locked for the run (:class:`estcal.io.lock.RunLock`): a second run on the
+    :func:`estcal.base.progress.progress`; True forces it, False suppresses it).
+    A ``chain`` file is locked for the run (:class:`estcal.base.lock.RunLock`): a second run on the
     same file raises :class:`~estcal.estimate.chainfile.ChainFileError` at once.
     """
     kw = dict(prior_std=prior_std, noise_scale=noise_scale, n_walkers=n_walkers, target_ess=target_ess,
@@ -227,7 +227,7 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
               proposal_scale=proposal_scale, init_scale=init_scale, chain=chain)
     if chain is None:
         return _sample_posterior(problem, free, **kw)
-    from estcal.io.lock import LockedError, RunLock
+    from estcal.base.lock import LockedError, RunLock
 
     from .chainfile import ChainFileError, check_chain_path
 
@@ -299,7 +299,7 @@ def _sample_posterior(problem, free, *, prior_std, noise_scale, n_walkers, targe
 
             sampler.reset()  # an empty chain left by a run killed before its first block
             write_frame(chain, names=names, fp=fp, n_walkers=nw, ndim=d, center=center, covariance=covariance)
-    from estcal.progress import progress as _progress
+    from estcal.base.progress import progress as _progress
 
     converged = False
     tau = np.full(d, np.nan)

@@ -58,7 +58,7 @@ def subproblems(problem, chunk: int):
 def evaluate_chunks(problem, theta, chunk: int, jacobian: bool = True):
     """``(first pose, rows)`` of every chunk, in order; a problem with ``row_scale`` (IRLS weights)
     has its rows' σ scaled by the matching slice, as its own ``evaluate`` would."""
-    from estcal.progress import progress
+    from estcal.base.progress import progress
 
     scale = getattr(problem, "row_scale", None)
     off = 0

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.io.jsonio import to_jsonable, write_json
+from estcal.base.jsonio import to_jsonable, write_json
 
 __all__ = ["CalibrationResult", "accuracy", "pose_errors"]
 
@@ -135,7 +135,7 @@ class CalibrationResult:
         ``provenance`` adds or overrides keys of the block (e.g. ``level``, ``options``).
         Returns the path.
         """
-        from estcal.io.atomic import refuse_input
+        from estcal.base.atomic import refuse_input
         from estcal.io.savedmodel import save_calibration
 
         refuse_input(path, self.inputs)
@@ -167,7 +167,7 @@ class CalibrationResult:
         return d
 
     def to_json(self, path) -> Path:
-        from estcal.io.atomic import refuse_input
+        from estcal.base.atomic import refuse_input
 
         refuse_input(path, self.inputs)
         return write_json(path, self.to_dict())

@@ -109,7 +109,7 @@ def priorities_from_matrix(robot, matrix) -> dict:
 def load_priorities(path) -> dict:
     """Read a priority file (YAML): a mapping ``{name or pattern: priority}``, or
     ``{matrix: [[α, d, θ, r, β, K], …]}`` (returned as ``{"__matrix__": array}``)."""
-    from estcal.io.textinput import read_yaml
+    from estcal.base.textinput import read_yaml
 
     path = Path(path)
     d = read_yaml(path, "priority", ValueError)

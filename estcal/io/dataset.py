@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.io.textinput import CsvTable, read_csv
+from estcal.base.errors import InputError
+from estcal.base.textinput import CsvTable, read_csv
 
 __all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table",
            "shared_rows"]
@@ -44,7 +45,7 @@ _NUMBERED = re.compile(r"^([xyz])(\d+)$")
 SPREAD_SLACK_M = 0.2
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset problem; the message names the file, line and column."""
 
 
@@ -150,9 +151,9 @@ def _point_columns(header: list[str]) -> int:
 def measurement_layout(path) -> tuple[int, bool, bool]:
     """``(k, has_xyz, has_quaternion)`` of a dataset file from its header alone: ``k`` numbered
     points ``x1,y1,z1 … xk,yk,zk``, a single point ``x,y,z``, a quaternion ``qw,qx,qy,qz``.
-    Reads the header line only (:func:`estcal.io.textinput.read_csv_header`); raises
+    Reads the header line only (:func:`estcal.base.textinput.read_csv_header`); raises
     :class:`DatasetError` naming the file."""
-    from estcal.io.textinput import read_csv_header
+    from estcal.base.textinput import read_csv_header
 
     header = read_csv_header(path, "dataset", DatasetError)
     return (_point_columns(header), all(c in header for c in "xyz"),
@@ -254,7 +255,7 @@ def _read_numeric(path):
     finite number, no blank line, no quote — so that it gives exactly the dataset the text path
     gives; anything else (and every error message) goes through :func:`read_csv`. Returns a
     :class:`CsvTable` carrying the parsed array, or None."""
-    from estcal.io.textinput import CsvTable, check_input_file, sniff_delimiter
+    from estcal.base.textinput import CsvTable, check_input_file, sniff_delimiter
 
     try:
         p = check_input_file(path, "dataset", DatasetError)
@@ -400,7 +401,7 @@ def _check_header(header: list[str], names: list[str], where: str, line: int) ->
 
 def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: int | None = None,
                        check_units: bool = True) -> Dataset:
-    """A :class:`Dataset` from a parsed CSV (:func:`estcal.io.textinput.read_csv`); also
+    """A :class:`Dataset` from a parsed CSV (:func:`estcal.base.textinput.read_csv`); also
     used for single rows streamed by ``estcal online``, so both get the same checks."""
     from estcal.kinematics.transforms import quat_to_matrix
 
@@ -605,7 +606,7 @@ def write_dataset(path, ds: Dataset, extra: dict | None = None, float_format: st
     cols.update(ds.context)
     cols.update(ds.columns)
     cols.update(extra or {})
-    from estcal.io.atomic import atomic_write
+    from estcal.base.atomic import atomic_write
 
     path = Path(path)
     names = list(cols)

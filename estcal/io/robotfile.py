@@ -36,6 +36,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from estcal.base.errors import InputError
 from estcal.kinematics.builder import DH_PARAMS, KHALIL_PARAMS, URDF_PARAMS, build_robot
 from estcal.kinematics.chain import SerialRobot
 from estcal.kinematics.transforms import make_transform, matrix_to_rpy, rpy_to_matrix
@@ -56,7 +57,7 @@ _ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
 _TYPES = ("revolute", "prismatic", "fixed")
 
 
-class RobotFileError(ValueError):
+class RobotFileError(InputError):
     """A problem in a robot file; the message starts with the file name and the key/joint."""
 
 
@@ -390,7 +391,7 @@ def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
 
 def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
-    from estcal.io.textinput import read_yaml
+    from estcal.base.textinput import read_yaml
 
     return read_yaml(path, "robot", RobotFileError)
 
@@ -603,7 +604,7 @@ def robot_to_dict(robot: SerialRobot) -> dict:
 
 def _plain(x):
     """YAML-safe plain data (numpy arrays and scalars to lists and floats; the JSON rules)."""
-    from estcal.io.jsonio import to_jsonable
+    from estcal.base.jsonio import to_jsonable
 
     return to_jsonable(x)
 
@@ -633,7 +634,7 @@ def save_robot(robot: SerialRobot, path) -> Path:
     _Dumper.add_representer(list, _flow_list)
     header = (f"# estcal robot file (SI units: metres, radians, kg); see docs/robot-file.md\n"
               f"# written by estcal.io.robotfile.save_robot from robot {robot.name!r}\n")
-    from estcal.io.atomic import atomic_write_text
+    from estcal.base.atomic import atomic_write_text
 
     atomic_write_text(path, header + yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False,
                                                width=110))

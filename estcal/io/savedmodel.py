@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.version import __version__
+
 __all__ = ["design_values", "file_sha256", "data_entry", "calibration_block", "save_calibration", "save_diagnosis",
            "prepare_data"]
 
@@ -131,8 +133,6 @@ def calibration_block(*, estimator: str, train, validation=(), free=(), covarian
     the covariance is not finite, e.g. an unidentifiable set); ``noise``: a NoiseModel or dict;
     ``extra``: further keys (``level``, ``options``, ``causes`` …) written as given.
     """
-    from estcal import __version__
-
     trains = train if isinstance(train, (list, tuple)) else [train]
     # stacked sessions (estcal.sessions.data.stack_sessions) are listed file by file
     trains = [s for d in trains for s in (getattr(d, "sessions", None) or [d])]

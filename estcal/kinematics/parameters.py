@@ -31,12 +31,13 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from estcal.base.errors import InputError
 __all__ = ["ParameterVector", "ParameterError", "summarize_names", "unknown_name_message"]
 
 KINDS = ("geometric", "offset", "gain", "base", "tool", "marker", "effect", "other")
 
 
-class ParameterError(KeyError):
+class ParameterError(InputError, KeyError):
     """Unknown or inconsistent parameter name; the message lists the valid names."""
 
     def __str__(self) -> str:  # KeyError quotes its message; we want plain text

@@ -29,10 +29,10 @@ __all__ = ["robot_from_urdf", "load_urdf", "root_links"]
 
 def load_urdf(path):
     """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
-    :func:`estcal.io.textinput.read_text` first (folder, binary, encoding)."""
+    :func:`estcal.base.textinput.read_text` first (folder, binary, encoding)."""
     import yourdfpy
 
-    from estcal.io.textinput import read_text
+    from estcal.base.textinput import read_text
 
     path = Path(path)
     text = read_text(path, "URDF", RobotFileError)

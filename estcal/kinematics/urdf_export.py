@@ -177,7 +177,7 @@ def _write(urdf, path: Path, header: list[str], joint_notes: dict, extra=None) -
     import yourdfpy
     from lxml import etree
 
-    from estcal.io.atomic import atomic_write_bytes
+    from estcal.base.atomic import atomic_write_bytes
 
     # Mesh file names are written as given (package://…), not resolved on this machine.
     urdf._filename_handler = yourdfpy.filename_handler_null

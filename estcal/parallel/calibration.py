@@ -98,7 +98,7 @@ class GoughData:
         P, R = split_pose(self.T)
         arr = np.c_[P, matrix_to_euler_zyx(R), self.rho]
         hdr = "x,y,z,psi,theta,phi," + ",".join(f"rho{k}" for k in range(1, 7))
-        from estcal.io.atomic import atomic_write
+        from estcal.base.atomic import atomic_write
 
         with atomic_write(path) as fh:
             np.savetxt(fh, arr, delimiter=",", header=hdr, comments="", fmt="%.12g")

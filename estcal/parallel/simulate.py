@@ -17,8 +17,8 @@ from typing import Mapping
 
 import numpy as np
 
-from estcal.io.atomic import atomic_write_text
-from estcal.io.jsonio import write_json
+from estcal.base.atomic import atomic_write_text
+from estcal.base.jsonio import write_json
 
 from ._rot import make_T, so3_exp
 from .calibration import GoughData

@@ -6,7 +6,7 @@ import numpy as np
 
 from .html import Report
 from .tables import accuracy_table, mcmc_table, parameter_table
-from .units import joint_display
+from estcal.base.units import joint_display
 
 __all__ = ["calibration_report", "per_pose_errors"]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .html import Report, Table
-from .units import joint_display
+from estcal.base.units import joint_display
 
 __all__ = ["design_report", "next_pose_report", "readings_table"]
 

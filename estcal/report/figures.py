@@ -4,7 +4,7 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from estcal.io.atomic import atomic_write_bytes
+from estcal.base.atomic import atomic_write_bytes
 
 __all__ = ["save_figure"]
 

@@ -15,7 +15,7 @@ from typing import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
-from estcal.io.atomic import atomic_write_text
+from estcal.base.atomic import atomic_write_text
 
 from .figures import save_figure
 
@@ -119,7 +119,7 @@ class Report:
         """Write ``obj`` as JSON (atomically) into the folder and link it from the page."""
         import json
 
-        from estcal.io.jsonio import to_jsonable
+        from estcal.base.jsonio import to_jsonable
 
         atomic_write_text(self.folder / name, json.dumps(to_jsonable(obj), indent=2))
         self.link(name, text or name)

@@ -46,6 +46,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from estcal.base.blas import single_thread_blas
+from estcal.base.errors import EstcalError
+
 __all__ = ["SCHEDULERS", "TaskFailure", "TaskError", "RunResult", "run_tasks", "task_seeds",
            "check_scheduler", "short_repr"]
 
@@ -78,7 +81,7 @@ class TaskFailure:
         return {"index": self.index, "inputs": self.inputs, "error": self.error}
 
 
-class TaskError(RuntimeError):
+class TaskError(EstcalError, RuntimeError):
     """Raised by :meth:`RunResult.values` when some tasks failed; lists them."""
 
     def __init__(self, failures: list[TaskFailure]):
@@ -153,8 +156,7 @@ def _run_chunk(fn, chunk):
     reductions' order), and OpenBLAS's spinning threads do not slow a serial run
     on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md).
     Progress bars inside a task stay quiet (the runner's own bar counts the tasks)."""
-    from estcal.estimate.lsq import single_thread_blas
-    from estcal.progress import nested
+    from estcal.base.progress import nested
 
     with single_thread_blas(), nested():
         return _run_items(fn, chunk)
@@ -168,9 +170,9 @@ def _run_items(fn, chunk):
 def _progress(total, desc, progress):
     if not progress:
         return None
-    from estcal.progress import progress as bar
+    from estcal.base.progress import progress as bar
 
-    # "auto": only on a terminal's stderr, not in CI, not inside another bar (estcal.progress)
+    # "auto": only on a terminal's stderr, not in CI, not inside another bar (estcal.base.progress)
     return bar(total=total, desc=desc or "tasks", unit="task", enabled=None if progress == "auto" else True)
 
 
@@ -212,7 +214,6 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
 
     label = scheduler if isinstance(scheduler, str) else type(scheduler).__name__
     if scheduler in (None, "serial") or n == 0:
-        from estcal.estimate.lsq import single_thread_blas
 
         bar = _progress(n, desc, progress)
         with single_thread_blas():  # as on the workers (see _run_chunk)

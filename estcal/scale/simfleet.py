@@ -49,7 +49,7 @@ def _effect_spec(name: str, rng, robot) -> dict | None:
 
 def simulate_robot(job) -> dict:
     """Simulate one robot folder (a task of :func:`simulate_fleet`); returns its summary row."""
-    from estcal.io.atomic import atomic_write_text
+    from estcal.base.atomic import atomic_write_text
     from estcal.io.dataset import write_dataset
     from estcal.io.robotfile import load_robot
     from estcal.simulate import NoiseModel, simulate

@@ -95,7 +95,7 @@ class SessionFit:
         return out
 
     def to_dict(self) -> dict:
-        from estcal.io.jsonio import to_jsonable
+        from estcal.base.jsonio import to_jsonable
 
         return to_jsonable({
             "formulation": self.formulation, "sessions": list(self.sessions), "n_rows": self.n_rows,

@@ -234,7 +234,7 @@ class SimulationResult:
         p = write_dataset(csv_path, self.dataset, float_format=float_format)
         t = None
         if truth_path is not None:
-            from estcal.io.jsonio import write_json
+            from estcal.base.jsonio import write_json
 
             truth = dict(self.truth)
             truth["dataset"] = str(p)

@@ -46,7 +46,7 @@ import typer
 from estcal.cli.common import (check_held_out, check_input_files, count_point_columns, fail, robot_for_data,
                                save_model_or_fail, warn, warn_datasets, write_json)
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
-from estcal.cli.units import display_unit as _unit  # printed unit and factor from SI of a parameter
+from estcal.base.units import display_unit as _unit  # printed unit and factor from SI of a parameter
 from estcal.estimate.levels import LEVELS, Selection, level_candidates, run_calibration, select_free
 
 __all__ = ["register", "Selection", "select_free", "level_candidates", "run_calibration",
@@ -244,7 +244,7 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
 
         from estcal.estimate.chainfile import ChainFileError
-        from estcal.estimate.checks import NumericalRefusal
+        from estcal.base.errors import NumericalRefusal
         from estcal.estimate.lsq import UnidentifiableError
         from estcal.estimate.registry import estimator_names
         from estcal.io import load_dataset
@@ -252,7 +252,8 @@ def register(app: typer.Typer) -> None:
         from estcal.kinematics.parameters import ParameterError
         from estcal.methods import METHODS, NoiseModel, get_method
 
-        from estcal.cli.units import MILLI, resolve
+        from estcal.base.units import MILLI
+        from estcal.cli.units import resolve
 
         noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.1)
         noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 1.0)

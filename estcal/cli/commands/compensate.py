@@ -25,7 +25,7 @@ def _read_raw(path: Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows as text (blank lines dropped, as load_dataset does), so that the
     columns other than the joints are written back unchanged."""
     from estcal.io.dataset import DatasetError
-    from estcal.io.textinput import read_csv
+    from estcal.base.textinput import read_csv
 
     try:  # the input layer: folder, binary, encoding, delimiter (docs/reliability.md)
         table = read_csv(path, "targets", DatasetError)
@@ -68,7 +68,7 @@ def register(app: typer.Typer) -> None:
 
         from estcal.compensation import compensate
         from estcal.effects import effect_context
-        from estcal.io.atomic import atomic_write
+        from estcal.base.atomic import atomic_write
         from estcal.io.dataset import DatasetError, load_dataset
         from estcal.io.robotfile import load_robot
 
@@ -160,7 +160,7 @@ def register(app: typer.Typer) -> None:
         if res.start_outside.any():
             warn(f"starting joints outside the limits (projected) on lines {_lines(res.lines[res.start_outside])}")
         if json_path is not None:
-            from estcal.io.jsonio import write_json
+            from estcal.base.jsonio import write_json
 
             d = res.to_dict()
             d.update(input=str(targets), output=str(output), robot=str(robot), notes=notes,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import typer
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 
 def run_demo(robot: str = "puma560", n_poses: int = 50, seed: int = 0, sigma_pos: float = 5e-5,
@@ -75,7 +75,7 @@ def register(app: typer.Typer) -> None:
 
         from estcal.cli.common import fail, message
 
-        from estcal.estimate.checks import NumericalRefusal
+        from estcal.base.errors import NumericalRefusal
 
         try:
             out = run_demo(robot, n, seed, estimator=estimator)

@@ -20,7 +20,7 @@ from typing import List, Optional
 
 import typer
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -152,7 +152,7 @@ def register(app: typer.Typer) -> None:
             rho = np.sqrt(np.einsum("tap,pq,taq->t", J0, C, J0)) * 1e3
             console.print("predicted RMS position error at the test pose(s) (mm): "
                           + ", ".join(f"{v:.5g}" for v in rho))
-        from estcal.cli.units import display_unit
+        from estcal.base.units import display_unit
 
         console.print("predicted parameter std:")
         for k, v in crits.param_std.items():
@@ -174,7 +174,7 @@ def register(app: typer.Typer) -> None:
             console.print(f"wrote {json_path}")
         if report is not None:
             from estcal.report.design import design_report
-            from estcal.report.units import display_unit
+            from estcal.base.units import display_unit
 
             design_report(report, model, plan, crits, base, amap, rho, q_test, larger_is_better=larger_is_better(crit),
                           unit=lambda nm: display_unit(nm, rb), title=f"estcal design — {rb.name}",

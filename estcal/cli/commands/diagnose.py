@@ -72,7 +72,8 @@ def register(app: typer.Typer) -> None:
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
 
-        from estcal.cli.units import MILLI, resolve
+        from estcal.base.units import MILLI
+        from estcal.cli.units import resolve
 
         noise_pos = None if noise_pos_mm is None and old_noise_pos is None else \
             resolve(noise_pos_mm or 0.0, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)

@@ -7,8 +7,8 @@ from typing import Optional
 import typer
 
 from estcal.cli.common import fail, message
-from estcal.io.atomic import atomic_write
-from estcal.io.jsonio import write_json
+from estcal.base.atomic import atomic_write
+from estcal.base.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -63,7 +63,7 @@ def register(app: typer.Typer) -> None:
         against = _AgainstFile(rb, ds)
         fields = ("R", "p", "points") if want_points or against.needs_points else ("R", "p")
         # written CHUNK rows at a time: memory stays bounded whatever the number of rows
-        from estcal.progress import progress
+        from estcal.base.progress import progress
 
         with atomic_write(output) as fh, progress(total=-(-n // CHUNK), desc="fk", unit="chunk") as bar:
             fh.write(",".join(names) + "\n")

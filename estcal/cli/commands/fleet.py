@@ -30,7 +30,8 @@ from typing import Optional
 import typer
 
 from estcal.cli.common import fail
-from estcal.cli.units import MILLI, deprecated_option, noise_pos_option, noise_rot_option, resolve
+from estcal.base.units import MILLI
+from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option, resolve
 
 __all__ = ["register"]
 
@@ -89,8 +90,8 @@ def register(app: typer.Typer) -> None:
 
         from estcal.estimate.levels import LEVELS
         from estcal.estimate.registry import estimator_names
-        from estcal.io.atomic import atomic_write_text
-        from estcal.io.jsonio import to_jsonable
+        from estcal.base.atomic import atomic_write_text
+        from estcal.base.jsonio import to_jsonable
         from estcal.scale.fleet import FleetError, FleetOptions, run_fleet
         from estcal.scale.runner import check_scheduler
 

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 METHOD_HELP = ("position, location, point-link, frame-link, plane-known, plane-unknown, plane-normal-known, "
                "plane-normal-unknown, distance (default with --data: from the columns)")

@@ -19,7 +19,7 @@ from typing import List, Optional
 
 import typer
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 
 def register(app: typer.Typer) -> None:
@@ -110,7 +110,7 @@ def register(app: typer.Typer) -> None:
             console.print(f"wrote {json_path}")
         if report is not None:
             from estcal.report.design import next_pose_report
-            from estcal.report.units import display_unit
+            from estcal.base.units import display_unit
 
             next_pose_report(report, model, nxt, st, maps, unit=lambda nm: display_unit(nm, rb),
                              title=f"estcal next-pose — {rb.name}", result_dict=out)

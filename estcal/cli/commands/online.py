@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 POSE_COLS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 _BINARY = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f]")  # never in CSV text (tab, LF, CR allowed)
@@ -18,7 +18,7 @@ def _row_dataset(header, values, robot, where, line, delimiter=",", allow_none: 
     """One CSV row as a one-pose Dataset, through the loader's own checks
     (:func:`estcal.io.dataset.dataset_from_table`: header, numbers, units, ranges)."""
     from estcal.io.dataset import DatasetError, dataset_from_table
-    from estcal.io.textinput import CsvTable
+    from estcal.base.textinput import CsvTable
 
     ds = dataset_from_table(CsvTable(header, [values], [line], header_line, delimiter, where), robot)
     if ds.kind == "none" and not allow_none:
@@ -56,9 +56,9 @@ def _lines(data: str, block: int = 1 << 20):
 
 
 def _hold_lock(path, fail) -> None:
-    """Lock ``path`` for this run (:class:`estcal.io.lock.RunLock`), released when the command ends."""
+    """Lock ``path`` for this run (:class:`estcal.base.lock.RunLock`), released when the command ends."""
     from estcal.cli.common import on_exit
-    from estcal.io.lock import LockedError, RunLock
+    from estcal.base.lock import LockedError, RunLock
 
     try:
         lock = RunLock(path, "--state").acquire()
@@ -132,7 +132,8 @@ def register(app: typer.Typer) -> None:
         are printed as the rows arrive (mm, mrad; the JSON is SI)."""
         import csv
 
-        from estcal.cli.units import MILLI, display_unit, resolve
+        from estcal.base.units import MILLI, display_unit
+        from estcal.cli.units import resolve
 
         q = resolve(q_mm, MILLI, old_q, "--q", "--q-mm", "SI", 1.0, 0.0)
         sigma_p = resolve(sigma_p_mm, MILLI, old_sigma_p, "--sigma-p", "--noise-pos-mm", "m", 1.0, 0.1)
@@ -302,7 +303,7 @@ def register(app: typer.Typer) -> None:
                 break
         else:
             fail(f"{where}: empty input (expected a header row)")
-        from estcal.io.textinput import sniff_delimiter
+        from estcal.base.textinput import sniff_delimiter
 
         first = first.lstrip("\ufeff")
         delim = sniff_delimiter(first)
@@ -371,7 +372,7 @@ def register(app: typer.Typer) -> None:
             checkpoint()
             fail(msg)
 
-        from estcal.progress import progress
+        from estcal.base.progress import progress
 
         # a bar (rows done, rate, time left) on a terminal when the status lines are sparse — with
         # a line every few rows those lines already show the progress, and the live table its count
@@ -475,7 +476,7 @@ def register(app: typer.Typer) -> None:
             console.print(f"JSON -> {json_path}")
         if report is not None:
             from estcal.report.online import online_report
-            from estcal.report.units import display_unit
+            from estcal.base.units import display_unit
 
             online_report(report, names, pv.values[fidx], trace_x.values, trace_s.values, flt.monitor.nis, flt.monitor.dims, tests,
                           unit=lambda n: display_unit(n, rb), title=f"estcal online — {rb.name}, {where}",

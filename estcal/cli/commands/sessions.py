@@ -64,7 +64,7 @@ def register(app: typer.Typer) -> None:
         from estcal.io import load_dataset
         from estcal.io.dataset import DatasetError
         from estcal.cli.checks import check_outputs
-        from estcal.io.jsonio import write_json
+        from estcal.base.jsonio import write_json
         from estcal.methods import NoiseModel, Problem
         from estcal.sessions import choose_vary, fit_sessions, predict_session, recalibration_curve
         from estcal.sessions.data import session_name, split_sessions

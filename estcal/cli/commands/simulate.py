@@ -8,7 +8,7 @@ import typer
 
 from estcal.cli.common import fail, message
 from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
-from estcal.io.jsonio import write_json
+from estcal.base.jsonio import write_json
 
 
 def _floats(text: str | None, what: str):
@@ -30,7 +30,7 @@ def _load_errors(errors: str):
     if not p.exists():
         raise typer.BadParameter(f"--errors must be 'random', 'none' or a JSON/YAML file of {{name: delta}}; "
                                  f"{errors!r} is none of these")
-    from estcal.io.textinput import read_json, read_yaml
+    from estcal.base.textinput import read_json, read_yaml
 
     if p.suffix.lower() in (".yaml", ".yml"):
         d = read_yaml(p, "errors", ValueError)
@@ -54,7 +54,7 @@ def _check_errors(errs: dict, robot, where) -> None:
     millimetres, per cent), not a robot to calibrate."""
     import math
 
-    from estcal.cli.units import display_unit
+    from estcal.base.units import display_unit
     from estcal.kinematics.parameters import unknown_name_message
 
     for k, v in errs.items():
@@ -208,7 +208,8 @@ def register(app: typer.Typer) -> None:
         from estcal.io.robotfile import load_robot
         from estcal.simulate import ErrorModel, NoiseModel, simulate
 
-        from estcal.cli.units import MILLI, resolve
+        from estcal.base.units import MILLI
+        from estcal.cli.units import resolve
 
         noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.0)
         noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 0.0)

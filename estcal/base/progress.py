@@ -18,7 +18,7 @@ quick runs never flash a bar.
 
 Example
 -------
->>> from estcal.progress import progress
+>>> from estcal.base.progress import progress
 >>> with progress(total=3, desc="restarts") as bar:   # quiet here: doctest's stderr is no TTY
 ...     for _ in range(3):
 ...         bar.update(1)

@@ -26,6 +26,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import InputError
+
 __all__ = ["InputError", "check_input_file", "read_text", "read_csv", "read_csv_header", "read_json", "read_yaml", "parse_csv_text", "CsvTable",
            "DELIMITERS"]
 
@@ -34,10 +36,6 @@ DELIMITERS = (",", ";", "\t")
 _DELIM_NAME = {",": "','", ";": "';'", "\t": "tab"}
 # control characters that never occur in a text file (tab, LF, CR, FF, VT excluded)
 _CONTROL = {chr(c) for c in range(32)} - {"\t", "\n", "\r", "\x0b", "\x0c"}
-
-
-class InputError(ValueError):
-    """An unreadable input file; the message starts with the file name."""
 
 
 def check_input_file(path, what: str = "input", error=InputError) -> Path:

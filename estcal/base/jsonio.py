@@ -5,7 +5,7 @@ numbers, dataclasses with ``to_dict()`` their dict. The output is *strict* JSON
 (RFC 8259) that every JSON reader accepts: NaN and ±inf (an undefined standard
 deviation, an infinite criterion) are written as ``null`` — Python's ``NaN`` /
 ``Infinity`` extension is not JSON. Files are written atomically
-(:mod:`estcal.io.atomic`): a crash leaves the old file or the new one, never half.
+(:mod:`estcal.base.atomic`): a crash leaves the old file or the new one, never half.
 """
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_write_text
 
 __all__ = ["to_jsonable", "write_json", "dumps"]
 
@@ -40,8 +42,6 @@ def to_jsonable(v):
 def write_json(path, obj, announce: bool = False) -> Path:
     """Write ``obj`` as indented strict JSON to ``path`` (atomically, parent folders
     created; non-finite numbers as ``null``); returns the path."""
-    from estcal.io.atomic import atomic_write_text
-
     path = Path(path)
     atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
     if announce:

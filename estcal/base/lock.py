@@ -16,6 +16,8 @@ import contextlib
 import os
 from pathlib import Path
 
+from .errors import EstcalError
+
 try:
     import fcntl
 except ImportError:  # pragma: no cover - Windows
@@ -24,7 +26,7 @@ except ImportError:  # pragma: no cover - Windows
 __all__ = ["RunLock", "LockedError", "lock_path"]
 
 
-class LockedError(RuntimeError):
+class LockedError(EstcalError, RuntimeError):
     """The file is being written by another running process."""
 
 
