@@ -211,8 +211,8 @@ def test_point_link_level_full_recovers_errors(tmp_path):
 
 
 def test_gough_platform_is_dispatched(tmp_path):
-    """A Gough robot (built-in left_hand) goes to estcal.parallel.calibrate_gough."""
-    from estcal.parallel.calibration import simulate_gough_data
+    """A Gough robot (built-in left_hand) goes to estcal.workflows.gough.calibrate_gough."""
+    from estcal.parallel.data import simulate_gough_data
     from estcal.parallel.gough import left_hand
 
     nominal = left_hand()
@@ -222,17 +222,20 @@ def test_gough_platform_is_dispatched(tmp_path):
     path = tmp_path / "gough.json"
     path.write_text(json.dumps(data.to_dict()))
     out = tmp_path / "g.json"
-    r = _run([str(path), "--robot", "left_hand", "--json", str(out)])
+    r = _run([str(path), "--robot", "left_hand", "--json", str(out), "--save-model", str(tmp_path / "cal.yaml")])
     assert r.exit_code == 0, r.output
     d = json.loads(out.read_text())
     assert d["converged"] and len(d["parameters"]) == 42
     est = np.array([v["estimate"] for v in d["parameters"].values()])
     np.testing.assert_allclose(est, true_robot.theta, atol=1e-9)
+    from estcal.parallel import load_gough
+
+    np.testing.assert_allclose(load_gough(tmp_path / "cal.yaml").theta, true_robot.theta, atol=1e-9)
 
 
 def test_gough_options_residual_and_model(tmp_path):
     """--residual fk and --model 36 reach calibrate_gough: 36 parameters, exact on noise-free data."""
-    from estcal.parallel.calibration import simulate_gough_data
+    from estcal.parallel.data import simulate_gough_data
     from estcal.parallel.gough import left_hand
 
     nominal = left_hand()

@@ -17,6 +17,7 @@ from estcal.parallel.daney import (
     solve_type3,
     type1_system,
 )
+from estcal.base.errors import InputError
 from estcal.parallel.gough import left_hand
 
 
@@ -132,5 +133,35 @@ def test_generator_reports_an_infeasible_workspace(robot):
 
     bad = robot.with_theta(robot.theta)
     bad.workspace = Workspace([-1.0, -1.0, 1.0], [1.0, 1.0, 2.0], np.radians(20))  # metres away: legs too short
-    with pytest.raises(RuntimeError, match="leg-length limits"):
+    with pytest.raises(InputError, match="leg-length limits"):
         generate_random_poses(bad, 10, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("model", [36, 42])
+def test_experiment_ik_baseline_is_the_shared_least_squares_fit(robot, model):
+    """experiments/daney_left_hand.py batches its unconstrained IK baseline (Gauss–Newton on one leg,
+    over 1000 pose sets at once, for speed); each set's solution is the shared estimator's
+    (calibrate_gough with lm, leg 3 free) to 1e-6 of its standard deviation."""
+    import importlib.util
+    from pathlib import Path
+
+    from estcal.parallel.daney import generate_random_poses
+    from estcal.parallel.data import GoughData
+    from estcal.workflows.gough import calibrate_gough
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "daney_left_hand.py"
+    spec = importlib.util.spec_from_file_location("daney_left_hand", path)
+    exp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(exp)
+    rng = np.random.default_rng(3)
+    S, N, k = 3, 12, exp.K
+    T = generate_random_poses(robot, S * N, rng).reshape(S, N, 4, 4)
+    Tn, rho_k = exp._noisy(rng, T, exp._leg_len(robot, T) - robot.drho[k], 1e-4, np.radians(0.01), 1e-4)
+    a, b, d = exp.ik_leg_gn(robot, Tn, rho_k, model)
+    free = ["a3_*", "b3_*"] + (["drho_3"] if model == 42 else [])
+    for s in range(S):
+        rho = robot.leg_lengths(Tn[s])
+        rho[:, k] = rho_k[s]  # the other legs' rows do not involve leg 3's parameters
+        res = calibrate_gough(robot, GoughData(Tn[s], rho), model=model, free=free)
+        exp_x = np.r_[a[s], b[s]] if model == 36 else np.r_[a[s], b[s], d[s]]
+        assert np.abs((res.estimate - exp_x) / res.std).max() < 1e-6

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from estcal.parallel.calibration import calibrate_gough, load_gough_data
+from estcal.parallel.data import load_gough_data
 from estcal.parallel.gough import load_gough
-from estcal.parallel.simulate import simulate_gough
+from estcal.workflows.gough import calibrate_gough, simulate_gough
 
 
 def test_noise_free_random_errors_are_recovered(tmp_path):

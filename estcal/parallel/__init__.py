@@ -1,23 +1,13 @@
-"""Parallel manipulators: Gough–Stewart platform model and calibration.
+"""Parallel manipulators: the Gough–Stewart platform model (layer 2, docs/parallel.md).
 
 * :mod:`estcal.parallel.gough` — model (Models 36/42), IK, Jacobians, FK, robot files.
+* :mod:`estcal.parallel.data` — measurements (poses + leg readings), their files, synthetic data.
+* :mod:`estcal.parallel.residuals` — IK/FK residuals, per-pose noise covariance, analytic Jacobians.
 * :mod:`estcal.parallel.daney` — Daney's constrained-leg linear calibration.
-* :mod:`estcal.parallel.simulate` — simulated data with the shared noise/error models.
-* :mod:`estcal.parallel.calibration` — classical IK/FK-residual calibration
-  (shared estimators through a Problem adapter), identifiability, CLI entry points.
 
-CLI entry points: :func:`is_gough_file`, :func:`load_gough`,
-:func:`load_gough_data`, :func:`calibrate_gough`, :func:`identifiable_gough`,
-:func:`simulate_gough`.
+Calibration, identifiability and simulation run in :mod:`estcal.workflows.gough` (the shared
+estimators of :mod:`estcal.estimate` on :class:`~estcal.parallel.residuals.GoughResiduals`).
 """
-from .calibration import (  # noqa: F401
-    GoughCalibrationResult,
-    GoughData,
-    GoughEstimationProblem,
-    calibrate_gough,
-    identifiable_gough,
-    load_gough_data,
-    simulate_gough_data,
-)
-from .simulate import GoughSimulation, simulate_gough  # noqa: F401
+from .data import GoughData, load_gough_data, simulate_gough_data  # noqa: F401
 from .gough import FKResult, GoughPlatform, Workspace, is_gough_file, left_hand, load_gough  # noqa: F401
+from .residuals import GoughResiduals  # noqa: F401

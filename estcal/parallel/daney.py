@@ -36,6 +36,8 @@ from typing import Callable
 
 import numpy as np
 
+from estcal.base.errors import InputError
+
 from ._rot import euler_zyx_to_matrix, make_T, matrix_to_euler_zyx
 from .gough import GoughPlatform, split_pose
 
@@ -122,7 +124,7 @@ def batched_lstsq(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def solve_type1(P, R, L):
     """Method 3.2: ``(b, a, cond)`` from Type I poses; physical lengths ``L``. Needs N ≥ 3."""
     if np.shape(L)[-1] < 3:
-        raise ValueError("method 3.2 needs at least 3 Type I poses")
+        raise InputError("method 3.2 needs at least 3 Type I poses")
     M, y = type1_system(P, R, L)
     x, cond = batched_lstsq(M, y)
     return x[..., :3], x[..., 3:], cond
@@ -131,7 +133,7 @@ def solve_type1(P, R, L):
 def solve_type2(P, R):
     """Method 3.3.1: ``(b, cond)`` from Type II poses (12). Needs N ≥ 3."""
     if np.shape(P)[-2] < 3:
-        raise ValueError("method 3.3.1 needs at least 3 Type II poses")
+        raise InputError("method 3.3.1 needs at least 3 Type II poses")
     A, y = type2_system(P, R)
     return batched_lstsq(A, y)
 
@@ -139,7 +141,7 @@ def solve_type2(P, R):
 def solve_type3(P, R, b):
     """Method 3.3.2: ``(a, cond)`` from Type III poses and ``b`` (17). Needs N ≥ 4."""
     if np.shape(P)[-2] < 4:
-        raise ValueError("method 3.3.2 needs at least 4 Type III poses")
+        raise InputError("method 3.3.2 needs at least 4 Type III poses")
     C, D = type3_system(P, R, b)
     return batched_lstsq(C, D)
 
@@ -197,7 +199,7 @@ def _fill_sets(
         todo = todo[count[todo] < n_poses]
         count[todo] = 0
     if len(todo):
-        raise RuntimeError(f"could not generate {n_poses} constrained poses for {len(todo)} sets; "
+        raise InputError(f"could not generate {n_poses} constrained poses for {len(todo)} sets; "
                            "the workspace or leg limits are too tight for this constraint")
     return out
 
@@ -207,7 +209,7 @@ def generate_random_poses(robot: GoughPlatform, n: int, rng: np.random.Generator
     kept when all legs are within limits (rejection sampling)."""
     ws = robot.workspace
     if ws is None:
-        raise ValueError(f"robot {robot.name!r} has no workspace; pose generation needs one")
+        raise InputError(f"robot {robot.name!r} has no workspace; pose generation needs one")
     out = np.empty((0, 4, 4))
     tried = 0
     while len(out) < n:
@@ -216,7 +218,7 @@ def generate_random_poses(robot: GoughPlatform, n: int, rng: np.random.Generator
         out = np.concatenate([out, T[robot.in_workspace(T)]])
         tried += m
         if tried > 1000 * n + 100_000 and len(out) < 0.001 * tried:
-            raise RuntimeError(f"robot {robot.name!r}: fewer than 0.1 % of the poses drawn in the workspace box "
+            raise InputError(f"robot {robot.name!r}: fewer than 0.1 % of the poses drawn in the workspace box "
                                f"respect the leg-length limits ({len(out)} of {tried}); shrink the workspace box")
     return out[:n]
 
@@ -344,13 +346,13 @@ def calibrate_leg_daney(
     """
     if type1 is not None:
         if drho_known is None:
-            raise ValueError("method 3.2 (Type I) needs the known offset drho_known (Model 36)")
+            raise InputError("method 3.2 (Type I) needs the known offset drho_known (Model 36)")
         T, rho = type1
         P, R = split_pose(T)
         b, a, c = solve_type1(P, R, np.asarray(rho, float) + drho_known)
         return LegDaneyResult(leg, "3.2", a, b, float(drho_known), {"type1": float(c)})
     if type2 is None or type3 is None:
-        raise ValueError("method 3.3 needs Type II poses (type2) and Type III poses (type3); "
+        raise InputError("method 3.3 needs Type II poses (type2) and Type III poses (type3); "
                          "method 3.2 needs type1=(T, rho)")
     P2, R2 = split_pose(type2)
     b, c2 = solve_type2(P2, R2)

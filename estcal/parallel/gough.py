@@ -27,6 +27,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from estcal.base.errors import InputError
+from estcal.base.textinput import check_input_file, read_json, read_yaml
 from estcal.kinematics.parameters import ParameterVector
 
 from ._rot import euler_zyx_to_matrix, make_T, matrix_to_euler_zyx, so3_exp, so3_log
@@ -58,7 +60,7 @@ def split_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions (N,3) and rotations (N,3,3) from transforms (N,4,4) or (4,4)."""
     T = np.asarray(T, dtype=float)
     if T.shape[-2:] != (4, 4):
-        raise ValueError(f"expected homogeneous transforms (...,4,4), got shape {T.shape}")
+        raise InputError(f"expected homogeneous transforms (...,4,4), got shape {T.shape}")
     T = T.reshape(-1, 4, 4)
     return T[:, :3, 3].copy(), T[:, :3, :3].copy()
 
@@ -81,7 +83,7 @@ class Workspace:
         self.position_min = np.asarray(self.position_min, float).reshape(3)
         self.position_max = np.asarray(self.position_max, float).reshape(3)
         if np.any(self.position_max <= self.position_min):
-            raise ValueError("workspace: position_max must exceed position_min on every axis")
+            raise InputError("workspace: position_max must exceed position_min on every axis")
 
     @property
     def center(self) -> np.ndarray:
@@ -166,7 +168,7 @@ class GoughPlatform:
         if lim.shape == (2,):
             lim = np.tile(lim, (N_LEGS, 1))
         if lim.shape != (N_LEGS, 2) or np.any(lim[:, 1] <= lim[:, 0]):
-            raise ValueError(f"{self.name}: leg_length_limits must be [min, max] or 6 such pairs with max > min")
+            raise InputError(f"{self.name}: leg_length_limits must be [min, max] or 6 such pairs with max > min")
         self.length_limits = lim
         self.home = np.asarray(self.home, float).reshape(4, 4)
 
@@ -184,7 +186,7 @@ class GoughPlatform:
     def parameter_vector(self, model: int = 42) -> ParameterVector:
         """Named parameters; ``model=36`` fixes the offsets ``drho_k``."""
         if model not in (36, 42):
-            raise ValueError(f"model must be 36 or 42, got {model!r}")
+            raise InputError(f"model must be 36 or 42, got {model!r}")
         names = gough_parameter_names()
         kinds = ["offset" if n.startswith("drho") else "geometric" for n in names]
         frames = [f"leg{i // 7 + 1}" for i in range(len(names))]
@@ -298,24 +300,9 @@ class GoughPlatform:
         """
         rho = np.atleast_2d(np.asarray(rho, float))
         if rho.shape[-1] != N_LEGS:
-            raise ValueError(f"rho must have 6 columns, got shape {rho.shape}")
+            raise InputError(f"rho must have 6 columns, got shape {rho.shape}")
         n = len(rho)
-        starts = []
-        if guess is not None:
-            g = np.asarray(guess, float)
-            starts.append(np.broadcast_to(g, (n, 4, 4)) if g.shape == (4, 4) else g.reshape(n, 4, 4))
-        starts.append(np.broadcast_to(self.home, (n, 4, 4)))
-        rng = np.random.default_rng(seed)
-        scale = 0.0
-        if self.workspace is not None:
-            scale = 0.25 * float(np.min(self.workspace.position_max - self.workspace.position_min))
-        else:
-            scale = 0.1 * float(np.mean(np.linalg.norm(self.a, axis=1)))
-        Ph, Rh = split_pose(self.home)
-        for _ in range(max(0, n_starts - 1)):
-            dp = rng.uniform(-scale, scale, 3)
-            dw = rng.uniform(-0.25, 0.25, 3)
-            starts.append(np.broadcast_to(make_T(Ph[0] + dp, so3_exp(dw) @ Rh[0]), (n, 4, 4)))
+        starts = self._fk_starts(n, guess, n_starts, seed)
         S = len(starts)
         T0 = np.concatenate([np.asarray(s, float) for s in starts], axis=0)  # (S*n,4,4)
         target = np.tile(rho, (S, 1))
@@ -369,21 +356,26 @@ class GoughPlatform:
         T_out = Tall[first, cols].copy()
         T_out[~success] = np.nan
         best_res = np.where(success, res[first, cols], np.min(res, axis=0))
-        # Count distinct valid solutions (positions differing by > 1e-6 m or 1e-6 rad).
-        n_sol = np.zeros(n, int)
-        reps: list[np.ndarray] = []
-        for s in range(S):
-            Ts = Tall[s]
-            new = valid[s].copy()
-            for rep in reps:
-                same = (np.linalg.norm(Ts[:, :3, 3] - rep[:, :3, 3], axis=-1) < 1e-6) & (
-                    np.linalg.norm(so3_log(Ts[:, :3, :3] @ np.swapaxes(rep[:, :3, :3], -1, -2)), axis=-1) < 1e-6
-                )
-                new &= ~same
-            n_sol += new
-            rep_s = np.where(new[:, None, None], Ts, np.nan)
-            reps.append(rep_s)
-        return FKResult(T_out, success, best_res, n_sol, it[first, cols])
+        return FKResult(T_out, success, best_res, _count_distinct(Tall, valid), it[first, cols])
+
+    def _fk_starts(self, n: int, guess, n_starts: int, seed: int) -> list:
+        """FK starting poses, each (n, 4, 4), by preference: the guess, home, perturbed homes."""
+        starts = []
+        if guess is not None:
+            g = np.asarray(guess, float)
+            starts.append(np.broadcast_to(g, (n, 4, 4)) if g.shape == (4, 4) else g.reshape(n, 4, 4))
+        starts.append(np.broadcast_to(self.home, (n, 4, 4)))
+        rng = np.random.default_rng(seed)
+        if self.workspace is not None:
+            scale = 0.25 * float(np.min(self.workspace.position_max - self.workspace.position_min))
+        else:
+            scale = 0.1 * float(np.mean(np.linalg.norm(self.a, axis=1)))
+        Ph, Rh = split_pose(self.home)
+        for _ in range(max(0, n_starts - 1)):
+            dp = rng.uniform(-scale, scale, 3)
+            dw = rng.uniform(-0.25, 0.25, 3)
+            starts.append(np.broadcast_to(make_T(Ph[0] + dp, so3_exp(dw) @ Rh[0]), (n, 4, 4)))
+        return starts
 
     # ---------------------------------------------------------- IO
     def to_dict(self, length_unit: str = "m") -> dict:
@@ -412,21 +404,21 @@ class GoughPlatform:
     def from_dict(cls, d: Mapping[str, Any], source: str = "<dict>") -> "GoughPlatform":
         """Build from a robot-file dictionary; see :func:`load_gough`."""
         if str(d.get("type", "")).lower() != "gough":
-            raise ValueError(f"{source}: not a Gough robot file (expected `type: gough`, got {d.get('type')!r})")
+            raise InputError(f"{source}: not a Gough robot file (expected `type: gough`, got {d.get('type')!r})")
         units = d.get("units")
         unit = str(d.get("length_unit", units.get("length", "m") if isinstance(units, Mapping) else "m"))
         if unit not in _UNIT:
-            raise ValueError(f"{source}: length_unit must be one of {sorted(_UNIT)}, got {unit!r}")
+            raise InputError(f"{source}: length_unit must be one of {sorted(_UNIT)}, got {unit!r}")
         s = _UNIT[unit]
 
         def arr(key, shape, default=None):
             if key not in d:
                 if default is not None:
                     return default
-                raise ValueError(f"{source}: missing key {key!r}")
+                raise InputError(f"{source}: missing key {key!r}")
             x = np.asarray(d[key], float)
             if x.shape != shape and not (shape == (6,) and x.shape == ()):
-                raise ValueError(f"{source}: {key!r} must have shape {shape}, got {x.shape}")
+                raise InputError(f"{source}: {key!r} must have shape {shape}, got {x.shape}")
             return np.broadcast_to(x, shape) * s
 
         a = arr("base_points", (6, 3))
@@ -456,8 +448,26 @@ class GoughPlatform:
                 ws = Workspace(np.asarray(w["position_min"], float) * s, np.asarray(w["position_max"], float) * s,
                                np.radians(float(w.get("max_angle_deg", 180.0))))
             except KeyError as e:
-                raise ValueError(f"{source}: workspace needs key {e.args[0]!r}") from None
+                raise InputError(f"{source}: workspace needs key {e.args[0]!r}") from None
         return cls(a, b, drho, lim, home, ws, str(d.get("name", "gough")))
+
+
+def _count_distinct(Tall: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Number of distinct valid poses per row among the starts, ``Tall`` (S, n, 4, 4) and ``valid``
+    (S, n): poses closer than 1e-6 m and 1e-6 rad are the same solution."""
+    n_sol = np.zeros(Tall.shape[1], int)
+    reps: list[np.ndarray] = []
+    for s in range(Tall.shape[0]):
+        Ts = Tall[s]
+        new = valid[s].copy()
+        for rep in reps:
+            same = (np.linalg.norm(Ts[:, :3, 3] - rep[:, :3, 3], axis=-1) < 1e-6) & (
+                np.linalg.norm(so3_log(Ts[:, :3, :3] @ np.swapaxes(rep[:, :3, :3], -1, -2)), axis=-1) < 1e-6
+            )
+            new &= ~same
+        n_sol += new
+        reps.append(np.where(new[:, None, None], Ts, np.nan))
+    return n_sol
 
 
 _UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -494,16 +504,9 @@ def left_hand() -> GoughPlatform:
 
 
 def _read_mapping(path: Path) -> dict:
-    text = path.read_text()
-    if path.suffix.lower() == ".json":
-        import json
-
-        return json.loads(text)
-    import yaml
-
-    d = yaml.safe_load(text)
+    d = read_json(path, "robot") if path.suffix.lower() == ".json" else read_yaml(path, "robot")
     if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected a mapping at the top level")
+        raise InputError(f"{path}: expected a mapping at the top level")
     return d
 
 
@@ -545,7 +548,5 @@ def load_gough(src: str | Path | Mapping[str, Any]) -> GoughPlatform:
         return GoughPlatform.from_dict(src)
     if str(src) in BUILTINS:
         return BUILTINS[str(src)]()
-    p = Path(src)
-    if not p.is_file():
-        raise FileNotFoundError(f"Gough robot file not found: {p} (built-ins: {sorted(BUILTINS)})")
+    p = check_input_file(src, "Gough robot")
     return GoughPlatform.from_dict(_read_mapping(p), str(p))

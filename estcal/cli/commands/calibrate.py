@@ -6,7 +6,7 @@ The command is a thin shell around :func:`estcal.estimate.levels.run_calibration
 1. **Robot** — :func:`estcal.io.robotfile.load_robot` (built-in name, robot
    file, URDF with ``--root/--tip``), with as many unknown markers as measured
    points. A Gough-platform robot file is handed to
-   :func:`estcal.parallel.calibration.calibrate_gough`.
+   :func:`estcal.workflows.gough.calibrate_gough`.
 2. **Measurement** — from the columns (``x,y,z`` → position of the tool origin;
    ``x1..zk`` → k points with unknown coordinates in the tool frame, ``--points N``
    keeps the first N; ``x,y,z,qw..qz`` → location), or a method named by
@@ -297,20 +297,21 @@ def register(app: typer.Typer) -> None:
         except ImportError:  # pragma: no cover
             is_gough_file = None
         if is_gough_file is not None and is_gough_file(robot):
-            from estcal.parallel.calibration import calibrate_gough
+            from estcal.workflows.gough import calibrate_gough
 
             if len(session_paths) > 1:
                 _fail("several data files are not supported for Gough platforms: give one file")
             free_list = [s.strip() for s in free.split(",") if s.strip()] if free else None
             try:
-                gres = calibrate_gough(robot, data, method=estimator, free=free_list, residual=residual,
+                gres = calibrate_gough(robot, data, estimator=estimator, free=free_list, residual=residual,
                                        model=gough_model, sigma_p=noise_pos, sigma_r=noise_rot,
                                        sigma_rho=noise_leg)
             except (ValueError, KeyError) as exc:
                 _fail(str(exc))
             console.print(str(gres))
             if save_model:
-                _fail("--save-model is not supported for Gough platforms (they have no robot-file form)")
+                gres.save_model(save_model)
+                console.print(f"wrote {save_model}")
             if validate:
                 warn("--validate is not supported for Gough platforms (ignored)")
             if report is not None:

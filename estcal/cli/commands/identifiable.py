@@ -15,7 +15,7 @@ priority matrix: non-identifiable set to 0), ``excitation`` (with ``--data``), a
 ``robot``, ``method``, ``source``, ``n_poses``, ``rules``.
 
 A Gough-platform robot file (``type: gough``) is dispatched to
-:func:`estcal.parallel.calibration.identifiable_gough`.
+:func:`estcal.workflows.gough.identifiable_gough`.
 """
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def run_identifiable(robot: str, method: Optional[str] = None, data: Optional[Pa
     except ImportError:  # pragma: no cover - parallel package optional
         is_gough_file = None
     if is_gough_file is not None and is_gough_file(robot):
-        from estcal.parallel.calibration import identifiable_gough
+        from estcal.workflows.gough import identifiable_gough
 
         return identifiable_gough(robot, data, n_poses=n_poses, seed=seed,
                                   free=None if free is None else [f.strip() for f in free.split(",")])
