@@ -75,6 +75,9 @@ class Dataset:
     lines: np.ndarray | None = None
     path: str | None = None
     warnings: list = field(default_factory=list)
+    # the file's own column names and {estcal column: file column} when read through a column map
+    source_header: list | None = None
+    renamed: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.lines is None:
@@ -226,7 +229,7 @@ def dataset_from_arrays(joint_names, readings, points=None, R=None, p=None, cont
 
 
 def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
-                 check_units: bool = True) -> Dataset:
+                 check_units: bool = True, column_map=None) -> Dataset:
     """Read a dataset CSV.
 
     Parameters
@@ -241,11 +244,39 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
         50 m (millimetres?) and measured positions whose spread disagrees with the
         robot's nominal model (wrong unit or wrong robot; needs ``robot``).
 
+    column_map : a column map (path of its YAML file or a
+        :class:`~estcal.io.columnmap.ColumnMap`): the file is read in its publisher's columns,
+        units and orientation convention (``--map``; :mod:`estcal.io.columnmap`).
+
     Every problem raises :class:`DatasetError` naming the file, the line and the
     column (see ``docs/dataset.md``, "Checks and error messages").
     """
+    if column_map is not None:
+        return _load_mapped(Path(path), column_map, robot, joint_names, points, check_units)
     table = _read_numeric(Path(path)) or read_csv(Path(path), "dataset", DatasetError)
     return dataset_from_table(table, robot, joint_names, points, check_units)
+
+
+def _load_mapped(path, column_map, robot, joint_names, points, check_units) -> Dataset:
+    """:func:`load_dataset` through a column map; the loader's messages name the file's columns."""
+    from estcal.io.columnmap import ColumnMap, ColumnMapError, apply_column_map, load_column_map, rename_message
+
+    cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+    names = list(robot.joint_names if robot is not None else (joint_names or []))
+    types = list(robot.joint_types) if robot is not None else None
+    table = read_csv(path, "dataset", DatasetError)
+    try:
+        mapped, renamed = apply_column_map(table, cmap, names, types)
+    except ColumnMapError as exc:
+        raise DatasetError(str(exc)) from None
+    try:
+        ds = dataset_from_table(mapped, robot, joint_names, points, check_units)
+    except DatasetError as exc:
+        raise DatasetError(rename_message(str(exc), renamed, cmap)) from None
+    ds.source_header = [h.strip() for h in (cmap.columns or table.header)]
+    ds.renamed = renamed
+    ds.warnings = [rename_message(w, renamed, cmap) for w in ds.warnings]
+    return ds
 
 
 def _read_numeric(path):
@@ -331,6 +362,14 @@ def _suggest_column(name: str, header: list[str]) -> str:
     return f" (did you mean column {close[0]!r}?)" if close else ""
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _known_columns(header: list[str], names: list[str]) -> set[str]:
     known = set(names) | set(POSE_COLUMNS) | set(CONTEXT_COLUMNS) | set(METHOD_COLUMNS)
     known |= {f"approach_{j}" for j in names}
@@ -353,6 +392,9 @@ def _check_header(header: list[str], names: list[str], where: str, line: int) ->
         hint = _suggest_column(missing[0], header)
         if len(header) == 1 and (" " in header[0]):
             hint += " — the header has one column: separate the columns with ',', ';' or a tab"
+        elif header and all(_is_number(h) for h in header if h):
+            hint += (" — the first line holds numbers, not column names: the file has no header row; name its "
+                     "columns with a column map (columns: [...] in --map FILE.yaml, docs/dataset.md)")
         raise DatasetError(f"{where}: missing joint column(s) {missing}{hint}; the robot's joints are {names}; "
                            f"the file has columns {header}")
     known = _known_columns(header, names)
