@@ -120,7 +120,7 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
     :class:`~estcal.io.columnmap.ColumnMap`."""
     from estcal.io.columnmap import ColumnMap, apply_column_map, load_column_map
     from estcal.io.dataset import DatasetError, dataset_from_table
-    from estcal.io.textinput import read_csv
+    from estcal.base.textinput import read_csv
     from estcal.kinematics.urdf import load_urdf, robot_from_urdf
 
     urdf = load_urdf(urdf_path)

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.errors import InputError
+
 __all__ = ["ColumnMap", "ColumnMapError", "load_column_map", "column_map_from_dict", "apply_column_map"]
 
 _TOP = ("joints", "points", "orientation", "units", "columns", "context")
@@ -36,7 +38,7 @@ _ANGLE = {"rad": 1.0, "deg": np.pi / 180.0}
 _CONTEXT = ("t", "temperature", "payload")
 
 
-class ColumnMapError(ValueError):
+class ColumnMapError(InputError):
     """A column map that cannot be applied; the message names the map file and its line."""
 
 
@@ -101,7 +103,7 @@ def _compose(text: str, where: str):
 def load_column_map(path) -> ColumnMap:
     """Read and check a column map file (structure only; the columns are checked against a data
     file by :func:`apply_column_map`)."""
-    from estcal.io.textinput import read_text
+    from estcal.base.textinput import read_text
 
     text = read_text(path, "column map", ColumnMapError)
     value, lines = _compose(text, str(path))
@@ -202,10 +204,10 @@ def _floats(values, table, col: str, mapped: str, cmap: ColumnMap, key) -> np.nd
 
 
 def headerless(table, cmap: ColumnMap):
-    """A :class:`~estcal.io.textinput.CsvTable` read with a header row, re-read as a file without one
+    """A :class:`~estcal.base.textinput.CsvTable` read with a header row, re-read as a file without one
     whose columns are named by ``columns:`` (the parsed header becomes the first data row)."""
     from estcal.io.dataset import DatasetError
-    from estcal.io.textinput import CsvTable
+    from estcal.base.textinput import CsvTable
 
     from estcal.io.dataset import _is_number
 
@@ -226,13 +228,13 @@ def headerless(table, cmap: ColumnMap):
 
 
 def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
-    """The table ``table`` (:class:`~estcal.io.textinput.CsvTable`) in estcal's columns.
+    """The table ``table`` (:class:`~estcal.base.textinput.CsvTable`) in estcal's columns.
 
     Returns ``(table, renamed)``: the new table (robot joint names; ``x1…zk`` or ``x,y,z`` +
     ``qw…qz``; context names; SI units) and ``{estcal column: file column}`` for messages.
     Columns the map does not use keep their names, except names the map produces or that the
     loader would take for a measurement. Raises :class:`ColumnMapError` naming the map line."""
-    from estcal.io.textinput import CsvTable
+    from estcal.base.textinput import CsvTable
 
     if cmap.columns is not None:
         table = headerless(table, cmap)
