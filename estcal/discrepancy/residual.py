@@ -1,0 +1,463 @@
+"""Structure no library effect explains: a Gaussian-process model of the residual.
+
+After the geometric model and the named effects, what is left of the measured point
+errors is either noise (unstructured) or a smooth function of where the robot is that
+no effect of the library describes — a bearing wobble whose axis tilt follows its own
+joint angle, a ripple of the tracker along one of its axes. A Gaussian process with
+*automatic relevance determination* (ARD: one length scale per input) over
+
+* the joint readings (``space="joints"``), or
+* the predicted Cartesian position of the measured point in the measuring frame
+  (``space="cartesian"``; the model's prediction, known at a new posture, not the
+  measurement),
+
+learns such a function from the residuals; its posture-grouped cross-validated gain
+is the part of the error that has structure (``structured_unnamed_mm`` of the error
+budget), and its inverse length scales tell which joint or axis carries it.
+
+Model (Rasmussen & Williams, *Gaussian Processes for Machine Learning*, 2006, eq. 2.25–2.26
+and §5.1 for ARD)::
+
+    r(x) ~ GP(0, a² exp(−½ Σ_j (x_j − x'_j)²/ℓ_j²)) + white noise s²       (inputs standardised)
+    mean  μ(x*) = k*ᵀ α,           α = (K + s² I)⁻¹ Y        (one α column per coordinate)
+    var   v(x*) = a² − k*ᵀ (K + s² I)⁻¹ k*   (+ s² for a new measurement)
+
+All coordinates of all points share one kernel (one set of hyperparameters fitted on
+the summed log marginal likelihood), which is scikit-learn's multi-output treatment.
+
+**Why scikit-learn's GaussianProcessRegressor** and not GPyTorch: the data are small
+(tens to a few thousand measured rows), where an exact GP with a Cholesky factor is
+fast and deterministic on a CPU; scikit-learn is numpy-native, a light dependency, and
+its L-BFGS-B fit of the ARD kernel with restarts is what is needed. GPyTorch's strengths
+(GPU, scalable approximations for 10⁵+ points) buy nothing here and would bring torch.
+
+The fitted model is kept as plain data (:class:`ResidualGP`: training inputs, the
+weights α, the Cholesky factor, the hyperparameters), and :meth:`ResidualGP.predict`
+evaluates mean and variance with numpy alone — a saved model carries it and ``fk`` /
+``compensate`` use it without scikit-learn; only :func:`fit_residual_gp` needs it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["ResidualGP", "JointGP", "fit_residual_gp", "fit_joint_gp", "joint_gp_design", "gp_inputs", "SPACES",
+           "residual_model_from_dict", "fit_residual_model", "residual_correction"]
+
+SPACES = ("joints", "cartesian")
+#: bounds of the standardised length scales: below 0.05 a GP memorises single postures
+LENGTH_BOUNDS = (0.05, 100.0)
+
+
+@dataclass
+class ResidualGP:
+    """A fitted residual GP as plain arrays (evaluated with numpy; see the module docstring).
+
+    space : ``"joints"`` or ``"cartesian"``; input_names : the input columns (joint names or x, y, z)
+    x_mean, x_scale : (d,) standardisation of the inputs; X : (n, d) standardised training inputs
+    alpha : (n, m) weights; L : (n, n) lower Cholesky factor of K + s² I (standardised units)
+    amplitude2, noise2 : a², s² (standardised); length_scales : (d,) standardised ℓ_j
+    y_scale : output scale (m); n_points : points per row (m = 3 · n_points coordinates)
+    """
+
+    space: str
+    input_names: list
+    x_mean: np.ndarray
+    x_scale: np.ndarray
+    X: np.ndarray
+    alpha: np.ndarray
+    L: np.ndarray
+    amplitude2: float
+    noise2: float
+    length_scales: np.ndarray
+    y_scale: float
+    n_points: int
+    extra: dict = field(default_factory=dict)
+
+    def _k(self, Xs):
+        d = (Xs[:, None, :] - self.X[None, :, :]) / self.length_scales
+        return self.amplitude2 * np.exp(-0.5 * np.sum(d * d, axis=-1))
+
+    def standardise(self, X):
+        return (np.asarray(X, float) - self.x_mean) / self.x_scale
+
+    def predict(self, X, return_std: bool = False, include_noise: bool = False):
+        """Residual mean (M, n_points, 3) in m at raw inputs ``X`` (M, d); with ``return_std``
+        also the predictive std per coordinate (M,) in m (the latent function's, plus the white
+        noise when ``include_noise`` — the spread of a new measurement about the mean)."""
+        Xs = self.standardise(X)
+        Ks = self._k(Xs)
+        mean = (Ks @ self.alpha) * self.y_scale
+        mean = mean.reshape(len(Xs), self.n_points, 3)
+        if not return_std:
+            return mean
+        from scipy.linalg import solve_triangular
+
+        v = solve_triangular(self.L, Ks.T, lower=True)
+        var = np.maximum(self.amplitude2 - np.sum(v * v, axis=0), 0.0)
+        if include_noise:
+            var = var + self.noise2
+        return mean, np.sqrt(var) * self.y_scale
+
+    @property
+    def relevance(self) -> dict:
+        """ARD relevance of each input, largest first: (1/ℓ_j) / Σ_i (1/ℓ_i) on standardised inputs."""
+        inv = 1.0 / np.asarray(self.length_scales, float)
+        sc = inv / inv.sum()
+        order = np.argsort(-sc, kind="stable")
+        return {str(self.input_names[j]): float(sc[j]) for j in order}
+
+    def to_dict(self) -> dict:
+        """Plain data (lists) for JSON / a saved model; :meth:`from_dict` inverts it."""
+        return {"kind": "gaussian_process", "space": self.space, "input_names": list(self.input_names),
+                "x_mean": self.x_mean.tolist(), "x_scale": self.x_scale.tolist(), "X": self.X.tolist(),
+                "alpha": self.alpha.tolist(), "L": self.L.tolist(), "amplitude2": float(self.amplitude2),
+                "noise2": float(self.noise2), "length_scales": np.asarray(self.length_scales).tolist(),
+                "y_scale": float(self.y_scale), "n_points": int(self.n_points), "extra": dict(self.extra)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ResidualGP":
+        a = lambda k: np.asarray(d[k], float)  # noqa: E731
+        return cls(d["space"], list(d["input_names"]), a("x_mean"), a("x_scale"), np.atleast_2d(a("X")),
+                   np.atleast_2d(a("alpha")), np.atleast_2d(a("L")), float(d["amplitude2"]), float(d["noise2"]),
+                   a("length_scales"), float(d["y_scale"]), int(d["n_points"]), dict(d.get("extra", {})))
+
+
+def gp_inputs(space: str, readings, predicted_points, joint_names):
+    """Inputs of the residual GP: the joint readings, or the mean predicted point (x, y, z) of each row."""
+    if space == "joints":
+        return np.asarray(readings, float), list(joint_names)
+    if space == "cartesian":
+        P = np.asarray(predicted_points, float)
+        return P.reshape(len(P), -1, 3).mean(axis=1), ["x", "y", "z"]
+    raise ValueError(f"unknown residual space {space!r}; choose one of {SPACES}")
+
+
+def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rng=0) -> ResidualGP:
+    """Fit the ARD GP of the module docstring to residuals (scikit-learn), return it as plain data.
+
+    Parameters
+    ----------
+    X : (n, d) inputs (raw units: rad / m); residuals : (n, k, 3) measured − predicted points (m).
+    input_names : d names; space : ``"joints"`` / ``"cartesian"``.
+    restarts : extra L-BFGS-B starts of the marginal-likelihood fit (scikit-learn's
+        ``n_restarts_optimizer``); rng : seed.
+    """
+    try:
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise ImportError("the residual model needs scikit-learn: pip install scikit-learn") from exc
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    X = np.asarray(X, float)
+    R = np.asarray(residuals, float)
+    n = len(X)
+    R = R.reshape(n, -1, 3)
+    k = R.shape[1]
+    Y = R.reshape(n, -1)
+    x_mean = X.mean(0)
+    x_scale = X.std(0)
+    x_scale[x_scale < 1e-12] = 1.0
+    Xs = (X - x_mean) / x_scale
+    y_scale = float(np.sqrt(np.mean(Y ** 2))) or 1.0
+    d = X.shape[1]
+    kernel = (ConstantKernel(0.5, (1e-4, 10.0)) * RBF(np.ones(d), [LENGTH_BOUNDS] * d)
+              + WhiteKernel(0.5, (1e-4, 10.0)))
+    gp = GaussianProcessRegressor(kernel, normalize_y=False, n_restarts_optimizer=restarts,
+                                  random_state=np.random.RandomState(int(np.random.default_rng(rng).integers(2**31))))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        gp.fit(Xs, Y / y_scale)
+    kern = gp.kernel_
+    a2 = float(kern.k1.k1.constant_value)
+    ls = np.atleast_1d(np.asarray(kern.k1.k2.length_scale, float))
+    if ls.size == 1 and d > 1:
+        ls = np.full(d, float(ls[0]))
+    s2 = float(kern.k2.noise_level)
+    alpha = np.asarray(gp.alpha_, float).reshape(n, -1)
+    return ResidualGP(space, list(input_names), x_mean, x_scale, Xs, alpha, np.asarray(gp.L_, float), a2, s2, ls,
+                      y_scale, k, {"log_marginal_likelihood": float(gp.log_marginal_likelihood_value_)})
+
+
+# ---------------------------------------------------------------------------------------------
+# joint space: each joint's placement varies smoothly with its own angle
+# ---------------------------------------------------------------------------------------------
+def joint_parameter_columns(robot) -> dict:
+    """``{joint name: [geometric parameter names of that joint's placement]}``.
+
+    URDF chains name them ``tx_<joint>`` … ``rz_<joint>``; Khalil–Kleinfinger robots
+    ``theta_<i>``, ``d_<i>``, ``a_<i>``, ``alpha_<i>``, ``beta_<i>`` (i = 1…n).
+    """
+    out = {}
+    kinds = dict(zip(robot.params.names, robot.params.kinds))
+    geo = [n for n in robot.params.names if kinds[n] == "geometric"]
+    for i, j in enumerate(robot.joint_names):
+        cols = [n for n in geo if n.endswith("_" + j) or n.endswith(f"_{i + 1}") and not any(
+            n.endswith("_" + o) for o in robot.joint_names)]
+        if cols:
+            out[j] = cols
+    return out
+
+
+def joint_gp_design(robot, theta, readings, context=None, n_points: int = 1):
+    """Inputs of the joint-space GP: the readings and each row's Jacobian of the measured points
+    with respect to every joint's placement parameters, ``(Q (N, n), H (N, 3k, p), names (p,),
+    joint_of (p,))`` (analytic, :meth:`SerialRobot.kinematics`)."""
+    cols = joint_parameter_columns(robot)
+    names = [n for j in robot.joint_names for n in cols.get(j, [])]
+    joint_of = np.array([robot.joint_names.index(j) for j in robot.joint_names for _ in cols.get(j, [])], int)
+    kin = robot.kinematics(readings, theta, context or {}, jacobian=True)
+    idx = robot.params.indices(names)
+    if n_points and robot.n_markers >= n_points:
+        Jp = kin.J_points[:, :n_points][..., idx]          # (N, k, 3, p)
+    else:
+        Jp = np.repeat(kin.J[:, None, :3][..., idx], max(n_points, 1), axis=1)
+    N = len(Jp)
+    return np.asarray(readings, float), Jp.reshape(N, -1, len(idx)), names, joint_of
+
+
+@dataclass
+class JointGP:
+    """Joint-space residual GP: every joint's placement parameters vary smoothly with its own angle.
+
+    The residual of row i (3k coordinates) is ``r_i = Σ_j H̃_ij g_j(q_ij) + ε``, with H̃_ij the
+    Jacobian of the points with respect to joint j's placement parameters (columns scaled to unit
+    RMS) and g_j ~ GP(0, a_j² exp(−(q − q')²/(2ℓ_j²)) I) — a linear operator applied to independent
+    GPs (Rasmussen & Williams 2006, §9.4), so ``K = Σ_j a_j² (k_j ⊗ 1) ⊙ (H̃_j H̃_jᵀ) + s² I``.
+    One amplitude a_j and one length scale ℓ_j (ARD over the joint angles) per joint, fitted on
+    the log marginal likelihood with its analytic gradient (L-BFGS-B). A constant g_j is a
+    geometric parameter error (already fitted), a g_j varying with q_j is an axis that wobbles,
+    a placement that changes along the joint's travel — structure the geometric model cannot hold.
+
+    ``relevance``: each joint's share of the squared norm of the fitted mean, Σ‖K_j α‖² normalised.
+    Stored as plain data: training readings, scaled Jacobians, residuals and hyperparameters;
+    the factorisation is recomputed with numpy on first use.
+    """
+
+    joint_names: list
+    param_names: list
+    joint_of: np.ndarray
+    col_scale: np.ndarray
+    Q: np.ndarray
+    H: np.ndarray
+    Y: np.ndarray
+    amplitude: np.ndarray
+    length_scales: np.ndarray
+    noise: float
+    n_points: int
+    space: str = "joints"
+    extra: dict = field(default_factory=dict)
+
+    # --- kernel ------------------------------------------------------------------------------
+    def _blocks(self, Qa, Ha, Qb, Hb, amp=None, ls=None):
+        amp = self.amplitude if amp is None else amp
+        ls = self.length_scales if ls is None else ls
+        m = Ha.shape[1]
+        K = np.zeros((len(Qa) * m, len(Qb) * m))
+        for j in range(len(self.joint_names)):
+            c = self.joint_of == j
+            if not c.any():
+                continue
+            G = Ha[:, :, c].reshape(-1, c.sum()) @ Hb[:, :, c].reshape(-1, c.sum()).T
+            d = Qa[:, [j]] - Qb[:, j][None, :]
+            k = np.exp(-0.5 * d * d / ls[j] ** 2)
+            K += amp[j] ** 2 * np.kron(k, np.ones((m, m))) * G
+        return K
+
+    def _factor(self):
+        if "_L" not in self.__dict__:
+            from scipy.linalg import cho_solve
+
+            K = self._blocks(self.Q, self.H, self.Q, self.H) + self.noise ** 2 * np.eye(self.Y.size)
+            cf = (np.linalg.cholesky(K), True)
+            self.__dict__["_L"] = cf
+            self.__dict__["_alpha"] = cho_solve(cf, self.Y.reshape(-1), check_finite=False)
+        return self.__dict__["_L"], self.__dict__["_alpha"]
+
+    def _scaled(self, H):
+        return np.asarray(H, float) / self.col_scale
+
+    def predict(self, readings, H, return_std: bool = False, include_noise: bool = False):
+        """Residual mean (M, k, 3) in m at new rows (readings (M, n), Jacobians H (M, 3k, p) of
+        :func:`joint_gp_design`); with ``return_std`` the predictive std (M, 3k) too."""
+        Qs, Hs = np.asarray(readings, float), self._scaled(H)
+        cf, alpha = self._factor()
+        Ks = self._blocks(Qs, Hs, self.Q, self.H)
+        mean = (Ks @ alpha).reshape(len(Qs), -1, 3)
+        if not return_std:
+            return mean
+        from scipy.linalg import solve_triangular
+
+        v = solve_triangular(cf[0], Ks.T, lower=True)
+        prior = np.zeros(Ks.shape[0])
+        for j in range(len(self.joint_names)):
+            c = self.joint_of == j
+            if c.any():
+                prior += self.amplitude[j] ** 2 * np.sum(Hs[:, :, c] ** 2, axis=2).reshape(-1)
+        var = np.maximum(prior - np.sum(v * v, axis=0), 0.0) + (self.noise ** 2 if include_noise else 0.0)
+        return mean, np.sqrt(var).reshape(len(Qs), -1)
+
+    @property
+    def relevance(self) -> dict:
+        _, alpha = self._factor()
+        share = {}
+        for j, name in enumerate(self.joint_names):
+            c = self.joint_of == j
+            if not c.any():
+                continue
+            amp = np.zeros_like(self.amplitude)
+            amp[j] = self.amplitude[j]
+            share[name] = float(np.sum((self._blocks(self.Q, self.H, self.Q, self.H, amp=amp) @ alpha) ** 2))
+        tot = sum(share.values()) or 1.0
+        return {k: v / tot for k, v in sorted(share.items(), key=lambda kv: -kv[1])}
+
+    def to_dict(self) -> dict:
+        return {"kind": "gaussian_process", "space": "joints", "joint_names": list(self.joint_names),
+                "param_names": list(self.param_names), "joint_of": self.joint_of.tolist(),
+                "col_scale": self.col_scale.tolist(), "Q": self.Q.tolist(), "H": self.H.tolist(), "Y": self.Y.tolist(),
+                "amplitude": self.amplitude.tolist(), "length_scales": self.length_scales.tolist(),
+                "noise": float(self.noise), "n_points": int(self.n_points), "extra": dict(self.extra)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "JointGP":
+        a = lambda k: np.asarray(d[k], float)  # noqa: E731
+        return cls(list(d["joint_names"]), list(d["param_names"]), np.asarray(d["joint_of"], int), a("col_scale"),
+                   a("Q"), a("H"), a("Y"), a("amplitude"), a("length_scales"), float(d["noise"]),
+                   int(d["n_points"]), "joints", dict(d.get("extra", {})))
+
+
+def fit_joint_gp(readings, H, residuals, param_names, joint_of, joint_names, restarts: int = 1, rng=0,
+                 maxiter: int = 200) -> JointGP:
+    """Fit :class:`JointGP` (log marginal likelihood, analytic gradient, L-BFGS-B in log space).
+
+    readings (N, n), H (N, 3k, p) from :func:`joint_gp_design`, residuals (N, k, 3) in m.
+    """
+    from estcal.estimate.lsq import single_thread_blas
+
+    Q = np.asarray(readings, float)
+    H = np.asarray(H, float)
+    Y = np.asarray(residuals, float).reshape(-1)
+    N, m, p = H.shape
+    scale = np.sqrt(np.mean(H.reshape(-1, p) ** 2, axis=0))
+    scale[scale < 1e-15] = 1.0
+    Hs = H / scale
+    joint_of = np.asarray(joint_of, int)
+    nj = len(joint_names)
+    active = [j for j in range(nj) if np.any(joint_of == j) and np.ptp(Q[:, j]) > 1e-9]
+    rms = float(np.sqrt(np.mean(Y ** 2))) or 1.0
+    qsd = np.array([max(Q[:, j].std(), 1e-6) for j in range(nj)])
+    nll = joint_gp_objective(Q, Hs, Y, joint_of, active, m)
+    na = len(active)
+
+    def unpack(x):
+        return np.exp(x[:na]), np.exp(x[na:2 * na]), float(np.exp(x[-1]))
+
+    bounds = ([(np.log(1e-3 * rms), np.log(30 * rms))] * na
+              + [(np.log(0.05 * qsd[j]), np.log(50 * qsd[j])) for j in active]
+              + [(np.log(1e-3 * rms), np.log(3 * rms))])
+    gen = np.random.default_rng(rng)
+    with single_thread_blas():
+        best = _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter)
+    amp_a, ls_a, s = unpack(best.x)
+    amp = np.zeros(nj)
+    ls = qsd.copy()
+    amp[active] = amp_a
+    ls[active] = ls_a
+    return JointGP(list(joint_names), list(param_names), joint_of, scale, Q, Hs, Y.reshape(N, m), amp, ls, s,
+                   m // 3, "joints", {"neg_log_marginal_likelihood": float(best.fun)})
+
+
+def joint_gp_objective(Q, Hs, Y, joint_of, active, m: int):
+    """Negative log marginal likelihood of :class:`JointGP` and its analytic gradient, as a function of
+    ``x = [log a_j (active joints), log ℓ_j, log s]`` (up to the constant M/2 log 2π; R & W eq. 5.8–5.9)."""
+    from scipy.linalg.lapack import dpotrf, dpotri, dpotrs
+
+    M = Y.size
+    G = {j: Hs[:, :, joint_of == j].reshape(M, -1) @ Hs[:, :, joint_of == j].reshape(M, -1).T for j in active}
+    D2 = {j: np.kron((Q[:, [j]] - Q[:, j][None, :]) ** 2, np.ones((m, m))) for j in active}
+    na = len(active)
+
+    def unpack(x):
+        return np.exp(x[:na]), np.exp(x[na:2 * na]), float(np.exp(x[-1]))
+
+    def nll(x):
+        amp, ls, s = unpack(x)
+        Ks = {}
+        K = s * s * np.eye(M)
+        for i, j in enumerate(active):
+            Ks[j] = amp[i] ** 2 * np.exp(-0.5 * D2[j] / ls[i] ** 2) * G[j]
+            K += Ks[j]
+        L, info = dpotrf(K, lower=1, clean=1)
+        if info != 0:
+            return 1e25, np.zeros_like(x)
+        alpha = dpotrs(L, Y, lower=1)[0]
+        Ki = dpotri(L, lower=1)[0]
+        Ki = np.tril(Ki) + np.tril(Ki, -1).T
+        val = 0.5 * Y @ alpha + np.sum(np.log(np.diag(L)))
+        W = np.outer(alpha, alpha) - Ki                 # ααᵀ − K⁻¹
+        g = np.zeros_like(x)
+        for i, j in enumerate(active):
+            g[i] = -np.sum(W * Ks[j])                   # −½ tr(W ∂K/∂log a_j)
+            g[na + i] = -0.5 * np.sum(W * (Ks[j] * D2[j] / ls[i] ** 2))
+        g[-1] = -np.trace(W) * s * s
+        return val, g
+
+    return nll
+
+
+def _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter):
+    from scipy.optimize import minimize
+
+    best = None
+    for r in range(1 + max(int(restarts), 0)):
+        if r == 0:
+            x0 = np.r_[np.full(na, np.log(0.3 * rms)), np.log(qsd[active]), np.log(0.7 * rms)]
+        else:
+            x0 = np.array([gen.uniform(lo, hi) for lo, hi in bounds])
+        res = minimize(nll, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter})
+        if best is None or res.fun < best.fun:
+            best = res
+    return best
+
+
+def residual_model_from_dict(d: dict):
+    """A residual GP (:class:`JointGP` or :class:`ResidualGP`) from its :meth:`to_dict` form."""
+    return JointGP.from_dict(d) if d.get("space") == "joints" and "joint_of" in d else ResidualGP.from_dict(d)
+
+
+def _predicted(robot, theta, readings, context, k):
+    kin = robot.kinematics(readings, theta, context or {}, jacobian=False)
+    if k and robot.n_markers >= k:
+        return kin.points[:, :k]
+    return np.repeat(kin.p[:, None, :], max(k, 1), axis=1)
+
+
+def fit_residual_model(space: str, robot, theta, readings, residuals, context=None, restarts: int = 1, rng=0):
+    """The residual GP of ``space`` fitted to ``residuals`` (N, k, 3) of ``robot`` at ``theta``:
+    :class:`JointGP` for ``"joints"``, :class:`ResidualGP` over the predicted point for ``"cartesian"``."""
+    R = np.asarray(residuals, float)
+    k = R.shape[1]
+    if space == "joints":
+        Q, H, names, jo = joint_gp_design(robot, theta, readings, context, k)
+        return fit_joint_gp(Q, H, R, names, jo, robot.joint_names, restarts=restarts, rng=rng)
+    X, names = gp_inputs(space, readings, _predicted(robot, theta, readings, context, k), robot.joint_names)
+    return fit_residual_gp(X, R, names, space, restarts=restarts, rng=rng)
+
+
+def residual_correction(model, robot, theta, readings, context=None, return_std: bool = False):
+    """The residual model's mean correction (N, k, 3) in m at ``readings`` (add it to the robot's
+    prediction); with ``return_std`` also the predictive std per coordinate (N, 3k)."""
+    k = model.n_points
+    if isinstance(model, JointGP):
+        Q, H, _, _ = joint_gp_design(robot, theta, readings, context, k)
+        return model.predict(Q, H, return_std=return_std)
+    X, _ = gp_inputs(model.space, readings, _predicted(robot, theta, readings, context, k), robot.joint_names)
+    out = model.predict(X, return_std=return_std)
+    if not return_std:
+        return out
+    mean, sd = out
+    return mean, np.repeat(sd[:, None], 3 * k, axis=1)

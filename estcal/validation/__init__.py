@@ -1,0 +1,14 @@
+"""Validation that cannot cheat: postures, posture-grouped folds, seen/new splits, the repeatability floor.
+
+Layer 4 (docs/architecture.md): numpy/scipy only, no estimator. Every cross-validation
+of estcal draws its folds from :func:`grouped_folds` so that the twin of a held-out row —
+the same posture measured in another session or twice in one file — is never in training
+(docs/real-data.md).
+"""
+from .postures import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, joint_tolerances, n_postures,
+                       posture_groups, seen_postures)
+from .repeatability import repeatability_floor
+from .splits import rmse_mm, seen_new_scores
+
+__all__ = ["DEFAULT_TOL_M", "DEFAULT_TOL_RAD", "grouped_folds", "joint_tolerances", "n_postures",
+           "posture_groups", "seen_postures", "repeatability_floor", "rmse_mm", "seen_new_scores"]

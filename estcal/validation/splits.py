@@ -1,0 +1,49 @@
+"""Scores split by posture: rows at postures seen in training vs rows at new postures.
+
+A validation figure is only a prediction figure for rows at postures the model was
+not fitted on. :func:`seen_new_scores` reports the two apart; a validation made only
+of seen postures is flagged (``only_seen``), because its RMSE measures memory.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["rmse_mm", "seen_new_scores"]
+
+
+def rmse_mm(errors) -> float | None:
+    """RMS (mm) of point-error norms (m), any shape; ``None`` when empty."""
+    e = np.asarray(errors, float).reshape(-1)
+    return float(np.sqrt(np.mean(e ** 2)) * 1e3) if e.size else None
+
+
+def seen_new_scores(errors, seen, inside=None) -> dict:
+    """RMSE of the rows at seen and at new postures.
+
+    Parameters
+    ----------
+    errors : (M, k) point-error norms (m) of M validation rows, k points each.
+    seen : (M,) bool, True where the row's posture was in the training data
+        (:func:`estcal.validation.seen_postures`).
+    inside : optional (M,) bool, True where a new row lies inside the training joint
+        ranges (interpolation) — reported as ``new_inside`` / ``new_outside``.
+
+    Returns
+    -------
+    ``{"all": {n_rows, rmse_mm}, "seen": {…}, "new": {…}, "only_seen": bool}`` (plus the
+    inside/outside split when given); ``rmse_mm`` is ``None`` for an empty part.
+    """
+    E = np.asarray(errors, float)
+    E = E.reshape(len(E), -1)
+    seen = np.asarray(seen, bool)
+
+    def part(m):
+        return {"n_rows": int(m.sum()), "rmse_mm": rmse_mm(E[m])}
+
+    out = {"all": part(np.ones(len(E), bool)), "seen": part(seen), "new": part(~seen),
+           "only_seen": bool(len(E) > 0 and seen.all())}
+    if inside is not None:
+        ins = np.asarray(inside, bool)
+        out["new_inside"] = part(~seen & ins)
+        out["new_outside"] = part(~seen & ~ins)
+    return out

@@ -1,0 +1,101 @@
+"""Posture grouping, grouped folds, seen/new splits and the repeatability floor (estcal.validation)."""
+import numpy as np
+import pytest
+
+from estcal.validation import (grouped_folds, n_postures, posture_groups, repeatability_floor, seen_new_scores,
+                               seen_postures)
+
+
+def _repeated(n_post=12, n_rep=3, jitter=2e-4, n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(-2, 2, (n_post, n))
+    Q = np.repeat(base, n_rep, axis=0) + rng.uniform(-jitter, jitter, (n_post * n_rep, n))
+    return Q, np.repeat(np.arange(n_post), n_rep)
+
+
+def test_posture_groups_recover_the_repeats_in_order_of_first_appearance():
+    Q, truth = _repeated()
+    perm = np.random.default_rng(1).permutation(len(Q))
+    lab = posture_groups(Q[perm])
+    assert n_postures(lab) == 12
+    # same partition as the truth, labels numbered by first appearance
+    for a in range(len(Q)):
+        assert np.array_equal(lab == lab[a], truth[perm] == truth[perm][a])
+    assert lab[0] == 0 and set(np.unique(lab)) == set(range(12))
+    assert np.all(np.diff([np.argmax(lab == k) for k in range(12)]) > 0)
+
+
+def test_tolerance_per_joint_type_and_transitivity():
+    # prismatic joint 0: 0.8 mm apart agrees within 1 mm but not within 0.5 mm
+    Q = np.array([[0.1000, 0.5], [0.1008, 0.5], [0.3, 0.5]])
+    assert n_postures(posture_groups(Q, ["prismatic", "revolute"])) == 2
+    assert n_postures(posture_groups(Q, ["prismatic", "revolute"], tol_m=5e-4)) == 3
+    # a chain of rows each 0.9e-3 rad from the next is one posture (transitive agreement)
+    chain = np.c_[np.arange(5) * 0.9e-3, np.zeros(5)]
+    assert n_postures(posture_groups(chain)) == 1
+    assert n_postures(posture_groups(chain, tol_rad=5e-4)) == 5
+    with pytest.raises(ValueError, match="positive"):
+        posture_groups(chain, tol_rad=0)
+    with pytest.raises(ValueError, match="NaN"):
+        posture_groups(np.array([[np.nan, 0.0]]))
+
+
+def test_grouped_folds_never_split_a_posture_and_stay_balanced():
+    Q, truth = _repeated(n_post=20, n_rep=3)
+    lab = posture_groups(Q)
+    folds = grouped_folds(lab, 5, rng=3)
+    assert sorted(np.concatenate(folds).tolist()) == list(range(len(Q)))
+    for f in folds:
+        rest = np.setdiff1d(np.arange(len(Q)), f)
+        assert not set(lab[f]) & set(lab[rest])
+    assert max(map(len, folds)) - min(map(len, folds)) <= 3
+    assert len(grouped_folds(lab, 100)) == 20  # capped: leave one posture out
+    with pytest.raises(ValueError, match="2 distinct postures"):
+        grouped_folds(np.zeros(4, int), 3)
+
+
+def test_seen_postures_and_the_seen_new_scores():
+    Q, truth = _repeated(n_post=10, n_rep=2)
+    tr, te = Q[::2][:6], Q[1::2]  # training: postures 0..5 once; test: every posture once
+    seen = seen_postures(tr, te)
+    assert seen.tolist() == [True] * 6 + [False] * 4
+    err = np.c_[np.where(seen, 1e-3, 3e-3), np.where(seen, 1e-3, 3e-3)]
+    s = seen_new_scores(err, seen)
+    assert s["seen"]["rmse_mm"] == pytest.approx(1.0) and s["new"]["rmse_mm"] == pytest.approx(3.0)
+    assert s["seen"]["n_rows"] == 6 and not s["only_seen"]
+    s2 = seen_new_scores(err[:6], seen[:6])
+    assert s2["only_seen"] and s2["new"]["rmse_mm"] is None
+
+
+def _sessions(sigma, rot, shift, n_post=40, n_sess=3, k=2, seed=0):
+    rng = np.random.default_rng(seed)
+    true = rng.uniform(-0.5, 0.5, (n_post, k, 3))
+    pts, grp, ses = [], [], []
+    for s in range(n_sess):
+        w = rng.standard_normal(3)
+        w *= rot / np.linalg.norm(w) if s else 0.0
+        K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        from scipy.linalg import expm
+        R = expm(K)
+        t = rng.standard_normal(3) * shift if s else np.zeros(3)
+        pts.append(true @ R.T + t + sigma * rng.standard_normal(true.shape))
+        grp.append(np.arange(n_post))
+        ses.append(np.full(n_post, s))
+    return np.concatenate(pts), np.concatenate(grp), np.concatenate(ses)
+
+
+def test_repeatability_floor_raw_and_after_rigid_registration():
+    sigma = 2e-4  # per coordinate: the floor is √3 σ = 0.346 mm
+    P, g, s = _sessions(sigma, rot=3e-3, shift=2e-3)
+    r = repeatability_floor(P, g, s)
+    assert r["registered_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.1)
+    assert r["raw_mm"] > 3 * r["registered_mm"]
+    assert r["difference_rms_mm"]["registered"] == pytest.approx(np.sqrt(2) * r["registered_mm"])
+    assert r["n_repeated_postures"] == 40 and r["n_sessions"] == 3
+    # sessions that did not move: raw and registered agree (registration fits only noise)
+    P0, g0, s0 = _sessions(sigma, rot=0.0, shift=0.0)
+    r0 = repeatability_floor(P0, g0, s0)
+    assert r0["raw_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.1)
+    assert r0["registered_mm"] == pytest.approx(r0["raw_mm"], rel=0.05)
+    # nothing repeats: no floor
+    assert repeatability_floor(P0[:40], g0[:40], s0[:40]) is None
