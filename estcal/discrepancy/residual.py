@@ -336,7 +336,7 @@ def fit_joint_gp(readings, H, residuals, param_names, joint_of, joint_names, res
 
     readings (N, n), H (N, 3k, p) from :func:`joint_gp_design`, residuals (N, k, 3) in m.
     """
-    from estcal.estimate.lsq import single_thread_blas
+    from estcal.base.blas import single_thread_blas
 
     Q = np.asarray(readings, float)
     H = np.asarray(H, float)
