@@ -42,8 +42,8 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
 
-__all__ = ["ErrorBudget", "error_budget", "fit_stage", "predicted_points", "measured_points",
-           "prediction_coverage", "STAGES"]
+__all__ = ["ErrorBudget", "FittedStage", "error_budget", "fit_stage", "fit_stage_sessions", "predicted_points",
+           "measured_points", "prediction_coverage", "STAGES"]
 
 STAGES = ("nominal", "geometric", "named")
 
@@ -98,6 +98,122 @@ def fit_stage(robot, data, noise, stage: str, level: str = "full", effects=(), m
     free = list(free) + en
     res = calibrate_lsq(Problem(rb, [(None, data, noise)]), "lm", free=free, check=False, max_iter=max_iter)
     return rb, res.theta, free, res
+
+
+@dataclass
+class FittedStage:
+    """A fitted stage: the robot at ``theta`` plus, per session, a rigid registration of the
+    measuring frame (``R_s``, ``t_s``) and a change of the measured points on the tool (``dm_s``,
+    (k, 3) in the tool frame) relative to the first session (identity, 0 for a session the fit
+    never saw). ``predict`` returns points in each row's own session frame."""
+
+    robot: object
+    theta: np.ndarray
+    free: list
+    result: object
+    sessions: dict = field(default_factory=dict)
+
+    def _session_rows(self, data):
+        lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
+        return lab
+
+    def predict_common(self, data):
+        """(N, k, 3) points in the common frame (first session), with each session's marker change."""
+        pred = predicted_points(self.robot, self.theta, data)
+        if not self.sessions:
+            return pred
+        from estcal.kinematics.chunked import tool_poses
+
+        R_tool = tool_poses(self.robot, data.readings, self.theta, data.context, fields=("R",)).R
+        lab = self._session_rows(data)
+        for sv, (R, t, dm) in self.sessions.items():
+            m = lab == sv
+            if m.any() and np.any(dm):
+                pred[m] += np.einsum("nij,kj->nki", R_tool[m], dm)
+        return pred
+
+    def to_session(self, data, pts):
+        out = np.array(pts, float)
+        lab = self._session_rows(data)
+        for sv, (R, t, dm) in self.sessions.items():
+            m = lab == sv
+            out[m] = out[m] @ R.T + t
+        return out
+
+    def residual_common(self, data):
+        """Measured − predicted, rotated back into the common frame (N, k, 3)."""
+        r = measured_points(data) - self.predict(data)
+        lab = self._session_rows(data)
+        for sv, (R, t, dm) in self.sessions.items():
+            m = lab == sv
+            r[m] = r[m] @ R
+        return r
+
+    def rotate_to_session(self, data, vec):
+        out = np.array(vec, float)
+        lab = self._session_rows(data)
+        for sv, (R, t, dm) in self.sessions.items():
+            m = lab == sv
+            out[m] = out[m] @ R.T
+        return out
+
+    def predict(self, data):
+        return self.to_session(data, self.predict_common(data))
+
+
+def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effects=(), per_session: str | None = None,
+                       n_iter: int = 6, max_iter: int = 100) -> FittedStage:
+    """:func:`fit_stage` with, when ``per_session`` is ``"registration"`` (or ``"registration+points"``),
+    a rigid registration of every session's measuring frame (and a change of the measured points on the
+    tool) onto the first session's, by alternation: the shared model is fitted to the measurements mapped
+    into the common frame, then each session's transform (Kabsch) and point change (linear least squares)
+    are re-estimated from the model's prediction."""
+    from estcal.estimate.registration import kabsch
+    from estcal.kinematics.chunked import tool_poses
+
+    lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
+    svals = list(dict.fromkeys(lab.tolist()))
+    if per_session is None or len(svals) < 2:
+        return FittedStage(*fit_stage(robot, data, noise, stage, level, effects, max_iter))
+    if per_session not in ("registration", "registration+points"):
+        raise ValueError(f"per_session must be None, 'registration' or 'registration+points', got {per_session!r}")
+    k = measured_points(data).shape[1]
+    sess = {sv: (np.eye(3), np.zeros(3), np.zeros((k, 3))) for sv in svals}
+    meas = measured_points(data)
+    fitted = None
+    for _ in range(n_iter):
+        adj = data.subset(slice(None))
+        P = meas.copy()
+        if fitted is not None:
+            R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
+        for sv, (R, t, dm) in sess.items():
+            m = lab == sv
+            P[m] = (P[m] - t) @ R
+            if fitted is not None and np.any(dm):
+                P[m] -= np.einsum("nij,kj->nki", R_tool[m], dm)
+        if adj.points is not None:
+            adj.points = P
+        else:
+            adj.p = P[:, 0]
+        if adj.R is not None:  # pose data: the measured orientation in the common frame too
+            for sv, (R, t, dm) in sess.items():
+                m = lab == sv
+                adj.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
+        fitted = FittedStage(*fit_stage(robot, adj, noise, stage, level, effects, max_iter))
+        base = predicted_points(fitted.robot, fitted.theta, data)
+        R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
+        for sv in svals[1:]:
+            m = lab == sv
+            R, t, dm = sess[sv]
+            for _inner in range(3):
+                pred = base[m] + np.einsum("nij,kj->nki", R_tool[m], dm)
+                R, t = kabsch(pred.reshape(-1, 3), meas[m].reshape(-1, 3))
+                if per_session == "registration+points":
+                    local = np.einsum("nji,nkj->nki", R_tool[m], (meas[m] - t) @ R - base[m])
+                    dm = local.mean(axis=0)
+            sess[sv] = (R, t, dm)
+    fitted.sessions = {sv: sess[sv] for sv in svals[1:]}
+    return fitted
 
 
 @dataclass
@@ -161,7 +277,7 @@ def _fold_rmse(sq_rows, folds):
 def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), groups=None, sessions=None,
                  k_folds: int = 5, rng=0, tol_rad: float = DEFAULT_TOL_RAD, tol_m: float = DEFAULT_TOL_M,
                  spaces=SPACES, residual_model: str | None = None, gp_restarts: int = 1,
-                 max_iter: int = 60) -> ErrorBudget:
+                 max_iter: int = 60, per_session: str | None = None) -> ErrorBudget:
     """The error budget of the module docstring on ``data`` (all sessions stacked).
 
     Parameters
@@ -176,6 +292,8 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     spaces : residual GP spaces tried (``joints``, ``cartesian``).
     residual_model : ``"gp"`` makes named + GP the recommended model (its CV RMSE is then the
         prediction) and returns the GP fitted on all rows in ``residual_model``.
+    per_session : ``"registration"`` / ``"registration+points"``: every stage with a rigid registration
+        of each session (and a per-session change of the measured points), see :func:`fit_stage_sessions`.
     """
     noise = noise or NoiseModel(position=2e-4, orientation=2e-4, known=False)
     n = data.n
@@ -191,13 +309,14 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
         train = np.setdiff1d(np.arange(n), test)
         dtr, dte = data.subset(train), data.subset(test)
         for st in stages:
-            rb, th, _, _ = fit_stage(robot, dtr, noise, st, level, effects, max_iter)
-            held[st][test] = meas[test] - predicted_points(rb, th, dte)
+            fs = fit_stage_sessions(robot, dtr, noise, st, level, effects, per_session, max_iter=max_iter)
+            held[st][test] = meas[test] - fs.predict(dte)
             if st == stages[-1]:
-                r_tr = meas[train] - predicted_points(rb, th, dtr)
+                r_tr = fs.residual_common(dtr)
                 for sp in spaces:
-                    gp = fit_residual_model(sp, rb, th, dtr.readings, r_tr, dtr.context, gp_restarts, rng)
-                    held_gp[sp][test] = held[st][test] - residual_correction(gp, rb, th, dte.readings, dte.context)
+                    gp = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, gp_restarts, rng)
+                    corr = residual_correction(gp, fs.robot, fs.theta, dte.readings, dte.context)
+                    held_gp[sp][test] = held[st][test] - fs.rotate_to_session(dte, corr)
     if not effects:
         held["named"] = held["geometric"]
     sq = {k: np.sum(v ** 2, axis=-1) for k, v in held.items()}  # (N, k) squared norms
@@ -208,11 +327,12 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     structured = max(rm["named"] - gp_mm[best], 0.0) if best else 0.0
     unstructured = rm["named"] - structured
     # relevance from the GP fitted on every row's residual of the final named model
-    rb, th, _, _ = fit_stage(robot, data, noise, stages[-1], level, effects, max_iter)
-    p_all = predicted_points(rb, th, data)
+    final = fit_stage_sessions(robot, data, noise, stages[-1], level, effects, per_session, max_iter=max_iter)
+    rb, th = final.robot, final.theta
     unnamed, final_gp = {}, None
     if best:
-        final_gp = fit_residual_model(best, rb, th, data.readings, meas - p_all, data.context, gp_restarts, rng)
+        final_gp = fit_residual_model(best, rb, th, data.readings, final.residual_common(data), data.context,
+                                      gp_restarts, rng)
         names = final_gp.joint_names if best == "joints" else final_gp.input_names
         unnamed = {"space": best, "relevance": final_gp.relevance,
                    "length_scales": dict(zip(names, np.asarray(final_gp.length_scales).tolist()))}
@@ -229,7 +349,7 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(unstructured), rep_mm,
                        rmse_mm(np.sqrt(pred_sq)), se, label, unnamed, per_fold, gp_mm, rep, n_postures(g), n,
                        len(folds), level, [tuple(e) for e in effects], final_gp if use_gp else None,
-                       {"fitted_robot": rb, "fitted_theta": th})
+                       {"fitted_robot": rb, "fitted_theta": th, "fitted": final, "per_session": per_session})
 
 
 def prediction_coverage(robot, theta, free, covariance, data, sigma_extra_m: float, level: float = 0.95) -> dict:
