@@ -144,3 +144,21 @@ def test_repeated_postures_make_row_wise_cv_optimistic_and_grouped_cv_is_not():
     assert row_wise.predicted_validation_mm < 0.6 * truth, (row_wise.predicted_validation_mm, truth)
     assert grouped.predicted_validation_mm == pytest.approx(truth, rel=0.3)
     assert grouped.repeatability_mm == pytest.approx(np.sqrt(3) * SIGMA * 1e3, rel=0.3)
+
+
+def test_compensation_with_the_residual_layer_reaches_the_target_with_it():
+    from estcal.discrepancy.residual import compensate_with_residual
+
+    sim = _sim(n=40, seed=13)
+    rb = sim.true_robot
+    R = _tilted(sim, 2, 3e-3) - sim.true_points[:, :2]
+    Q, H, names, jo = joint_gp_design(rb, rb.params.values, sim.dataset.readings, n_points=2)
+    gp = fit_joint_gp(Q, H, R + SIGMA * np.random.default_rng(1).standard_normal(R.shape), names, jo,
+                      rb.joint_names, restarts=0)
+    q0 = sim.dataset.readings[:5]
+    target = rb.kinematics(q0, jacobian=False).points[:, 0] + np.array([1e-3, -2e-3, 1e-3])
+    res, sd = compensate_with_residual(rb, gp, target, q0)
+    reached = rb.kinematics(res.readings, jacobian=False).points[:, 0] + residual_correction(gp, rb, rb.params.values,
+                                                                                            res.readings)[:, 0]
+    assert np.max(np.linalg.norm(reached - target, axis=1)) < 1e-6
+    assert np.all(sd > 0) and np.all(sd < 0.5)

@@ -248,7 +248,7 @@ class ErrorBudget:
                                            "gp_mm", "repeatability", "n_postures", "n_rows", "k_folds", "level")}
         d["effects"] = [{"effect": e[0], "joints": list(e[1])} for e in self.effects]
         d["cross_validation"] = "posture-grouped"
-        d.update(self.extra)
+        d.update({k: v for k, v in self.extra.items() if not k.startswith("fitted")})
         return d
 
     def lines(self) -> list[str]:

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["ResidualGP", "JointGP", "fit_residual_gp", "fit_joint_gp", "joint_gp_design", "gp_inputs", "SPACES",
-           "residual_model_from_dict", "fit_residual_model", "residual_correction"]
+           "residual_model_from_dict", "fit_residual_model", "residual_correction", "compensate_with_residual"]
 
 SPACES = ("joints", "cartesian")
 #: bounds of the standardised length scales: below 0.05 a GP memorises single postures
@@ -461,3 +461,25 @@ def residual_correction(model, robot, theta, readings, context=None, return_std:
         return out
     mean, sd = out
     return mean, np.repeat(sd[:, None], 3 * k, axis=1)
+
+
+def compensate_with_residual(robot, model, targets, q_start, context=None, iterations: int = 5, **kw):
+    """Compensated readings with a residual layer: the calibrated model plus the GP mean reach ``targets``.
+
+    :func:`estcal.compensation.compensate` solves FK(q) = x; with the residual layer the
+    point reached is FK(q) + μ(q), so the solve is repeated for the shifted targets
+    ``x − μ(q_k)`` (fixed point; μ varies slowly with q, two or three passes suffice).
+    Returns ``(CompensationResult, residual_std_mm (N,))``: the result of the last solve and
+    the GP's predictive std (RMS over the three coordinates, mm) at the compensated readings.
+    """
+    from estcal.compensation import compensate
+
+    x = np.asarray(targets, float)
+    q = np.asarray(q_start, float)
+    res = None
+    for _ in range(max(int(iterations), 1)):
+        mu = residual_correction(model, robot, robot.params.values, q, context)[:, 0]
+        res = compensate(robot, x - mu, q, context=context, **kw)
+        q = res.readings
+    _, sd = residual_correction(model, robot, robot.params.values, q, context, return_std=True)
+    return res, np.sqrt(np.mean(sd[:, :3] ** 2, axis=1)) * 1e3
