@@ -212,8 +212,9 @@ def filter_checkpoint(flt, *, options: dict, rows: int, line: int, hasher: Prefi
 def save_checkpoint(path, state: dict) -> Path:
     """Write ``state`` atomically (never a partial file)."""
     from estcal.base.atomic import atomic_write_text
+    from estcal.io.integrity import stamp_json
 
-    return atomic_write_text(path, json.dumps(state))
+    return atomic_write_text(path, json.dumps(stamp_json(state)))  # a changed digit is refused on resume
 
 
 def load_checkpoint(path) -> dict:
@@ -228,6 +229,10 @@ def load_checkpoint(path) -> dict:
         raise CheckpointError(f"{path}: not an estcal online checkpoint (no format {FORMAT!r})")
     if d.get("version") != VERSION:
         raise CheckpointError(f"{path}: checkpoint version {d.get('version')}, this estcal reads {VERSION}")
+    from estcal.io.integrity import verify_json
+
+    verify_json(d, str(path), CheckpointError, "checkpoint")
+    d.pop("content_sha256", None)
     return d
 
 

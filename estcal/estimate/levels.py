@@ -242,6 +242,10 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     from estcal.methods import NoiseModel, Problem, get_method
 
     noise = noise or NoiseModel()
+    if checks:  # before the registration and the QR of the selection: cheap refusals first
+        from estcal.estimate.checks import refuse_repeated_early
+
+        refuse_repeated_early(data)
     method = get_method(measure) if measure else None
     problem = Problem(robot, [(method, data, noise)], noise)
     pv = problem.params

@@ -391,8 +391,10 @@ def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
 
 def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
-    from estcal.base.textinput import read_yaml
+    from estcal.base.textinput import read_text, read_yaml
+    from estcal.io.integrity import verify_text
 
+    verify_text(read_text(path, "robot", RobotFileError), str(path), RobotFileError, "robot file")
     return read_yaml(path, "robot", RobotFileError)
 
 
@@ -609,11 +611,13 @@ def _plain(x):
     return to_jsonable(x)
 
 
-def save_robot(robot: SerialRobot, path) -> Path:
+def save_robot(robot: SerialRobot, path, checksum: bool = False) -> Path:
     """Write ``robot`` as a YAML robot file (SI units) that :func:`load_robot` reads back.
 
     Floats are written with Python's shortest round-trip repr, so the reloaded
-    robot has bit-identical parameter values and forward kinematics.
+    robot has bit-identical parameter values and forward kinematics. ``checksum``: a
+    ``# content-sha256:`` line (:mod:`estcal.io.integrity`) that makes a later change or cut
+    refused on reading — saved models carry it; a robot file meant to be edited does not.
     """
     import yaml
 
@@ -636,6 +640,9 @@ def save_robot(robot: SerialRobot, path) -> Path:
               f"# written by estcal.io.robotfile.save_robot from robot {robot.name!r}\n")
     from estcal.base.atomic import atomic_write_text
 
-    atomic_write_text(path, header + yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False,
-                                               width=110))
+    from estcal.io.integrity import stamp_text
+
+    body = yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=110)
+    # the checksum line lets a reader refuse a file cut at a line boundary or changed by a digit
+    atomic_write_text(path, stamp_text(header, body) if checksum else header + body)
     return path

@@ -174,7 +174,7 @@ def _write(robot, block: dict, path) -> Path:
     out = robot.copy()  # shallow: the caller's robot keeps its own meta
     out.meta = dict(robot.meta)
     out.meta["calibration"] = _finite_or_none(_plain(block))
-    return save_robot(out, path)
+    return save_robot(out, path, checksum=True)  # a changed digit or a cut file is refused on loading
 
 
 def save_calibration(result, path, provenance: dict | None = None) -> Path:

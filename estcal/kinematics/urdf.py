@@ -102,6 +102,20 @@ def _check_tree(urdf, path) -> None:
             if t > MAX_LENGTH_M:
                 raise RobotFileError(f"{path}: joint {j.name!r}: <origin xyz> reaches {t:g} m, beyond {MAX_LENGTH_M:g} m "
                                      f"— URDF lengths are metres (is the file in millimetres?)")
+    # a closed loop (A → B → … → A) gives every link one parent: follow the parents from each link
+    parent_link = {j.child: j.parent for j in urdf.robot.joints}
+    done: set = set()
+    for start in parent_link:
+        seen, cur = [], start
+        while cur in parent_link and cur not in done:
+            if cur in seen:
+                loop = seen[seen.index(cur):]
+                raise RobotFileError(f"{path}: the joints form a closed loop through links {' → '.join(loop + [cur])}"
+                                     f" — a URDF must be a tree (estcal models serial chains; parallel robots: "
+                                     f"docs/parallel.md)")
+            seen.append(cur)
+            cur = parent_link[cur]
+        done.update(seen)
 
 
 def root_links(urdf) -> list[str]:
@@ -186,6 +200,14 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
                              f"({', '.join(leaves[:10])}{'…' if len(leaves) > 10 else ''})")
         tip = leaves[0]
     chain = _chain(urdf, root, tip, path)
+    for j in chain:
+        if j.type != "fixed" and getattr(j, "mimic", None) is not None:
+            m = j.mimic
+            raise RobotFileError(f"{path}: joint {j.name!r} on the chain {root!r} → {tip!r} is a <mimic> of "
+                                 f"{m.joint!r} (q = {m.multiplier if m.multiplier is not None else 1:g}·q_{m.joint} + "
+                                 f"{m.offset if m.offset is not None else 0:g}): estcal reads one column per actuated "
+                                 f"joint and does not couple joints from a URDF — choose a tip above it (--tip), or "
+                                 f"describe the chain in a robot file")
     # A link carries everything rigidly attached to it, including the fixed chain
     # links after the last actuated joint (tool flange, sensor, hand): only the next
     # actuated chain joint ends its subtree.
@@ -225,5 +247,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
         raise RobotFileError(f"{path}: no actuated joint between {root!r} and {tip!r}")
     robot = build_robot(name or f"{urdf.robot.name}:{root}->{tip}", frames, markers=markers,
                         convention="urdf", tool_const=pending,
-                        meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip})
+                        meta={"urdf": str(Path(path).resolve()), "root": root, "tip": tip,
+                              "continuous": [j.name for j in chain if j.type == "continuous"],
+                              "urdf_joints": [j.name for j in urdf.robot.joints if j.type != "fixed"]})
     return robot
