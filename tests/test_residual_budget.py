@@ -162,3 +162,16 @@ def test_compensation_with_the_residual_layer_reaches_the_target_with_it():
                                                                                             res.readings)[:, 0]
     assert np.max(np.linalg.norm(reached - target, axis=1)) < 1e-6
     assert np.all(sd > 0) and np.all(sd < 0.5)
+
+
+def test_budget_figure_draws_every_stage_and_the_lines():
+    from estcal.plots.budget import budget_figure
+
+    b = {"nominal_mm": 5.0, "geometric_mm": 3.5, "named_mm": 2.9, "unstructured_mm": 2.6, "repeatability_mm": 0.96,
+         "predicted_validation_mm": 2.9}
+    fig = budget_figure(b)
+    ax = fig.axes[0]
+    heights = sorted(round(p.get_height(), 6) for p in ax.patches)
+    assert heights == [2.6, 2.9, 3.5, 5.0]
+    assert {ln.get_gid() for ln in ax.lines} == {"predicted", "repeatability"}
+    assert len(budget_figure(dict(b, repeatability_mm=None)).axes[0].lines) == 1

@@ -43,7 +43,7 @@ def stable_causes(robot, data, *, level: str = "full", k_folds: int = 5, rng=0, 
     """
     from estcal.discrepancy.diagnose import diagnose
 
-    kw = {"plots": False, "geometric": level, **diagnose_kw}
+    kw = {"geometric": level, **diagnose_kw}
     g = posture_groups(data.readings, robot.joint_types, tol_rad, tol_m) if groups is None else np.asarray(groups)
     full = diagnose(robot, data, rng=rng, **kw)
     names = [cause_key(c) for c in full.causes]
