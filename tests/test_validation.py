@@ -99,3 +99,15 @@ def test_repeatability_floor_raw_and_after_rigid_registration():
     assert r0["registered_mm"] == pytest.approx(r0["raw_mm"], rel=0.05)
     # nothing repeats: no floor
     assert repeatability_floor(P0[:40], g0[:40], s0[:40]) is None
+
+
+def test_validation_split_flags_a_validation_of_seen_postures_only():
+    from estcal.validation import validation_split
+
+    Q, _ = _repeated(n_post=8, n_rep=2)
+    tr, te = Q[::2], Q[1::2]  # the same 8 postures measured again
+    out = validation_split(tr, te, np.full((8, 2), 1e-3))
+    assert out["only_seen"] and "memory" in out["warning"]
+    new = np.random.default_rng(5).uniform(-1, 1, (3, 4))
+    out2 = validation_split(tr, np.vstack([te, new]), np.full((11, 2), 1e-3))
+    assert out2["warning"] is None and out2["new"]["n_rows"] == 3 and out2["seen"]["n_rows"] == 8

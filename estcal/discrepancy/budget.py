@@ -42,7 +42,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
 
-__all__ = ["ErrorBudget", "FittedStage", "error_budget", "fit_stage", "fit_stage_sessions", "predicted_points",
+__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "fit_stage", "fit_stage_sessions", "predicted_points",
            "measured_points", "prediction_coverage", "STAGES"]
 
 STAGES = ("nominal", "geometric", "named")
@@ -373,3 +373,11 @@ def prediction_coverage(robot, theta, free, covariance, data, sigma_extra_m: flo
     d2 = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
     covered = d2 <= stats.chi2.ppf(level, 3)
     return {"coverage": float(covered.mean()), "n_points": int(len(covered)), "level": level}
+
+
+def diagnosis_budget(robot, diagnosis, **kw) -> ErrorBudget:
+    """The error budget of a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`: its training data as it
+    prepared them, its geometric level and its named causes (``kw`` as :func:`error_budget`)."""
+    effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in diagnosis.causes]
+    level = diagnosis.analysis.get("geometric_level", "full")
+    return error_budget(robot, diagnosis.train_data, kw.pop("noise", None), level=level, effects=effects, **kw)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rmse_mm", "seen_new_scores"]
+__all__ = ["rmse_mm", "seen_new_scores", "validation_split"]
 
 
 def rmse_mm(errors) -> float | None:
@@ -46,4 +46,21 @@ def seen_new_scores(errors, seen, inside=None) -> dict:
         ins = np.asarray(inside, bool)
         out["new_inside"] = part(~seen & ins)
         out["new_outside"] = part(~seen & ~ins)
+    return out
+
+
+def validation_split(train_readings, valid_readings, errors, joint_types=None, tol_rad: float = 1e-3,
+                     tol_m: float = 1e-3) -> dict:
+    """:func:`seen_new_scores` of a validation file against the training rows (all files stacked),
+    with the rows inside the training joint ranges marked, and a ``warning`` when every validation
+    row is at a seen posture (its RMSE measures memory, not accuracy at new postures)."""
+    from .postures import seen_postures
+
+    A = np.asarray(train_readings, float)
+    B = np.asarray(valid_readings, float)
+    seen = seen_postures(A, B, joint_types, tol_rad, tol_m)
+    inside = np.all((B >= A.min(0)) & (B <= A.max(0)), axis=1)
+    out = seen_new_scores(errors, seen, inside)
+    out["warning"] = ("every validation row is at a posture seen in training: this RMSE measures memory, "
+                      "not accuracy at new postures") if out["only_seen"] else None
     return out
