@@ -53,7 +53,7 @@ def test_numpy_evaluation_equals_scikit_learn_and_round_trips():
     R = np.zeros((40, 2, 3))
     R[:, :, 1] = 1e-3 * np.sin(2 * X[:, [0]])
     R += 1e-4 * rng.standard_normal(R.shape)
-    gp = fit_residual_gp(X, R, ["a", "b", "c"], "cartesian")
+    gp = fit_residual_gp(X, R, ["a", "b", "c"], "cartesian", restarts=0)
     # the same GP rebuilt in scikit-learn with the fitted hyperparameters, not refitted
     k = (ConstantKernel(gp.amplitude2, "fixed") * RBF(gp.length_scales, "fixed") + WhiteKernel(gp.noise2, "fixed"))
     sk = GaussianProcessRegressor(k, optimizer=None).fit(gp.X, R.reshape(40, -1) / gp.y_scale)
@@ -129,9 +129,9 @@ def test_repeated_postures_make_row_wise_cv_optimistic_and_grouped_cv_is_not():
     data = _noisy(rep, _tilted(rep, 3, 3e-3), seed=6)
     data.columns["session"] = np.tile(np.arange(3.0), 16)
     rob = rep.nominal_robot
-    grouped = error_budget(rob, data, NOISE, level="full", k_folds=4, residual_model="gp", gp_restarts=0)
-    row_wise = error_budget(rob, data, NOISE, level="full", k_folds=4, residual_model="gp", gp_restarts=0,
-                            groups=np.arange(data.n))
+    kw = dict(level="full", k_folds=4, residual_model="gp", gp_restarts=0, spaces=("joints",))
+    grouped = error_budget(rob, data, NOISE, **kw)
+    row_wise = error_budget(rob, data, NOISE, groups=np.arange(data.n), **kw)
     # the truth: the same model (fitted on everything) at 200 new postures
     new = _sim(n=200, seed=7)
     new = simulate(puma560(), readings=new.dataset.readings, measure="points", errors="random", n_points=2,
