@@ -157,7 +157,8 @@ def test_experiment_ik_baseline_is_the_shared_least_squares_fit(robot, model):
     S, N, k = 3, 12, exp.K
     T = generate_random_poses(robot, S * N, rng).reshape(S, N, 4, 4)
     Tn, rho_k = exp._noisy(rng, T, exp._leg_len(robot, T) - robot.drho[k], 1e-4, np.radians(0.01), 1e-4)
-    a, b, d = exp.ik_leg_gn(robot, Tn, rho_k, model)
+    a, b, d, ok = exp.ik_leg_gn(robot, Tn, rho_k, model)
+    assert ok.all()
     free = ["a3_*", "b3_*"] + (["drho_3"] if model == 42 else [])
     for s in range(S):
         rho = robot.leg_lengths(Tn[s])
