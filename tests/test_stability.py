@@ -25,3 +25,21 @@ def test_repeated_postures_stay_in_one_fold_and_clean_data_keep_nothing():
     both.points = both.points + SIGMA * np.random.default_rng(0).standard_normal(both.points.shape)
     st = stable_causes(sim.nominal_robot, both, k_folds=3, noise=SIGMA, families=False, max_effects=1)
     assert st["kept"] == [] and st["effects"] == []
+
+
+def test_diagnose_cross_validates_by_posture():
+    # every posture measured twice: a row-wise split holds out rows whose twin is in training
+    from estcal.discrepancy import cross_validate, diagnose
+    from estcal.discrepancy.geometric import fit_geometric
+    from estcal.methods import NoiseModel
+
+    sim, _ = simulate_hidden(load_robot("puma560_masses"), [], SIGMA, n_poses=15, measure="points", seed=6)
+    d = sim.dataset
+    both = d.subset(np.r_[np.arange(d.n), np.arange(d.n)])
+    both.points = both.points + SIGMA * np.random.default_rng(1).standard_normal(both.points.shape)
+    res = diagnose(sim.nominal_robot, both, noise=SIGMA, k_folds=5, max_effects=0)
+    pb, r, free, _ = fit_geometric(sim.nominal_robot, both, NoiseModel(position=SIGMA, known=True))
+    perm = np.random.default_rng(0).permutation(both.n)
+    row_wise = cross_validate(pb, r.theta, free, [np.sort(f) for f in np.array_split(perm, 5)])[0]
+    grouped = res.rmse_mm["geometric"]["cv"]
+    assert grouped > 1.2 * row_wise > 1.1 * res.rmse_mm["geometric"]["train"]

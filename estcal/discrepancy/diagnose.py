@@ -52,6 +52,7 @@ from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.methods import NoiseModel, Problem
 from estcal.base.progress import progress
+from estcal.validation import grouped_folds, posture_groups
 
 from .analysis import residual_analysis, save_plots
 from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
@@ -331,12 +332,6 @@ class DiagnosisResult:
 
 
 # ------------------------------------------------------------------ helpers
-def _folds(n: int, k: int, rng) -> list[np.ndarray]:
-    k = int(min(max(k, 2), n))
-    perm = np.random.default_rng(rng).permutation(n)
-    return [np.sort(f) for f in np.array_split(perm, k)]
-
-
 def cross_validate(problem, theta, free, folds, max_iter: int = 30):
     """k-fold cross-validated point errors: refit ``free`` on k−1 folds (LM from ``theta``),
     predict the held-out poses. Returns ``(rmse_mm, max_mm)`` over every held-out point."""
@@ -409,7 +404,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
              session_time: bool = True, approach_from_order: bool = False,
-             families: bool = True) -> DiagnosisResult:
+             families: bool = True, posture_tol=(1e-3, 1e-3)) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -421,7 +416,10 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     validate : datasets scored with both models (not used for any decision).
     candidates : list of :class:`Candidate`, of registered effect names, or None
         (every registered effect on every joint, :func:`default_candidates`).
-    k_folds : folds of the cross-validation (by pose).
+    k_folds : folds of the cross-validation, grouped by posture: rows whose readings agree within
+        ``posture_tol`` (rad, m) — the same posture in another session or twice in one file — are
+        held out together (:func:`estcal.validation.grouped_folds`; docs/real-data.md).
+    posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
     noise : measurement noise — a :class:`NoiseModel`, or a float (position std,
         m, taken as known). None: unknown (relative weights, F tests).
     alpha : family-wise significance level of each selection step.
@@ -498,7 +496,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                 d.context["t"] = d.context["t"] - d.context["t"].min()
 
     # 1. geometric model ------------------------------------------------------
-    folds = _folds(data.n, k_folds, rng)
+    postures = posture_groups(data.readings, robot.joint_types, *posture_tol)
+    folds = grouped_folds(postures, k_folds, rng)
     level_cv = {}
     if geometric == "auto":
         # the level with the lowest cross-validated RMSE on these data
