@@ -179,7 +179,7 @@ def figaroh_compare(repeat, data_dir=None):
     from figaroh.calibration.calibration_tools import calc_updated_fkm
     from scipy.optimize import least_squares
 
-    from estcal.estimate.levels import run_calibration
+    from estcal.workflows.calibrate import run_calibration
     from estcal.io import load_dataset
     from estcal.io.robotfile import load_robot
 

@@ -158,10 +158,10 @@ def _folder_bytes(p: Path) -> int:
 
 
 def bench_fleet(client, n, tmp):
-    from estcal.scale.fleet import FleetOptions, run_fleet
+    from estcal.workflows.fleet import FleetOptions, run_fleet
     from estcal.scale.simfleet import simulate_fleet
 
-    from estcal.scale.fleet import discover_fleet, process_robot
+    from estcal.workflows.fleet import discover_fleet, process_robot
 
     root = Path(tmp) / "fleet"
     simulate_fleet(n, root, n_poses=50, n_validate=50, seed=1, progress=False)

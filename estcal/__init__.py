@@ -5,7 +5,7 @@ The Python API in a few names (docs/api.md)::
     import estcal
     robot = estcal.load_robot("puma560")                  # name, robot file, saved model or URDF
     data = estcal.load_dataset("train.csv", robot)        # CSV -> Dataset (or pass the path)
-    result = estcal.calibrate(robot, data, method="lm", validate=["valid.csv"])
+    result = estcal.calibrate(robot, data, estimator="lm", validate=["valid.csv"])
     print(result.parameter("a_2"))                        # (estimate, std), SI units
     diagnosis = estcal.diagnose(robot, data)              # which non-geometric effect, and the gain
     result.save_model("model.yaml")                       # reload with estcal.load_robot("model.yaml")

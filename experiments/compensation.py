@@ -96,7 +96,7 @@ def run(n_poses: int, n_targets: int, seed: int, out: Path | None) -> dict:
     from estcal.compensation import compensate
     from estcal.discrepancy.diagnose import diagnose
     from estcal.effects import make_effect
-    from estcal.estimate.levels import run_calibration
+    from estcal.workflows.calibrate import run_calibration
     from estcal.io.robotfile import save_robot
     from estcal.kinematics.transforms import matrix_to_quat
     from estcal.methods import NoiseModel

@@ -51,7 +51,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estcal.estimate.levels import run_calibration  # noqa: E402
+from estcal.workflows.calibrate import run_calibration  # noqa: E402
 from estcal.io.dataset import dataset_from_arrays  # noqa: E402
 from estcal.kinematics import puma560  # noqa: E402
 from estcal.kinematics.transforms import matrix_to_rpy, pose_error, rot_x, rot_y, rot_z, so3_exp  # noqa: E402

@@ -45,7 +45,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from estcal.estimate.levels import run_calibration  # noqa: E402
+from estcal.workflows.calibrate import run_calibration  # noqa: E402
 from estcal.io import load_dataset  # noqa: E402
 from estcal.io.robotfile import load_robot  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import estcal
-from estcal.estimate.levels import run_calibration
+from estcal.workflows.calibrate import run_calibration
 from estcal.io import write_dataset
 from estcal.methods import NoiseModel
 from estcal.simulate import simulate

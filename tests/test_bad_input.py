@@ -459,7 +459,7 @@ ROBOT_COMMANDS = {
     "calibrate": lambda rb, b, t: ["calibrate", str(b / "pos.csv"), "--robot", rb],
     "fk": lambda rb, b, t: ["fk", str(b / "pos.csv"), "--robot", rb, "-o", str(t / "o.csv")],
     "design": lambda rb, b, t: ["design", "--robot", rb, "--n", "30"],
-    "identifiable": lambda rb, b, t: ["identifiable", "--robot", rb, "--method", "position"],
+    "identifiable": lambda rb, b, t: ["identifiable", "--robot", rb, "--measure", "position"],
     "simulate": lambda rb, b, t: ["simulate", "--robot", rb, "--n", "5"],
 }
 
@@ -552,7 +552,7 @@ def _opt(cmd, b, t):
             "online": ["online", pos, "-r", "puma560"],
             "diagnose": ["diagnose", pos, "-r", "puma560"],
             "design": ["design", "-r", "puma560", "--n", "30"],
-            "identifiable": ["identifiable", "-r", "puma560", "--method", "position"],
+            "identifiable": ["identifiable", "-r", "puma560", "--measure", "position"],
             "simulate": ["simulate", "-r", "puma560", "--n", "5"],
             "demo": ["demo"],
             "next-pose": ["next-pose", "-r", "puma560", "--state", str(t / "state.json")]}[cmd]
@@ -594,13 +594,13 @@ OPTION_CASES = {
     "calibrate-option-tol-nan": ("calibrate", ["--option", "tol=nan"], r"option tol=nan: must be a finite number > 0"),
     "calibrate-option-q": ("calibrate", ["--estimator", "kalman", "--option", "q=-1"],
                            r"estimator 'kalman', option q=-1: must be a finite number ≥ 0"),
-    "calibrate-option-level": ("calibrate", ["--method", "mcmc", "--option", "level=1"],
+    "calibrate-option-level": ("calibrate", ["--estimator", "mcmc", "--option", "level=1"],
                                r"option level=1: must be a number strictly between 0 and 1"),
-    "calibrate-chain-folder": ("calibrate", ["--method", "mcmc", "--chain", "{folder}"],
+    "calibrate-chain-folder": ("calibrate", ["--estimator", "mcmc", "--chain", "{folder}"],
                                r"--chain .*folder: is a folder — give a file name \(e\.g\. .*chain\.h5\)"),
-    "calibrate-chain-is-input": ("calibrate", ["--method", "mcmc", "--chain", "{pos}"],
+    "calibrate-chain-is-input": ("calibrate", ["--estimator", "mcmc", "--chain", "{pos}"],
                                  r"--chain .*pos\.csv: is also an input file"),
-    "calibrate-chain-not-hdf5": ("calibrate", ["--method", "mcmc", "--option", "chain={badjson}"],
+    "calibrate-chain-not-hdf5": ("calibrate", ["--estimator", "mcmc", "--option", "chain={badjson}"],
                                  r"bad\.json: not an HDF5 file — estcal creates the chain file"),
     "calibrate-validate-missing": ("calibrate", ["--validate", "{tmp}/nope.csv"], r"nope\.csv: dataset file not found"),
     "calibrate-validate-folder": ("calibrate", ["--validate", "{folder}"], r"folder: is a folder, not a dataset file"),
@@ -636,9 +636,9 @@ OPTION_CASES = {
     "design-candidates-missing": ("design", ["--candidates", "{tmp}/nope.csv"], r"nope\.csv"),
     "identifiable-n-poses": ("identifiable", ["--n-poses", "0"], r"--n-poses 0: must be an integer ≥ 1"),
     "identifiable-plane": ("identifiable", ["--plane", "a,b"], r"--plane expects three numbers"),
-    "identifiable-method": ("identifiable", ["--method", "magic"], r"magic"),
+    "identifiable-method": ("identifiable", ["--measure", "magic"], r"magic"),
     "identifiable-seed": ("identifiable", ["--seed", "-3"], r"--seed -3: must be an integer ≥ 0"),
-    "identifiable-plane-zero": ("identifiable", ["--method", "plane-known", "--plane", "0,0,0"],
+    "identifiable-plane-zero": ("identifiable", ["--measure", "plane-known", "--plane", "0,0,0"],
                                 r"--plane 0,0,0: a, b, c must be finite and not all zero"),
     "identifiable-priority-folder": ("identifiable", ["--priority", "{folder}"],
                                      r"folder: is a folder, not a priority file"),
@@ -893,9 +893,9 @@ def test_identifiable_from_too_few_rows_warns(base, tmp_path):
 
 def test_simulate_refuses_what_memory_cannot_hold(tmp_path, monkeypatch):
     """The estimate (bytes per pose × --n) against the memory available: refused before the work."""
-    import estcal.cli.commands.simulate as sim
+    import estcal.workflows.simulate as sim
 
-    monkeypatch.setattr(sim, "_available_memory", lambda: 10 * 1000 * sim.BYTES_PER_POSE)  # room for 8,000 poses
+    monkeypatch.setattr(sim, "available_memory", lambda: 10 * 1000 * sim.BYTES_PER_POSE)  # room for 8,000 poses
     out = tmp_path / "s.csv"
     r = runner.invoke(app, ["simulate", "--n", "9000", "-o", str(out)])
     check(r, 2, r"--n 9000: simulating 9,000 poses needs about 0\.0 GB of memory and 0\.0 GB are available")
@@ -905,9 +905,9 @@ def test_simulate_refuses_what_memory_cannot_hold(tmp_path, monkeypatch):
 
 
 def test_available_memory_reads_meminfo():
-    import estcal.cli.commands.simulate as sim
+    import estcal.workflows.simulate as sim
 
-    avail = sim._available_memory()
+    avail = sim.available_memory()
     if avail is None:
         pytest.skip("no /proc/meminfo")
     import os

@@ -69,23 +69,35 @@ def test_free_parameters_recovered_and_json_keys(tmp_path):
     assert "parameter" in r.output and "RMSE after" in r.output
 
 
-def test_method_dispatch_estimator_and_measure(tmp_path):
+def test_estimator_and_measure_and_the_deprecated_method(tmp_path):
+    """--estimator names how, --measure what; 'location' is GECARO's word for 'pose' (printed as
+    'pose'); --method, which meant either, still works by name with a deprecation warning."""
     train, _ = _simulate(tmp_path, 30, 4, "train.csv")
     free = ",".join(TRUE_DELTA)
     out = tmp_path / "gn.json"
-    r = _run([str(train), "--robot", "puma560", "--free", free, "--method", "gauss-newton", "--json", str(out)])
+    r = _run([str(train), "--robot", "puma560", "--free", free, "--estimator", "gauss-newton", "--json", str(out)])
     assert r.exit_code == 0, r.output
+    assert "warning" not in r.stderr, r.stderr
     d = json.loads(out.read_text())
-    assert d["method"] == "gauss-newton" and d["measure"] == "location"
+    assert d["method"] == "gauss-newton" and d["estimator"] == "gauss-newton" and d["measure"] == "pose"
     out2 = tmp_path / "loc.json"
-    r = _run([str(train), "--robot", "puma560", "--free", free, "--method", "location", "--estimator",
+    r = _run([str(train), "--robot", "puma560", "--free", free, "--measure", "location", "--estimator",
               "iterated-lls", "--json", str(out2)])
     assert r.exit_code == 0, r.output
     d2 = json.loads(out2.read_text())
-    assert d2["method"] == "iterated-lls" and d2["measure"] == "location"
+    assert d2["method"] == "iterated-lls" and d2["measure"] == "pose"
     # same data, same model: both estimators reach the same minimum
     for n in TRUE_DELTA:
         assert d2["parameters"][n]["estimate"] == pytest.approx(d["parameters"][n]["estimate"], abs=1e-9)
+    out3 = tmp_path / "old.json"
+    r = _run([str(train), "--robot", "puma560", "--free", free, "--method", "gauss-newton", "--json", str(out3)])
+    assert r.exit_code == 0, r.output
+    assert "warning: --method is deprecated; use --estimator gauss-newton" in r.stderr
+    assert json.loads(out3.read_text())["parameters"] == d["parameters"]
+    r = _run([str(train), "--robot", "puma560", "--free", free, "--method", "pose", "--json", str(out3)])
+    assert r.exit_code == 0 and "warning: --method is deprecated; use --measure pose" in r.stderr
+    r = _run([str(train), "--robot", "puma560", "--method", "pose", "--measure", "position"])
+    assert r.exit_code == 2 and "--method pose (deprecated: --measure) but --measure position" in r.stderr
 
 
 def test_level_full_selects_identifiable_set(tmp_path):

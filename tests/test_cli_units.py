@@ -112,7 +112,7 @@ def test_same_noise_in_design_and_calibrate_gives_the_same_covariance(tmp_path, 
     robot = load_robot("puma560")
     noise = ["--noise-pos-mm", "0.07", "--noise-rot-mrad", "0.4"]
     dj = tmp_path / "design.json"
-    r = runner.invoke(app, ["design", "--robot", "puma560", "--method", method, "--n", "10", *noise,
+    r = runner.invoke(app, ["design", "--robot", "puma560", "--measure", method, "--n", "10", *noise,
                             "--random-plans", "5", "--n-candidates", "150", "--restarts", "1", "--json", str(dj)])
     assert r.exit_code == 0, r.output
     d = json.loads(dj.read_text())
@@ -127,7 +127,7 @@ def test_same_noise_in_design_and_calibrate_gives_the_same_covariance(tmp_path, 
         assert c[n]["std"] == pytest.approx(design_std[n], rel=1e-6), n
     # … and the printed tables agree in mm / mrad
     std_mm = design_std["a_2"] * 1e3
-    assert f"{std_mm:.4g} mm" in runner.invoke(app, ["design", "--robot", "puma560", "--method", method, "--n", "10",
+    assert f"{std_mm:.4g} mm" in runner.invoke(app, ["design", "--robot", "puma560", "--measure", method, "--n", "10",
                                                      *noise, "--random-plans", "5", "--n-candidates", "150",
                                                      "--restarts", "1"]).output
 

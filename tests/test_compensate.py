@@ -128,7 +128,7 @@ def test_limits_respected_and_unreachable_rows_flagged_not_clipped():
 
 def test_predicted_std_matches_monte_carlo_over_theta():
     """θ ~ N(θ̂, C) with C from a real calibration; the fixed commands reach x(r*, θ): RMS error vs column."""
-    from estcal.estimate.levels import run_calibration
+    from estcal.workflows.calibrate import run_calibration
     from estcal.methods import NoiseModel
     from estcal.simulate import simulate
 

@@ -7,7 +7,7 @@ import numpy as np
 from scipy import stats
 from typer.testing import CliRunner
 
-from estcal.cli.commands.demo import run_demo
+from estcal.workflows.demo import run_demo
 from estcal.cli.main import app
 
 

@@ -12,7 +12,7 @@ import estcal
 from estcal.base.errors import EstcalError, EstcalWarning, InputError, MissingExtraError, NumericalRefusal
 
 # Exception classes of files owned by other work (they derive them from base.errors when they touch them).
-NOT_YET_IN_HIERARCHY = {"estcal.estimate.checkpoint.CheckpointError", "estcal.scale.fleet.FleetError"}
+NOT_YET_IN_HIERARCHY = {"estcal.estimate.checkpoint.CheckpointError", "estcal.workflows.fleet.FleetError"}
 
 
 def _estcal_exceptions():

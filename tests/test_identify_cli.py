@@ -18,7 +18,7 @@ KEYS = ("n_parameters", "n_identifiable", "identifiable", "no_effect", "regroupe
 
 def test_cli_random_configurations_json(tmp_path):
     out = tmp_path / "id.json"
-    res = runner.invoke(app, ["identifiable", "--robot", "puma560", "--method", "position", "--n-poses", "30",
+    res = runner.invoke(app, ["identifiable", "--robot", "puma560", "--measure", "position", "--n-poses", "30",
                               "--free", "theta_*,d_*,a_*,alpha_*,beta_*,base_*,tool_*", "--json", str(out)])
     assert res.exit_code == 0, res.output
     d = json.loads(out.read_text())
@@ -40,7 +40,7 @@ def test_cli_dataset_and_priority_file(tmp_path):
                               "--json", str(out)])
     assert res.exit_code == 0, res.output
     d = json.loads(out.read_text())
-    assert d["method"] == "location" and d["excitation"]["same_set"]
+    assert d["method"] == "pose" and d["excitation"]["same_set"]
     assert "offset_1" in d["identifiable"] and "theta_1" not in d["identifiable"]
     assert set(d["excluded"]) == {f"gain_{j}" for j in range(1, 7)}
 
@@ -48,7 +48,7 @@ def test_cli_dataset_and_priority_file(tmp_path):
 def test_cli_link_dataset(tmp_path):
     r = puma560()
     csv = write_dataset(tmp_path / "links.csv", link_data(r, 40, 2, "point", 4), float_format="%.17g")
-    res = runner.invoke(app, ["identifiable", "--robot", "puma560", "--data", str(csv), "--method", "point-link",
+    res = runner.invoke(app, ["identifiable", "--robot", "puma560", "--data", str(csv), "--measure", "point-link",
                               "--json", str(tmp_path / "o.json")])
     assert res.exit_code == 0, res.output
     d = json.loads((tmp_path / "o.json").read_text())
@@ -56,9 +56,9 @@ def test_cli_link_dataset(tmp_path):
 
 
 @pytest.mark.parametrize("args,msg", [
-    (["--method", "plane-known", "--plane", "0.1,0.2"], "three numbers"),
-    (["--method", "nonsense"], "unknown measurement method"),
-    ([], "give --method"),
+    (["--measure", "plane-known", "--plane", "0.1,0.2"], "three numbers"),
+    (["--measure", "nonsense"], "unknown measurement method"),
+    ([], "give --measure"),
 ])
 def test_cli_errors(args, msg):
     res = runner.invoke(app, ["identifiable", "--robot", "puma560", "--n-poses", "20"] + args)

@@ -31,7 +31,7 @@ def data(tmp_path_factory):
 
 
 def _args(data, chain, max_steps):
-    return ["calibrate", str(data), "--robot", "puma560", "--free", FREE, "--method", "mcmc", "--chain", str(chain),
+    return ["calibrate", str(data), "--robot", "puma560", "--free", FREE, "--estimator", "mcmc", "--chain", str(chain),
             "--option", f"max_steps={max_steps}", "--option", "target_ess=100000000", "--option", "check_every=10",
             "--allow-ill-conditioned"]
 
@@ -84,4 +84,4 @@ def test_continued_chain_equals_an_uninterrupted_one_and_other_data_refused(data
     assert r.exit_code == 2 and "other data or sampling options" in r.output, r.output
     assert a.read_bytes() == keep  # never overwritten
     r = runner.invoke(app, ["calibrate", str(data), "--robot", "puma560", "--free", FREE, "--chain", str(a)])
-    assert r.exit_code == 2 and "needs --method mcmc" in r.output
+    assert r.exit_code == 2 and "needs --estimator mcmc" in r.output

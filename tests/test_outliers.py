@@ -66,7 +66,7 @@ def test_named_rows_are_the_injected_ones(data, tmp_path, estimator, kernel, ext
 
 def test_irls_is_the_factor_graph_m_estimate(data):
     """Least squares by IRLS and gtsam's robust LM minimise the same objective (independent solvers)."""
-    from estcal.estimate.levels import run_calibration
+    from estcal.workflows.calibrate import run_calibration
     from estcal.io import load_dataset
     from estcal.kinematics.robots import get_builtin
     from estcal.methods import NoiseModel

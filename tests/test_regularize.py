@@ -5,7 +5,7 @@ import pytest
 
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.factorgraph import calibrate_gtsam
-from estcal.estimate.levels import run_calibration
+from estcal.workflows.calibrate import run_calibration
 from estcal.estimate.regularize import choose_prior_std, loo_curve
 from estcal.estimate.testproblems import simulated_problem
 

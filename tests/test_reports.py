@@ -231,7 +231,7 @@ def test_calibrate_error_plots_show_each_pose(calib, data):
 def mcmc(data, captured):
     d, train, _ = data
     folder = d / "rep_mcmc"
-    r = _invoke(["calibrate", str(train), "-r", "puma560", "--free", "offset_2,offset_3,a_2", "--method", "mcmc",
+    r = _invoke(["calibrate", str(train), "-r", "puma560", "--free", "offset_2,offset_3,a_2", "--estimator", "mcmc",
                  "--option", "target_ess=100", "--option", "min_steps=60", "--option", "check_every=30",
                  "--json", str(d / "mcmc.json"), "--report", str(folder)])
     return folder, json.loads((d / "mcmc.json").read_text()), captured["posterior_corner.png"], r.output

@@ -145,7 +145,7 @@ def test_fleet_cli_summary_models_and_broken_robot(fleet, tmp_path):
 
 
 def test_fleet_on_dask_equals_serial(fleet, client, tmp_path):
-    from estcal.scale.fleet import FleetOptions, run_fleet
+    from estcal.workflows.fleet import FleetOptions, run_fleet
 
     a = run_fleet(fleet, FleetOptions(save_models=str(tmp_path / "a")), progress=False)
     b = run_fleet(fleet, FleetOptions(save_models=str(tmp_path / "b")), scheduler=client, progress=False)

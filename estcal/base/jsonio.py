@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
-
-import numpy as np
 
 from .atomic import atomic_write_text
 
@@ -22,10 +21,12 @@ __all__ = ["to_jsonable", "write_json", "dumps"]
 
 def to_jsonable(v):
     """Recursively convert numpy / dataclass-like values to JSON-serialisable Python data."""
-    if isinstance(v, np.ndarray):
-        return to_jsonable(v.tolist()) if v.dtype.kind in "fcO" else v.tolist()
-    if isinstance(v, (np.floating, np.integer, np.bool_)):
-        v = v.item()
+    np = sys.modules.get("numpy")  # no numpy value can exist before numpy is imported (cheap start-up)
+    if np is not None:
+        if isinstance(v, np.ndarray):
+            return to_jsonable(v.tolist()) if v.dtype.kind in "fcO" else v.tolist()
+        if isinstance(v, (np.floating, np.integer, np.bool_)):
+            v = v.item()
     if isinstance(v, float):
         return v if math.isfinite(v) else None
     if isinstance(v, dict):

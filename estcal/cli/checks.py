@@ -1,14 +1,15 @@
 """Checks every subcommand gets before it starts working (one place, keyed by option name).
 
-:func:`guard` wraps each subcommand's function when :mod:`estcal.cli.main` mounts
-it, so a new or renamed option is covered by the rules below without touching
-the command's module:
+:func:`option_checks` builds them from a subcommand's signature when
+:func:`estcal.cli.app.command` registers it (they run in :func:`estcal.cli.run.guarded`),
+so a new or renamed option is covered by the rules below without touching the
+command's module:
 
 * **numbers** — every float option must be finite; counts (``--n``, ``--every``,
   ``--restarts`` …) are integers ≥ 1; noise and prior widths are > 0 (≥ 0 in
   ``simulate``, where 0 means noise-free); process noise, resolutions and
   simulated error widths are ≥ 0; ``--alpha`` is in (0, 1) … The message names
-  the option, its value and the accepted range (exit code 2).
+  the option, its value and the accepted range (an ``InputError``: exit code 2).
 * **output files** (``--json``, ``--output/-o``, ``--truth``, ``--save-model`` …)
   are checked *before* the work, so a long fit is never lost to a bad path: not a
   folder, their folder can be created and written, not also an input of the
@@ -18,32 +19,36 @@ Rules by option name, first match wins: see :data:`NUMBER_RULES`.
 """
 from __future__ import annotations
 
-import functools
 import inspect
 import math
 import os
-import re
 from pathlib import Path
 
-from estcal.cli.common import fail
+from estcal.base.errors import InputError
 
-__all__ = ["guard", "check_number", "check_outputs", "NUMBER_RULES", "OUTPUT_OPTIONS"]
+__all__ = ["option_checks", "check_number", "check_outputs", "NUMBER_RULES", "OUTPUT_OPTIONS"]
 
-# (pattern on the option name, commands it applies to (None = all), rule)
+# (option names, commands the rule applies to (None = all), rule); first match wins. Every name is
+# an option of some command (tests/test_cli_conventions.py), so no rule outlives its flag.
 # rules: ("int", lo) integer >= lo; ("gt", lo) > lo; ("ge", lo) >= lo; ("open", lo, hi) lo < x < hi;
 #        ("halfopen", lo, hi) lo <= x < hi
-NUMBER_RULES: list[tuple[str, tuple | None, tuple]] = [
-    (r"--(n|n-poses|n-candidates|restarts|random-plans|every|max-effects|points|walkers|steps|n-jobs|"
-     r"workers|chunk|n-samples|samples|max-iter|fleet)$", None, ("int", 1)),
-    (r"--folds$", None, ("int", 2)),
-    (r"--(show|map|burn-in|seed|recalibrate)$", None, ("int", 0)),
-    (r"--(noise|sigma|prior-std|error)[a-z-]*$", ("simulate",), ("ge", 0.0)),
-    (r"--(noise|sigma|prior-std)[a-z-]*$", None, ("gt", 0.0)),
-    (r"--(q|q-[a-z]+|resolution[a-z-]*|error-[a-z-]+|tau-floor)$", None, ("ge", 0.0)),
-    (r"--alpha$", None, ("open", 0.0, 1.0)),
-    (r"--margin$", None, ("halfopen", 0.0, 0.5)),
-    (r"--(dt|tol)[a-z-]*$", None, ("gt", 0.0)),
-    (r"--rot-weight[a-z-]*$", None, ("ge", 0.0)),
+_NOISE = ("--noise-pos-mm", "--noise-rot-mrad", "--noise-joint-mrad", "--noise-leg-mm", "--prior-std-mm",
+          "--noise-pos", "--noise-rot", "--noise-joint", "--noise-leg", "--sigma", "--sigma-rot", "--sigma-p",
+          "--sigma-r", "--prior-std")  # the last eight: deprecated spellings, still accepted
+_ERRORS = ("--error-angle-mrad", "--error-length-mm", "--error-offset-mrad", "--error-gain", "--error-angle",
+           "--error-length", "--error-offset")
+NUMBER_RULES: list[tuple[tuple, tuple | None, tuple]] = [
+    (("--n", "--n-poses", "--n-candidates", "--restarts", "--random-plans", "--every", "--max-effects", "--points",
+      "--workers", "--max-iter", "--fleet", "--checkpoint-every"), None, ("int", 1)),
+    (("--folds",), None, ("int", 2)),
+    (("--show", "--map", "--accuracy-map", "--seed", "--recalibrate"), None, ("int", 0)),
+    (_NOISE + _ERRORS, ("simulate",), ("ge", 0.0)),  # simulate: 0 = noise-free, error-free
+    (_NOISE, None, ("gt", 0.0)),
+    (("--q", "--q-mm", "--resolution", "--resolution-mrad", "--tau-floor", "--throttle") + _ERRORS, None,
+     ("ge", 0.0)),
+    (("--alpha",), None, ("open", 0.0, 1.0)),
+    (("--margin",), None, ("halfopen", 0.0, 0.5)),
+    (("--dt", "--tol-mm", "--tol-mrad", "--rot-weight-m"), None, ("gt", 0.0)),
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)
@@ -88,11 +93,11 @@ def check_number(option: str, value, command: str | None = None) -> None:
     if value is None or isinstance(value, bool) or not isinstance(value, (int, float)):
         return
     if isinstance(value, float) and not math.isfinite(value):
-        fail(f"{option} {value}: must be a finite number")
-    for pattern, commands, rule in NUMBER_RULES:
-        if re.match(pattern, option) and (commands is None or command in commands):
+        raise InputError(f"{option} {value}: must be a finite number")
+    for names, commands, rule in NUMBER_RULES:
+        if option in names and (commands is None or command in commands):
             if not _ok(value, rule):
-                fail(f"{option} {value:g}: must be {_describe(rule)}")
+                raise InputError(f"{option} {value:g}: must be {_describe(rule)}")
             return
 
 
@@ -109,12 +114,12 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[st
     for opt, p in (folders or {}).items():
         p = Path(p)
         if p.exists() and not p.is_dir():
-            fail(f"{opt} {p}: is a file — give a folder (it is created if missing)")
+            raise InputError(f"{opt} {p}: is a file — give a folder (it is created if missing)")
         anc = p if p.is_dir() else _existing_ancestor(p)
         if not anc.is_dir():
-            fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
+            raise InputError(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
         if not os.access(anc, os.W_OK | os.X_OK):
-            fail(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
+            raise InputError(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
     seen: dict[str, str] = {}
     ins = {}
     for p in inputs:
@@ -127,29 +132,29 @@ def check_outputs(outputs: dict[str, Path], inputs: list[Path], folders: dict[st
         if p is None:
             continue
         if str(p) == "-":  # without this, a file literally named '-'
-            fail(f"{opt} -: output files are written atomically and cannot go to standard output — give a file "
-                 f"name (the summary is printed on standard output)")
+            raise InputError(f"{opt} -: output files are written atomically and cannot go to standard output — give "
+                             f"a file name (the summary is printed on standard output)")
         p = Path(p)
         if p.is_dir():
             example = _EXAMPLE_NAME.get(opt, "out.csv")
-            fail(f"{opt} {p}: is a folder — give a file name (e.g. {p / example})")
+            raise InputError(f"{opt} {p}: is a folder — give a file name (e.g. {p / example})")
         anc = _existing_ancestor(p)
         if not anc.is_dir():
-            fail(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
+            raise InputError(f"{opt} {p}: {anc} is a file, not a folder — choose another place for the output")
         if not os.access(anc, os.W_OK | os.X_OK):
-            fail(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
+            raise InputError(f"{opt} {p}: the folder {anc} is not writable — choose another place for the output")
         if p.exists() and not os.access(p, os.W_OK):
-            fail(f"{opt} {p}: the file exists and is read-only — choose another name")
+            raise InputError(f"{opt} {p}: the file exists and is read-only — choose another name")
         real = os.path.realpath(p)
         if real in ins:
-            fail(f"{opt} {p}: is also an input file of this command ({ins[real]}) — write the output to another "
-                 f"file (inputs are never overwritten)")
+            raise InputError(f"{opt} {p}: is also an input file of this command ({ins[real]}) — write the output to "
+                             f"another file (inputs are never overwritten)")
         if real in seen:
-            fail(f"{opt} {p}: the same file as {seen[real]} — give each output its own file")
+            raise InputError(f"{opt} {p}: the same file as {seen[real]} — give each output its own file")
         seen[real] = opt
 
 
-def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
+def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, str]]:
     """{python parameter: (long option name or '', 'file' / 'folder' output or '')}"""
     from typer.models import ArgumentInfo, OptionInfo
 
@@ -165,33 +170,26 @@ def _option_names(sig: inspect.Signature) -> dict[str, tuple[str, bool]]:
     return out
 
 
-def guard(command: str, func):
-    """``func`` wrapped with the number and output checks above (signature kept for typer)."""
-    sig = inspect.signature(func)
+def option_checks(command: str, sig: inspect.Signature):
+    """The checks of ``command``'s options (signature ``sig``): a function of the bound arguments
+    ``{parameter: value}`` that raises :class:`~estcal.base.errors.InputError` on the first
+    number out of its range or output path that cannot be written (every input file is known
+    by then: a path-valued argument that is not an output)."""
     names = _option_names(sig)
 
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        bound = sig.bind_partial(*args, **kwargs)
+    def check(arguments: dict) -> None:
         outputs, folders, inputs = {}, {}, []
-        for pname, value in bound.arguments.items():
+        for pname, value in arguments.items():
             opt, kind = names.get(pname, ("", ""))
             if opt:
                 check_number(opt, value, command)
-            values = value if isinstance(value, (list, tuple)) else [value]
-            for v in values:
+            for v in value if isinstance(value, (list, tuple)) else [value]:
                 if kind == "file" and v is not None:
                     outputs[opt] = Path(v)
                 elif kind == "folder" and v is not None:
                     folders[opt] = Path(v)
                 elif isinstance(v, (str, Path)) and v and str(v) != "-":
                     inputs.append(Path(v))
-        from estcal.cli.common import run_exit_hooks
+        check_outputs(outputs, inputs, folders)
 
-        try:
-            check_outputs(outputs, inputs, folders)
-            return func(*args, **kwargs)
-        finally:
-            run_exit_hooks()
-
-    return wrapper
+    return check

@@ -1,8 +1,9 @@
 """The ``estcal`` command.
 
-Each subcommand lives in its own module under :mod:`estcal.cli.commands` and
-exposes ``register(app)``; this module only discovers and mounts them, so that
-adding a subcommand never touches shared code.
+Each subcommand lives in its own module under :mod:`estcal.cli.commands`, defined at module
+level with :func:`estcal.cli.app.command`; this module only imports them, so that adding a
+subcommand never touches shared code. The command modules import their workflow inside the
+command function: ``estcal --help`` loads typer and the option declarations, no numerical code.
 """
 from __future__ import annotations
 
@@ -12,30 +13,24 @@ import pkgutil
 import typer
 
 from estcal.cli import commands as _commands
+from estcal.cli.app import app
 
-app = typer.Typer(
-    name="estcal",
-    help="Probabilistic and recursive estimation for robot kinematic calibration.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+__all__ = ["app", "main"]
 
 
 def _mount() -> None:
-    from estcal.cli.checks import guard
+    from estcal.cli.run import guarded
 
+    registered = len(app.registered_commands)
     for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"{_commands.__name__}.{info.name}")
-        register = getattr(module, "register", None)
+        register = getattr(module, "register", None)  # a module not yet converted to module-level commands
         if register is not None:
             register(app)
-    # every subcommand gets the option checks (numbers, output paths) before it runs
-    for cmd in app.registered_commands:
-        if cmd.callback is not None and not getattr(cmd.callback, "_estcal_guarded", False):
-            name = cmd.name or cmd.callback.__name__.replace("_", "-")
-            cmd.callback = guard(name, cmd.callback)
-            cmd.callback._estcal_guarded = True
+            for cmd in app.registered_commands[registered:]:
+                name = cmd.name or cmd.callback.__name__.replace("_", "-")
+                cmd.callback = guarded(name, cmd.callback)
+        registered = len(app.registered_commands)
 
 
 _mount()
@@ -60,7 +55,7 @@ def _usage_error(exc) -> int:
 def main() -> None:  # pragma: no cover - thin entry point (tested through a subprocess)
     """Run the CLI; an unexpected exception becomes a one-line message and exit code 1
     (``ESTCAL_DEBUG=1`` shows the traceback). Expected problems exit with 2 or 3 before
-    reaching here (docs/reliability.md)."""
+    reaching here (:mod:`estcal.cli.run`, docs/reliability.md)."""
     import os
     import sys
 

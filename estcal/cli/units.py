@@ -23,9 +23,11 @@ subcommand's ``--help``).
 """
 from __future__ import annotations
 
-import typer
+import warnings
 
-__all__ = ["resolve", "DIMENSIONLESS", "UNIT_PATTERN", "noise_pos_option", "noise_rot_option", "deprecated_option"]
+from estcal.base.errors import EstcalWarning, InputError
+
+__all__ = ["resolve", "DIMENSIONLESS", "UNIT_PATTERN"]
 
 
 # Numeric options without a physical unit (option name: what it counts or measures).
@@ -35,7 +37,7 @@ DIMENSIONLESS = {
     "--n-candidates": "number of candidate poses",
     "--random-plans": "number of random plans",
     "--restarts": "number of optimiser restarts",
-    "--map": "number of poses of the accuracy map",
+    "--accuracy-map": "number of poses of the accuracy map",
     "--points": "number of measured / simulated points",
     "--seed": "random seed",
     "--folds": "cross-validation folds",
@@ -66,32 +68,20 @@ UNIT_PATTERN = (r"(\bmm\b|\bmrad\b|\bm\b|\brad\b|\bdeg\b|degrees|°|\bs\b|[Ss]ec
 def resolve(value: float, scale: float, old_value, old_option: str, new_option: str, old_unit: str,
             old_scale: float, default: float | None = None) -> float:
     """SI value of an option pair: the current ``value`` (× ``scale`` to SI), or the deprecated
-    ``old_value`` (× ``old_scale``) with a warning on stderr naming the new option.
+    ``old_value`` (× ``old_scale``) with an :class:`~estcal.base.errors.EstcalWarning` naming the
+    new option.
 
-    ``default``: the new option's default; if both options were given, exit with code 2.
+    ``default``: the new option's default; if both options were given, an ``InputError``.
     """
     if old_value is None:
         return value * scale
     if default is not None and value != default:
-        typer.echo(f"error: give {new_option} or the deprecated {old_option}, not both", err=True)
-        raise typer.Exit(2)
+        raise InputError(f"give {new_option} or the deprecated {old_option}, not both")
     new_value = old_value * old_scale / scale
-    typer.echo(f"warning: {old_option} ({old_unit}) is deprecated; use {new_option} {new_value:g} "
-               f"(docs/conventions.md, 'Units on the command line')", err=True)
+    warnings.warn(f"{old_option} ({old_unit}) is deprecated; use {new_option} {new_value:g} "
+                  f"(docs/conventions.md, 'Units on the command line')", EstcalWarning, stacklevel=2)
     return old_value * old_scale
 
 
-# The same declaration in every subcommand, so the name, unit and help cannot drift apart.
-def noise_pos_option(default, extra: str = ""):
-    """``--noise-pos-mm``: measurement position noise std per coordinate (mm)."""
-    return typer.Option(default, "--noise-pos-mm", help=f"Position noise std per coordinate (mm){extra}.")
-
-
-def noise_rot_option(default, extra: str = ""):
-    """``--noise-rot-mrad``: measurement orientation noise std (mrad)."""
-    return typer.Option(default, "--noise-rot-mrad", help=f"Orientation noise std (mrad){extra}.")
-
-
-def deprecated_option(old: str):
-    """A renamed option, still accepted (hidden) in its old unit; see :func:`resolve`."""
-    return typer.Option(None, old, hidden=True)
+# the shared declarations moved to estcal.cli.options; these names stay for the modules that import them here
+from estcal.cli.options import deprecated_option, noise_pos_option, noise_rot_option  # noqa: E402

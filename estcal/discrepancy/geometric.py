@@ -158,7 +158,7 @@ def fit_geometric(robot, data, noise, free=None, tol: float = DATA_TOL, register
 
     * ``full`` — every identifiable one (the issue's "standard geometric calibration");
     * ``aic`` — those an Akaike criterion supports, in priority order
-      (:func:`estcal.cli.commands.calibrate.select_free` with ``criterion="aic"``);
+      (:func:`estcal.estimate.levels.select_free` with ``criterion="aic"``);
       structurally identifiable but unsupported parameters stay nominal;
     * ``joint_offset`` — base, markers/tool and joint offsets only.
 

@@ -1,7 +1,7 @@
 """Honest results: refuse degenerate data, flag ill-conditioned or implausible estimates.
 
 A least-squares fit always returns numbers; whether they mean anything depends on
-the data. These checks run around :func:`estcal.estimate.levels.run_calibration`
+the data. These checks run around :func:`estcal.workflows.calibrate.run_calibration`
 (``checks=True``, what ``estcal calibrate`` does) and are documented, with their
 thresholds and tests, in ``docs/reliability.md``:
 

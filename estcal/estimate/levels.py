@@ -14,8 +14,8 @@ effect* or *regrouped* with ``a_j = Σ β_k a_k`` (β = R1⁻¹R2). ``criterion=
 / ``"bic"`` additionally prunes, greedily, candidates that do not lower the
 information criterion of the linearised fit (opt-in).
 
-:func:`run_calibration` is the Python entry point behind ``estcal calibrate``:
-problem, base registration, free set, estimator, accuracy before/after.
+The calibration job around it (problem, base registration, free set, estimator, accuracy
+before/after) is :func:`estcal.workflows.calibrate.run_calibration`.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["LEVELS", "Selection", "level_candidates", "select_free", "run_calibration"]
+__all__ = ["LEVELS", "Selection", "level_candidates", "select_free", "robust_report"]
 
 LEVELS = ("registration", "joint_offset", "full")
 
@@ -101,6 +101,19 @@ def _weighted_matrix(problem, theta):
     return A, b, A.shape[0], float(b @ b)
 
 
+def _design_matrix(problem, theta):
+    """The weighted observation matrix of the problem's robot at its design structure
+    (:func:`estcal.kinematics.design.design_structure`), or None when the robot is its own design."""
+    from estcal.kinematics.design import design_structure
+
+    design = design_structure(problem.robot)
+    if design is None:
+        return None
+    structural = problem.with_values(theta)
+    structural.robot = design.with_values(theta)
+    return _weighted_matrix(structural, theta)[0]
+
+
 def select_free(problem, level: str = "full", criterion: str = "structural", theta=None,
                 groups: list[list[str]] | None = None, known_noise: bool | None = None,
                 refine_registration: bool = True, exclude=()) -> Selection:
@@ -122,6 +135,9 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     The scan is :func:`estcal.identify.core.sequential_rank` — QR without pivoting on the
     priority-sorted, unit-norm columns: ``|R_jj| ≤ STRUCTURAL_TOL`` marks a dependent column
     (GECARO App. III, with the priority order of §1.5 deciding which of dependent columns is kept).
+    The columns scanned are those of the robot's design structure
+    (:func:`estcal.kinematics.design.design_structure`: consecutive joint axes at their right
+    angles) when its constant frames carry calibration errors; the condition number is the data's.
     """
     if criterion not in ("structural", "aic", "bic"):
         raise ValueError(f"unknown selection criterion {criterion!r}; choose 'structural', 'aic' or 'bic'")
@@ -156,6 +172,10 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
                 pass
     from estcal.identify.core import STRUCTURAL_TOL, sequential_rank
 
+    # the rank is the design's: at axes off their right angles by calibration errors, regrouped
+    # parameters are separable by terms of the size of those errors (estcal.kinematics.design)
+    W = _design_matrix(problem, theta)
+    W = A if W is None else W
     n_kept = 0
     pen = np.log(M) if criterion == "bic" else 2.0  # Akaike: 2 per parameter; Schwarz: ln M
 
@@ -173,16 +193,17 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
         rss, n_kept = r_new, n_kept + 1
         return True
 
-    scan = sequential_rank(A, STRUCTURAL_TOL, order, accept=accept)
+    scan = sequential_rank(W, STRUCTURAL_TOL, order, accept=accept)
     kept, regrouped_idx = scan.kept, scan.dependent
     no_effect = [pv.names[i] for i in scan.no_effect]
     rejected = [pv.names[i] for i in scan.rejected]
     regrouped = {}
     if kept and regrouped_idx:
-        Ak = A[:, kept] / norms[kept]
+        wn = np.linalg.norm(W, axis=0)
+        Wk = W[:, kept] / wn[kept]
         for j in regrouped_idx:
-            beta, *_ = np.linalg.lstsq(Ak, A[:, j] / norms[j], rcond=None)
-            coef = beta * norms[j] / norms[kept]  # unscaled: a_j = Σ coef_k a_k
+            beta, *_ = np.linalg.lstsq(Wk, W[:, j] / wn[j], rcond=None)
+            coef = beta * wn[j] / wn[kept]  # unscaled: a_j = Σ coef_k a_k
             rel = {pv.names[kept[m]]: float(c) for m, c in enumerate(coef) if abs(beta[m]) > 1e-6}
             regrouped[pv.names[j]] = rel
     cond = float("nan")
@@ -193,158 +214,6 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     # estimation order: the vector's own order (stable, readable tables)
     names = [pv.names[i] for i in sorted(kept)]
     return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
-
-
-def _saved_free_set(robot, problem, level, selection) -> list[str] | None:
-    """The free set a saved model was identified with, when this calibration asks for the same
-    level, criterion and measurement method.
-
-    The structural selection (GECARO priorities and the QR of App. III) is meant for the
-    *designed* geometry: at a calibrated one, zero lengths and right angles are off by the
-    calibration errors (PUMA ``d_2`` = −0.95 mm, ``alpha_1`` = −π/2 + 1 mrad), the priorities
-    change and near-dependent parameters (``beta_1`` of perpendicular axes, |R_jj| ~ 1e-5) pass
-    the numerical-zero test — a recalibration would fit a set with condition number ~10⁵.
-    The set identified at the design stays identifiable at the calibrated point."""
-    cal = robot.meta.get("calibration") or {}
-    saved = cal.get("free")
-    if not saved or cal.get("level") != (level or "full") or \
-            cal.get("selection_criterion", "structural") != (selection or "structural"):
-        return None
-    term = problem.terms[0]
-    name = getattr(term.method, "name", None)
-    if cal.get("measure") not in (None, name) or not all(n in problem.params for n in saved):
-        return None
-    return list(saved)
-
-
-def run_calibration(robot, data, *, measure: str | None = None, estimator: str = "lm",
-                    free: list[str] | None = None, level: str | None = "full", selection: str | None = None,
-                    validate=(), noise=None, register: bool = True, options: dict | None = None,
-                    regularize=None, checks: bool = False, allow_ill_conditioned: bool = False):
-    """Python entry point of ``estcal calibrate`` (robot and datasets already loaded).
-
-    ``regularize``: ``None`` (plain least squares), ``"loo"`` (Gaussian prior toward the
-    nominal values on the joint-model parameters — geometric placements, offsets, gains,
-    tool — with the width τ chosen by leave-one-pose-out CV on ``data``:
-    :mod:`estcal.estimate.regularize`), or a fixed τ (SI). Base frame and unknown points are
-    never penalised. Needs a least-squares estimator.
-
-    ``checks``: run :mod:`estcal.estimate.checks` — raise
-    :class:`~estcal.base.errors.NumericalRefusal` on degenerate data (dof ≤ 0, repeated
-    poses, rank loss beyond the generic identifiable set) and, unless ``allow_ill_conditioned``,
-    on non-convergence or a condition number above ``COND_MAX``; the figures and warnings go to
-    ``result.extra["reliability"]``.
-
-    Returns ``(result, selection, problem)``; ``selection`` is None when ``free`` is given.
-    """
-    from estcal.estimate import register_base
-    from estcal.estimate.registry import get_estimator
-    from estcal.methods import NoiseModel, Problem, get_method
-
-    noise = noise or NoiseModel()
-    if checks:  # before the registration and the QR of the selection: cheap refusals first
-        from estcal.estimate.checks import refuse_repeated_early
-
-        refuse_repeated_early(data)
-    method = get_method(measure) if measure else None
-    problem = Problem(robot, [(method, data, noise)], noise)
-    pv = problem.params
-    theta0 = pv.values.copy()
-    base_free = True
-    sel = None
-    reused = free is None and _saved_free_set(robot, problem, level, selection)
-    if reused:
-        free = reused
-    if free is not None:
-        problem.with_free(free)  # raises ParameterError naming an unknown parameter / pattern
-        # register only when the whole base frame is estimated: Kabsch moves all six
-        # base parameters, and a fixed one must keep its given value
-        fn = set(problem.with_free(free).params.free_names)
-        base_free = all(f"base_{c}" in fn for c in ("tx", "ty", "tz", "rx", "ry", "rz"))
-    if register and base_free and data.kind in ("position", "points", "pose") and "base_tx" in pv:
-        theta0 = register_base(problem.robot, data, theta0)
-        problem = problem.with_values(theta0)
-    start = problem
-    exclude = []
-    if free is None:
-        # Default: the full structural identifiable set (QR). Information-criterion
-        # pruning (aic/bic) is greedy and can drop parameters whose effect only shows
-        # jointly with others, so it is opt-in.
-        crit = selection or "structural"
-        exclude = _structural_no_effect(robot, problem, level, data) if method is not None else []
-        sel = select_free(problem, level, crit, known_noise=noise.known, exclude=exclude)
-        free = sel.identifiable
-        start = problem.with_values(sel.theta)  # staged: start from the registration fit
-    assessment = None
-    if checks:
-        from estcal.base.errors import NumericalRefusal
-        from estcal.estimate.checks import precheck
-
-        assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
-                              sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
-                              exclude=exclude)
-        if assessment.refusals:
-            raise NumericalRefusal("\n".join(assessment.refusals))
-    est = get_estimator(estimator)
-    options = dict(options or {})
-    if options:
-        from estcal.estimate.registry import check_options
-
-        check_options(estimator, options)
-    user_options = dict(options)
-    reg_choice = None
-    if regularize is not None:
-        from estcal.estimate.lsq import LSQ_METHODS
-        from estcal.estimate.regularize import choose_prior_std
-
-        if estimator not in LSQ_METHODS:
-            raise ValueError(f"regularize needs a least-squares estimator ({', '.join(LSQ_METHODS)}), "
-                             f"not {estimator!r}")
-        kinds = dict(zip(pv.names, pv.kinds))
-        penalised = [n for n in free if kinds.get(n) not in ("base", "marker", "other")]
-        if isinstance(regularize, str):
-            if regularize != "loo":
-                raise ValueError(f"unknown regularize {regularize!r}; use 'loo' or a prior std in SI units")
-            reg_choice = choose_prior_std(start, free, penalised, theta=start.params.values)
-            options["prior_std"] = reg_choice.prior_std
-        else:
-            tau = float(regularize)
-            if not tau > 0:
-                raise ValueError(f"regularize: the prior std must be > 0, got {regularize}")
-            options["prior_std"] = {n: tau for n in penalised}
-    res = est(start, free=free, validation=list(validate), **options)
-    if reg_choice is not None:
-        res.extra["regularization"] = reg_choice.to_dict()
-    if start is not problem:
-        from estcal.estimate.lsq import score
-
-        res.accuracy = score(problem, theta0, res.theta, list(validate))
-        res.nominal = theta0[problem.params.indices(res.names)]
-    if sel is not None:
-        res.extra["selection"] = sel.to_dict()
-    elif reused:
-        res.extra["selection"] = {"level": level or "full", "criterion": selection or "structural",
-                                  "identifiable": list(free), "source": "the saved model's free set"}
-    if user_options:
-        res.extra["options"] = user_options
-    if regularize is not None:
-        res.extra["regularize"] = regularize
-    res.extra.setdefault("measure", problem.terms[0].method.name)
-    if options.get("robust"):
-        res.extra["robust_report"] = robust_report(problem, res, options["robust"], options.get("robust_k"))
-    if checks:
-        from estcal.base.errors import NumericalRefusal
-        from estcal.estimate.checks import postcheck
-
-        assessment = assessment.merge(postcheck(problem, res, allow_ill_conditioned=allow_ill_conditioned))
-        res.extra["reliability"] = assessment.to_dict()
-        if assessment.refusals:
-            raise NumericalRefusal("\n".join(assessment.refusals))
-    res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
-                                                                           data.kind != "none") else "nominal"
-    res.inputs = tuple(p for p in [getattr(data, "path", None), *(getattr(v, "path", None) for v in validate),
-                                   robot.meta.get("robot_file"), robot.meta.get("urdf")] if p)
-    return res, sel, problem
 
 
 def robust_report(problem, res, kernel, k=None) -> dict:
@@ -368,31 +237,3 @@ def robust_report(problem, res, kernel, k=None) -> dict:
             r[b * bs:(b + 1) * bs] = rb[b * bs:(b + 1) * bs]
         return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names), norms=(r, dims, lines))
     return outlier_report(problem, res.theta, kernel, k, n_params=len(res.names))
-
-
-_DIRECT = ("position", "location", "pose", "points")
-
-
-def _structural_no_effect(robot, problem, level, data) -> list[str]:
-    """Parameters without effect for a constraint method (links, planes, distance).
-
-    Their observation matrix on real data is evaluated where the constraints do not
-    hold exactly, so columns that vanish at consistency (the base orientation for a
-    point link, …) are small but not zero there. GECARO's analysis on simulated,
-    consistent configurations (:func:`estcal.identify.identify`) finds them; they are
-    removed from the candidates. Direct measures (position, location, points) need no
-    such step.
-    """
-    mname = problem.terms[0].method.name
-    if mname in _DIRECT or data.kind != "none":
-        return []
-    try:
-        from estcal.identify import identify
-    except ImportError:  # pragma: no cover - identify is part of the package
-        return []
-    cands = [n for g in level_candidates(problem.params, level) for n in g if n in robot.params]
-    try:
-        ref = identify(robot, mname, None, candidates=cands, check_excitation=False)
-    except (ValueError, RuntimeError, np.linalg.LinAlgError):
-        return []
-    return [n for n in ref.no_effect if n in cands]

@@ -118,15 +118,28 @@ class CalibrationResult:
 
     def robot(self, base_robot=None):
         """The robot at the estimate: ``base_robot`` (default: the problem's robot) with the
-        estimated values, matched by parameter name."""
+        estimated values, matched by parameter name. Its ``meta["calibration"]`` carries the
+        estimated robot parameters (``free``) and their ``covariance`` (SI), as a saved model does,
+        so that ``estcal.compensate(result.robot(), …)`` predicts the error of its commands."""
         if base_robot is None:
             if self.problem is None:
                 raise ValueError("this result does not know its robot; pass the robot it was fitted to")
             base_robot = self.problem.robot
         idx = {n: i for i, n in enumerate(self.all_names)}
         if all(n in idx for n in base_robot.params.names):
-            return base_robot.with_values(self.theta[[idx[n] for n in base_robot.params.names]])
-        return base_robot.with_values(self.theta[: base_robot.n_params])
+            out = base_robot.with_values(self.theta[[idx[n] for n in base_robot.params.names]])
+        else:
+            out = base_robot.with_values(self.theta[: base_robot.n_params])
+        if self.problem is not None:
+            from estcal.io.savedmodel import robot_covariance
+
+            free, C, _ = robot_covariance(self)
+            if free and all(n in out.params.names for n in free) and np.all(np.isfinite(C)):
+                old = out.meta.get("calibration") or {}  # a saved model's: keep where its design robot is
+                cal = {k: old[k] for k in ("robot", "root", "tip") if k in old}
+                cal.update(estimator=self.method, free=list(free), covariance=C.tolist(), sigma0=self.sigma0)
+                out.meta = {**out.meta, "calibration": cal}
+        return out
 
     def save_model(self, path, provenance: dict | None = None):
         """Write the identified robot as a robot file with a ``calibration:`` block

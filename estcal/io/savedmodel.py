@@ -38,7 +38,7 @@ import numpy as np
 
 from estcal.base.version import __version__
 
-__all__ = ["design_values", "file_sha256", "data_entry", "calibration_block", "save_calibration", "save_diagnosis",
+__all__ = ["write_saved_model", "robot_covariance", "design_values", "file_sha256", "data_entry", "calibration_block", "save_calibration", "save_diagnosis",
            "prepare_data"]
 
 
@@ -168,7 +168,8 @@ def _finite_or_none(x):
     return x
 
 
-def _write(robot, block: dict, path) -> Path:
+def write_saved_model(robot, block: dict, path) -> Path:
+    """Write ``robot`` with the ``calibration:`` mapping ``block`` (:func:`calibration_block`) as a robot file."""
     from estcal.io.robotfile import _plain, save_robot
 
     out = robot.copy()  # shallow: the caller's robot keeps its own meta
@@ -198,21 +199,26 @@ def save_calibration(result, path, provenance: dict | None = None) -> Path:
         extra.setdefault("selection_criterion", sel.get("criterion"))
     extra["covariance_source"] = result.covariance_source
     extra["converged"] = bool(result.converged)
-    # Unknowns of the measurement method (a plane, a sphere centre …) are not robot parameters:
-    # the block keeps the robot's part of the covariance (its marginal) and lists those apart.
-    kinds = dict(zip(problem.params.names, problem.params.kinds))
-    keep = [i for i, n in enumerate(result.names) if kinds.get(n) != "other"]
-    other = [i for i in range(len(result.names)) if i not in keep]
-    if other:
-        extra["method_unknowns"] = {result.names[i]: {"estimate": float(result.estimate[i]),
-                                                      "std": float(result.std[i])} for i in other}
-    C = np.asarray(result.covariance, float)[np.ix_(keep, keep)]
+    free, C, unknowns = robot_covariance(result)
+    if unknowns:
+        extra["method_unknowns"] = unknowns
     extra.update(provenance or {})
     block = calibration_block(estimator=result.method, train=[t.data for t in problem.terms],
-                              validation=result.validation_data, free=[result.names[i] for i in keep],
-                              covariance=C, noise=problem.terms[0].noise,
-                              sigma0=result.sigma0, rmse_mm=rm, **extra)
-    return _write(robot, block, path)
+                              validation=result.validation_data, free=free, covariance=C,
+                              noise=problem.terms[0].noise, sigma0=result.sigma0, rmse_mm=rm, **extra)
+    return write_saved_model(robot, block, path)
+
+
+def robot_covariance(result) -> tuple[list, np.ndarray, dict]:
+    """``(free, C, unknowns)`` of a :class:`~estcal.estimate.result.CalibrationResult`: the estimated
+    robot parameters and their covariance (SI), and ``{name: {estimate, std}}`` of the measurement's
+    own unknowns (a plane, a sphere centre …), which are not robot parameters — the covariance kept
+    is the robot's part (its marginal)."""
+    kinds = dict(zip(result.problem.params.names, result.problem.params.kinds))
+    keep = [i for i, n in enumerate(result.names) if kinds.get(n) != "other"]
+    unknowns = {result.names[i]: {"estimate": float(result.estimate[i]), "std": float(result.std[i])}
+                for i in range(len(result.names)) if i not in keep}
+    return [result.names[i] for i in keep], np.asarray(result.covariance, float)[np.ix_(keep, keep)], unknowns
 
 
 def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
@@ -244,7 +250,7 @@ def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
     block = calibration_block(estimator="lm (diagnose: geometric + named effects)", train=result.train_data or [],
                               validation=result.validation_data, free=free, covariance=cov,
                               noise=result.noise, sigma0=result.sigma0, rmse_mm=rm, **extra)
-    return _write(result.robot, block, path)
+    return write_saved_model(result.robot, block, path)
 
 
 def prepare_data(robot, data, preparation: dict | None = None):

@@ -180,7 +180,7 @@ class PoseMethod(Method):
     J_r⁻¹(e_rot) J_ω — exact at any residual, equal to J_ω at e = 0 (GECARO eq. [7]).
     """
 
-    name = "location"
+    name = "pose"  # GECARO's "location"; both names select it (METHODS)
     requires = ("pose",)
 
     def rows(self, robot, theta, data, noise, jacobian=True):

@@ -285,8 +285,10 @@ class _OwnCluster:
 def _dask_client(scheduler: str, n_workers):
     try:
         from distributed import Client, LocalCluster
-    except ImportError:  # pragma: no cover - the test extra installs it
-        raise ValueError(f"scheduler {scheduler!r} needs dask.distributed: pip install 'estcal[dask]'") from None
+    except ImportError:  # the dask extra is not installed
+        from estcal.base.errors import MissingExtraError
+
+        raise MissingExtraError(f"scheduler {scheduler!r}", "dask", "dask.distributed") from None
     if scheduler == "local":
         import dask
 

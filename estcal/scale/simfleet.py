@@ -4,7 +4,7 @@ Every robot of the fleet is the same nominal model (one shared robot file at
 the fleet's top level, as a factory calibrating one product line) with its own
 random geometric errors (:func:`estcal.simulate.random_errors` magnitudes) and,
 with probability ``p_effect``, one non-geometric effect drawn from
-``effects`` on a random major joint (magnitudes in :func:`_effect_spec`). Layout (read by :mod:`estcal.scale.fleet`)::
+``effects`` on a random major joint (magnitudes in :func:`_effect_spec`). Layout (read by :mod:`estcal.workflows.fleet`)::
 
     OUT/robot.yaml                  nominal robot (shared)
     OUT/robot_0000/data.csv         calibration dataset (n_poses)

@@ -1,1 +1,2 @@
-"""Subcommands of the estcal CLI; each module defines register(app)."""
+"""Subcommands of the estcal CLI, one module each, defined at module level with
+:func:`estcal.cli.app.command`."""

@@ -1,4 +1,4 @@
-"""``estcal fk``: forward kinematics of every row of a dataset."""
+"""``estcal fk``: forward kinematics of every row of a dataset (:func:`estcal.workflows.fk.fk_file`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,139 +6,43 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.common import fail, message
-from estcal.base.atomic import atomic_write
-from estcal.base.jsonio import write_json
+from estcal.cli.app import command
+from estcal.cli.options import json_option, root_option, tip_option
+
+__all__ = ["fk"]
 
 
-def register(app: typer.Typer) -> None:
-    @app.command("fk")
-    def fk_cmd(
-        data: Path = typer.Argument(..., help="Dataset CSV with one column per joint (rad / m)."),
-        robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF (.urdf)."),
-        output: Path = typer.Option(..., "--output", "-o", help="CSV to write: x,y,z,qw,qx,qy,qz per row."),
-        root: Optional[str] = typer.Option(None, help="URDF root link."),
-        tip: Optional[str] = typer.Option(None, help="URDF tip link."),
-        with_joints: bool = typer.Option(False, "--with-joints", help="Also copy the joint columns."),
-        markers: bool = typer.Option(False, "--markers", help="Also write the robot's marker points x1,y1,z1,…"),
-        json_path: Optional[Path] = typer.Option(None, "--json", help="Write a short JSON summary."),
-    ) -> None:
-        """Tool frame in the world (x,y,z in m; quaternion qw,qx,qy,qz) for every row's joint readings.
+@command("fk")
+def fk(
+    data: Path = typer.Argument(..., help="Dataset CSV with one column per joint (rad / m)."),
+    robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF (.urdf)."),
+    output: Path = typer.Option(..., "--output", "-o", help="CSV to write: x,y,z,qw,qx,qy,qz per row."),
+    root: Optional[str] = root_option(),
+    tip: Optional[str] = tip_option(),
+    with_joints: bool = typer.Option(False, "--with-joints", help="Also copy the joint columns."),
+    markers: bool = typer.Option(False, "--markers", help="Also write the robot's marker points x1,y1,z1,…"),
+    json_path: Optional[Path] = json_option("Write a short JSON summary."),
+) -> None:
+    """Tool frame in the world (x,y,z in m; quaternion qw,qx,qy,qz) for every row's joint readings.
 
-        Effects in the robot file are evaluated with the row's t / temperature / payload / approach_<joint>
-        columns; a model saved by `estcal diagnose --save-model` re-applies its data preparation (t from the
-        file's first row, approach directions from the posture order) as recorded in its calibration block.
-        When the file has x,y,z (and qw,qx,qy,qz) columns — a dataset, compensation targets or commands —
-        it also prints how far the computed tool frame is from them (RMS and max, mm and mrad).
-        """
-        import numpy as np
-        from rich.console import Console
-
-        from estcal.effects import effect_context
-        from estcal.io.dataset import load_dataset
-        from estcal.io.robotfile import load_robot
-        from estcal.io.savedmodel import prepare_data
-        from estcal.kinematics.transforms import matrix_to_quat
-
-        console = Console()
-        try:
-            rb = load_robot(robot, root=root, tip=tip)
-            ds = load_dataset(data, rb)
-            # a saved diagnosis model re-applies the data preparation of its fit (session time, approach
-            # directions from the posture order); effect columns become the effects' context
-            ds = prepare_data(rb, ds)
-            ctx = effect_context(rb, ds)
-            rb.kinematics(ds.readings[:1], context={k: np.asarray(v)[:1] if np.ndim(v) else v
-                                                    for k, v in ctx.items()}, jacobian=False)  # errors early
-        except (ValueError, KeyError, FileNotFoundError) as exc:
-            fail(message(exc))
-        from estcal.kinematics.chunked import CHUNK, tool_poses
-
-        names = list(rb.joint_names) if with_joints else []
-        names += ["x", "y", "z", "qw", "qx", "qy", "qz"]
-        want_points = markers and rb.n_markers
-        if want_points:
-            names += [f"{c}{k + 1}" for k in range(rb.n_markers) for c in "xyz"]
-        n = len(ds.readings)
-        against = _AgainstFile(rb, ds)
-        fields = ("R", "p", "points") if want_points or against.needs_points else ("R", "p")
-        # written CHUNK rows at a time: memory stays bounded whatever the number of rows
-        from estcal.base.progress import progress
-
-        with atomic_write(output) as fh, progress(total=-(-n // CHUNK), desc="fk", unit="chunk") as bar:
-            fh.write(",".join(names) + "\n")
-            for a in range(0, n, CHUNK):
-                bar.update(1)
-                sl = slice(a, min(a + CHUNK, n))
-                c = {k: np.asarray(v)[sl] if np.ndim(v) and np.shape(v)[0] == n else v for k, v in ctx.items()}
-                k = tool_poses(rb, ds.readings[sl], context=c, fields=fields)
-                against.add(sl, k)
-                cols = ([ds.readings[sl]] if with_joints else []) + [k["p"], matrix_to_quat(k["R"])]
-                if want_points:
-                    cols.append(k["points"].reshape(sl.stop - sl.start, -1))
-                np.savetxt(fh, np.column_stack(cols), delimiter=",", fmt="%.15g")
-        console.print(f"{len(ds.readings)} rows -> {output} ({', '.join(names)})")
-        diff = against.result()
-        if diff:
-            console.print(diff["text"], soft_wrap=True)
-        for w in ds.warnings:
-            typer.echo(f"warning: {data}: {w}", err=True)
-        if json_path is not None:
-            write_json(json_path, {"rows": int(len(ds.readings)), "robot": rb.name, "input": str(data),
-                                   "output": str(output), "columns": names,
-                                   **({k: v for k, v in diff.items() if k != "text"} if diff else {})})
-
-
-class _AgainstFile:
-    """Distance of the computed tool frame (or markers) from the file's own x,y,z[,qw..qz] columns.
-
-    Turns `estcal fk` into a check: on a compensated command file it shows where the model (or a URDF
-    export, or a true robot) puts the tool relative to the targets; on a dataset, the model's error.
-    The point is the tool origin, or the markers when the model has them (docs/dataset.md). Accumulated
-    chunk by chunk, like the output.
+    Effects in the robot file are evaluated with the row's t / temperature / payload / approach_<joint>
+    columns; a model saved by `estcal diagnose --save-model` re-applies its data preparation (t from the
+    file's first row, approach directions from the posture order) as recorded in its calibration block.
+    When the file has x,y,z (and qw,qx,qy,qz) columns — a dataset, compensation targets or commands —
+    it also prints how far the computed tool frame is from them (RMS and max, mm and mrad).
     """
+    from rich.console import Console
 
-    def __init__(self, rb, ds):
-        self.ds = ds
-        self.pose = ds.kind == "pose"
-        # measured markers are compared with the model's markers only (a model without markers has
-        # nothing to put at x1..zk; a single x,y,z is the tool origin, docs/dataset.md)
-        self.active = self.pose or (ds.points is not None and (ds.kind == "position" or
-                                                               (ds.kind == "points" and bool(rb.n_markers))))
-        self.needs_points = self.active and not self.pose and bool(rb.n_markers)
-        self.k = 1 if not self.active or self.pose else \
-            min(rb.n_markers or 1, ds.points.shape[1])
-        self.sp = self.sr = self.n = 0
-        self.mp = self.mr = 0.0
+    from estcal.workflows.fk import fk_file
+    from estcal.workflows.inputs import warn_datasets
 
-    def add(self, sl, kin) -> None:
-        import numpy as np
+    fw = fk_file(robot, data, output, root=root, tip=tip, with_joints=with_joints, markers=markers)
+    console = Console()
+    console.print(f"{fw.rows} rows -> {output} ({', '.join(fw.columns)})")
+    if fw.against:
+        console.print(fw.against["text"], soft_wrap=True)
+    warn_datasets([fw.data])
+    if json_path is not None:
+        from estcal.base.jsonio import write_json
 
-        from estcal.kinematics.transforms import so3_log
-
-        if not self.active:
-            return
-        ds = self.ds
-        if self.pose:
-            dp = np.linalg.norm(kin["p"] - ds.p[sl], axis=1)
-            dr = np.linalg.norm(so3_log(ds.R[sl] @ np.swapaxes(kin["R"], 1, 2)), axis=1)
-            self.sr += float(np.sum(dr ** 2))
-            self.mr = max(self.mr, float(dr.max(initial=0.0)))
-        else:
-            model = kin["points"] if self.needs_points else kin["p"][:, None, :]
-            dp = np.linalg.norm(model[:, :self.k] - ds.points[sl, :self.k], axis=2).ravel()
-        self.sp += float(np.sum(dp ** 2))
-        self.mp = max(self.mp, float(dp.max(initial=0.0)))
-        self.n += len(dp)
-
-    def result(self) -> dict | None:
-        if not self.active or not self.n:
-            return None
-        what = "x,y,z,q" if self.pose else ("x,y,z" if self.k == 1 else f"x1..z{self.k}")
-        out = {"position_rms_mm": (self.sp / self.n) ** 0.5 * 1e3, "position_max_mm": self.mp * 1e3}
-        text = f"vs the file's {what}: {out['position_rms_mm']:.4g} mm RMS (max {out['position_max_mm']:.4g})"
-        if self.pose:
-            out.update(orientation_rms_mrad=(self.sr / self.n) ** 0.5 * 1e3, orientation_max_mrad=self.mr * 1e3)
-            text += f", {out['orientation_rms_mrad']:.4g} mrad RMS (max {out['orientation_max_mrad']:.4g})"
-        out["text"] = text
-        return out
+        write_json(json_path, fw.to_dict(data, output))

@@ -1,4 +1,5 @@
-"""Fleet calibration: calibrate (or diagnose) every robot of a folder, one task per robot.
+"""Fleet calibration: calibrate (or diagnose) every robot of a folder, one task per robot —
+``estcal fleet`` (docs/scaling.md).
 
 Layout of a fleet folder ``DIR`` (what :func:`discover_fleet` reads):
 
@@ -23,12 +24,30 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from estcal.base.errors import InputError, MissingExtraError
+
 __all__ = ["FleetJob", "FleetOptions", "FleetSummary", "FleetError", "discover_fleet", "process_robot",
-           "run_fleet"]
+           "run_fleet", "check_scheduler", "fleet_inputs"]
 
 
-class FleetError(ValueError):
+class FleetError(InputError):
     """A robot folder that cannot be processed (missing dataset or robot file)."""
+
+
+def check_scheduler(scheduler) -> None:
+    """``scheduler`` must be one the runner knows (:func:`estcal.scale.runner.check_scheduler`), and a
+    Dask one needs the ``dask`` extra installed: a :class:`MissingExtraError` naming it, before the work."""
+    from estcal.scale.runner import check_scheduler as check
+
+    try:
+        check(scheduler)
+    except ValueError as exc:
+        raise InputError(f"--scheduler: {exc}") from None
+    if isinstance(scheduler, str) and (scheduler == "local" or "://" in scheduler):
+        try:
+            import distributed  # noqa: F401  (the run needs it: fail before the work)
+        except ImportError:
+            raise MissingExtraError(f"--scheduler {scheduler}", "dask", "dask.distributed") from None
 
 
 @dataclass(frozen=True)
@@ -102,16 +121,20 @@ def discover_fleet(root) -> list[FleetJob]:
     return jobs
 
 
-def _load(job: FleetJob):
-    from estcal.io import load_dataset
-    from estcal.io.dataset import measurement_layout
-    from estcal.io.robotfile import load_robot
+def fleet_inputs(root) -> list[Path]:
+    """Every file the robots of the fleet folder read (datasets, validation and robot files): the
+    command's outputs must not land on them. Empty when the folder has no robot folder."""
+    try:
+        return [Path(f) for j in discover_fleet(root) for f in (j.data, j.robot, *j.validate) if f]
+    except FleetError:
+        return []
 
-    k, _, has_quat = measurement_layout(job.data)
-    n_markers = k if k and not has_quat else None
-    rob = load_robot(job.robot, n_markers=n_markers)
-    ds = load_dataset(job.data, rob, points=n_markers)
-    vals = [load_dataset(v, rob, points=n_markers) for v in job.validate]
+
+def _load(job: FleetJob):
+    from estcal.workflows.inputs import load_datasets, robot_for_data
+
+    rob, n_markers = robot_for_data(job.robot, job.data)
+    ds, *vals = load_datasets([job.data, *job.validate], rob, n_markers)
     warnings = [f"{Path(d.where).name}: {w}" if d.where else w for d in [ds] + vals for w in d.warnings]
     return rob, ds, vals, warnings
 
@@ -122,8 +145,8 @@ def _acc(acc, which="after", key="rmse_mm"):
 
 
 def _calibrate(job, opts, rob, ds, vals, warnings) -> dict:
-    from estcal.estimate.levels import run_calibration
     from estcal.methods import NoiseModel
+    from estcal.workflows.calibrate import run_calibration
 
     noise = NoiseModel(position=opts.noise_pos, orientation=opts.noise_rot, scalar=opts.noise_pos,
                        known=opts.known_noise)
@@ -214,6 +237,7 @@ def run_fleet(root, opts: FleetOptions = FleetOptions(), scheduler="serial", n_w
     """Process every robot of the fleet folder ``root``; failures are listed, never fatal."""
     import functools
 
+    check_scheduler(scheduler)
     jobs = discover_fleet(root)
     if opts.save_models:
         Path(opts.save_models).mkdir(parents=True, exist_ok=True)
@@ -226,6 +250,6 @@ def run_fleet(root, opts: FleetOptions = FleetOptions(), scheduler="serial", n_w
 
 
 def _run(fn, jobs, scheduler, n_workers, progress):
-    from .runner import run_tasks
+    from estcal.scale.runner import run_tasks
 
     return run_tasks(fn, jobs, scheduler=scheduler, n_workers=n_workers, progress=progress, desc="fleet")

@@ -1,0 +1,84 @@
+"""What the geometric model gets wrong on measured data, and which effect explains it:
+``estcal diagnose`` and ``estcal.diagnose`` (docs/discrepancy.md).
+
+:func:`diagnose` loads the robot (with the URDF chain's trailing link masses, by default) and the
+datasets, checks them (distinct poses, sessions and validation files kept apart) and runs
+:func:`estcal.discrepancy.diagnose`; the result records how to rebuild the robot
+(``model["robot_spec"]``, root, tip) for ``estcal simulate --from-fit``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from estcal.base.errors import InputError, NumericalRefusal
+from estcal.workflows.inputs import (check_distinct_poses, check_held_out, check_input_files, input_errors,
+                                     load_datasets, robot_for_data, split_names, warn_datasets)
+
+__all__ = ["diagnose", "check_effects"]
+
+
+def check_effects(effects) -> list[str] | None:
+    """Effect names (a list or comma-separated text) checked against the registered effects."""
+    names = split_names(effects, "--effects")
+    if names is None:
+        return None
+    from estcal.effects import EFFECTS
+
+    bad = [e for e in names if e not in EFFECTS]
+    if bad:
+        raise InputError(f"--effects: unknown effect(s) {bad}; registered: {', '.join(sorted(EFFECTS))}")
+    return names
+
+
+def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
+             urdf_chain_masses: bool = True, column_map=None, k_folds: int = 5, **kw):
+    """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose``.
+
+    Parameters
+    ----------
+    robot : SerialRobot, built-in name, robot file or URDF; data : a dataset (path or Dataset) or
+        a list of them, one per session (fitted together; approach and time per session).
+    validate : datasets scored with both models, never used for a decision.
+    effects : effect names to try (default: every registered effect, docs/effects.md).
+    noise : a :class:`~estcal.methods.NoiseModel` (known: likelihood-ratio and noise-floor tests)
+        or None (unknown: F tests).
+    urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
+    k_folds, **kw : options of :func:`estcal.discrepancy.diagnose` (``alpha``, ``max_effects``,
+        ``geometric``, ``approach_from_order``, ``rng``, ``report`` …).
+
+    Returns a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`.
+    """
+    from estcal.discrepancy import diagnose as _diagnose
+    from estcal.estimate.lsq import UnidentifiableError
+
+    items = list(data) if isinstance(data, (list, tuple)) else [data]
+    check_input_files([*items, *validate])
+    rob, n_markers = robot_for_data(robot, items[0], points, root, tip)
+    if urdf_chain_masses and rob.meta.get("urdf"):
+        from estcal.discrepancy.masses import with_urdf_masses
+
+        rob = with_urdf_masses(rob)
+    sessions = load_datasets(items, rob, n_markers, column_map)
+    vals = load_datasets(validate, rob, n_markers, column_map)
+    warn_datasets(sessions + vals)
+    cands = check_effects(effects)
+    for d in sessions:
+        check_distinct_poses(d)
+    check_held_out(sessions, [], "session")
+    check_held_out(sessions, vals)
+    spec = str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None
+    kw.setdefault("robot_spec", spec)
+    ds = sessions[0] if len(sessions) == 1 else sessions
+    try:
+        with input_errors():
+            res = _diagnose(rob, ds, validate=vals, candidates=cands, noise=noise, k_folds=k_folds, **kw)
+    except UnidentifiableError as exc:
+        where = ", ".join(str(getattr(d, "where", d)) for d in sessions)
+        raise NumericalRefusal(f"{where}: {exc} (the geometric fit on {sum(d.n for d in sessions)} poses, and each "
+                               f"cross-validation fold of --folds {k_folds}, needs more equations than "
+                               f"parameters)") from exc
+    if isinstance(robot, (str, Path)):
+        res.model["robot_spec"] = str(robot)
+    res.model["root"], res.model["tip"] = root, tip
+    res.model["urdf_chain_masses"] = bool(urdf_chain_masses and rob.meta.get("urdf"))
+    return res
