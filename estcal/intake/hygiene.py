@@ -242,18 +242,29 @@ def auto_level(robot, ds) -> str:
 
 
 def _robust_fit(robot, ds, level):
+    """Huber IRLS fit of the identifiable set of ``level`` after the base registration (the steps
+    of ``estcal calibrate`` without its refusals); ``(result, problem at the registration, level)``."""
     import warnings
 
-    from estcal.estimate.levels import run_calibration
+    from estcal.estimate import register_base
+    from estcal.estimate.levels import select_free
+    from estcal.estimate.lsq import calibrate_lsq
+    from estcal.methods import NoiseModel, Problem
 
     level = auto_level(robot, ds) if level == "auto" else level
+    noise = NoiseModel()
+    prob = Problem(robot, [(None, ds, noise)], noise)
+    if ds.kind in ("position", "points", "pose") and "base_tx" in prob.params:
+        prob = prob.with_values(register_base(prob.robot, ds, prob.params.values.copy()))
     last = None
     for lev in ((level, "registration") if level != "registration" else ("registration",)):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
+                sel = select_free(prob, lev, known_noise=noise.known)
                 # IRLS to 1e-4 in the weights: the test needs the outliers' weights, not 10 digits
-                res, _, prob = run_calibration(robot, ds, level=lev, options={"robust": "huber", "tol": 1e-4})
+                res = calibrate_lsq(prob.with_values(sel.theta), "lm", free=sel.identifiable, robust="huber",
+                                    tol=1e-4)
             return res, prob, lev
         except (ValueError, np.linalg.LinAlgError) as exc:
             last = exc
