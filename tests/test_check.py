@@ -160,46 +160,37 @@ def test_real_tiago_hidden_defects(tmp_path):
     _assert_exact(check_data(rb, ds), hidden, ds.n)
 
 
-def test_real_talos_headerless_hidden_defects(tmp_path):
-    src = _real("talos", "talos_feb_arm_2_contact.csv")
-    rng = np.random.default_rng(4)
-    hidden = {}
+def _talos_hidden(tmp_path, name, seed, hidden, first_line, **defects):
+    """A TALOS session (t, x1, y1, z1, 9 joints) with defects hidden by :func:`_hide`; check names them."""
+    src = _real("talos", name)
+    rng = np.random.default_rng(seed)
 
     def edit(M):
         P = M[:, None, 1:4]
-        R = M[:, 4:]
-        # 21 poses at the registration level (5 mm RMS of model error): a swapped-in marker is 5–8 cm off
-        _hide(P, R, rng, lambda i: i + 1, hidden, blunders=[6, 15], limits=[11], limit_values=[(3, 2.9)],
-              blunder_mm=(50, 80))
+        _hide(P, M[:, 4:], rng, lambda i: i + first_line, hidden, **defects)
         M[:, 1:4] = P[:, 0]
         return M
 
     _write_like(tmp_path / "t.csv", src.read_text(), edit)
     rb, ds = _real_robot_and_data("talos", tmp_path / "t.csv")
     _assert_exact(check_data(rb, ds), hidden, ds.n)
+
+
+def test_real_talos_headerless_hidden_defects(tmp_path):
+    """21 poses at the registration level (5 mm RMS of model error): a swapped-in marker 5–8 cm off."""
+    _talos_hidden(tmp_path, "talos_feb_arm_2_contact.csv", 4, {}, 1, blunders=[6, 15], limits=[11],
+                  limit_values=[(3, 2.9)], blunder_mm=(50, 80))
 
 
 def test_real_talos_hidden_blunders_among_62(tmp_path):
     """62 poses (joint-offset level, 0.8 mm RMS): 15–25 mm blunders are named, with the published first row."""
-    src = _real("talos", "talos_feb_arm_02_10_contact.csv")
-    rng = np.random.default_rng(6)
-    hidden = {2: "outlier"}  # the file's own first row (see the clean-file test)
-
-    def edit(M):
-        P = M[:, None, 1:4]
-        _hide(P, M[:, 4:], rng, lambda i: i + 2, hidden, blunders=[9, 25, 40, 55], blunder_mm=(15, 25))
-        M[:, 1:4] = P[:, 0]
-        return M
-
-    _write_like(tmp_path / "t.csv", src.read_text(), edit)
-    rb, ds = _real_robot_and_data("talos", tmp_path / "t.csv")
-    _assert_exact(check_data(rb, ds), hidden, ds.n)
+    _talos_hidden(tmp_path, "talos_feb_arm_02_10_contact.csv", 6, {2: "outlier"}, 2, blunders=[9, 25, 40, 55],
+                  blunder_mm=(15, 25))
 
 
 def test_repeated_postures_give_the_repeatability(tmp_path):
     """Postures measured again (joint readings within 1 mrad) are named with their repeatability: 0.2 mm of
     measurement noise per coordinate gives √3·0.2 = 0.35 mm RMS from each posture's mean."""
-    pytest.importorskip("estcal.validation")
     rb = load_robot("puma560")
     sim = simulate(rb, 20, measure="position", seed=3)
     ds = sim.dataset.subset(np.r_[np.arange(20), np.repeat(np.arange(5), 40)])

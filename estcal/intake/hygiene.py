@@ -126,10 +126,7 @@ def _duplicates(ds) -> tuple[list, np.ndarray]:
 
 
 def _repeated(ds, robot, skip) -> list:
-    try:
-        from estcal.validation import posture_groups, repeatability_floor
-    except ImportError:  # TEMP until the validation layer lands
-        return []
+    from estcal.validation import posture_groups, repeatability_floor
 
     keep = np.setdiff1d(np.arange(ds.n), skip)
     if keep.size < 2:
@@ -417,7 +414,7 @@ def check_data(robot, ds, *, level: str = "auto", alpha: float = ALPHA, outliers
     report.findings += _unused(ds, robot)
     if info is not None:
         report.notes.append(f"outlier test: robust fit at the {info['level']} level, Bonferroni α = {alpha:g}, "
-                            f"{info['effective_dof']:.1f} effective dof")
+                            f"{info['effective_dof']:.2g} matched dof")
     order = {k: i for i, k in enumerate(KINDS)}
     report.findings.sort(key=lambda f: (order[f.kind], f.lines[:1]))
     return report

@@ -1,0 +1,67 @@
+"""``estcal check``: data hygiene before any fit (:func:`estcal.intake.hygiene.check_data`).
+
+:func:`check_file` loads the robot and the data (through a column map when given) and returns
+the :class:`~estcal.intake.hygiene.CheckReport`; :func:`findings_for` is what calibrate,
+diagnose, sessions and online run on their data to warn with the same findings, and
+:func:`drop_flagged` removes the flagged rows (``--drop-flagged``). Never prints, never exits.
+"""
+from __future__ import annotations
+
+import warnings
+
+__all__ = ["check_file", "findings_for", "drop_flagged"]
+
+
+def _robot_for(robot, data_path, root=None, tip=None, column_map=None, points=None):
+    """The robot with one unknown marker per measured point of the file (read through the map)."""
+    from estcal.io.columnmap import ColumnMap, load_column_map
+    from estcal.io.dataset import measurement_layout
+    from estcal.io.robotfile import load_robot
+
+    if not isinstance(robot, (str, bytes)) and hasattr(robot, "joint_names"):
+        return robot
+    if column_map is not None:
+        cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+        k = len(cmap.points) if cmap.points and cmap.rpy is None and cmap.quaternion is None else None
+    else:
+        k, _, quat = measurement_layout(data_path)
+        k = k if k and not quat else None
+    k = points if points is not None else k
+    return load_robot(robot, root=root, tip=tip, n_markers=k)
+
+
+def check_file(data, robot, *, root=None, tip=None, column_map=None, points=None, outliers: bool = True,
+               level: str = "auto"):
+    """All checks of :mod:`estcal.intake.hygiene` on the file ``data`` (CSV; ``column_map``: its column
+    map). Returns ``(report, robot, dataset)``."""
+    from estcal.intake.hygiene import check_data
+    from estcal.io.dataset import load_dataset
+
+    rb = _robot_for(robot, data, root, tip, column_map, points)
+    ds = load_dataset(data, rb, points=points, column_map=column_map)
+    return check_data(rb, ds, outliers=outliers, level=level), rb, ds
+
+
+def findings_for(robot, ds, outliers: bool = True):
+    """The findings of ``ds`` warned as :class:`~estcal.base.errors.EstcalWarning` (one per finding,
+    defects first) and returned (the report)."""
+    from estcal.base.errors import EstcalWarning
+    from estcal.intake.hygiene import check_data
+
+    report = check_data(robot, ds, outliers=outliers)
+    for f in report.findings:
+        if f.kind != "unused_column":
+            warnings.warn(f"{ds.where}: {f.kind}: {f.message}", EstcalWarning, stacklevel=2)
+    return report
+
+
+def drop_flagged(ds, report):
+    """``ds`` without the rows of the defect findings; ``(dataset, dropped lines)``."""
+    import numpy as np
+
+    lines = report.flagged_lines()
+    if not lines:
+        return ds, []
+    keep = ~np.isin(ds.lines, lines)
+    out = ds.subset(np.flatnonzero(keep))
+    return out, lines
