@@ -119,18 +119,6 @@ def _write_like(path, src_text, rows_fn):
     return len(head)
 
 
-def test_real_clean_files_false_positive_rate():
-    """On the published files, the defect kinds name only TALOS 02-10's first row (56× the others' RMS:
-    the robot was not at the posture, or another marker was tracked)."""
-    cases = [("talos", "talos_feb_arm_02_07_crane.csv", set()), ("talos", "talos_feb_arm_02_10_contact.csv", {2}),
-             ("talos", "talos_feb_arm_2_contact.csv", set()),
-             ("tiago", "qualisys_2021-11-30_static_postures.csv", set()),
-             ("tiago", "qualisys_2021-11-26_static_postures.csv", set()), ("ur10", "calibration.csv", set())]
-    for folder, name, expected in cases:
-        report = check_data(*_real_robot_and_data(folder, _real(folder, name)))
-        assert set(report.flagged_lines()) == expected, (name, report.messages())
-
-
 def _real_robot_and_data(folder, path):
     d = SHARED / "data" / folder
     if folder == "talos":

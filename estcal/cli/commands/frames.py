@@ -15,7 +15,6 @@ def frames(
     column_map: Optional[Path] = typer.Option(None, "--map", metavar="FILE.yaml",
                                               help="Column map of the data file (docs/dataset.md)."),
     points: Optional[int] = typer.Option(None, "--points", help="Use the first N measured points (x1..zN)."),
-    top: int = typer.Option(10, "--top", help="Candidates printed (all go to --json)."),
     json_path: Optional[Path] = typer.Option(None, "--json",
                                              help="Write {\"candidates\": [{root, tip, rmse_mm, rmse_mrad, …}]}."),
 ) -> None:
@@ -29,7 +28,7 @@ def frames(
         out = frames_file(data, robot, column_map=column_map, points=points)
     except (ValueError, KeyError, FileNotFoundError) as exc:
         fail(message(exc))
-    typer.echo(format_frames(out, top))
+    typer.echo(format_frames(out))  # the best ten; all in --json
     if json_path is not None:
         from estcal.base.jsonio import write_json
 
