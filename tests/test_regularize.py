@@ -118,3 +118,36 @@ def test_run_calibration_regularize_errors_and_record():
     res, _, _ = run_calibration(robot, data, level="full", regularize="loo")
     reg = res.extra["regularization"]
     assert len(reg["curve"]["tau"]) == len(reg["curve"]["loo_rmse_mm"]) and reg["loo_rmse_mm"] > 0
+
+
+def test_repeated_postures_leave_together():
+    """The same 12 postures in two terms (two sessions): the block PRESS holds out both copies of a
+    posture, equal to refitting without them; a leave-one-row-out would score memory."""
+    from estcal.methods import Problem
+
+    sim = simulated_problem("puma560", n_poses=12, seed=26, method="position", deviation=(2e-3, 2e-3))
+    t = sim.problem.terms[0]
+    d2 = t.data.subset(slice(None))
+    d2.points = d2.points + 1e-4 * np.random.default_rng(0).standard_normal(d2.points.shape)
+    prob = Problem(sim.problem.robot, [(t.method, t.data, t.noise), (t.method, d2, t.noise)])
+    free = sim.free
+    penalised = [n for n in free if not n.startswith("base_")]
+    theta = prob.params.values
+    p2 = prob.with_free(free)
+    idx = p2.params.indices(free)
+    rows = p2.evaluate(theta)
+    A = rows.H[:, idx] / rows.sigma[:, None]
+    b = rows.e / rows.sigma
+    for tau in (3e-4, np.inf):
+        prior = np.diag([1.0 / tau if n in penalised else 0.0 for n in free])
+        keep = np.any(prior != 0, axis=1)
+        sq, npts = 0.0, 0
+        for i in range(12):
+            out = rows.pose == i  # pose i of both terms: one posture
+            x = np.linalg.lstsq(np.vstack([A[~out], prior[keep]]), np.r_[b[~out], np.zeros(keep.sum())],
+                                rcond=None)[0]
+            e = (b[out] - A[out] @ x) * rows.sigma[out]
+            sq += float(e @ e)
+            npts += out.sum() // 3
+        ours = loo_curve(prob, free, penalised, [tau], theta)[0]
+        assert ours == pytest.approx(np.sqrt(sq / npts), rel=1e-8)

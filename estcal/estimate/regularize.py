@@ -14,9 +14,11 @@ unknown points stay free)::
 
 The single width ``τ`` (SI: m for lengths, rad for angles — one number, because
 for arm-sized links a millimetre and a milliradian move the end point by similar
-amounts) is chosen by **leave-one-pose-out cross-validation on the calibration
-data**, never on validation data. For the model linearised at ``θ``, the
-leave-one-pose-out residual of pose *i* is exact without refitting (block PRESS,
+amounts) is chosen by **leave-one-posture-out cross-validation on the calibration
+data**, never on validation data: every pose whose joint readings agree within 1e-3 rad /
+1e-3 m with pose *i* (the same posture in another session or file) leaves with it, so a
+twin never predicts its own posture (docs/real-data.md). For the model linearised at ``θ``, the
+leave-one-posture-out residual of posture *i* (rows *i*) is exact without refitting (block PRESS,
 e.g. Hastie, Tibshirani & Friedman, *Elements of Statistical Learning* §7.10;
 the ridge rows are not deleted with the pose)::
 
@@ -51,7 +53,7 @@ class RegularizationChoice:
 
     tau : chosen prior std (SI); ``inf`` when no finite width beats the unregularised fit
     penalised : names of the penalised parameters (the others are free)
-    grid, loo_rmse_mm : the CV curve (τ values and their leave-one-pose-out RMSE, mm)
+    grid, loo_rmse_mm : the CV curve (τ values and their leave-one-posture-out RMSE, mm)
     loo_rmse_unregularised_mm : the same for τ = ∞ (plain least squares)
     """
 
@@ -74,27 +76,44 @@ class RegularizationChoice:
                 "loo_rmse_mm": float(self.loo_rmse_mm[i]),
                 "loo_rmse_unregularised_mm": float(self.loo_rmse_unregularised_mm),
                 "curve": {"tau": [float(t) for t in self.grid], "loo_rmse_mm": [float(v) for v in self.loo_rmse_mm]},
-                "criterion": "leave-one-pose-out CV on the calibration data (block PRESS, linearised)",
+                "criterion": "leave-one-posture-out CV on the calibration data (block PRESS, linearised)",
                 "linearised_at": self.linearised_at}
 
     def __str__(self) -> str:
         d = self.to_dict()
         return (f"prior width τ = {d['tau_mm_or_mrad']:.3g} mm / mrad on {len(self.penalised)} parameters "
-                f"(leave-one-pose-out RMSE {d['loo_rmse_mm']:.3f} mm; unregularised "
+                f"(leave-one-posture-out RMSE {d['loo_rmse_mm']:.3f} mm; unregularised "
                 f"{d['loo_rmse_unregularised_mm']:.3f} mm)")
 
 
-def _pose_blocks(rows):
-    """Row indices grouped by pose: (n_poses, rows_per_pose), requires equal counts."""
-    order = np.argsort(rows.pose, kind="stable")
-    _, counts = np.unique(rows.pose, return_counts=True)
-    if counts.min() != counts.max():
-        raise ValueError("leave-one-pose-out needs the same number of rows for every pose")
-    return order.reshape(len(counts), counts[0])
+def _posture_blocks(problem, rows, tol=(1e-3, 1e-3)):
+    """Row indices grouped by posture, padded: ``(idx (G, m), mask (G, m))``.
+
+    Rows of every pose whose readings agree within ``tol`` (rad, m) — the same posture in another
+    term (file, session) or twice in one file — form one block, so the held-out posture's twin is
+    never in the fit (:func:`estcal.validation.posture_groups`; docs/real-data.md).
+    """
+    from estcal.validation import posture_groups
+
+    term = np.zeros(len(rows.e), int) if rows.term is None else np.asarray(rows.term, int)
+    datas = [t.data for t in problem.terms]
+    offset = np.cumsum([0] + [d.n for d in datas])
+    Q = np.vstack([d.readings for d in datas])
+    g = posture_groups(Q, problem.robot.joint_types, *tol)[offset[term] + np.asarray(rows.pose, int)]
+    order = np.argsort(g, kind="stable")
+    labels, start, counts = np.unique(g[order], return_index=True, return_counts=True)
+    m = int(counts.max())
+    idx = np.zeros((len(labels), m), int)
+    mask = np.arange(m)[None, :] < counts[:, None]
+    idx[mask] = order
+    return idx, mask
 
 
-def loo_curve(problem, free, penalised, taus, theta=None) -> np.ndarray:
-    """Leave-one-pose-out RMSE (m) of the ridge estimate for each τ in ``taus`` (``inf`` allowed).
+def loo_curve(problem, free, penalised, taus, theta=None, posture_tol=(1e-3, 1e-3)) -> np.ndarray:
+    """Leave-one-posture-out RMSE (m) of the ridge estimate for each τ in ``taus`` (``inf`` allowed).
+
+    A *posture* is every pose whose readings agree within ``posture_tol`` (rad, m): with one
+    row per posture this is leave-one-pose-out; repeated postures are held out together.
 
     Parameters
     ----------
@@ -113,9 +132,10 @@ def loo_curve(problem, free, penalised, taus, theta=None) -> np.ndarray:
     rows = problem.evaluate(theta)
     A, b = _weighted(rows, fidx)
     pen = np.isin(names, list(penalised))
-    blocks = _pose_blocks(rows)
-    Ab, bb = A[blocks], b[blocks]  # (n, r, p), (n, r)
-    pos = rows.kind[blocks] == 0  # position rows
+    blocks, mask = _posture_blocks(problem, rows, posture_tol)
+    Ab = np.where(mask[..., None], A[blocks], 0.0)  # (G, m, p); padding rows are zero
+    bb = np.where(mask, b[blocks], 0.0)
+    pos = mask & (rows.kind[blocks] == 0)  # position rows
     sig = rows.sigma[blocks]
     n_points = pos.sum() / 3.0
     AtA, Atb = A.T @ A, A.T @ b
@@ -134,8 +154,9 @@ def loo_curve(problem, free, penalised, taus, theta=None) -> np.ndarray:
     return np.asarray(out)
 
 
-def choose_prior_std(problem, free, penalised, theta=None, grid=None) -> RegularizationChoice:
-    """The prior width τ with the lowest leave-one-pose-out RMSE on the problem's data.
+def choose_prior_std(problem, free, penalised, theta=None, grid=None, posture_tol=(1e-3, 1e-3)
+                     ) -> RegularizationChoice:
+    """The prior width τ with the lowest leave-one-posture-out RMSE on the problem's data.
 
     See the module docstring. ``grid`` defaults to :data:`DEFAULT_GRID`; the unregularised
     fit (τ = ∞) is a candidate too, so regularisation is only used when CV supports it.
@@ -144,8 +165,8 @@ def choose_prior_std(problem, free, penalised, theta=None, grid=None) -> Regular
     penalised = [n for n in free if n in set(penalised)]
     if not penalised:
         raise ValueError("no parameter to penalise: give the geometric / offset parameters in `penalised`")
-    curve = loo_curve(problem, free, penalised, grid, theta)
-    plain = float(loo_curve(problem, free, penalised, [np.inf], theta)[0])
+    curve = loo_curve(problem, free, penalised, grid, theta, posture_tol)
+    plain = float(loo_curve(problem, free, penalised, [np.inf], theta, posture_tol)[0])
     i = int(np.argmin(curve))
     tau = float(grid[i]) if curve[i] < plain else float("inf")
     return RegularizationChoice(tau, penalised, grid, curve * 1e3, plain * 1e3)
