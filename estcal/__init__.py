@@ -27,6 +27,7 @@ _API = {
     # the workflow
     "calibrate": "estcal.api:calibrate",
     "diagnose": "estcal.api:diagnose",
+    "OnlineCalibrator": "estcal.workflows.online:OnlineCalibrator",
     "CalibrationResult": "estcal.estimate.result:CalibrationResult",
     "DiagnosisResult": "estcal.discrepancy.diagnose:DiagnosisResult",
     "estimator_names": "estcal.estimate.registry:estimator_names",

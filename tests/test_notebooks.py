@@ -146,13 +146,13 @@ def test_online_stream_malformed_rows(stream_csv, tmp_path, capsys, monkeypatch)
     args = ["puma560", str(tmp_path / "bad.csv"), "--free", "theta_*", "--sigma-r", "1e-4"]
     code, out, err = _main(args, capsys, monkeypatch)
     assert code == 0, err
-    assert "line 4, column 'y': 'abc' is not a number" in err
-    assert "line 5: 3 fields, the header has 14" in err
+    assert "line 4, column 'y': value is 'abc', not a finite number" in err  # the dataset loader's messages
+    assert "line 5: 3 fields but the header has 14" in err
     assert "(2 skipped)" in out and len([ln for ln in out.splitlines() if ln.startswith("row ")]) == 6
     code, out, err = _main(args + ["--strict"], capsys, monkeypatch)
     assert code == 2 and "line 4, column 'y'" in err
     code, out, err = _main(["puma560", "-"], capsys, monkeypatch, text="j1,j2,j3,x,y,z\n")
-    assert code == 2 and "header lacks column(s) ['j4', 'j5', 'j6']" in err
+    assert code == 2 and "missing joint column(s) ['j4', 'j5', 'j6']" in err
     code, out, err = _main(["puma560", "-"], capsys, monkeypatch, text="")
     assert code == 2 and "empty input" in err
     code, out, err = _main(["puma560", "-", "--show", "nope"], capsys, monkeypatch, text="")

@@ -3,17 +3,18 @@
 
 Each row (joint readings + the measured tool pose ``x,y,z,qw,qx,qy,qz`` or
 position ``x,y,z``, SI units, first line = header, see docs/dataset.md) updates
-a Kalman filter over the free parameters as soon as it arrives — filterpy's
-EKF through :class:`estcal.estimate.kalman.ParameterFilter`, random-walk model
-x_k = x_{k−1} + w_k, Cov(w) = Q (textbook §4.5, eqs 4.104–4.112) — and the
-estimate ± σ of the shown parameters is printed. A malformed row (wrong field
-count, a value that is not a finite number, a quaternion that is not unit) is
-reported on stderr with its line and column and skipped (``--strict``: stop
-with exit code 2). At the end: the final table, the innovation tests
-(docs/probabilistic.md) and, with ``--json``, the estimate and covariance.
+:class:`estcal.OnlineCalibrator` — a Kalman filter over the free parameters,
+random-walk model x_k = x_{k−1} + w_k, Cov(w) = Q (textbook §4.5, eqs 4.104–4.112) —
+as soon as it arrives, and the estimate ± σ of the shown parameters is printed.
+Rows are read and checked by :class:`estcal.workflows.online.CsvStream` (the
+dataset loader's checks); a malformed row is reported on stderr with its line
+and column and skipped (``--strict``: stop with exit code 2). At the end: the
+final table, the innovation tests (docs/probabilistic.md) and, with ``--json``,
+the result (``OnlineCalibrator.result().to_dict()``, the schema of
+``estcal online --json``) with the number of skipped rows.
 
-It is the same filter, prior and noise model as ``estcal online``, so both
-give the same final estimate on the same rows (tests/test_notebooks.py
+It is the object behind ``estcal online``, with the same prior and noise model,
+so both give the same final estimate on the same rows (tests/test_notebooks.py
 checks it).
 
 Examples::
@@ -26,54 +27,15 @@ Exit codes: 0 done, 2 bad arguments / header / input (or a malformed row with ``
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 
-import numpy as np
-
-import estcal  # top-level API: load_robot, NoiseModel (docs/api.md); the filter pieces from their modules
-from estcal.estimate.kalman import ParameterFilter, default_burn_in, process_noise
-from estcal.base.atomic import atomic_write_text
-from estcal.io.dataset import dataset_from_arrays
-from estcal.kinematics.transforms import quat_to_matrix
-from estcal.methods.base import method_for_dataset
-from estcal.methods.problem import Problem
-
-POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
-
-
-class BadRow(ValueError):
-    """A row that cannot be used (the message names line and column)."""
+import estcal  # top-level API: OnlineCalibrator (docs/api.md)
+from estcal.workflows.online import CsvStream
 
 
 def die(msg: str) -> None:
     print(f"online_stream: error: {msg}", file=sys.stderr)
     sys.exit(2)
-
-
-def parse_row(header: list, fields: list, joints: list, where: str):
-    """One CSV row → a one-pose dataset (pose if the header has x..qz, else position x,y,z)."""
-    if len(fields) != len(header):
-        raise BadRow(f"{where}: {len(fields)} fields, the header has {len(header)}")
-    col = dict(zip(header, fields))
-
-    def num(c):
-        try:
-            v = float(col[c])
-        except ValueError:
-            raise BadRow(f"{where}, column {c!r}: {col[c]!r} is not a number") from None
-        if not np.isfinite(v):
-            raise BadRow(f"{where}, column {c!r}: {col[c]!r} is not finite")
-        return v
-
-    q = np.array([[num(j) for j in joints]])
-    p = np.array([[num(c) for c in "xyz"]])
-    if "qw" not in col:
-        return dataset_from_arrays(joints, q, points=p, path=where)
-    quat = np.array([num(c) for c in POSE[3:]])
-    if abs(np.linalg.norm(quat) - 1) > 1e-3:
-        raise BadRow(f"{where}, columns qw..qz: quaternion norm {np.linalg.norm(quat):.6f}, expected 1")
-    return dataset_from_arrays(joints, q, R=quat_to_matrix(quat[None] / np.linalg.norm(quat)), p=p, path=where)
 
 
 def main(argv=None) -> int:
@@ -91,77 +53,42 @@ def main(argv=None) -> int:
     ap.add_argument("--strict", action="store_true", help="stop at the first malformed row (exit 2)")
     ap.add_argument("--json", default=None, help="write the final estimate, stds and covariance to this file")
     a = ap.parse_args(argv)
+    q = {s.strip(): a.q for s in a.q_params.split(",") if s.strip()} if a.q_params else a.q
     try:
-        robot = estcal.load_robot(a.robot)
-        if a.free:
-            robot = robot.copy(robot.params.with_free([s.strip() for s in a.free.split(",") if s.strip()]))
-    except (ValueError, KeyError, FileNotFoundError) as exc:
-        die(str(exc))
-    pv = robot.params
-    names, fidx = pv.free_names, pv.free_indices
-    try:
-        Q = process_noise(names, {s.strip(): a.q for s in a.q_params.split(",")} if a.q_params else a.q)
+        cal = estcal.OnlineCalibrator(a.robot, free=a.free, noise=(a.sigma_p, a.sigma_r), q=q, prior_std=a.prior_std)
+        names = cal.names
         show = [names.index(s.strip()) for s in a.show.split(",")] if a.show else list(range(min(3, len(names))))
-    except ValueError as exc:
-        die(f"--q-params / --show: {exc} (free parameters: {', '.join(names)})")
-    flt = ParameterFilter(pv.values, fidx, np.eye(len(names)) * a.prior_std ** 2, Q, names=names)
-    noise = estcal.NoiseModel(a.sigma_p, a.sigma_r, known=True)
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        die(f"{exc} (free parameters: {', '.join(cal.names)})" if "cal" in locals() else str(exc))
     src = "<stdin>" if a.data == "-" else a.data
     try:
-        fh = sys.stdin if a.data == "-" else open(a.data, newline="")
-    except OSError as exc:
-        die(f"{src}: {exc.strerror}")
-    head = fh.readline()
-    if not head.strip():
-        die(f"{src}: empty input (expected a header line with {', '.join(robot.joint_names)}, x, y, z[, qw..qz])")
-    header = [h.strip() for h in next(csv.reader([head]))]
-    missing = [c for c in list(robot.joint_names) + list("xyz") if c not in header]
-    if missing:
-        die(f"{src}, line 1: header lacks column(s) {missing}; it has {header}")
-    print(f"online_stream: {robot.name}, {len(names)} free parameters, q = {a.q:g}; reading {src} (units: m, rad)",
-          flush=True)
-    skipped, line_no = 0, 1
-    while True:  # readline, not a for loop: each row is used as soon as it arrives on a pipe
-        line = fh.readline()
-        if not line:
-            break
-        line_no += 1
-        if not line.strip():
-            continue
-        try:
-            ds = parse_row(header, [f.strip() for f in next(csv.reader([line]))], robot.joint_names,
-                           f"{src}, line {line_no}")
-            step = flt.step(Problem(robot, [(method_for_dataset(ds, robot), ds, noise)]))
-        except BadRow as exc:
+        rows = CsvStream(a.data, cal.robot)  # reads and checks the header
+    except (ValueError, OSError) as exc:
+        die(str(exc))
+    print(f"online_stream: {cal.robot.name}, {len(names)} free parameters, q = {a.q:g}; reading {src} "
+          f"(units: m, rad)", flush=True)
+    skipped = 0
+    for chunk in rows:  # a pipe's rows are used as they arrive (the stream cuts where no row waits)
+        if chunk.data is not None:
+            up = cal.update(chunk.data, trace=True)
+            for j, k in enumerate(range(up.rows[0], up.rows[1] + 1)):
+                x, s = up.estimate[j], up.std[j]
+                par = "  ".join(f"{names[i]} = {x[i]:.7g} ± {s[i]:.2g}" for i in show)
+                print(f"row {k:5d}  NIS {up.nis[j]:7.2f}/{up.dims[j]}  {par}", flush=True)
+        if chunk.error is not None:
             if a.strict:
-                die(str(exc))
+                die(str(chunk.error))
             skipped += 1
-            print(f"online_stream: skipped {exc}", file=sys.stderr, flush=True)
-            continue
-        x, s = flt.x, flt.std
-        par = "  ".join(f"{names[i]} = {x[i]:.7g} ± {s[i]:.2g}" for i in show)
-        print(f"row {flt.n_steps:5d}  NIS {step.nis:7.2f}/{step.y.size}  {par}", flush=True)
-    if flt.n_steps == 0:
+            print(f"online_stream: skipped {chunk.error}", file=sys.stderr, flush=True)
+    if cal.n_rows == 0:
         die(f"{src}: no usable data row ({skipped} skipped)")
-    x, s = flt.x, flt.std
-    print(f"\nestimate after {flt.n_steps} rows ({skipped} skipped):")
-    for i, n in enumerate(names):
-        print(f"  {n:<12} {x[i]:>14.8g} ± {s[i]:.3g}   (nominal {pv.values[fidx[i]]:.8g})")
-    try:
-        tests = flt.monitor.tests(burn_in=default_burn_in(flt.monitor.dims, len(names)))
-        print(tests)
-        tests = tests.to_dict()
-    except ValueError as exc:
-        tests = {"error": str(exc)}
-        print(f"innovation tests: {exc}")
+    res = cal.result()
+    print(f"\nestimate after {res.n_rows} rows ({skipped} skipped):")
+    print(res.table())
     if a.json:
-        import json
+        from estcal.base.jsonio import write_json
 
-        out = {"robot": robot.name, "input": src, "n_rows": flt.n_steps, "skipped": skipped, "q": a.q,
-               "parameters": {n: {"estimate": float(x[i]), "std": float(s[i]), "nominal": float(pv.values[fidx[i]])}
-                              for i, n in enumerate(names)},
-               "covariance": flt.P.tolist(), "innovation": tests}
-        atomic_write_text(a.json, json.dumps(out, indent=2))
+        write_json(a.json, {**res.to_dict(), "skipped": skipped})
     return 0
 
 

@@ -45,7 +45,8 @@ __all__ = ["FORMAT", "CheckpointError", "PrefixHasher", "Journal", "journal_path
            "save_checkpoint", "load_checkpoint", "restore_filter", "option_differences", "file_sha256"]
 
 FORMAT = "estcal-online-checkpoint"
-VERSION = 2  # 2: the innovation record and history moved to the journal
+VERSION = 3  # 2: the innovation record and history moved to the journal; 3: linearisation segment, source
+READABLE = (2, 3)
 _INNOVATION, _HISTORY = 0.0, 1.0
 
 
@@ -148,10 +149,16 @@ class Journal:
         if self._off is None:  # whitened components already in the journal (once; then kept up to date)
             self._off = int(np.sum(dims[:self.steps], dtype=np.int64))
         off = self._off
-        for k in range(self.steps, len(nis)):
-            m = int(dims[k])
-            parts.append(np.concatenate([[_INNOVATION, m + 1.0, nis[k]], white[off:off + m]]))
-            off += m
+        if len(nis) > self.steps:  # records [tag, m + 1, NIS, w_1 … w_m] of the new steps, built at once
+            m = np.asarray(dims[self.steps:], np.int64)
+            nw = int(m.sum())
+            start = np.r_[0, np.cumsum(m + 3)[:-1]]
+            rec = np.empty(int(start[-1] + m[-1] + 3))
+            rec[start], rec[start + 1], rec[start + 2] = _INNOVATION, m + 1.0, nis[self.steps:]
+            within = np.arange(nw) - np.repeat(np.r_[0, np.cumsum(m)[:-1]], m)
+            rec[np.repeat(start + 3, m) + within] = white[off:off + nw]
+            parts.append(rec)
+            off += nw
         for e in history[self.entries:]:
             vals = [e["row"], e["line"], e["nis"], e["nis_per_row"], e["trace_P"], *e["estimate"], *e["std"]]
             parts.append(np.concatenate([[_HISTORY, float(len(vals))], np.asarray(vals, float)]))
@@ -194,18 +201,21 @@ def parse_journal(data: bytes, n_params: int):
     return np.asarray(nis, float), np.asarray(dims, np.int64), white, history
 
 
-def filter_checkpoint(flt, *, options: dict, rows: int, line: int, hasher: PrefixHasher, input_sha256,
-                      burn, journal: dict, finished: bool = False) -> dict:
+def filter_checkpoint(flt, *, options: dict, rows: int, position: dict, burn, journal: dict,
+                      finished: bool = False, lin=None, source=None) -> dict:
     """The checkpoint dictionary of a :class:`~estcal.estimate.kalman.ParameterFilter`; ``journal`` is
-    the pointer :meth:`Journal.append` returned for the records up to this point."""
+    the pointer :meth:`Journal.append` returned for the records up to this point; ``position`` the
+    input read so far (``line``, ``input_bytes``, ``input_sha256_prefix``, ``input_sha256``); ``lin``
+    the ``(segment start, x_lin)`` of a linearisation segment the run is inside of."""
     return {
         "format": FORMAT, "version": VERSION, "finished": bool(finished),
         "parameters": list(flt.names), "estimate": flt.x.tolist(), "covariance": flt.P.tolist(),
         "std": flt.std.tolist(), "Q": np.asarray(flt.Q, float).tolist(), "theta0": flt.theta0.tolist(),
         "kind": flt.kind, "n_steps": int(flt.n_steps), "n_rows": int(flt.n_rows),
-        "rows": int(rows), "line": int(line), "input_bytes": int(hasher.n),
-        "input_sha256_prefix": hasher.hexdigest(), "input_sha256": input_sha256,
-        "options": dict(options), "burn": burn, "journal": journal,
+        "rows": int(rows), "line": position.get("line"), "input_bytes": int(position.get("input_bytes", 0)),
+        "input_sha256_prefix": position.get("input_sha256_prefix"), "input_sha256": position.get("input_sha256"),
+        "source": source, "options": dict(options), "burn": burn, "journal": journal,
+        "lin": None if lin is None else {"start": int(lin[0]), "x": np.asarray(lin[1], float).tolist()},
     }
 
 
@@ -227,8 +237,9 @@ def load_checkpoint(path) -> dict:
         raise CheckpointError(f"{path}: not a readable checkpoint ({exc})") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an estcal online checkpoint (no format {FORMAT!r})")
-    if d.get("version") != VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {d.get('version')}, this estcal reads {VERSION}")
+    if d.get("version") not in READABLE:
+        raise CheckpointError(f"{path}: checkpoint version {d.get('version')}, this estcal reads "
+                              f"{', '.join(map(str, READABLE))}")
     from estcal.io.integrity import verify_json
 
     verify_json(d, str(path), CheckpointError, "checkpoint")

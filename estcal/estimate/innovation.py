@@ -167,6 +167,29 @@ class InnovationMonitor:
         self._cum_nis.append(self._cum_nis.values[-1] + nis)
         self._cum_dims.append(self._cum_dims.values[-1] + w.size)
 
+    def record_many(self, nis, dims, white_flat) -> None:
+        """Append several steps at once (``nis`` (B,), ``dims`` (B,), ``white_flat`` (Σ dims,)); the
+        running sums are extended in the order :meth:`record` would add them one by one."""
+        nis = np.asarray(nis, float).reshape(-1)
+        dims = np.asarray(dims, np.int64).reshape(-1)
+        self._nis.extend(nis)
+        self._dims.extend(dims)
+        self._white.extend(np.asarray(white_flat, float).reshape(-1))
+        cn = np.cumsum(np.r_[self._cum_nis.values[-1], nis])[1:]  # sequential sums, as record() adds
+        self._cum_nis.extend(cn)
+        self._cum_dims.extend(self._cum_dims.values[-1] + np.cumsum(dims))
+
+    def running_at(self, k, burn_in=0) -> np.ndarray:
+        """Mean NIS per row over steps ``burn_in … k − 1`` for every ``k`` of an array (``burn_in`` a
+        number or one per k; NaN where no step after the burn-in is included): the value
+        :meth:`running` gave after step k."""
+        k = np.asarray(k, np.int64)
+        b = np.minimum(np.maximum(np.asarray(burn_in, np.int64), 0), k)
+        cn, cd = self._cum_nis.values, self._cum_dims.values
+        num, den = cn[k] - cn[b], cd[k] - cd[b]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, num / np.where(den > 0, den, 1), np.nan)
+
     @classmethod
     def from_record(cls, nis, dims, white_flat) -> "InnovationMonitor":
         """A monitor holding a saved record (``nis``, ``dims`` and the concatenated ``white``); its
