@@ -56,10 +56,13 @@ def main(argv=None) -> int:
     q = {s.strip(): a.q for s in a.q_params.split(",") if s.strip()} if a.q_params else a.q
     try:
         cal = estcal.OnlineCalibrator(a.robot, free=a.free, noise=(a.sigma_p, a.sigma_r), q=q, prior_std=a.prior_std)
-        names = cal.names
-        show = [names.index(s.strip()) for s in a.show.split(",")] if a.show else list(range(min(3, len(names))))
     except (ValueError, KeyError, FileNotFoundError) as exc:
-        die(f"{exc} (free parameters: {', '.join(cal.names)})" if "cal" in locals() else str(exc))
+        die(str(exc))
+    names = cal.names
+    show = [s.strip() for s in a.show.split(",")] if a.show else names[:3]
+    if set(show) - set(names):
+        die(f"--show: {', '.join(sorted(set(show) - set(names)))} not among the free parameters ({', '.join(names)})")
+    show = [names.index(s) for s in show]
     src = "<stdin>" if a.data == "-" else a.data
     try:
         rows = CsvStream(a.data, cal.robot)  # reads and checks the header

@@ -206,7 +206,8 @@ def filter_checkpoint(flt, *, options: dict, rows: int, position: dict, burn, jo
     """The checkpoint dictionary of a :class:`~estcal.estimate.kalman.ParameterFilter`; ``journal`` is
     the pointer :meth:`Journal.append` returned for the records up to this point; ``position`` the
     input read so far (``line``, ``input_bytes``, ``input_sha256_prefix``, ``input_sha256``); ``lin``
-    the ``(segment start, x_lin)`` of a linearisation segment the run is inside of."""
+    the linearisation state the next step depends on (:func:`estcal.estimate.kalman.run_steps`:
+    segment start, linearisation point, the step it was set at, evaluation window)."""
     return {
         "format": FORMAT, "version": VERSION, "finished": bool(finished),
         "parameters": list(flt.names), "estimate": flt.x.tolist(), "covariance": flt.P.tolist(),
@@ -215,7 +216,8 @@ def filter_checkpoint(flt, *, options: dict, rows: int, position: dict, burn, jo
         "rows": int(rows), "line": position.get("line"), "input_bytes": int(position.get("input_bytes", 0)),
         "input_sha256_prefix": position.get("input_sha256_prefix"), "input_sha256": position.get("input_sha256"),
         "source": source, "options": dict(options), "burn": burn, "journal": journal,
-        "lin": None if lin is None else {"start": int(lin[0]), "x": np.asarray(lin[1], float).tolist()},
+        "lin": None if lin is None else {"start": int(lin[0]), "x": np.asarray(lin[1], float).tolist(),
+                                         "at": int(lin[2]), "window": int(lin[3])},
     }
 
 

@@ -227,6 +227,19 @@ def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
     return gtsam.CustomFactor(noise, keys, error)
 
 
+def _stationary(graph, values, rtol: float = 1e-9) -> bool:
+    """The convergence test reported as ``converged`` by the nonlinear graphs: a Gauss–Newton step
+    from ``values`` (the graph linearised there, robust kernels included) lowers the graph's
+    error by less than ``rtol`` of it — the optimiser's relative-decrease test, taken after it
+    stopped (an optimiser can also stop on its iteration limit or on its damping bound)."""
+    try:
+        delta = graph.linearize(values).optimize()
+        e0, e1 = float(graph.error(values)), float(graph.error(values.retract(delta)))
+    except RuntimeError:  # an indeterminate linear system: not a converged minimum
+        return False
+    return e0 - e1 <= rtol * max(e0, 1e-300)
+
+
 def _fit_statistics(problem, theta, fidx, x):
     """The full parameter vector with the free values ``x``, its χ² and dof = M − p."""
     from .reduced import chi2_and_rows
@@ -476,7 +489,8 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
         extra["latent_readings_correction"] = corr
         extra["encoder_std"] = es
     return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
-                         converged=n_iter < max_iter, covariance_source=src, theta_before=theta,
+                         converged=n_iter < max_iter and _stationary(graph, result), covariance_source=src,
+                         theta_before=theta,
                          validation=validation, t0=t0, extra=extra)
 
 
@@ -679,6 +693,7 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
             hist_x.append(np.asarray(est.atVector(X)))
             hist_s.append(np.sqrt(np.diag(isam.marginalCovariance(X))))
     est = isam.calculateEstimate()
+    converged = _stationary(isam.getFactorsUnsafe(), est)
     x = np.asarray(est.atVector(X), float)
     cov = np.asarray(isam.marginalCovariance(X))
     theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
@@ -692,7 +707,7 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
     if history:
         extra["history"] = {"estimate": np.array(hist_x), "std": np.array(hist_s)}
     return finish_result(problem, "isam2", names, fidx, x, cov, theta_full, nominal, n_iterations=len(times),
-                         converged=True, covariance_source=src, theta_before=theta, validation=validation, t0=t0,
+                         converged=converged, covariance_source=src, theta_before=theta, validation=validation, t0=t0,
                          extra=extra)
 
 
@@ -870,6 +885,7 @@ def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_siz
                             "batch_first_group": [b[0] for b in batches]},
              "q": qs, "varying": [names[i] for i in var], "python_factor_time_s": timer.t}
     return finish_result(problem, "gtsam-timevarying", names, fidx, x, cov, theta_full, nominal,
-                         n_iterations=int(opt.iterations()), converged=int(opt.iterations()) < max_iter,
+                         n_iterations=int(opt.iterations()),
+                         converged=int(opt.iterations()) < max_iter and _stationary(graph, result),
                          covariance_source="gtsam marginals (last state)", theta_before=theta,
                          validation=validation, t0=t0, extra=extra)

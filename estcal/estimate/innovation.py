@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy import stats
 
 __all__ = ["InnovationMonitor", "InnovationTests", "GrowingArray", "ljung_box"]
 
@@ -233,6 +232,7 @@ class InnovationMonitor:
         n = nis.size
         if n < 3:
             raise ValueError(f"only {n} innovations after a burn-in of {burn_in}: too few to test")
+        from scipy import stats  # imported where used: scipy.stats costs ~1 s of start-up
         tot, dof = float(nis.sum()), int(dims.sum())
         cdf = stats.chi2.cdf(tot, dof)
         p_nis = float(2 * min(cdf, 1 - cdf))

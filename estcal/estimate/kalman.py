@@ -210,25 +210,28 @@ class ParameterFilter:
         self.n_rows += y.size
         return Step(y, S, nis)
 
-    def update_block(self, H, e, sigma, dims, x_lin) -> BlockStep:
+    def update_block(self, H, e, sigma, dims, x_lin, tau: float | None = None) -> BlockStep:
         """Predict and update with B groups linearised at ``x_lin`` (free parameters): the filter
         of B :meth:`step` calls with that ``x_lin``, computed as one block (:func:`block_update`:
         the same innovations, NIS, estimate and covariance, to rounding). EKF only.
 
         ``H`` (M, p) Jacobian rows in the free parameters, ``e`` (M,) residuals (measured −
         predicted) and ``sigma`` (M,) noise stds at ``x_lin``, stacked group by group; ``dims``
-        (B,) rows per group."""
+        (B,) rows per group. ``tau``: stop before the first group whose predecessor's estimate is
+        more than ``tau`` of its σ from ``x_lin`` (it must be relinearised); returns the steps made."""
         if self.kind != "ekf":
             raise ValueError("block updates are an EKF computation (the UKF steps row by row)")
         if self.robust is not None:
             raise ValueError("block updates have no robust kernel (its weight depends on each innovation)")
         f = self.f
         nu = e - H @ (f.x - np.asarray(x_lin, float))
-        x, P, w, st = block_update(f.x, f.P, self.Q, H, nu, sigma, dims, q_zero=self._q_zero)
-        f.x, f.P = x, P
-        self.monitor.record_many(st.nis, dims, w)
-        self.n_steps += len(dims)
-        self.n_rows += int(np.sum(dims))
+        blk = block_update(f.x, f.P, self.Q, H, nu, sigma, dims, q_zero=self._q_zero)
+        k = len(dims) if tau is None else blk.kept(x_lin, tau)
+        f.x, f.P, w = blk.state(k)
+        st = blk.step if k == len(dims) else blk.step.head(k)
+        self.monitor.record_many(st.nis, st.dims, w)
+        self.n_steps += k
+        self.n_rows += int(np.sum(st.dims))
         return st
 
 
@@ -246,6 +249,10 @@ class BlockStep:
     @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(self.var, 0, None))
+
+    def head(self, k: int) -> "BlockStep":
+        """The first k groups."""
+        return BlockStep(self.nis[:k], self.dims[:k], self.estimate[:k], self.var[:k], self.trace[:k])
 
 
 def block_update(x, P, Q, H, nu, sigma, dims, q_zero: bool | None = None):
@@ -276,8 +283,8 @@ def block_update(x, P, Q, H, nu, sigma, dims, q_zero: bool | None = None):
 
     Returns
     -------
-    (x_B, P_B, w, step): the state after the block, the (M,) whitened innovations and a
-    :class:`BlockStep` with every group's NIS, estimate, variances and trace of P.
+    A :class:`Block`: every group's NIS, estimate, variances and trace of P (``.step``), and the
+    state after any number k of its groups (``.state(k)``: a block can be cut short).
     """
     from scipy.linalg import cholesky, solve_triangular
 
@@ -304,9 +311,34 @@ def block_update(x, P, Q, H, nu, sigma, dims, q_zero: bool | None = None):
     steps = np.arange(1, B + 1)[:, None]
     V = np.diag(P) + steps * np.diag(Q) - np.cumsum(A2, axis=0)
     T = np.trace(P) + steps[:, 0] * np.trace(Q) - np.cumsum(A2.sum(axis=1))
-    P_new = P + B * Q - A.T @ A
-    P_new = 0.5 * (P_new + P_new.T)
-    return X[-1].copy(), P_new, w, BlockStep(nis, dims, X, V, T)
+    return Block(P, Q, A, w, np.r_[starts, A.shape[0]], BlockStep(nis, dims, X, V, T))
+
+
+@dataclass
+class Block:
+    """The result of :func:`block_update`, with the state after its first k groups."""
+
+    P: np.ndarray
+    Q: np.ndarray
+    A: np.ndarray  # (M, p) L⁻¹ Cov(z, x)
+    w: np.ndarray  # (M,) whitened innovations
+    bounds: np.ndarray  # (B + 1,) first row of each group, then M
+    step: BlockStep
+
+    def state(self, k: int):
+        """``(x_k, P_k, w of the first k groups)``: the filter after k groups of the block."""
+        r = self.bounds[k]
+        A = self.A[:r]
+        P = self.P + k * self.Q - A.T @ A
+        return self.step.estimate[k - 1].copy(), 0.5 * (P + P.T), self.w[:r]
+
+    def kept(self, x_lin, tau: float) -> int:
+        """Groups processed before one whose predecessor's estimate is more than ``tau`` of its σ
+        from the linearisation point ``x_lin`` (all: B) — there the filter relinearises."""
+        st = self.step
+        moved = np.max(np.abs(st.estimate[:-1] - x_lin) / np.sqrt(np.maximum(st.var[:-1], 1e-300)), axis=1)
+        far = np.flatnonzero(moved > tau)
+        return int(far[0]) + 1 if far.size else len(st.nis)
 
 
 #: groups per Cholesky block of :func:`block_update` (its cost per group grows like the block's
@@ -338,45 +370,67 @@ def segment_of(n: int, relinearize="auto", rowwise: int = 32) -> tuple[int, int]
     return max(start, rowwise), start + G
 
 
-def run_steps(flt, a: int, b: int, evaluate, relinearize="auto", lin=None, x_lin=None, rowwise: int = 32):
-    """Steps ``a … b−1`` of an EKF :class:`ParameterFilter` in linearisation segments and blocks.
+#: the default move (in standard deviations of the estimate) after which the segmented filter
+#: relinearises within a segment (:func:`run_steps`)
+RELINEARIZE_SIGMA = 0.5
+
+
+def _moved(x, x_lin, var) -> float:
+    return float(np.max(np.abs(x - x_lin) / np.sqrt(np.maximum(var, 1e-300))))
+
+
+def run_steps(flt, a: int, b: int, evaluate, relinearize="auto", lin=None, x_lin=None, rowwise: int = 32,
+              tau: float | None = None):
+    """Steps ``a … b−1`` of an EKF :class:`ParameterFilter`, linearised in segments, in blocks.
 
     ``evaluate(i, j, theta)`` returns ``(H, e, sigma, dims)`` of steps i … j−1 at the full
     parameter vector ``theta`` (rows stacked step by step; H in the free parameters).
-    ``x_lin``: linearise every step there (an iterated pass) instead of by the schedule
-    :func:`segment_of`; ``lin``: ``(segment start, x_lin)`` carried over from a call that ended
-    inside a segment. Blocks are cut at multiples of :data:`BLOCK_GROUPS` and evaluations at
-    multiples of :data:`EVAL_GROUPS` (absolute step indices), so the floating-point operations
-    depend only on where the calls start and end.
 
-    Returns ``(steps, lin)``: the :class:`BlockStep` of each block and the linearisation to carry
-    over (None at a segment end)."""
+    Linearisation: step k is linearised at the point of its segment (:func:`segment_of`), which is
+    the estimate before the segment's first step — or, as soon as the estimate before step k has
+    moved more than ``tau`` (default :data:`RELINEARIZE_SIGMA`) of its σ from that point, the
+    estimate before step k (the segment goes on from there). The rule looks at the estimates up
+    to step k − 1 only, so it linearises a stream the same way however it is cut into calls.
+    ``x_lin``: linearise every step there instead (an iterated pass).
+
+    Steps are evaluated in windows aligned to multiples of a power of two (the whole
+    :data:`EVAL_GROUPS` while no relinearisation happens; about twice the steps between the last
+    relinearisations after one) and updated in blocks cut at multiples of :data:`BLOCK_GROUPS`,
+    window ends and relinearisations. A call that ends at a multiple of :data:`BLOCK_GROUPS` or at
+    a segment start therefore leaves every floating-point operation as it would be without the
+    cut, once the carried state ``lin`` = ``(segment start, point, step it was set at, window)``
+    is passed on to the next call (it is in the checkpoints).
+
+    Returns ``(steps, lin)``: the :class:`BlockStep` of each block and the state to carry over."""
     out = []
+    tau = RELINEARIZE_SIGMA if tau is None else tau
     n = a
+    s, xl, at, h = lin if lin is not None else (None, None, None, EVAL_GROUPS)
     while n < b:
         if x_lin is not None:
-            s, end, xl = a, b, x_lin
+            end, xl, at, s = b, np.asarray(x_lin, float), a, a
         else:
-            s, end = segment_of(n, relinearize, rowwise)
-            if lin is not None and lin[0] == s:
-                xl = np.asarray(lin[1], float)
-            elif n == s:
-                xl = flt.x
-            else:
-                raise ValueError(f"step {n} is inside the linearisation segment starting at step {s}, whose "
-                                 f"linearisation point is not known (resume from a checkpoint of this run)")
-        stop = min(b, end, (n // EVAL_GROUPS + 1) * EVAL_GROUPS)
+            seg, end = segment_of(n, relinearize, rowwise)
+            if seg != s or _moved(flt.f.x, xl, np.diag(flt.f.P)) > tau:
+                s, xl, at = seg, flt.x, n  # a segment starts, or the estimate moved away from its point
+        stop = min(b, end, (n // h + 1) * h)
         H, e, sigma, dims = evaluate(n, stop, flt.full(xl))
         off = np.r_[0, np.cumsum(dims)]
         i = n
         while i < stop:
             j = min(stop, (i // BLOCK_GROUPS + 1) * BLOCK_GROUPS)
             r0, r1 = off[i - n], off[j - n]
-            out.append(flt.update_block(H[r0:r1], e[r0:r1], sigma[r0:r1], dims[i - n:j - n], xl))
-            i = j
-        n = stop
-        lin = (s, xl) if (x_lin is None and n < end) else None
-    return out, lin
+            st = flt.update_block(H[r0:r1], e[r0:r1], sigma[r0:r1], dims[i - n:j - n], xl,
+                                  None if x_lin is not None else tau)
+            out.append(st)
+            i += len(st.nis)
+            if i < j:  # the next step is relinearised: evaluate about twice the last run ahead
+                h = min(EVAL_GROUPS, 1 << max(2 * (i - at) - 1, 0).bit_length())
+                break
+        else:
+            h = min(EVAL_GROUPS, 2 * h)
+        n = i
+    return out, (None if x_lin is not None else (s, xl, at, h))
 
 
 def concat_steps(steps) -> BlockStep:
@@ -396,13 +450,138 @@ def _prior(problem, names, fidx, prior_std, P0):
     return np.diag(prior_std_vector(problem, names, prior_std) ** 2)
 
 
+def _steps_evaluator(gp, fidx, batch_size: int, sigma_scale=None, slr=None):
+    """``evaluate(i, j, theta)`` for :func:`run_steps` over a :class:`GroupedProblem`: step k is the
+    groups ``k·batch_size … (k+1)·batch_size − 1``, its rows stacked together.
+
+    ``sigma_scale`` (n_steps,): divide each step's noise std by it (robust weights √w).
+    ``slr`` = (x, P, points): statistical linearisation instead of the Jacobian (the UKF's
+    iterated passes): the sigma points of N(x, P) are evaluated (one batched kinematics call per
+    set of groups) and each row's residual is regressed on them — mean residual and slope."""
+    ng = len(gp)
+
+    def evaluate(i, j, theta):
+        ids = np.arange(i * batch_size, min(j * batch_size, ng))
+        sub, rg = gp.subproblem_rows(ids)
+        step = rg // batch_size
+        o = np.argsort(step, kind="stable")
+        if slr is None:
+            r = sub.evaluate(theta)
+            H, e = r.H[o][:, fidx], r.e[o]
+        else:
+            x, P, pts = slr
+            sig = pts.sigma_points(x, P)
+            TH = np.broadcast_to(theta, (sig.shape[0], theta.size)).copy()
+            TH[:, fidx] = sig
+            E = evaluate_many(sub, TH)[:, o]  # (W, M) residuals at the sigma points
+            e = pts.Wm @ E
+            cross = (sig - x).T @ (pts.Wc[:, None] * (E - e))  # (p, M): Cov(x, e)
+            H = -np.linalg.solve(P, cross).T  # the slope of the prediction −e
+            r = sub.evaluate(theta, jacobian=False)
+        sigma = r.sigma[o]
+        if sigma_scale is not None:
+            sigma = sigma / sigma_scale[step[o]]
+        return H, e, sigma, np.bincount(step[o] - i, minlength=j - i)
+
+    return evaluate
+
+
+def _one_pass(gp, theta, fidx, names, P0m, Q, opts, x_lin=None, weights=None, slr=None):
+    """One filter pass over every group from the prior: ``(filter, [BlockStep])``.
+
+    The first pass (``x_lin`` and ``slr`` None) linearises by the schedule ``opts["relinearize"]``
+    (the online filter); later passes linearise every group at ``x_lin`` (Gauss–Newton) or, for
+    the UKF, by the statistical linearisation ``slr``, applied as exact block updates. Robust
+    first passes, the UKF's first pass and ``relinearize=1`` step group by group through filterpy."""
+    bs, ng = opts["batch_size"], len(gp)
+    n_steps = -(-ng // bs)
+    first = x_lin is None and slr is None
+    rowwise = first and (opts["filter"] == "ukf" or opts["robust"] is not None or opts["relinearize"] == 1)
+    flt = ParameterFilter(theta, fidx, P0m, Q, kind=opts["filter"] if rowwise else "ekf", names=names,
+                          ukf_alpha=opts["ukf_alpha"], robust=opts["robust"] if rowwise else None,
+                          robust_k=opts["robust_k"])
+    if rowwise:
+        steps = []
+        for k in range(n_steps):
+            flt.step(gp.subproblem(list(range(k * bs, min((k + 1) * bs, ng)))), x_lin,
+                     None if weights is None else weights[k])
+            steps.append(BlockStep(np.array([flt.monitor.nis[-1]]), np.array([flt.monitor.dims[-1]]), flt.x[None],
+                                   np.diag(flt.f.P)[None], np.array([np.trace(flt.f.P)])))
+        return flt, steps
+    scale = None if weights is None else np.sqrt(np.maximum(np.asarray(weights, float), 1e-12))
+    evaluate = _steps_evaluator(gp, fidx, bs, scale, slr)
+    from estcal.base.blas import single_thread_blas
+
+    with single_thread_blas():  # small matrices: BLAS threads only spin
+        steps, _ = run_steps(flt, 0, n_steps, evaluate, opts["relinearize"],
+                             x_lin=slr[0] if slr is not None else x_lin, rowwise=max(32, 4 * len(names)))
+    return flt, steps
+
+
+def _robust_weights(gp, flt, x_lin, batch_size: int, robust, robust_k) -> list:
+    """IRLS weights of every step from its residual at ``x_lin`` (kernel of the normalised norm)."""
+    from .robust import kernel_threshold, kernel_weight
+
+    out, ng = [], len(gp)
+    for k in range(-(-ng // batch_size)):
+        r = gp.subproblem(list(range(k * batch_size, min((k + 1) * batch_size, ng)))).evaluate(
+            flt.full(x_lin), jacobian=False)
+        rn = float(np.linalg.norm(r.e / r.sigma))
+        out.append(float(kernel_weight(robust, rn, kernel_threshold(robust, r.e.size, robust_k))))
+    return out
+
+
+def _iterate_passes(gp, theta, fidx, names, P0m, Q, opts, passes, max_iter, tol):
+    """Filter passes until an iterated pass moves the estimate by less than ``tol`` of its σ
+    (``passes`` None, at most ``max_iter`` passes) or exactly ``passes`` passes.
+
+    Returns ``(filter, steps, n_passes, converged, change)``; ``converged`` is the convergence
+    test itself: the last pass was an iterated one and moved the estimate by < tol σ."""
+    from estcal.base.progress import progress
+
+    limit = max_iter if passes is None else passes
+    x_prev, weights, slr, change = None, None, None, float("inf")
+    converged = False
+    n = 0
+    pts = None
+    if opts["filter"] == "ukf":
+        from filterpy.kalman import MerweScaledSigmaPoints
+
+        pts = MerweScaledSigmaPoints(len(names), alpha=opts["ukf_alpha"], beta=2.0, kappa=0.0)
+    with progress(total=limit, desc=f"kalman ({opts['filter']}, passes)", unit="pass") as bar:
+        for n in range(1, limit + 1):
+            flt, steps = _one_pass(gp, theta, fidx, names, P0m, Q, opts, x_lin=None if pts else x_prev,
+                                   weights=weights, slr=slr)
+            bar.update(1)
+            if x_prev is not None:
+                change = float(np.max(np.abs(flt.x - x_prev) / np.maximum(flt.std, 1e-300)))
+                converged = change < tol
+                if converged and passes is None:
+                    break
+            x_prev = flt.x
+            if pts is not None:
+                slr = (flt.x, flt.P, pts)
+            if opts["robust"] is not None:  # IRLS: weights from the residuals at this pass's estimate
+                weights = _robust_weights(gp, flt, x_prev, opts["batch_size"], opts["robust"], opts["robust_k"])
+    return flt, steps, n, converged, change
+
+
 def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", prior_std=None, P0=None,
-                     q=0.0, batch_size: int = 1, passes: int | None = None, theta0=None,
-                     burn_in: int | None = None,
-                     lags: int = 10, history: bool = False, ukf_alpha: float = 1e-2,
-                     scale_covariance: bool | None = None, robust: str | None = None, robust_k: float | None = None,
-                     **_ignored):
-    """Kalman-filter calibration: process the problem's poses one group at a time.
+                     q=0.0, batch_size: int = 1, passes: int | None = None, max_iter: int = 50, tol: float = 1e-3,
+                     relinearize="auto", theta0=None, burn_in: int | None = None, lags: int = 10,
+                     history: bool = False, ukf_alpha: float = 1e-2, scale_covariance: bool | None = None,
+                     robust: str | None = None, robust_k: float | None = None, **_ignored):
+    """Kalman-filter calibration: the poses one group at a time, in passes until converged.
+
+    The first pass is the online filter (:class:`estcal.workflows.online.OnlineCalibrator`'s
+    engine: groups linearised by the schedule :func:`segment_of`, applied as exact block
+    updates). Each further pass re-runs the filter from the same prior with every group
+    linearised at the previous pass's estimate — a Gauss–Newton step on the MAP problem, whose
+    fixed point (Q = 0) is the MAP estimate; for the UKF, at the statistical linearisation of the
+    previous pass's posterior (sigma points: an iterated posterior linearisation). The passes go
+    on until one moves the estimate by less than ``tol`` standard deviations: that is the
+    convergence test ``converged`` reports (a single pass has none, so ``passes=1`` reports
+    ``converged=False``).
 
     Parameters
     ----------
@@ -413,91 +592,68 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
         default :func:`~estcal.estimate._common.default_prior_std` (0.1, wide)
     q : process-noise std per step (see :func:`process_noise`); 0 = constant parameters
     batch_size : poses per update (1 = measurement by measurement)
-    passes : iterated-EKF passes (each re-linearises at the previous pass's estimates); default 1,
-        3 with a robust kernel: the first pass weighs each update by the kernel of its innovation
-        (early outliers, seen while P is still wide, pass almost unweighted), the next ones by the
-        kernel of its residual at the previous pass's estimate — iteratively reweighted, whose
-        fixed point is the robust M-estimate (:mod:`estcal.estimate.robust`)
-    robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel and scalar threshold (σ); EKF only
+    passes : exactly this many passes (default: until converged, at most ``max_iter``)
+    max_iter, tol : the pass limit and the convergence test (largest change of an iterated pass,
+        in standard deviations of the estimate)
+    relinearize : linearisation of the first pass: ``"auto"`` (:func:`segment_of`) or G groups per
+        linearisation (1 = every group at the current estimate, filterpy's EKF step by step)
+    robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel and scalar threshold (σ); EKF only: the
+        first pass weighs each update by the kernel of its innovation, the next ones by the kernel
+        of its residual at the previous pass's estimate — iteratively reweighted, whose fixed point
+        is the robust M-estimate (:mod:`estcal.estimate.robust`)
     theta0 : full initial parameter vector (prior mean of the free ones); default the problem's values
     burn_in : steps left out of the innovation tests (default: until 2 p rows were seen)
-    history : keep per-step estimates and standard deviations in ``extra``
+    history : keep per-step estimates and standard deviations (of the last pass) in ``extra``
     scale_covariance : multiply P by σ0² = χ²/dof (default: when the noise is not known,
         as :func:`~estcal.estimate.lsq.calibrate_lsq` does)
 
     Returns
     -------
-    CalibrationResult with ``extra["innovation"]`` (tests), ``extra["filter"]``, ``extra["q"]``.
+    CalibrationResult with ``extra["innovation"]`` (tests, of the last pass), ``extra["filter"]``,
+    ``extra["q"]``, ``extra["passes"]`` and ``extra["last_change_sigma"]``.
     """
     t0 = time.perf_counter()
+    if relinearize != "auto" and not (isinstance(relinearize, (int, np.integer, float)) and relinearize >= 1
+                                      and float(relinearize).is_integer()):
+        raise ValueError(f"relinearize must be 'auto' or an integer ≥ 1, got {relinearize!r}")
     problem, fidx, names = resolve_free(problem, free)
     theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     P0m = _prior(problem, names, fidx, prior_std, P0)
     Q = process_noise(names, q)
     gp = GroupedProblem(problem)
-    ng = len(gp)
-    starts = range(0, ng, batch_size)
-
-    def subs():  # built as they are used: 10⁶ sub-problems held at once would cost GBs
-        for i in starts:
-            yield gp.subproblem(list(range(i, min(i + batch_size, ng))))
-
-    x_lin = None
-    hist_x, hist_s = [], []
-    if passes is None:
-        passes = 3 if robust not in (None, "none") and filter == "ekf" else 1
-    weights = None
-    from estcal.base.progress import progress
-
-    n_pass = 1 if filter == "ukf" else passes
-    with progress(total=n_pass * len(starts), desc=f"kalman ({filter}, {n_pass} pass(es))", unit="update") as bar:
-        for it in range(passes):
-            flt = ParameterFilter(theta, fidx, P0m, Q, kind=filter, names=names, ukf_alpha=ukf_alpha, robust=robust,
-                                  robust_k=robust_k)
-            for k, sub in enumerate(subs()):
-                flt.step(sub, x_lin, None if weights is None else weights[k])
-                bar.update(1)
-                if history and it == passes - 1:
-                    hist_x.append(flt.x)
-                    hist_s.append(flt.std)
-            if filter == "ukf":
-                break
-            # next pass: every group linearised at this pass's final estimate (a Gauss–Newton step)
-            x_lin = flt.x
-            if flt.robust is not None:  # IRLS: weights from the residuals at this pass's estimate
-                from .robust import kernel_threshold, kernel_weight
-
-                weights = []
-                for sub in subs():
-                    r = sub.evaluate(flt.full(x_lin), jacobian=False)
-                    rn = float(np.linalg.norm(r.e / r.sigma))
-                    weights.append(float(kernel_weight(flt.robust, rn,
-                                                       kernel_threshold(flt.robust, r.e.size, robust_k))))
+    opts = {"filter": filter, "batch_size": int(batch_size), "relinearize": relinearize if relinearize == "auto"
+            else int(relinearize), "ukf_alpha": ukf_alpha, "robust": robust if robust not in (None, "none") else None,
+            "robust_k": robust_k}
+    if filter not in ("ekf", "ukf"):
+        raise ValueError(f"unknown filter {filter!r}; choose 'ekf' or 'ukf'")
+    flt, steps, n_pass, converged, change = _iterate_passes(gp, theta, fidx, names, P0m, Q, opts, passes,
+                                                            int(max_iter), float(tol))
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
-    known = noise_known(problem)
     from .reduced import chi2_and_rows
 
     chi2, m_rows = chi2_and_rows(problem, theta_full)
     dof = m_rows - len(fidx)
     if scale_covariance is None:
-        scale_covariance = not known
+        scale_covariance = not noise_known(problem)
     src = "model (filter P)"
-    if scale_covariance and dof > 0 and robust is None:  # σ0² would count the outliers (as gtsam: unscaled)
+    if scale_covariance and dof > 0 and opts["robust"] is None:  # σ0² would count the outliers (as gtsam)
         P = P * (chi2 / dof)
         src = "filter P scaled by sigma0^2"
     bi = default_burn_in(flt.monitor.dims, len(fidx)) if burn_in is None else burn_in
     extra = {"filter": filter, "q": np.sqrt(np.diag(Q)), "n_updates": flt.n_steps, "batch_size": batch_size,
-             "passes": passes, "prior_std": np.sqrt(np.diag(P0m))}
+             "passes": n_pass, "last_change_sigma": change, "tol": tol, "prior_std": np.sqrt(np.diag(P0m)),
+             "relinearize": opts["relinearize"]}
     try:
         extra["innovation"] = flt.monitor.tests(burn_in=bi, lags=lags).to_dict()
     except ValueError as exc:
         extra["innovation"] = {"error": str(exc)}
     if history:
-        extra["history"] = {"estimate": np.array(hist_x), "std": np.array(hist_s), "nis": np.array(flt.monitor.nis)}
+        st = concat_steps(steps)
+        extra["history"] = {"estimate": st.estimate, "std": st.std, "nis": np.array(flt.monitor.nis)}
     return finish_result(problem, "kalman" if filter == "ekf" else "ukf", names, fidx, x, P, theta_full, nominal,
-                         n_iterations=passes, converged=True, covariance_source=src, theta_before=theta,
+                         n_iterations=n_pass, converged=converged, covariance_source=src, theta_before=theta,
                          validation=validation, t0=t0, extra=extra)
 
 

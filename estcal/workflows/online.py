@@ -247,7 +247,7 @@ class OnlineCalibrator:
         self.history: list = []
         self.burn = None  # step after which the running NIS per row is averaged
         self.source = None
-        self._lin = None  # (segment start, x_lin) when the last update ended inside a segment
+        self._lin = None  # the linearisation state after the last update (estcal.estimate.kalman.run_steps)
         self._rowwise = max(32, 4 * len(self.names))
         self._states: dict = {}  # path -> (lock, journal) of the checkpoints this object writes
         self._resumed = None  # (checkpoint dict, its path) after resume()
@@ -521,7 +521,8 @@ class OnlineCalibrator:
         cal.burn = saved["burn"]
         cal.source = saved.get("source")
         lin = saved.get("lin")
-        cal._lin = None if lin is None else (int(lin["start"]), np.asarray(lin["x"], float))
+        cal._lin = None if lin is None else (int(lin["start"]), np.asarray(lin["x"], float), int(lin["at"]),
+                                             int(lin["window"]))
         cal.checkpoint = saved
         return cal
 
@@ -569,17 +570,19 @@ def file_free_set(robot, data, free=None, measure=None, noise=None) -> list[str]
     meth = get_method(measure) if measure else None
     nz = _noise_model(noise)
     names = _names(free)
-    if names is None:
-        return identifiable_free(Problem(robot, [(meth, data, nz)]))
-    from estcal.estimate.lsq import _DenseSystem, _ReducedSystem, check_identifiable
-    from estcal.estimate.reduced import use_chunks
+    with single_thread_blas():  # a QR of a tall thin matrix: BLAS threads only spin
+        if names is None:
+            return identifiable_free(Problem(robot, [(meth, data, nz)]))
+        from estcal.estimate.lsq import _DenseSystem, _ReducedSystem, check_identifiable
+        from estcal.estimate.reduced import use_chunks
 
-    rb = robot.copy(robot.params.with_free(names))
-    problem = Problem(rb, [(meth, data, nz)])
-    pv = problem.params
-    ck = use_chunks(problem)
-    system = _DenseSystem(problem, pv.free_indices) if ck is None else _ReducedSystem(problem, pv.free_indices, ck)
-    check_identifiable(system.linear(pv.values)[0], pv.free_names)
+        rb = robot.copy(robot.params.with_free(names))
+        problem = Problem(rb, [(meth, data, nz)])
+        pv = problem.params
+        ck = use_chunks(problem)
+        system = (_DenseSystem(problem, pv.free_indices) if ck is None
+                  else _ReducedSystem(problem, pv.free_indices, ck))
+        check_identifiable(system.linear(pv.values)[0], pv.free_names)
     return names
 
 

@@ -119,7 +119,7 @@ class _errors:
         import numpy as np
 
         from estcal.cli.common import fail, message, refuse
-        from estcal.estimate.checks import NumericalRefusal
+        from estcal.base.errors import NumericalRefusal
 
         if isinstance(exc, NumericalRefusal):
             refuse(message(exc))
@@ -269,8 +269,8 @@ class _Run:
         self.every_ck, self.last_ck = checkpoint_every, skip
 
         def cut(n):  # chunks end where the filter's blocks end anyway: checkpoints change no bit
-            return n % CHUNK_ROWS == 0 or (n // checkpoint_every > self.last_ck // checkpoint_every
-                                           and cal.boundary(n))
+            return n % CHUNK_ROWS == 0 or (self.state_path is not None and cal.boundary(n)
+                                           and n // checkpoint_every > self.last_ck // checkpoint_every)
 
         expect = (saved["input_bytes"], saved["input_sha256_prefix"]) if saved else None
         try:

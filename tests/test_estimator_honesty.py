@@ -1,0 +1,121 @@
+"""Honest estimators (docs/probabilistic.md): ``converged`` is the estimator's own convergence test,
+and on real data every registered estimator agrees with LM within 0.05 σ or says it did not converge.
+
+Real data of ../shared/data (skipped when absent): the UR10 camera poses (23 full poses,
+../shared/data/ur10/README.md) and the TALOS left arm, session 02-10 (62 positions of one marker,
+../shared/data/talos/README.md). Their files need column conversion (rpy to quaternion; joint
+names of the URDF) — done here by a small helper until the intake's column maps exist.
+"""
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+import estcal
+from estcal.estimate.registry import estimator_names
+from estcal.kinematics.robots import shared_dir
+
+DATA = shared_dir() / "data"
+TOL_SIGMA = 0.05
+
+
+def _rpy_to_quat(r, p, y):
+    """Scalar-first quaternion of R = Rz(y) Ry(p) Rx(r) (Pinocchio's rpy convention, the UR10 README)."""
+    cr, sr, cp, sp, cy, sy = np.cos(r / 2), np.sin(r / 2), np.cos(p / 2), np.sin(p / 2), np.cos(y / 2), np.sin(y / 2)
+    return np.c_[cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                 cr * cp * sy - sr * sp * cy]
+
+
+def _ur10_csv(out):
+    rows = list(csv.DictReader(open(DATA / "ur10" / "calibration.csv")))
+    col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    joints = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+              "wrist_3_joint"]
+    M = np.c_[np.c_[tuple(col[j] for j in joints)], col["x1"], col["y1"], col["z1"],
+              _rpy_to_quat(col["phix1"], col["phiy1"], col["phiz1"])]
+    np.savetxt(out, M, delimiter=",", header=",".join(joints + ["x", "y", "z", "qw", "qx", "qy", "qz"]),
+               comments="", fmt="%.17g")
+    return out
+
+
+def _talos_csv(out):
+    lines = (DATA / "talos" / "talos_feb_arm_02_10_contact.csv").read_text().splitlines()
+    header = ["t", "x1", "y1", "z1", "torso_1_joint", "torso_2_joint"] + [f"arm_left_{i}_joint" for i in range(1, 8)]
+    assert lines[0].split(",")[4:6] == ["torso1", "torso2"]  # the published names, renamed to the URDF's
+    out.write_text("\n".join([",".join(header), *lines[1:]]) + "\n")
+    return out
+
+
+CASES = {
+    # robot, chain, free set: the base frame and the joint offsets the data determine (TALOS: not the
+    # wrist offsets 5 and 6, which do not move the marker at its initial position, the tool origin)
+    "ur10": ("ur10/ur10_robot.urdf", "base_link", "wrist_3_link", _ur10_csv, None),
+    "talos": ("talos/talos_reduced.urdf", "base_link", "arm_left_7_link", _talos_csv,
+              "base_*,offset_torso_2_joint,offset_arm_left_[1-4]_joint,marker1_*"),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def case(request, tmp_path_factory):
+    urdf, root, tip, convert, free = CASES[request.param]
+    if not (DATA / urdf).exists():
+        pytest.skip(f"{DATA / urdf} absent (the shared real data)")
+    data = convert(tmp_path_factory.mktemp(request.param) / "data.csv")
+    kw = dict(root=root, tip=tip, checks=False)
+    robot = str(DATA / urdf)
+    lm = estcal.calibrate(robot, data, "lm", **(dict(free=free.split(",")) if free else dict(level="joint_offset")),
+                         **kw)
+    assert lm.converged and len(lm.names) >= 14
+    return request.param, robot, data, kw, lm
+
+
+def _run(case, name, **options):
+    _, robot, data, kw, lm = case
+    res = estcal.calibrate(robot, data, name, free=lm.names, **kw, **options)
+    dz = np.abs(res.estimate[[res.names.index(n) for n in lm.names]] - lm.estimate) / lm.std
+    return res, float(dz.max())
+
+
+OPTIONS = {"gtsam-timevarying": {"q": 1e-9}}  # a time-varying model with (almost) no variation
+
+
+@pytest.mark.parametrize("name", [n for n in estimator_names() if n not in ("lm", "mcmc")])
+def test_every_estimator_agrees_with_lm_or_says_it_did_not_converge(case, name):
+    res, dz = _run(case, name, **OPTIONS.get(name, {}))
+    assert dz <= TOL_SIGMA or not res.converged, f"{case[0]}, {name}: {dz:.3g} σ from LM with converged=True"
+
+
+def test_kalman_and_ukf_iterate_to_convergence_and_a_single_pass_says_so(case):
+    """The default Kalman estimators pass their convergence test (a pass moving the estimate by
+    < 10⁻³ σ) within 0.05 σ of LM; one pass — 2 to 50 σ from LM on these data — reports
+    converged=False, since a single pass has no convergence test."""
+    for name in ("kalman", "ukf"):
+        res, dz = _run(case, name)
+        assert res.converged and dz < 0.01 and res.extra["last_change_sigma"] < 1e-3, (name, dz)
+        assert 2 <= res.n_iterations < 20
+        one, dz1 = _run(case, name, passes=1)
+        assert not one.converged and dz1 > 1.0, (name, dz1)
+
+
+def test_mcmc_converged_is_its_own_test(case):
+    """MCMC estimates the posterior *mean*, not the mode: its convergence test is the chain's (every
+    parameter's ESS ≥ target, the chain longer than 50 τ). On the UR10 its mean is up to 0.16 σ from
+    LM's mode on one parameter — 10 times its Monte Carlo error, and the same for a second chain —
+    so the gap is the posterior's (a skewed posterior at 15× the nominal noise), not a chain that
+    has not converged. The TALOS chain mixes slowly (≈ 100 s) and is left out of the suite (its
+    mean is 0.9 σ from the mode, its median alike: a non-Gaussian posterior at 70× the noise)."""
+    if case[0] != "ur10":
+        pytest.skip("TALOS: a 100 s chain (see the docstring)")
+    lm = case[-1]
+    runs = []
+    for seed in (1, 2):
+        res, _ = _run(case, "mcmc", seed=seed)
+        ex = res.extra
+        assert res.converged == bool(np.min(ex["ess"]) >= 1000 and ex["n_steps"] > 50 * np.max(ex["tau"]))
+        idx = [res.names.index(n) for n in lm.names]
+        runs.append((res.estimate[idx], res.std[idx] / np.sqrt(np.asarray(ex["ess"])[idx])))
+    (m1, e1), (m2, e2) = runs
+    assert np.all(np.abs(m1 - m2) <= 4 * np.hypot(e1, e2))  # the mean is the posterior's, to its MC error
+    assert np.all(np.abs(m1 - lm.estimate) <= 0.25 * lm.std)
