@@ -3,12 +3,11 @@ and on real data every registered estimator agrees with LM within 0.05 σ or say
 
 Real data of ../shared/data (skipped when absent): the UR10 camera poses (23 full poses,
 ../shared/data/ur10/README.md) and the TALOS left arm, session 02-10 (62 positions of one marker,
-../shared/data/talos/README.md). Their files need column conversion (rpy to quaternion; joint
-names of the URDF) — done here by a small helper until the intake's column maps exist.
+../shared/data/talos/README.md), read as published through their column maps (docs/maps).
 """
 from __future__ import annotations
 
-import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,55 +17,29 @@ from estcal.estimate.registry import estimator_names
 from estcal.kinematics.robots import shared_dir
 
 DATA = shared_dir() / "data"
+MAPS = Path(__file__).resolve().parents[1] / "docs" / "maps"
 TOL_SIGMA = 0.05
 
-
-def _rpy_to_quat(r, p, y):
-    """Scalar-first quaternion of R = Rz(y) Ry(p) Rx(r) (Pinocchio's rpy convention, the UR10 README)."""
-    cr, sr, cp, sp, cy, sy = np.cos(r / 2), np.sin(r / 2), np.cos(p / 2), np.sin(p / 2), np.cos(y / 2), np.sin(y / 2)
-    return np.c_[cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-                 cr * cp * sy - sr * sp * cy]
-
-
-def _ur10_csv(out):
-    rows = list(csv.DictReader(open(DATA / "ur10" / "calibration.csv")))
-    col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
-    joints = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-              "wrist_3_joint"]
-    M = np.c_[np.c_[tuple(col[j] for j in joints)], col["x1"], col["y1"], col["z1"],
-              _rpy_to_quat(col["phix1"], col["phiy1"], col["phiz1"])]
-    np.savetxt(out, M, delimiter=",", header=",".join(joints + ["x", "y", "z", "qw", "qx", "qy", "qz"]),
-               comments="", fmt="%.17g")
-    return out
-
-
-def _talos_csv(out):
-    lines = (DATA / "talos" / "talos_feb_arm_02_10_contact.csv").read_text().splitlines()
-    header = ["t", "x1", "y1", "z1", "torso_1_joint", "torso_2_joint"] + [f"arm_left_{i}_joint" for i in range(1, 8)]
-    assert lines[0].split(",")[4:6] == ["torso1", "torso2"]  # the published names, renamed to the URDF's
-    out.write_text("\n".join([",".join(header), *lines[1:]]) + "\n")
-    return out
-
-
 CASES = {
-    # robot, chain, free set: the base frame and the joint offsets the data determine (TALOS: not the
-    # wrist offsets 5 and 6, which do not move the marker at its initial position, the tool origin)
-    "ur10": ("ur10/ur10_robot.urdf", "base_link", "wrist_3_link", _ur10_csv, None),
-    "talos": ("talos/talos_reduced.urdf", "base_link", "arm_left_7_link", _talos_csv,
-              "base_*,offset_torso_2_joint,offset_arm_left_[1-4]_joint,marker1_*"),
+    # data, map, robot, chain, markers, free set: the base frame and the joint offsets the data
+    # determine (TALOS: not the wrist offsets 5 and 6, which do not move the marker at its initial
+    # position, the tool origin)
+    "ur10": ("ur10/calibration.csv", "ur10.yaml", "ur10/ur10_robot.urdf", "base_link", "wrist_3_link", None, None),
+    "talos": ("talos/talos_feb_arm_02_10_contact.csv", "talos.yaml", "talos/talos_reduced.urdf", "base_link",
+              "arm_left_7_link", 1, "base_*,offset_torso_2_joint,offset_arm_left_[1-4]_joint,marker1_*"),
 }
 
 
 @pytest.fixture(scope="module", params=sorted(CASES))
-def case(request, tmp_path_factory):
-    urdf, root, tip, convert, free = CASES[request.param]
-    if not (DATA / urdf).exists():
-        pytest.skip(f"{DATA / urdf} absent (the shared real data)")
-    data = convert(tmp_path_factory.mktemp(request.param) / "data.csv")
-    kw = dict(root=root, tip=tip, checks=False)
-    robot = str(DATA / urdf)
+def case(request):
+    csv, cmap, urdf, root, tip, markers, free = CASES[request.param]
+    if not (DATA / csv).exists():
+        pytest.skip(f"{DATA / csv} absent (the shared real data)")
+    robot = estcal.load_robot(DATA / urdf, root=root, tip=tip, n_markers=markers)
+    data = estcal.load_dataset(DATA / csv, robot, column_map=MAPS / cmap)
+    kw = dict(checks=False, points=markers)
     lm = estcal.calibrate(robot, data, "lm", **(dict(free=free.split(",")) if free else dict(level="joint_offset")),
-                         **kw)
+                          **kw)
     assert lm.converged and len(lm.names) >= 14
     return request.param, robot, data, kw, lm
 

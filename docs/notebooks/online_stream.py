@@ -71,18 +71,21 @@ def main(argv=None) -> int:
     print(f"online_stream: {cal.robot.name}, {len(names)} free parameters, q = {a.q:g}; reading {src} "
           f"(units: m, rad)", flush=True)
     skipped = 0
-    for chunk in rows:  # a pipe's rows are used as they arrive (the stream cuts where no row waits)
-        if chunk.data is not None:
-            up = cal.update(chunk.data, trace=True)
-            for j, k in enumerate(range(up.rows[0], up.rows[1] + 1)):
-                x, s = up.estimate[j], up.std[j]
-                par = "  ".join(f"{names[i]} = {x[i]:.7g} ± {s[i]:.2g}" for i in show)
-                print(f"row {k:5d}  NIS {up.nis[j]:7.2f}/{up.dims[j]}  {par}", flush=True)
-        if chunk.error is not None:
-            if a.strict:
-                die(str(chunk.error))
-            skipped += 1
-            print(f"online_stream: skipped {chunk.error}", file=sys.stderr, flush=True)
+    try:
+        for chunk in rows:  # a pipe's rows are used as they arrive (the stream cuts where no row waits)
+            if chunk.data is not None:
+                up = cal.update(chunk.data, trace=True)
+                for j, k in enumerate(range(up.rows[0], up.rows[1] + 1)):
+                    x, s = up.estimate[j], up.std[j]
+                    par = "  ".join(f"{names[i]} = {x[i]:.7g} ± {s[i]:.2g}" for i in show)
+                    print(f"row {k:5d}  NIS {up.nis[j]:7.2f}/{up.dims[j]}  {par}", flush=True)
+            if chunk.error is not None:
+                if a.strict:
+                    die(str(chunk.error))
+                skipped += 1
+                print(f"online_stream: skipped {chunk.error}", file=sys.stderr, flush=True)
+    except (ValueError, OSError) as exc:  # the header, or input that is not CSV text
+        die(str(exc))
     if cal.n_rows == 0:
         die(f"{src}: no usable data row ({skipped} skipped)")
     res = cal.result()

@@ -12,7 +12,8 @@ point estimators, first-order optimality checked here — a Gauss–Newton step 
 on the estimator's own cost (data, plus its Gaussian prior when it uses one, with the robust
 weights when a kernel is set) moves no parameter by more than :data:`STEP_TOL_SIGMA` of its
 standard deviation or :data:`STEP_TOL_M`. A single-pass Kalman filter or UKF is therefore
-reported as not converged when its estimate is not yet at the optimum (use ``passes=3``).
+reported as not converged when its estimate is not yet at the optimum (their default,
+``passes=None``, iterates the passes until they converge).
 The MCMC posterior mean is not a stationary point of the cost; its flag is the sampler's
 (effective sample size and autocorrelation time, :mod:`estcal.estimate.mcmc`).
 
@@ -370,8 +371,7 @@ def _convergence(res: CalibrationResult, name: str, options: dict) -> dict:
     out.update(converged=ok, test=f"the estimator's and a Gauss–Newton step ≤ {STEP_TOL_SIGMA} σ "
                                   f"(or {STEP_TOL_M:g} m) from the estimate")
     if not ok:
-        hint = " (use passes=3)" if name == "kalman" else (" (use kalman with passes=3, or lm)"
-                                                          if name == "ukf" else "")
+        hint = " (leave passes unset: the passes go on until converged)" if name in ("kalman", "ukf") else ""
         out["note"] = (f"not converged: the {name} estimate is {step:.3g} σ from the optimum of its cost"
                        + ("" if own else f"; {name} reports no convergence") + hint)
     return out

@@ -704,12 +704,17 @@ class CsvStream:
         first = first.lstrip("\ufeff")
         self.delimiter = sniff_delimiter(first)
         self.header = [h.strip() for h in next(csv.reader([first], delimiter=self.delimiter))]
-        from estcal.io.dataset import dataset_from_table
-        from estcal.base.textinput import CsvTable
+        self._header_checked = False
 
+    def _check_header(self) -> None:
+        """The loader's header checks, once (after the first data line was read and found to be text)."""
+        from estcal.base.textinput import CsvTable
+        from estcal.io.dataset import dataset_from_table
+
+        self._header_checked = True
         empty = CsvTable(self.header, None, [], self.header_line, self.delimiter, self.where,
                          numeric=np.zeros((0, len(self.header))))
-        ds = dataset_from_table(empty, self.robot, check_units=False)  # the loader's header checks, at once
+        ds = dataset_from_table(empty, self.robot, check_units=False)
         if ds.kind == "none" and not self.allow_none:
             raise DatasetError(f"{self.where}, line {self.header_line}: no measurement columns (x,y,z / x1..zk / "
                                f"x,y,z,qw,qx,qy,qz)")
@@ -727,6 +732,8 @@ class CsvStream:
             raw.append(text)
             if not text.strip():
                 continue
+            if not self._header_checked:
+                self._check_header()
             self.rows += 1
             if self.rows <= self.skip:  # already in the checkpoint: hashed, not processed again
                 raw = []
@@ -743,6 +750,8 @@ class CsvStream:
                 texts, lines, raw = [], [], []
         if texts:
             yield from self._chunks(texts, lines, raw)
+        if not self._header_checked:
+            self._check_header()
         if self.rows < self.skip:
             raise CheckpointError(f"{self.where} has {self.rows} data rows, fewer than the {self.skip} already "
                                   f"processed")
