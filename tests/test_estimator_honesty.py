@@ -37,7 +37,7 @@ def case(request):
         pytest.skip(f"{DATA / csv} absent (the shared real data)")
     robot = estcal.load_robot(DATA / urdf, root=root, tip=tip, n_markers=markers)
     data = estcal.load_dataset(DATA / csv, robot, column_map=MAPS / cmap)
-    kw = dict(checks=False, points=markers)
+    kw = dict(checks=False)  # the robot object carries the marker
     lm = estcal.calibrate(robot, data, "lm", **(dict(free=free.split(",")) if free else dict(level="joint_offset")),
                           **kw)
     assert lm.converged and len(lm.names) >= 14
