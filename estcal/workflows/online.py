@@ -180,7 +180,7 @@ class OnlineResult:
     def save_model(self, path, provenance: dict | None = None) -> Path:
         """The robot at the estimate as a saved model (docs/robot-file.md, "Saved models"), the
         filter's covariance of the free parameters in its ``calibration:`` block."""
-        from estcal.io.savedmodel import _write, calibration_block
+        from estcal.io.savedmodel import calibration_block, write_saved_model
 
         if self.robot_model is None:
             raise ValueError("this OnlineResult does not know its robot (rebuilt from JSON)")
@@ -190,7 +190,7 @@ class OnlineResult:
         block = calibration_block(estimator=f"online ({self.filter})", train=[], free=self.names,
                                   covariance=self.covariance, noise=self.noise, n_rows=int(self.n_rows),
                                   innovation=self.innovation, **(provenance or {}))
-        return _write(self.robot_model.with_values(th), block, path)
+        return write_saved_model(self.robot_model.with_values(th), block, path)
 
 
 class OnlineCalibrator:
