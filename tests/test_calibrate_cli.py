@@ -261,3 +261,24 @@ def test_gough_options_residual_and_model(tmp_path):
     assert r.exit_code == 0, r.output
     d = json.loads(out.read_text())
     assert d["converged"] and len(d["parameters"]) == 36
+
+
+def test_gough_estimator_options_reach_the_estimator(tmp_path):
+    """--option KEY=VALUE goes to the Gough estimator: one Kalman pass (--option passes=1) is reported
+    NOT converged with its remedy, the default passes converge; an unknown option is refused (exit 2)."""
+    from estcal.parallel.data import simulate_gough_data
+    from estcal.parallel.gough import left_hand
+
+    nominal = left_hand()
+    true_robot = nominal.with_theta(nominal.theta + np.random.default_rng(2).normal(0, 1e-3, nominal.theta.size))
+    path = tmp_path / "gough.json"
+    path.write_text(json.dumps(simulate_gough_data(true_robot, 30, 3, sigma_rho=1e-5).to_dict()))
+    base = [str(path), "--robot", "left_hand", "--estimator", "kalman", "--free", "a3_*,b3_*,drho_3"]
+    r = _run(base + ["--option", "passes=1"])
+    assert r.exit_code == 0 and "NOT converged" in r.output and "passes unset" in r.output, r.output
+    r = _run(base + ["--json", str(tmp_path / "k.json")])
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "k.json").read_text())
+    assert d["converged"] and d["n_iterations"] > 1
+    r = _run(base + ["--option", "pases=3"])
+    assert r.exit_code == 2 and "pases" in r.output

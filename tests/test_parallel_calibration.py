@@ -176,11 +176,11 @@ def test_convergence_is_honest(leg3_case):
     (one pass has no convergence test) and by the Gauss–Newton step, with the distance in σ and the
     remedy; the default passes converge. A chain stopped before its target ESS is not converged."""
     nominal, data = leg3_case
-    one = calibrate_gough(nominal, data, estimator="kalman", free=LEG3, residual="fk", passes=1)
+    one = calibrate_gough(nominal, data, estimator="kalman", free=LEG3, passes=1)
     assert not one.converged and not one.extra["convergence"]["estimator"]
     assert one.extra["convergence"]["max_step_sigma"] > STEP_TOL_SIGMA and "passes unset" in str(one)
     assert "NOT converged" in str(one)
-    until = calibrate_gough(nominal, data, estimator="kalman", free=LEG3, residual="fk")
+    until = calibrate_gough(nominal, data, estimator="kalman", free=LEG3)
     assert until.converged and until.extra["convergence"]["max_step_sigma"] < STEP_TOL_SIGMA
     mc = calibrate_gough(nominal, data, estimator="mcmc", free=LEG3, target_ess=1e5, max_steps=200, seed=2)
     assert not mc.converged

@@ -199,9 +199,10 @@ def _run(rob, ds, spec, estimator, measure, free, level, selection, vals, noise,
 
 
 def calibrate_gough(robot, data, *, estimator: str = "lm", free=None, residual: str = "ik", model: int = 42,
-                    noise_pos: float | None = None, noise_rot: float | None = None, noise_leg: float | None = None):
+                    noise_pos: float | None = None, noise_rot: float | None = None, noise_leg: float | None = None,
+                    options: dict | None = None):
     """A Gough platform's calibration (:func:`estcal.workflows.gough.calibrate_gough`) from its
-    robot file and one measurement file; noises in SI."""
+    robot file and one measurement file; noises in SI; ``options`` are the estimator's."""
     from estcal.workflows.gough import calibrate_gough as _gough
 
     if isinstance(data, (list, tuple)):
@@ -211,7 +212,7 @@ def calibrate_gough(robot, data, *, estimator: str = "lm", free=None, residual: 
     check_input_files([data])
     with input_errors():
         return _gough(robot, data, estimator=estimator, free=split_names(free), residual=residual, model=model,
-                      sigma_p=noise_pos, sigma_r=noise_rot, sigma_rho=noise_leg)
+                      sigma_p=noise_pos, sigma_r=noise_rot, sigma_rho=noise_leg, **(options or {}))
 
 
 def is_gough(robot) -> bool:

@@ -226,7 +226,8 @@ def calibrate(
         noise_leg = None if noise_leg_mm is None and old_noise_leg is None else \
             resolve(noise_leg_mm or 0.0, MILLI, old_noise_leg, "--noise-leg", "--noise-leg-mm", "m", 1.0, 0.0)
         gres = wf.calibrate_gough(robot, data, estimator=estimator, free=free, residual=residual, model=gough_model,
-                                  noise_pos=noise_pos, noise_rot=noise_rot, noise_leg=noise_leg)
+                                  noise_pos=noise_pos, noise_rot=noise_rot, noise_leg=noise_leg,
+                                  options=_parse_options(option))
         _gough_outputs(gres, robot, data, estimator, validate, report, save_model, json_path)
         return
     from estcal.methods import NoiseModel
