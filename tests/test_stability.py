@@ -43,3 +43,20 @@ def test_diagnose_cross_validates_by_posture():
     row_wise = cross_validate(pb, r.theta, free, [np.sort(f) for f in np.array_split(perm, 5)])[0]
     grouped = res.rmse_mm["geometric"]["cv"]
     assert grouped > 1.2 * row_wise > 1.1 * res.rmse_mm["geometric"]["train"]
+
+
+def test_diagnose_reports_the_budget_in_json_text_and_report(tmp_path):
+    from estcal.discrepancy import diagnose
+
+    sim, _ = simulate_hidden(load_robot("puma560_masses"), [("joint_compliance", ["j3"], 10)], SIGMA, n_poses=30,
+                             measure="points", seed=2)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, k_folds=3, max_effects=1, families=False,
+                   budget=True, report=tmp_path)
+    b = res.to_dict()["budget"]
+    keys = ("nominal_mm", "geometric_mm", "named_mm", "structured_unnamed_mm", "unstructured_mm",
+            "repeatability_mm", "predicted_validation_mm")
+    assert all(k in b for k in keys)
+    assert b["named_mm"] < b["geometric_mm"] < b["nominal_mm"]  # the named compliance lowers the grouped CV
+    assert b["effects"] == [{"effect": "joint_compliance", "joints": ["j3"]}]
+    assert "predicted at new postures" in str(res)
+    assert (tmp_path / "budget.png").stat().st_size > 1000 and "budget.png" in res.report_files

@@ -42,7 +42,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
 
-__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "fit_stage", "fit_stage_sessions", "predicted_points",
+__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "fit_stage", "fit_stage_sessions", "predicted_points",
            "measured_points", "prediction_coverage", "STAGES"]
 
 STAGES = ("nominal", "geometric", "named")
@@ -253,21 +253,26 @@ class ErrorBudget:
 
     def lines(self) -> list[str]:
         """The budget as text lines (the ``diagnose`` output)."""
-        rep = "—" if self.repeatability_mm is None else f"{self.repeatability_mm:.3f}"
-        top = ", ".join(f"{k} {v:.2f}" for k, v in list(self.unnamed.get("relevance", {}).items())[:3])
-        return [f"error budget (posture-grouped {self.k_folds}-fold CV, {self.n_postures} postures, {self.n_rows} rows; mm):",
-                f"  nominal (registration)   {self.nominal_mm:8.3f}",
-                f"  geometric ({self.level:<12}) {self.geometric_mm:8.3f}",
-                f"  + named effects          {self.named_mm:8.3f}",
-                f"  structured, unnamed      {self.structured_unnamed_mm:8.3f}   "
-                f"(GP over {self.unnamed.get('space', '-')}: {top or '-'})",
-                f"  unstructured             {self.unstructured_mm:8.3f}",
-                f"  repeatability floor      {rep:>8}",
-                f"  predicted at new postures {self.predicted_validation_mm:7.3f} ± {self.predicted_validation_se_mm:.3f}"
-                f"  ({self.recommended})"]
+        return budget_lines(self.to_dict())
 
     def __str__(self) -> str:
         return "\n".join(self.lines())
+
+
+def budget_lines(b: dict) -> list[str]:
+    """Text lines of a budget dict (:meth:`ErrorBudget.to_dict`)."""
+    rep = "—" if b["repeatability_mm"] is None else f"{b['repeatability_mm']:.3f}"
+    top = ", ".join(f"{k} {v:.2f}" for k, v in list(b["unnamed"].get("relevance", {}).items())[:3])
+    return [f"error budget (posture-grouped {b['k_folds']}-fold CV, {b['n_postures']} postures, {b['n_rows']} rows; mm):",
+            f"  nominal (registration)   {b['nominal_mm']:8.3f}",
+            f"  geometric ({b['level']:<12}) {b['geometric_mm']:8.3f}",
+            f"  + named effects          {b['named_mm']:8.3f}",
+            f"  structured, unnamed      {b['structured_unnamed_mm']:8.3f}   "
+            f"(GP over {b['unnamed'].get('space', '-')}: {top or '-'})",
+            f"  unstructured             {b['unstructured_mm']:8.3f}",
+            f"  repeatability floor      {rep:>8}",
+            f"  predicted at new postures {b['predicted_validation_mm']:7.3f} ± {b['predicted_validation_se_mm']:.3f}"
+            f"  ({b['recommended']})"]
 
 
 def _fold_rmse(sq_rows, folds):

@@ -250,6 +250,9 @@ class DiagnosisResult:
     sigma0: float = float("nan")
     train_data: object = field(default=None, repr=False)
     validation_data: list = field(default_factory=list, repr=False)
+    # the error budget (estcal.discrepancy.budget, posture-grouped CV) when asked for, and its residual GP
+    budget: dict | None = None
+    residual_model: object = field(default=None, repr=False)
 
     def save_model(self, path, provenance: dict | None = None):
         """Write the identified robot (geometry + named effects at the joint estimate) as a
@@ -295,7 +298,7 @@ class DiagnosisResult:
                        "geometric_free": self.geometric_free, "geometric_dropped": self.geometric_dropped,
                        "lumped_masses": self.lumped_masses, "steps": self.steps, "analysis": self.analysis,
                        "model": self.model, "geometric_model": self.geometric_model, "located": self.located,
-                       "report_files": self.report_files})
+                       "report_files": self.report_files, "budget": self.budget})
 
     def to_json(self, path) -> Path:
         from estcal.base.atomic import refuse_input
@@ -328,6 +331,10 @@ class DiagnosisResult:
         if self.analysis.get("strongest"):
             s = ", ".join(f"{d['joint']}~{d['feature']} R²={d['r2']:.2f}" for d in self.analysis["strongest"][:4])
             lines.append(f"  strongest residual structures: {s}")
+        if self.budget:
+            from estcal.discrepancy.budget import budget_lines
+
+            lines += ["  " + ln for ln in budget_lines(self.budget)]
         return "\n".join(lines)
 
 
@@ -404,7 +411,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
              session_time: bool = True, approach_from_order: bool = False,
-             families: bool = True, posture_tol=(1e-3, 1e-3)) -> DiagnosisResult:
+             families: bool = True, posture_tol=(1e-3, 1e-3), budget: bool = False,
+             residual_model: str | None = None) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -420,6 +428,11 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         ``posture_tol`` (rad, m) — the same posture in another session or twice in one file — are
         held out together (:func:`estcal.validation.grouped_folds`; docs/real-data.md).
     posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
+    budget : also compute the error budget (:func:`estcal.discrepancy.budget.error_budget`: nominal,
+        geometric, named, structured-unnamed and unstructured RMSE, repeatability floor and
+        ``predicted_validation_mm``, all by posture-grouped CV with ``k_folds``) into ``result.budget``.
+    residual_model : ``"gp"``: the budget's residual Gaussian process becomes part of the recommended
+        model (``result.residual_model``; docs/real-data.md).
     noise : measurement noise — a :class:`NoiseModel`, or a float (position std,
         m, taken as known). None: unknown (relative weights, F tests).
     alpha : family-wise significance level of each selection step.
@@ -729,6 +742,14 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                              train_data=list(sessions) if stacked else data,
                              validation_data=list(validate))
     result.located = located
+    if budget or residual_model:
+        from estcal.discrepancy.budget import error_budget
+
+        b = error_budget(robot, data, nm, level=geometric, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
+                         tol_m=posture_tol[1], residual_model=residual_model,
+                         effects=[(c.effect, list(c.joints), dict(c.options or {})) for c in causes])
+        result.budget = b.to_dict()
+        result.residual_model = b.residual_model
     if report is not None:
         folder = Path(report)
         folder.mkdir(parents=True, exist_ok=True)
@@ -736,6 +757,11 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         if plots:
             files = save_plots(folder, problem, theta_g, analysis, tau=tau, title=robot.name,
                                extended=(cur_problem, cur_theta) if causes else None)
+        if result.budget:
+            from estcal.plots.budget import budget_figure
+
+            budget_figure(result.budget).savefig(folder / "budget.png", dpi=110)
+            files.append("budget.png")
         result.report_files = files + ["diagnosis.json", "summary.txt"]
         result.to_json(folder / "diagnosis.json")
         from estcal.base.atomic import atomic_write_text
