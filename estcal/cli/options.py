@@ -23,7 +23,8 @@ import typer
 __all__ = ["robot_option", "root_option", "tip_option", "points_option", "estimator_option", "measure_option",
            "method_option", "noise_pos_option", "noise_rot_option", "known_noise_option", "level_option",
            "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option",
-           "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL"]
+           "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL", "posture_tol_mrad_option",
+           "posture_tol_mm_option", "posture_tol"]
 
 DEFAULT_LEVEL = "full"
 LEVEL_HELP = ("Free set: registration | joint_offset | full (default), reduced to an identifiable set by QR on the "
@@ -108,6 +109,25 @@ def map_option():
     orientation convention; docs/dataset.md) — the workflows pass it to the loader as ``column_map``."""
     return typer.Option(None, "--map", metavar="FILE.yaml",
                         help="Column map of the data files (their column names, units, rpy …): docs/dataset.md.")
+
+
+def posture_tol_mrad_option():
+    """``--posture-tol-mrad``: readings of revolute joints within this agree (one posture; docs/real-data.md)."""
+    return typer.Option(1.0, "--posture-tol-mrad", help="Rows whose revolute readings agree within this (mrad) and "
+                        "prismatic within --posture-tol-mm are one posture: held out together by every "
+                        "cross-validation, 'seen' in a validation.")
+
+
+def posture_tol_mm_option():
+    """``--posture-tol-mm``: the same for prismatic joints (mm)."""
+    return typer.Option(1.0, "--posture-tol-mm", help="Prismatic-joint agreement of one posture (mm).")
+
+
+def posture_tol(mrad: float, mm: float) -> tuple[float, float]:
+    """The posture tolerance in SI ``(rad, m)`` from the command line's mrad / mm (positive)."""
+    if not (mrad > 0 and mm > 0):
+        raise typer.BadParameter(f"posture tolerances must be > 0 (got {mrad} mrad, {mm} mm)")
+    return mrad * 1e-3, mm * 1e-3
 
 
 def deprecated_option(old: str):

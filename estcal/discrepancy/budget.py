@@ -310,6 +310,12 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     held = {s: np.zeros_like(meas) for s in STAGES}
     held_gp = {sp: np.zeros_like(meas) for sp in spaces}
     stages = STAGES if effects else STAGES[:2]
+    # the final model and its residual GPs on every row first: the folds' GP fits start from their
+    # hyperparameters (each fold still optimises on its own rows only)
+    final = fit_stage_sessions(robot, data, noise, stages[-1], level, effects, per_session, max_iter=max_iter)
+    r_all = final.residual_common(data)
+    gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
+                                      rng) for sp in spaces}
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
         dtr, dte = data.subset(train), data.subset(test)
@@ -319,7 +325,8 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
             if st == stages[-1]:
                 r_tr = fs.residual_common(dtr)
                 for sp in spaces:
-                    gp = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, gp_restarts, rng)
+                    gp = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, 0, rng,
+                                            start=gps_all[sp])
                     corr = residual_correction(gp, fs.robot, fs.theta, dte.readings, dte.context)
                     held_gp[sp][test] = held[st][test] - fs.rotate_to_session(dte, corr)
     if not effects:
@@ -332,12 +339,10 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     structured = max(rm["named"] - gp_mm[best], 0.0) if best else 0.0
     unstructured = rm["named"] - structured
     # relevance from the GP fitted on every row's residual of the final named model
-    final = fit_stage_sessions(robot, data, noise, stages[-1], level, effects, per_session, max_iter=max_iter)
     rb, th = final.robot, final.theta
     unnamed, final_gp = {}, None
     if best:
-        final_gp = fit_residual_model(best, rb, th, data.readings, final.residual_common(data), data.context,
-                                      gp_restarts, rng)
+        final_gp = gps_all[best]
         names = final_gp.joint_names if best == "joints" else final_gp.input_names
         unnamed = {"space": best, "relevance": final_gp.relevance,
                    "length_scales": dict(zip(names, np.asarray(final_gp.length_scales).tolist()))}

@@ -134,7 +134,7 @@ def gp_inputs(space: str, readings, predicted_points, joint_names):
     raise ValueError(f"unknown residual space {space!r}; choose one of {SPACES}")
 
 
-def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rng=0) -> ResidualGP:
+def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rng=0, start=None) -> ResidualGP:
     """Fit the ARD GP of the module docstring to residuals (scikit-learn), return it as plain data.
 
     Parameters
@@ -143,6 +143,8 @@ def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rn
     input_names : d names; space : ``"joints"`` / ``"cartesian"``.
     restarts : extra L-BFGS-B starts of the marginal-likelihood fit (scikit-learn's
         ``n_restarts_optimizer``); rng : seed.
+    start : a fitted :class:`ResidualGP` whose hyperparameters start the fit (cross-validation folds
+        start from the fit on all rows; each fold still optimises on its own rows).
     """
     try:
         from sklearn.gaussian_process import GaussianProcessRegressor
@@ -165,8 +167,10 @@ def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rn
     Xs = (X - x_mean) / x_scale
     y_scale = float(np.sqrt(np.mean(Y ** 2))) or 1.0
     d = X.shape[1]
-    kernel = (ConstantKernel(0.5, (1e-4, 10.0)) * RBF(np.ones(d), [LENGTH_BOUNDS] * d)
-              + WhiteKernel(0.5, (1e-4, 10.0)))
+    a2, ls0, s2 = (0.5, np.ones(d), 0.5) if start is None else (
+        float(np.clip(start.amplitude2, 1e-4, 10)), np.clip(start.length_scales, *LENGTH_BOUNDS),
+        float(np.clip(start.noise2, 1e-4, 10)))
+    kernel = (ConstantKernel(a2, (1e-4, 10.0)) * RBF(ls0, [LENGTH_BOUNDS] * d) + WhiteKernel(s2, (1e-4, 10.0)))
     gp = GaussianProcessRegressor(kernel, normalize_y=False, n_restarts_optimizer=restarts,
                                   random_state=np.random.RandomState(int(np.random.default_rng(rng).integers(2**31))))
     with warnings.catch_warnings():
@@ -331,10 +335,12 @@ class JointGP:
 
 
 def fit_joint_gp(readings, H, residuals, param_names, joint_of, joint_names, restarts: int = 1, rng=0,
-                 maxiter: int = 200) -> JointGP:
+                 maxiter: int = 200, start=None) -> JointGP:
     """Fit :class:`JointGP` (log marginal likelihood, analytic gradient, L-BFGS-B in log space).
 
     readings (N, n), H (N, 3k, p) from :func:`joint_gp_design`, residuals (N, k, 3) in m.
+    start : a fitted :class:`JointGP` whose hyperparameters start the optimisation (instead of the default
+        start; cross-validation folds start from the fit on all rows and optimise on their own rows).
     """
     from estcal.base.blas import single_thread_blas
 
@@ -360,8 +366,13 @@ def fit_joint_gp(readings, H, residuals, param_names, joint_of, joint_names, res
               + [(np.log(0.05 * qsd[j]), np.log(50 * qsd[j])) for j in active]
               + [(np.log(1e-3 * rms), np.log(3 * rms))])
     gen = np.random.default_rng(rng)
+    x_start = None
+    if start is not None:
+        x_start = np.clip(np.r_[np.log(np.maximum(start.amplitude[active], 1e-300)),
+                                np.log(start.length_scales[active]), np.log(start.noise)],
+                          [b[0] for b in bounds], [b[1] for b in bounds])
     with single_thread_blas():
-        best = _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter)
+        best = _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter, x_start)
     amp_a, ls_a, s = unpack(best.x)
     amp = np.zeros(nj)
     ls = qsd.copy()
@@ -409,12 +420,14 @@ def joint_gp_objective(Q, Hs, Y, joint_of, active, m: int):
     return nll
 
 
-def _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter):
+def _restarts(nll, bounds, na, rms, qsd, active, restarts, gen, maxiter, x_start=None):
     from scipy.optimize import minimize
 
     best = None
     for r in range(1 + max(int(restarts), 0)):
-        if r == 0:
+        if r == 0 and x_start is not None:
+            x0 = x_start
+        elif r == 0:
             x0 = np.r_[np.full(na, np.log(0.3 * rms)), np.log(qsd[active]), np.log(0.7 * rms)]
         else:
             x0 = np.array([gen.uniform(lo, hi) for lo, hi in bounds])
@@ -436,16 +449,17 @@ def _predicted(robot, theta, readings, context, k):
     return np.repeat(kin.p[:, None, :], max(k, 1), axis=1)
 
 
-def fit_residual_model(space: str, robot, theta, readings, residuals, context=None, restarts: int = 1, rng=0):
+def fit_residual_model(space: str, robot, theta, readings, residuals, context=None, restarts: int = 1, rng=0,
+                       start=None):
     """The residual GP of ``space`` fitted to ``residuals`` (N, k, 3) of ``robot`` at ``theta``:
     :class:`JointGP` for ``"joints"``, :class:`ResidualGP` over the predicted point for ``"cartesian"``."""
     R = np.asarray(residuals, float)
     k = R.shape[1]
     if space == "joints":
         Q, H, names, jo = joint_gp_design(robot, theta, readings, context, k)
-        return fit_joint_gp(Q, H, R, names, jo, robot.joint_names, restarts=restarts, rng=rng)
+        return fit_joint_gp(Q, H, R, names, jo, robot.joint_names, restarts=restarts, rng=rng, start=start)
     X, names = gp_inputs(space, readings, _predicted(robot, theta, readings, context, k), robot.joint_names)
-    return fit_residual_gp(X, R, names, space, restarts=restarts, rng=rng)
+    return fit_residual_gp(X, R, names, space, restarts=restarts, rng=rng, start=start)
 
 
 def residual_correction(model, robot, theta, readings, context=None, return_std: bool = False):

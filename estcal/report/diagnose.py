@@ -21,6 +21,9 @@ _CAPTIONS = {
     "residual_norm.png": "Per-pose RMS residual of the geometric fit against time and tool position (drift, "
                          "thermal, workspace-dependent effects).",
     "spectrum.png": "Amplitude of the harmonics of the partial joint residuals per joint.",
+    "budget.png": "Error budget by posture-grouped cross-validation: registration only, the geometric level, the "
+                  "named effects and what is left after the residual Gaussian process, with the repeatability "
+                  "floor and the predicted RMSE at new postures (docs/real-data.md).",
 }
 
 

@@ -22,7 +22,8 @@ from typing import Optional
 import typer
 
 from estcal.cli.app import command
-from estcal.cli.options import (deprecated_option, json_option, known_noise_option, points_option, report_option,
+from estcal.cli.options import (deprecated_option, json_option, known_noise_option, points_option,
+                                posture_tol, posture_tol_mm_option, posture_tol_mrad_option, report_option,
                                 robot_option, root_option, save_model_option, tip_option, validate_option)
 
 __all__ = ["diagnose"]
@@ -57,6 +58,12 @@ def _noise(noise_pos_mm, noise_rot_mrad, known, old_noise_pos):
     return NoiseModel(position=pos, orientation=rot, scalar=pos, known=True)
 
 
+def _residual(name):
+    if name not in (None, "gp"):
+        raise typer.BadParameter(f"--residual-model: unknown {name!r}; the residual model is 'gp'")
+    return name
+
+
 @command("diagnose")
 def diagnose(
     data: list[Path] = typer.Argument(..., help="Measured dataset(s) (CSV: joint columns + x,y,z / x1..zk / "
@@ -89,6 +96,13 @@ def diagnose(
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
+    posture_tol_mrad: float = posture_tol_mrad_option(),
+    posture_tol_mm: float = posture_tol_mm_option(),
+    budget: bool = typer.Option(True, "--budget/--no-budget", help="Error budget by posture-grouped CV: nominal, "
+                                "geometric, named, structured-unnamed (residual GP) and unstructured RMSE, the "
+                                "repeatability floor and the predicted RMSE at new postures (docs/real-data.md)."),
+    residual_model: Optional[str] = typer.Option(None, "--residual-model", help="gp: keep the residual Gaussian "
+                                                 "process as a compensation layer of the recommended model."),
     json_path: Optional[Path] = json_option("Write the diagnosis as JSON."),
     report: Optional[Path] = report_option("Folder for a report: residual figures (PNG), diagnosis.json, "
                                            "summary.txt and index.html with the tables."),
@@ -102,7 +116,9 @@ def diagnose(
     noise = _noise(noise_pos_mm, noise_rot_mrad, known_noise, old_noise_pos)
     res = run(robot, list(data), validate=list(validate), effects=effects, noise=noise, points=points, root=root,
               tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
-              report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order)
+              report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,
+              posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
+              residual_model=_residual(residual_model))
     typer.echo(str(res))
     if report is not None:
         from estcal.report.diagnose import diagnose_report
