@@ -111,3 +111,31 @@ def test_validation_split_flags_a_validation_of_seen_postures_only():
     new = np.random.default_rng(5).uniform(-1, 1, (3, 4))
     out2 = validation_split(tr, np.vstack([te, new]), np.full((11, 2), 1e-3))
     assert out2["warning"] is None and out2["new"]["n_rows"] == 3 and out2["seen"]["n_rows"] == 8
+
+
+def test_calibrate_splits_its_validation_into_seen_and_new_postures():
+    import warnings
+
+    from estcal.base.errors import EstcalWarning
+    from estcal.simulate import simulate
+    from estcal.workflows.calibrate import calibrate
+
+    sim = simulate("puma560", n_poses=30, measure="position", errors="random", seed=3,
+                   noise={"position": 1e-4})
+    again = simulate("puma560", readings=sim.dataset.readings[:10], measure="position", errors="random", seed=3,
+                     noise={"position": 1e-4})  # ten of the training postures, measured again
+    again.dataset.points = again.dataset.points + 1e-4 * np.random.default_rng(9).standard_normal((10, 1, 3))
+    fresh = simulate("puma560", readings=sim.nominal_robot.random_readings(8, np.random.default_rng(7)),
+                     measure="position", errors="random", seed=3, noise={"position": 1e-4})
+    mixed = again.dataset.subset(slice(None))
+    for k in ("readings", "points"):
+        setattr(mixed, k, np.concatenate([getattr(again.dataset, k), getattr(fresh.dataset, k)]))
+    mixed.lines = np.arange(2, 20)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        cal = calibrate("puma560", sim.dataset, level="full", validate=[again.dataset, mixed])
+    v_seen, v_mixed = cal.result.accuracy["validation"]
+    assert v_seen["only_seen"] and v_seen["seen"]["n_rows"] == 10 and v_seen["new"]["rmse_mm"] is None
+    assert any(issubclass(x.category, EstcalWarning) and "memory" in str(x.message) for x in w)
+    assert not v_mixed["only_seen"] and (v_mixed["seen"]["n_rows"], v_mixed["new"]["n_rows"]) == (10, 8)
+    assert "seen" in cal.result.to_dict()["accuracy"]["validation"][1]

@@ -108,7 +108,7 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
               level: str | None = None, selection: str | None = None, validate=(), noise=None,
               regularize=None, robust: str | None = None, options: dict | None = None, points: int | None = None,
               root: str | None = None, tip: str | None = None, checks: bool = True,
-              allow_ill_conditioned: bool = False, column_map=None) -> Calibration:
+              allow_ill_conditioned: bool = False, column_map=None, posture_tol=(1e-3, 1e-3)) -> Calibration:
     """Calibrate ``robot`` on ``data`` — the job of ``estcal calibrate``.
 
     Parameters
@@ -126,6 +126,8 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     options : estimator options (SI); ``{"chain": path}`` keeps an MCMC chain.
     points, root, tip, column_map : as the loader's (first N points, URDF chain, column map).
     checks, allow_ill_conditioned : the numerical refusals (docs/reliability.md).
+    posture_tol : ``(rad, m)``: validation rows whose readings agree with a calibration row within it are at
+        *seen* postures; each validation score is split into ``seen`` / ``new`` (docs/real-data.md).
     """
     sessions = list(data) if isinstance(data, (list, tuple)) else [data]
     if not sessions:
@@ -152,6 +154,7 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     warn_datasets(parts + vals)
     res, sel, problem = _run(rob, ds, robot, estimator, measure, free, level, selection, vals, noise, options,
                              regularize, checks, allow_ill_conditioned)
+    _seen_new(res, problem, ds, vals, tuple(posture_tol))
     out = Calibration(res, sel, problem, rob, vals, " + ".join(_label(s) for s in sessions),
                       [_label(v) for v in validate])
     res.extra.update(robot=robot if isinstance(robot, (str, Path)) else rob.name, data=out.data_label,
@@ -159,6 +162,28 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
                      noise=problem.terms[0].noise.to_dict(), points=n_markers)
     res.extra["robot"] = str(res.extra["robot"])
     return out
+
+
+def _seen_new(res, problem, ds, vals, posture_tol=(1e-3, 1e-3)) -> None:
+    """Each validation score split by posture: rows at postures of the calibration data (``seen``) and at
+    new ones (``new``, inside / outside the calibration joint ranges), in ``res.accuracy["validation"][i]``;
+    a validation made only of seen postures is warned about (docs/real-data.md)."""
+    import warnings
+
+    from estcal.base.errors import EstcalWarning
+    from estcal.estimate.result import pose_errors
+    from estcal.validation import validation_split
+
+    accs = (res.accuracy or {}).get("validation", [])
+    for v, acc in zip(vals, accs):
+        pos, _ = pose_errors(problem.robot, res.theta, v)
+        if pos is None:
+            continue
+        split = validation_split(ds.readings, v.readings, pos, problem.robot.joint_types, *posture_tol)
+        acc.update({k: split[k] for k in ("seen", "new", "new_inside", "new_outside", "only_seen")})
+        if split["warning"]:
+            acc["warning"] = f"{v.where}: {split['warning']}"
+            warnings.warn(acc["warning"], EstcalWarning, stacklevel=3)
 
 
 def _run(rob, ds, spec, estimator, measure, free, level, selection, vals, noise, options, regularize, checks,

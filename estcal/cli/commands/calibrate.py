@@ -25,8 +25,9 @@ from estcal.base.errors import InputError
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, estimator_option, free_option, json_option, known_noise_option,
                                 level_option, measure_option, method_option, noise_pos_option, noise_rot_option,
-                                points_option, report_option, robot_option, root_option, save_model_option,
-                                tip_option, validate_option)
+                                points_option, posture_tol, posture_tol_mm_option, posture_tol_mrad_option,
+                                report_option, robot_option, root_option, save_model_option, tip_option,
+                                validate_option)
 
 __all__ = ["calibrate"]
 
@@ -92,6 +93,10 @@ def _print_report(console, cal) -> None:
         rows.append((f"calibration: {cal.data_label}", acc["train"]))
     for p, v in zip(cal.validate_labels, acc.get("validation", [])):
         rows.append((f"validation: {p}", v))
+        for part in ("seen", "new"):  # the same file split by posture (seen in calibration / new)
+            if v.get(part, {}).get("n_rows"):
+                rows.append((f"  at {part} postures", {"after": {"n_poses": v[part]["n_rows"],
+                                                                  "rmse_mm": v[part]["rmse_mm"]}}))
     for label, d in rows:
         b, af = d.get("before", {}), d.get("after", {})
         a.add_row(label, str(af.get("n_poses", "")), _fmt(b.get("rmse_mm")), _fmt(af.get("rmse_mm")),
@@ -175,10 +180,12 @@ def calibrate(
                                                  "aic | bic (greedy pruning by an information criterion)."),
     regularize: Optional[str] = typer.Option(
         None, "--regularize", help="Gaussian prior toward the nominal joint-model parameters (MAP): "
-                                   "'loo' (width chosen by leave-one-pose-out CV on the calibration file) "
+                                   "'loo' (width chosen by leave-one-posture-out CV on the calibration file) "
                                    "or a prior std with its unit, e.g. 2mm (mm for lengths, mrad for angles, 10⁻³ "
                                    "for gains). Base frame and points stay free."),
     validate: list[Path] = validate_option(),
+    posture_tol_mrad: float = posture_tol_mrad_option(),
+    posture_tol_mm: float = posture_tol_mm_option(),
     points: Optional[int] = points_option(),
     noise_pos_mm: float = noise_pos_option(0.1),
     noise_rot_mrad: float = noise_rot_option(1.0),
@@ -244,7 +251,7 @@ def calibrate(
     cal = wf.calibrate(robot, list(data), estimator=estimator, measure=measure, free=free, level=level,
                        selection=selection, validate=list(validate), noise=noise, regularize=_regularize(regularize),
                        robust=robust, options=options, points=points, root=root, tip=tip, checks=True,
-                       allow_ill_conditioned=allow_ill)
+                       allow_ill_conditioned=allow_ill, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm))
     _outputs(cal, robot, root, tip, json_path, report, save_model)
 
 
