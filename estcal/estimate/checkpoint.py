@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.errors import InputError
+
 __all__ = ["FORMAT", "CheckpointError", "PrefixHasher", "Journal", "journal_path", "filter_checkpoint",
            "save_checkpoint", "load_checkpoint", "restore_filter", "option_differences", "file_sha256"]
 
@@ -50,7 +52,7 @@ READABLE = (2, 3)
 _INNOVATION, _HISTORY = 0.0, 1.0
 
 
-class CheckpointError(ValueError):
+class CheckpointError(InputError):
     """A checkpoint that cannot be used (wrong file, other input, other options)."""
 
 

@@ -38,18 +38,19 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.blas import single_thread_blas
+from estcal.base.errors import InputError
 from estcal.estimate._common import PER_POSE_METHODS, prior_std_vector
 from estcal.estimate.checkpoint import (CheckpointError, Journal, PrefixHasher, file_sha256, filter_checkpoint,
                                         load_checkpoint, option_differences, restore_filter, save_checkpoint)
 from estcal.estimate.innovation import InnovationTests
-from estcal.base.blas import single_thread_blas
 from estcal.estimate.kalman import (BLOCK_GROUPS, BlockStep, ParameterFilter, concat_steps, default_burn_in,
                                     process_noise, run_steps, segment_of)
 from estcal.io.dataset import Dataset, DatasetError
 from estcal.methods.base import NoiseModel, get_method, method_for_dataset
 from estcal.methods.problem import Problem, Term
 
-__all__ = ["OnlineCalibrator", "OnlineUpdate", "OnlineResult", "CsvStream", "Chunk", "file_free_set",
+__all__ = ["OnlineCalibrator", "OnlineUpdate", "OnlineResult", "CsvStream", "Chunk", "check_file", "file_free_set",
            "run_options"]
 
 #: rows fed to the filter at a time when a whole file or a large Dataset is given to update()
@@ -183,7 +184,7 @@ class OnlineResult:
         from estcal.io.savedmodel import calibration_block, write_saved_model
 
         if self.robot_model is None:
-            raise ValueError("this OnlineResult does not know its robot (rebuilt from JSON)")
+            raise InputError("this OnlineResult does not know its robot (rebuilt from JSON)")
         pv = self.robot_model.params
         th = pv.values.copy()
         th[pv.indices(self.names)] = self.estimate
@@ -219,10 +220,10 @@ class OnlineCalibrator:
         from estcal.io.robotfile import load_robot
 
         if relinearize != "auto" and not (isinstance(relinearize, (int, np.integer)) and relinearize >= 1):
-            raise ValueError(f"relinearize must be 'auto' or an integer ≥ 1 (rows per linearisation), "
+            raise InputError(f"relinearize must be 'auto' or an integer ≥ 1 (rows per linearisation), "
                              f"got {relinearize!r}")
         if int(history_every) < 1:
-            raise ValueError(f"history_every must be an integer ≥ 1, got {history_every!r}")
+            raise InputError(f"history_every must be an integer ≥ 1, got {history_every!r}")
         self.options = run_options(robot, root, tip, free, q, filter, measure, noise, prior_std, relinearize)
         rb = load_robot(robot, root=root, tip=tip)
         names = _names(free)
@@ -231,14 +232,14 @@ class OnlineCalibrator:
         self.robot = rb
         self.method = get_method(measure) if measure else None
         if self.method is not None and self.method.name not in PER_POSE_METHODS:
-            raise ValueError(f"method {self.method.name!r} compares several rows (groups/pairs); online calibration "
+            raise InputError(f"method {self.method.name!r} compares several rows (groups/pairs); online calibration "
                              f"streams rows and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate "
                              f"--estimator kalman`")
         self.noise = _noise_model(noise)
         pv = rb.params
         self.names, self.fidx = pv.free_names, pv.free_indices
         if not self.names:
-            raise ValueError("no free parameter to estimate (give free=… or set the robot's free mask)")
+            raise InputError("no free parameter to estimate (give free=… or set the robot's free mask)")
         Q = process_noise(self.names, q)
         P0 = np.diag(prior_std_vector(None, self.names, prior_std) ** 2)
         self.flt = ParameterFilter(pv.values, self.fidx, P0, Q, kind=filter, names=self.names)
@@ -332,7 +333,7 @@ class OnlineCalibrator:
     def _method_for(self, ds):
         m = self.method or method_for_dataset(ds, self.robot)
         if m.name not in PER_POSE_METHODS:
-            raise ValueError(f"{ds.where}: method {m.name!r} is not a per-row method")
+            raise InputError(f"{ds.where}: method {m.name!r} is not a per-row method")
         return m
 
     def _feed(self, ds, trace: bool) -> OnlineUpdate:
@@ -560,6 +561,20 @@ def _comparable(opts: dict) -> dict:
 
 
 # ---------------------------------------------------------------- files and streams
+def check_file(path, robot) -> Dataset:
+    """The whole-file checks ``estcal online FILE`` makes before streaming it: the loader's
+    (units, ranges, spread), identical rows refused (:class:`~estcal.base.errors.NumericalRefusal`)
+    and the loader's warnings (``EstcalWarning``) — so that a stream never runs on data the batch
+    commands refuse. Returns the Dataset."""
+    from estcal.io.dataset import load_dataset
+    from estcal.workflows.inputs import check_distinct_poses, warn_datasets
+
+    ds = load_dataset(path, robot)
+    check_distinct_poses(ds)
+    warn_datasets([ds])
+    return ds
+
+
 def file_free_set(robot, data, free=None, measure=None, noise=None) -> list[str]:
     """The free set ``estcal online FILE`` uses: an identifiable set of the whole file (rank test,
     :func:`estcal.estimate._common.identifiable_free`) when ``free`` is None, else ``free``,

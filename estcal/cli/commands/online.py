@@ -11,23 +11,30 @@ from typing import Optional
 
 import typer
 
-from estcal.cli.units import deprecated_option, noise_pos_option, noise_rot_option
+from estcal.cli.app import command
+from estcal.cli.options import (deprecated_option, free_option, json_option, measure_option, method_option,
+                                noise_pos_option, noise_rot_option, report_option, robot_option, root_option,
+                                tip_option)
+
+__all__ = ["online"]
 
 #: data rows per chunk read from the input (besides the cuts at checkpoint rows)
 CHUNK_ROWS = 1024
 
 
+@command("online")
 def online(
     data: str = typer.Argument(..., help="Dataset CSV, or '-' to read rows from standard input as they come."),
-    robot: str = typer.Option(..., "--robot", "-r", help="Built-in name, robot file (.yaml) or URDF."),
-    free: Optional[str] = typer.Option(None, "--free", help="Comma-separated names/patterns to estimate "
-                                       "(default: an identifiable set for a file, the robot's free mask for stdin)."),
+    robot: str = robot_option(),
+    free: Optional[str] = free_option("Comma-separated names/patterns to estimate (default: an identifiable set "
+                                      "for a file, the robot's free mask for stdin)."),
     q_mm: float = typer.Option(0.0, "--q-mm", help="Process-noise std per row, in each parameter's milli-unit "
                                "(mm, mrad, 10⁻³ for gains); 0 = constant parameters, > 0 = random walk / drift."),
     q_params: Optional[str] = typer.Option(None, "--q-params", help="Apply --q-mm only to these names/patterns."),
     filter_kind: str = typer.Option("ekf", "--filter", help="ekf or ukf (filterpy)."),
-    measure: Optional[str] = typer.Option(None, "--measure", help="Measurement kind (default: from the columns)."),
-    method: Optional[str] = typer.Option(None, "--method", hidden=True, help="Deprecated: --measure."),
+    measure: Optional[str] = measure_option(help="What was measured: position, pose, points (default: from the "
+                                                 "columns)."),
+    method: Optional[str] = method_option(),
     sigma_p_mm: float = noise_pos_option(0.1),
     sigma_r_mrad: float = noise_rot_option(1.0),
     prior_std_mm: float = typer.Option(100.0, "--prior-std-mm", help="Prior std of every free parameter, in its "
@@ -43,13 +50,12 @@ def online(
                               "as input, a progress bar is also drawn on a terminal."),
     live: bool = typer.Option(False, "--live", help="Show a live-updating table (terminal) instead of lines."),
     show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
-    root: Optional[str] = typer.Option(None, help="URDF root link."),
-    tip: Optional[str] = typer.Option(None, help="URDF tip link."),
-    json_path: Optional[Path] = typer.Option(None, "--json", help="Write the final estimate, stds, innovation "
-                                             "tests and the printed history as JSON."),
-    report: Optional[Path] = typer.Option(None, "--report", help="Folder for a report: estimate ± σ after "
-                                          "every row, NIS per row with the innovation tests (PNG), tables and "
-                                          "index.html."),
+    root: Optional[str] = root_option(),
+    tip: Optional[str] = tip_option(),
+    json_path: Optional[Path] = json_option("Write the final estimate, stds, innovation tests and the printed "
+                                            "history as JSON (SI)."),
+    report: Optional[Path] = report_option("Folder for a report: estimate ± σ after every row, NIS per row with "
+                                           "the innovation tests (PNG), tables and index.html."),
     state_path: Optional[Path] = typer.Option(None, "--state", help="Checkpoint file: the filter (x, P, Q, noise, "
                                               "row, input SHA-256, options) written atomically every "
                                               "--checkpoint-every rows and at exit; also a state for "
@@ -70,11 +76,9 @@ def online(
     sigma_p = resolve(sigma_p_mm, MILLI, old_sigma_p, "--sigma-p", "--noise-pos-mm", "m", 1.0, 0.1)
     sigma_r = resolve(sigma_r_mrad, MILLI, old_sigma_r, "--sigma-r", "--noise-rot-mrad", "rad", 1.0, 1.0)
     prior_std = resolve(prior_std_mm, MILLI, old_prior_std, "--prior-std", "--prior-std-mm", "SI", 1.0, 100.0)
-    if method is not None:
-        if measure is not None:
-            fail("give --measure or the deprecated --method, not both")
-        typer.echo("warning: --method is deprecated for `estcal online`: use --measure", err=True)
-        measure = method
+    from estcal.cli.options import estimator_and_measure
+
+    _, measure = estimator_and_measure(method, None, measure, means="measure")
     if checkpoint_every < 1:
         fail(f"--checkpoint-every must be ≥ 1, got {checkpoint_every}")
     if throttle < 0:
@@ -87,10 +91,6 @@ def online(
         run = _Run(data, robot, options, every, state_path, resume, report)
         run.stream(checkpoint_every, throttle, live, show)
         run.finish(json_path, report)
-
-
-def register(app: typer.Typer) -> None:
-    app.command("online")(online)
 
 
 def _relinearize(text):
@@ -206,18 +206,11 @@ class _Run:
         self.trace = (GrowingArray(float, p), GrowingArray(float, p)) if report is not None else None
 
     def _check_file(self, robot, options):
-        """A file is checked as a whole first (the loader's unit, range, duplicate and spread checks),
-        so that the stream never runs on data the batch commands refuse."""
-        from estcal.cli.common import check_distinct_poses, warn_datasets
-        from estcal.io.dataset import load_dataset
         from estcal.io.robotfile import load_robot
+        from estcal.workflows.online import check_file
 
-        rb = load_robot(robot, root=options["root"], tip=options["tip"])
-        ds = load_dataset(self.data, rb)
-        check_distinct_poses(ds)
-        warn_datasets([ds])  # the same warnings as the batch commands
-        self.rb = rb
-        return ds
+        self.rb = load_robot(robot, root=options["root"], tip=options["tip"])
+        return check_file(self.data, self.rb)
 
     def _calibrator(self, robot, options, resume, every):
         from estcal.cli.common import fail, message
