@@ -177,19 +177,26 @@ _WRITER = r"""
 import sys, time
 import numpy as np
 import estcal
-path, state, mode = sys.argv[1:4]
-ds = estcal.load_dataset(path, estcal.load_robot("puma560"))
-cal = (estcal.OnlineCalibrator.resume(state) if mode == "resume" else
-       estcal.OnlineCalibrator("puma560", free="{free}", q=1e-7, noise=(1e-4, 1e-3)))
-edges = list(range(0, ds.n, 7)) + [ds.n]          # chunks at multiples of 7 rows, whatever the start
-for a, b in zip(edges[:-1], edges[1:]):
-    if b <= cal.n_rows:
-        continue
-    cal.update(ds.subset(slice(max(a, cal.n_rows), b)))
-    cal.save(state)
-    if mode == "slow":
-        time.sleep(0.02)
-np.save(state + ".final.npy", np.r_[cal.estimate, cal.covariance.ravel(), cal.nis])
+
+
+def feed(path, state, mode):
+    ds = estcal.load_dataset(path, estcal.load_robot("puma560"))
+    cal = (estcal.OnlineCalibrator.resume(state) if mode == "resume" else
+           estcal.OnlineCalibrator("puma560", free="{free}", q=1e-7, noise=(1e-4, 1e-3)))
+    edges = list(range(0, ds.n, 7)) + [ds.n]          # chunks at multiples of 7 rows, whatever the start
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b <= cal.n_rows:
+            continue
+        cal.update(ds.subset(slice(max(a, cal.n_rows), b)))
+        cal.save(state)
+        if mode == "slow":
+            time.sleep(0.02)
+    cal.close()
+    return np.r_[cal.estimate, cal.covariance.ravel(), cal.nis]
+
+
+if __name__ == "__main__":
+    np.save(sys.argv[2] + ".final.npy", feed(*sys.argv[1:4]))
 """
 
 
@@ -197,11 +204,16 @@ def test_kill_9_and_resume_through_the_python_object_is_bit_identical(data, tmp_
     """A script feeding the object and saving after every chunk is killed (SIGKILL) at a random
     chunk; ``OnlineCalibrator.resume`` continues it; estimate, covariance and every row's NIS equal
     the uninterrupted run bit for bit (the checkpoint is inside a linearisation segment most of the
-    time: its linearisation point is in the checkpoint)."""
+    time: its linearisation state is in the checkpoint)."""
+    import importlib.util
+
     script = tmp_path / "writer.py"
     script.write_text(_WRITER.replace("{free}", FREE))
-    full, state = tmp_path / "full.json", tmp_path / "state.json"
-    subprocess.run([sys.executable, str(script), str(data), str(full), "fresh"], check=True, timeout=120)
+    spec = importlib.util.spec_from_file_location("writer", script)
+    writer = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(writer)
+    full = writer.feed(str(data), str(tmp_path / "full.json"), "fresh")  # the uninterrupted run, in process
+    state = tmp_path / "state.json"
     kill_at = int(np.random.default_rng().integers(40, N - 40))
     p = subprocess.Popen([sys.executable, str(script), str(data), str(state), "slow"], stderr=subprocess.PIPE)
     t0 = time.time()
@@ -213,6 +225,5 @@ def test_kill_9_and_resume_through_the_python_object_is_bit_identical(data, tmp_
     p.wait(timeout=10)
     ck = json.loads(state.read_text())
     assert p.returncode == -signal.SIGKILL and kill_at <= ck["rows"] < N and not ck["finished"]
-    subprocess.run([sys.executable, str(script), str(data), str(state), "resume"], check=True, timeout=120)
-    a, b = np.load(str(full) + ".final.npy"), np.load(str(state) + ".final.npy")
-    assert a.shape == b.shape and np.array_equal(a, b)
+    resumed = writer.feed(str(data), str(state), "resume")
+    assert full.shape == resumed.shape and np.array_equal(full, resumed)

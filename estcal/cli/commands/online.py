@@ -382,8 +382,11 @@ class _Run:
             avg = h["nis_per_row"]  # undefined until the burn-in is over
             avg = f"{avg:.3f}" if avg == avg else "— (burn-in)"
             dim = int(up.dims[h["row"] - up.rows[0]])
-            self.console.print(f"row {h['row']:5d}  NIS {h['nis']:7.2f}/{dim}  NIS/row(avg) {avg}  {par}",
-                               soft_wrap=True)
+            line = f"row {h['row']:5d}  NIS {h['nis']:7.2f}/{dim}  NIS/row(avg) {avg}  {par}"
+            if self.console.is_terminal:
+                self.console.print(line, soft_wrap=True)
+            else:  # a pipe or a file: plain lines (rich's rendering costs ~0.3 ms a line: 10⁵ lines at 10⁶ rows)
+                self.console.file.write(line + "\n")
 
     def _live_table(self):
         import numpy as np
