@@ -23,7 +23,7 @@ import typer
 __all__ = ["robot_option", "root_option", "tip_option", "points_option", "estimator_option", "measure_option",
            "method_option", "noise_pos_option", "noise_rot_option", "known_noise_option", "level_option",
            "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option",
-           "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL", "posture_tol_mrad_option",
+           "plan_option", "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL", "posture_tol_mrad_option",
            "posture_tol_mm_option", "posture_tol"]
 
 DEFAULT_LEVEL = "full"
@@ -102,6 +102,12 @@ def report_option(help: str):
 def save_model_option(help: str = "Write the calibrated robot as a robot file (.yaml) with a 'calibration:' "
                                   "block (provenance, covariance); reload it with --robot."):
     return typer.Option(None, "--save-model", help=help)
+
+
+def plan_option(what: str = "the plan's poses"):
+    """``-o/--output``: poses written as a CSV in estcal's dataset layout (``design``, ``next-pose``)."""
+    return typer.Option(None, "--output", "-o", help=f"Write {what} as a CSV in estcal's dataset layout (one "
+                                                     f"column per joint, rad / m).")
 
 
 def map_option():

@@ -24,7 +24,7 @@ import typer
 
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, json_option, measure_option, method_option, noise_pos_option,
-                                noise_rot_option, report_option, robot_option)
+                                noise_rot_option, plan_option, report_option, robot_option)
 
 __all__ = ["design"]
 
@@ -88,8 +88,7 @@ def design(
     scheduler: str = typer.Option("processes", "--scheduler", help="Where the continuous starts run: "
                                   "serial | processes | local (Dask LocalCluster) | tcp://host:8786."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (processes / local)."),
-    output: Optional[Path] = typer.Option(None, "--output", "-o", help="Write the plan's poses as a CSV in "
-                                          "estcal's dataset layout (one column per joint, rad / m)."),
+    output: Optional[Path] = plan_option(),
     json_path: Optional[Path] = json_option("Write the results as JSON."),
     report: Optional[Path] = report_option("Folder for a report: plan, criteria, random-plan histogram, predicted "
                                            "error over the workspace (PNG) and index.html. Implies "

@@ -24,7 +24,7 @@ import typer
 from estcal.cli.app import command
 from estcal.cli.commands.design import MEASURE_HELP, _map_count, _measure
 from estcal.cli.options import (deprecated_option, json_option, measure_option, method_option, noise_pos_option,
-                                noise_rot_option, report_option, robot_option)
+                                noise_rot_option, plan_option, report_option, robot_option)
 
 __all__ = ["next_pose"]
 
@@ -50,8 +50,7 @@ def next_pose(
     old_sigma_rot: Optional[float] = deprecated_option("--sigma-rot"),
     refine: bool = typer.Option(True, "--refine/--no-refine", help="Polish the best candidate locally."),
     seed: int = typer.Option(0, "--seed"),
-    output: Optional[Path] = typer.Option(None, "--output", "-o", help="Write the proposed pose as a CSV in "
-                                          "estcal's dataset layout (one column per joint, rad / m)."),
+    output: Optional[Path] = plan_option("the proposed pose"),
     json_path: Optional[Path] = json_option("Write the proposal as JSON."),
     report: Optional[Path] = report_option("Folder for a report: the pose, parameter std before/after, predicted "
                                            "error over the workspace before/after (PNG) and index.html; adds "
