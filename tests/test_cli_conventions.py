@@ -28,14 +28,8 @@ from conftest import REPO
 runner = CliRunner()
 
 
-#: commands still defined in a register() closure by their owners (online: the online calibrator's work)
-LEGACY = {"online"}
-
-
 def test_commands_are_module_level_functions():
     for cmd in app.registered_commands:
-        if cmd.name in LEGACY:
-            continue
         fn = getattr(cmd.callback, "__wrapped__", cmd.callback)
         module = importlib.import_module(fn.__module__)
         assert getattr(module, fn.__name__) is fn, f"{cmd.name}: {fn.__qualname__} is not defined at module level"
