@@ -23,8 +23,8 @@ import typer
 __all__ = ["robot_option", "root_option", "tip_option", "points_option", "estimator_option", "measure_option",
            "method_option", "noise_pos_option", "noise_rot_option", "known_noise_option", "level_option",
            "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option",
-           "plan_option", "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL", "posture_tol_mrad_option",
-           "posture_tol_mm_option", "posture_tol"]
+           "plan_option", "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL",
+           "posture_tol_mrad_option", "posture_tol_mm_option", "posture_tol"]
 
 DEFAULT_LEVEL = "full"
 LEVEL_HELP = ("Free set: registration | joint_offset | full (default), reduced to an identifiable set by QR on the "
