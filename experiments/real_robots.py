@@ -213,7 +213,12 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=1, qu
     times["validation"] = time.time() - t3
     out["timings_s"] = times
     new = val[rec]["new"]["rmse_mm"]
-    out["summary"] = {"recommended": out["recommended"], "predicted_validation_mm": pred,
+    # the same prediction weighted by where the validation postures are (their readings only: inside or
+    # outside the training joint ranges, no measurement)
+    from estcal.discrepancy.budget import predicted_at
+
+    at = predicted_at(dict(out["budget"], predicted_validation_mm=pred), train.readings, valid.readings)
+    out["summary"] = {"recommended": out["recommended"], "predicted_validation_mm": pred, "predicted_at_targets_mm": at,
                       "validation_new_mm": new, "validation_all_mm": val[rec]["all"]["rmse_mm"],
                       "ratio_predicted_to_validation": None if not new else pred / new,
                       "coverage95": val[rec]["coverage95"]}
@@ -360,6 +365,28 @@ def run_design(ks=(10, 15, 20, 25, 30), n_random=10, seed=0):
     return out
 
 
+def run_talos_session(seeds, k, restarts, session: int = 1):
+    """One TALOS session alone (02-10 "contact", 61 rows after the gross error), postures halved at random:
+    a model within one session, where marker, frame and re-homing are fixed."""
+    from estcal.sessions.data import split_sessions
+
+    robot, data = load_talos()
+    bad = gross_errors(robot, data)
+    data = data.subset(~bad)
+    part = split_sessions(data)[session]
+    g = posture_groups(part.readings, robot.joint_types)
+    print(f"\n== TALOS session {session} alone: {part.n} rows, {g.max() + 1} postures")
+    out = {"session": session, "splits": []}
+    for seed in seeds:
+        tr = _halves(g, seed)
+        res = study(robot, part.subset(tr), part.subset(~tr), k_folds=k, gp_restarts=restarts,
+                    label=f"TALOS session {session} seed {seed}")
+        res["seed"] = seed
+        _print(res)
+        out["splits"].append(res)
+    return out
+
+
 ARM6 = [("joint_compliance", ["arm_6_joint"], {}), ("backlash", ["arm_6_joint"], {})]
 
 
@@ -405,8 +432,8 @@ def run_explore(seeds=(0, 1, 2)):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="TIAGo seed 0 and UR10, 3-fold CV, no GP restarts")
-    ap.add_argument("--robots", default="tiago,ur10,talos,design,explore",
-                    help="comma-separated subset of tiago, ur10, talos, design, explore")
+    ap.add_argument("--robots", default="tiago,ur10,talos,talos_session,design,explore",
+                    help="comma-separated subset of tiago, ur10, talos, talos_session, design, explore")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if not (shared_dir() / "data" / "tiago").is_dir():
@@ -424,6 +451,8 @@ def main(argv=None) -> dict:
         out["ur10"] = run_ur10(k, restarts)
     if "talos" in robots and not args.quick:
         out["talos"] = run_talos(seeds, k, restarts)
+    if "talos_session" in robots:
+        out["talos_session"] = run_talos_session(seeds, k, restarts)
     if "explore" in robots:
         out["explore"] = run_explore(seeds)
     if "design" in robots:

@@ -42,7 +42,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
 
-__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "fit_stage", "fit_stage_sessions", "predicted_points",
+__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "predicted_at", "fit_stage", "fit_stage_sessions", "predicted_points",
            "measured_points", "prediction_coverage", "STAGES"]
 
 STAGES = ("nominal", "geometric", "named")
@@ -113,9 +113,11 @@ class FittedStage:
     result: object
     sessions: dict = field(default_factory=dict)
 
-    def _session_rows(self, data):
+    def _each(self, data):
+        """(row mask, R, t, dm) of every session the fit knows, for the rows of ``data``."""
         lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
-        return lab
+        for sv, (R, t, dm) in self.sessions.items():
+            yield lab == sv, R, t, dm
 
     def predict_common(self, data):
         """(N, k, 3) points in the common frame (first session), with each session's marker change."""
@@ -125,37 +127,28 @@ class FittedStage:
         from estcal.kinematics.chunked import tool_poses
 
         R_tool = tool_poses(self.robot, data.readings, self.theta, data.context, fields=("R",)).R
-        lab = self._session_rows(data)
-        for sv, (R, t, dm) in self.sessions.items():
-            m = lab == sv
+        for m, R, t, dm in self._each(data):
             if m.any() and np.any(dm):
                 pred[m] += np.einsum("nij,kj->nki", R_tool[m], dm)
         return pred
 
-    def to_session(self, data, pts):
-        out = np.array(pts, float)
-        lab = self._session_rows(data)
-        for sv, (R, t, dm) in self.sessions.items():
-            m = lab == sv
-            out[m] = out[m] @ R.T + t
+    def _map(self, data, vec, forward: bool, shift: bool):
+        out = np.array(vec, float)
+        for m, R, t, dm in self._each(data):
+            out[m] = out[m] @ (R.T if forward else R) + (t if shift else 0.0)
         return out
+
+    def to_session(self, data, pts):
+        """Points of the common frame in each row's session frame."""
+        return self._map(data, pts, True, True)
 
     def residual_common(self, data):
         """Measured − predicted, rotated back into the common frame (N, k, 3)."""
-        r = measured_points(data) - self.predict(data)
-        lab = self._session_rows(data)
-        for sv, (R, t, dm) in self.sessions.items():
-            m = lab == sv
-            r[m] = r[m] @ R
-        return r
+        return self._map(data, measured_points(data) - self.predict(data), False, False)
 
     def rotate_to_session(self, data, vec):
-        out = np.array(vec, float)
-        lab = self._session_rows(data)
-        for sv, (R, t, dm) in self.sessions.items():
-            m = lab == sv
-            out[m] = out[m] @ R.T
-        return out
+        """Vectors (corrections) of the common frame in each row's session frame."""
+        return self._map(data, vec, True, False)
 
     def predict(self, data):
         return self.to_session(data, self.predict_common(data))
@@ -316,9 +309,12 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     r_all = final.residual_common(data)
     gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
                                       rng) for sp in spaces}
+    outside = np.zeros(n, bool)  # held-out rows beyond their fold's training joint ranges (extrapolated)
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
         dtr, dte = data.subset(train), data.subset(test)
+        lo, hi = dtr.readings.min(0), dtr.readings.max(0)
+        outside[test] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
         for st in stages:
             fs = fit_stage_sessions(robot, dtr, noise, st, level, effects, per_session, max_iter=max_iter)
             held[st][test] = meas[test] - fs.predict(dte)
@@ -353,13 +349,18 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
         per_fold["gp"] = _fold_rmse(sq_gp[best], folds)
     pf = np.array(per_fold["gp"] if use_gp else per_fold["named"])
     se = float(pf.std(ddof=1) / np.sqrt(len(pf))) if len(pf) > 1 else float("nan")
+    # the recommended model's CV error inside / outside the training joint ranges (extrapolation):
+    # predicted_at() weights them by where the robot will be used
+    in_out = {"cv_inside_mm": rmse_mm(np.sqrt(pred_sq[~outside])), "cv_outside_mm": rmse_mm(np.sqrt(pred_sq[outside])),
+              "fraction_outside": float(outside.mean())}
     rep = repeatability_floor(meas, g, sessions)
     rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
     label = ("named" if effects else "geometric") + (" + GP" if use_gp else "")
     return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(unstructured), rep_mm,
                        rmse_mm(np.sqrt(pred_sq)), se, label, unnamed, per_fold, gp_mm, rep, n_postures(g), n,
                        len(folds), level, [tuple(e) for e in effects], final_gp if use_gp else None,
-                       {"fitted_robot": rb, "fitted_theta": th, "fitted": final, "per_session": per_session})
+                       {"fitted_robot": rb, "fitted_theta": th, "fitted": final, "per_session": per_session,
+                        "extrapolation": in_out})
 
 
 def prediction_coverage(robot, theta, free, covariance, data, sigma_extra_m: float, level: float = 0.95) -> dict:
@@ -383,6 +384,22 @@ def prediction_coverage(robot, theta, free, covariance, data, sigma_extra_m: flo
     d2 = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
     covered = d2 <= stats.chi2.ppf(level, 3)
     return {"coverage": float(covered.mean()), "n_points": int(len(covered)), "level": level}
+
+
+def predicted_at(budget, train_readings, target_readings) -> float | None:
+    """Expected RMSE (mm) at the postures where the robot will be used (readings only, no measurement):
+    the budget's CV error inside and outside the training joint ranges (``extrapolation``), weighted by
+    the fraction of target rows outside them: √(f_in · CV_in² + f_out · CV_out²). Falls back to
+    ``predicted_validation_mm`` when the CV had no row of the needed kind."""
+    b = budget.to_dict() if hasattr(budget, "to_dict") else budget
+    ex = b.get("extrapolation") or {}
+    A, T = np.asarray(train_readings, float), np.asarray(target_readings, float)
+    out = np.any((T < A.min(0)) | (T > A.max(0)), axis=1)
+    f_out = float(out.mean()) if len(T) else 0.0
+    cin, cout = ex.get("cv_inside_mm"), ex.get("cv_outside_mm")
+    if (cin is None and f_out < 1) or (cout is None and f_out > 0):
+        return b["predicted_validation_mm"]
+    return float(np.sqrt((1 - f_out) * (cin or 0.0) ** 2 + f_out * (cout or 0.0) ** 2))
 
 
 def diagnosis_budget(robot, diagnosis, **kw) -> ErrorBudget:
