@@ -175,3 +175,36 @@ def test_budget_figure_draws_every_stage_and_the_lines():
     assert heights == [2.6, 2.9, 3.5, 5.0]
     assert {ln.get_gid() for ln in ax.lines} == {"predicted", "repeatability"}
     assert len(budget_figure(dict(b, repeatability_mm=None)).axes[0].lines) == 1
+
+
+def test_saved_model_carries_the_residual_layer_to_compensate_and_export(tmp_path):
+    from estcal.discrepancy import diagnose
+    from estcal.discrepancy.residual import residual_model_from_dict
+    from estcal.io.dataset import write_dataset
+    from estcal.io.robotfile import load_robot
+    from estcal.workflows.compensate import compensate_file
+    from estcal.workflows.export import export
+
+    sim = _sim(n=40, seed=1)
+    data = _noisy(sim, _tilted(sim, 3, 5e-3), seed=1)
+    res = diagnose(sim.nominal_robot, data, noise=SIGMA, k_folds=3, max_effects=0, residual_model="gp")
+    assert res.residual_model is not None and res.budget["recommended"].endswith("+ GP")
+    path = res.save_model(tmp_path / "m.yaml")
+    rb = load_robot(path)
+    layer = rb.meta["calibration"]["residual_model"]
+    assert layer["cost_mm"] == pytest.approx(res.budget["structured_unnamed_mm"])
+    gp = residual_model_from_dict(layer)
+    q = data.readings[:4]
+    assert np.allclose(residual_correction(gp, rb, rb.params.values, q),
+                       residual_correction(res.residual_model, rb, rb.params.values, q), atol=1e-12)
+    # targets a few mm away from where the saved model (with its layer) puts marker 1
+    tgt = data.subset(np.arange(4)).with_points(1)
+    tgt.points = (rb.kinematics(q, jacobian=False).points[:, :1]
+                  + residual_correction(gp, rb, rb.params.values, q)[:, :1] + np.array([1e-3, 0, -1e-3]))
+    write_dataset(tmp_path / "targets.csv", tgt)
+    run = compensate_file(path, tmp_path / "targets.csv")
+    reached = (rb.kinematics(run.result.readings, jacobian=False).points[:, 0]
+               + residual_correction(gp, rb, rb.params.values, run.result.readings)[:, 0])
+    assert np.max(np.linalg.norm(reached - tgt.points[:, 0], axis=1)) < 1e-5
+    ex = export(path, tmp_path / "m.urdf")
+    assert any("residual Gaussian-process layer" in w for w in ex.result.warnings)

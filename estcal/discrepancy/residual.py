@@ -493,7 +493,9 @@ def compensate_with_residual(robot, model, targets, q_start, context=None, itera
     res = None
     for _ in range(max(int(iterations), 1)):
         mu = residual_correction(model, robot, robot.params.values, q, context)[:, 0]
-        res = compensate(robot, x - mu, q, context=context, **kw)
+        shifted = x.copy()
+        shifted[:, :3] = x[:, :3] - mu  # positions (a pose target's quaternion is kept)
+        res = compensate(robot, shifted, q, context=context, **kw)
         q = res.readings
     _, sd = residual_correction(model, robot, robot.params.values, q, context, return_std=True)
     return res, np.sqrt(np.mean(sd[:, :3] ** 2, axis=1)) * 1e3

@@ -244,6 +244,11 @@ def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
                                   "approach_from_order": bool(m.get("approach_from_order"))}}
     if result.located:
         extra["located"] = [{"joints": d["joints"], "shape": d["shape"]} for d in result.located]
+    if getattr(result, "residual_model", None) is not None:
+        # the residual GP layer as plain data (docs/real-data.md); its cost if dropped is the budget's
+        # structured-unnamed RMSE
+        extra["residual_model"] = dict(result.residual_model.to_dict(),
+                                       cost_mm=(result.budget or {}).get("structured_unnamed_mm"))
     extra.update(provenance or {})
     cov = result.covariance
     free = result.covariance_names

@@ -121,9 +121,17 @@ def compensate_file(robot, targets, *, tol_mm: float = 1e-3, tol_mrad: float = 1
     else:
         tgt = ds.p if ds.kind == "pose" else ds.points[:, 0]
     ctx = effect_context(rb, ds)
+    layer = (rb.meta.get("calibration") or {}).get("residual_model")
     try:
-        res = compensate(rb, tgt, ds.readings, context=ctx, tol_mm=tol_mm, tol_mrad=tol_mrad, max_iter=max_iter,
-                         rot_weight_m=rot_weight_m, lines=ds.lines)
+        if layer:  # the saved residual GP: the calibrated model plus its mean reaches the targets
+            from estcal.discrepancy.residual import compensate_with_residual, residual_model_from_dict
+
+            res, _ = compensate_with_residual(rb, residual_model_from_dict(layer), tgt, ds.readings, context=ctx,
+                                              tol_mm=tol_mm, tol_mrad=tol_mrad, max_iter=max_iter,
+                                              rot_weight_m=rot_weight_m, lines=ds.lines)
+        else:
+            res = compensate(rb, tgt, ds.readings, context=ctx, tol_mm=tol_mm, tol_mrad=tol_mrad,
+                             max_iter=max_iter, rot_weight_m=rot_weight_m, lines=ds.lines)
     except np.linalg.LinAlgError as exc:
         raise NumericalRefusal(f"{targets}: numerical failure in the solve ({exc})") from exc
     except ValueError as exc:
