@@ -159,7 +159,7 @@ def _folder_bytes(p: Path) -> int:
 
 def bench_fleet(client, n, tmp):
     from estcal.workflows.fleet import FleetOptions, run_fleet
-    from estcal.scale.simfleet import simulate_fleet
+    from estcal.simulate.fleet import simulate_fleet
 
     from estcal.workflows.fleet import discover_fleet, process_robot
 

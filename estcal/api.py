@@ -16,7 +16,8 @@ __all__ = ["calibrate", "diagnose", "as_noise", "robot_and_data"]
 
 
 def as_noise(noise=None, known: bool = False):
-    """A :class:`estcal.methods.NoiseModel` from the forms ``noise=`` accepts.
+    """A :class:`estcal.methods.NoiseModel` from the forms ``noise=`` accepts — the one rule of
+    :meth:`estcal.methods.NoiseModel.parse` (docs/conventions.md, "Noise"):
 
     * ``None`` — the defaults (0.1 mm, 1 mrad), as relative weights;
     * a number — position std σ (m); orientation std σ / 0.1 m (rad), the CLI's ratio;
@@ -26,30 +27,9 @@ def as_noise(noise=None, known: bool = False):
 
     ``known``: the stds are trusted absolute values (covariance not rescaled by σ0²).
     """
-    from estcal.base.errors import InputError
     from estcal.methods import NoiseModel
 
-    if isinstance(noise, NoiseModel):
-        return noise
-    if noise is None:
-        return NoiseModel(known=known)
-    if isinstance(noise, dict):
-        bad = set(noise) - {"position", "orientation", "scalar", "known"}
-        if bad:
-            raise InputError(f"noise: unknown key(s) {sorted(bad)}; use position (m), orientation (rad), "
-                             f"scalar (m), known (bool)")
-        d = {"known": known, **noise}
-        d.setdefault("scalar", d.get("position", NoiseModel.position))
-        return NoiseModel(**d)
-    if isinstance(noise, (tuple, list)):
-        if len(noise) != 2:
-            raise InputError(f"noise: expected (position m, orientation rad), got {noise!r}")
-        p, r = float(noise[0]), float(noise[1])
-        return NoiseModel(position=p, orientation=r, scalar=p, known=known)
-    s = float(noise)
-    if not s > 0:
-        raise InputError(f"noise: the position std must be > 0 m, got {noise!r}")
-    return NoiseModel(position=s, orientation=s / 0.1, scalar=s, known=known)
+    return NoiseModel.parse(noise, known=known)
 
 
 def robot_and_data(robot, data, validate=(), points: int | None = None, root=None, tip=None):

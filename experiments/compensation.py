@@ -112,8 +112,7 @@ def run(n_poses: int, n_targets: int, seed: int, out: Path | None) -> dict:
     res_g, sel, _ = run_calibration(nominal, ds, noise=noise)
     geo = with_covariance(res_g, nominal)
 
-    dg = diagnose(nominal, ds, noise=NoiseModel(position=NOISE_POS, orientation=NOISE_ROT, known=True),
-                  plots=False)
+    dg = diagnose(nominal, ds, noise=NoiseModel(position=NOISE_POS, orientation=NOISE_ROT, known=True))
     ext = nominal
     for name, joints in dg.named:
         ext = ext.add_effect(make_effect(name, ext, joints=list(joints)))

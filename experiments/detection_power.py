@@ -85,7 +85,7 @@ def trial(args):
         opts = {"orders": [int(rng.integers(1, 4))]} if e == "gear_harmonic" else {}
         hidden = [(e, [j], float(magnitude), opts)]
     sim, truth = simulate_hidden(robot, hidden, SIGMA, n_poses=n_poses, seed=seed, **kw)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, plots=False)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed)
     named = [(c.effect, list(c.joints)) for c in res.causes]
     out = {"robot": robot_name, "magnitude": magnitude, "seed": seed, "named": named,
            "hidden": [(h[0], h[1], h[3] if len(h) > 3 else {}) for h in hidden],

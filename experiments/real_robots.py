@@ -73,7 +73,7 @@ def _session_time(d):
 
 def load_tiago():
     """Both TIAGo sessions stacked: URDF masses incl. the hand, 4 points, approach from the posture order."""
-    from estcal.discrepancy.geometric import derive_approach, with_effect_context
+    from estcal.io.prepare import derive_approach, with_effect_context
     from estcal.discrepancy.masses import with_urdf_masses
     from estcal.io import load_dataset
     from estcal.kinematics import tiago

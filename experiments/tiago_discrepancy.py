@@ -67,8 +67,10 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     from estcal.discrepancy import cross_validate, diagnose
-    from estcal.discrepancy.geometric import derive_approach, fit_geometric, gravity_ready, with_effect_context
+    from estcal.discrepancy.geometric import fit_geometric, gravity_ready
     from estcal.discrepancy.masses import urdf_chain_masses, with_urdf_masses
+    from estcal.io.prepare import derive_approach, with_effect_context
+    from estcal.report.diagnose import diagnose_report
     from estcal.effects import make_effect
     from estcal.estimate import calibrate_lsq
     from estcal.io import load_dataset
@@ -119,8 +121,9 @@ def main(argv=None) -> dict:
     runs = {}
     for approach in (False, True):
         r = diagnose(robot, train, validate=[valid], k_folds=k, noise=None, geometric=chosen,
-                     report=(args.report / ("approach" if approach else "load")) if args.report else None,
                      robot_spec="tiago", approach_from_order=approach)
+        if args.report:
+            diagnose_report(args.report / ("approach" if approach else "load"), r)
         runs[approach] = r
         print(f"\n-- backlash driven by {'the approach direction (posture order)' if approach else 'the load sign'}:")
         print(r)
@@ -242,7 +245,7 @@ def main(argv=None) -> dict:
         t1 = load_dataset(folder / "qualisys_2021-11-30_static_postures.csv", rob1, points=1)
         v1 = load_dataset(folder / "qualisys_2021-11-26_static_postures.csv", rob1, points=1)
         one = diagnose(rob1, t1, validate=[v1], k_folds=k, geometric="auto", approach_from_order=approach,
-                       plots=False, robot_spec="tiago")
+                       robot_spec="tiago")
         out["one_point"] = {"causes": [c.to_dict() for c in one.causes], "verdict": one.verdict,
                             "rmse_mm": one.rmse_mm, "geometric_level": one.analysis["geometric_level"]}
         print("\n== The same diagnosis with the BL point only (FIGAROH's measurement: 3 coordinates per pose)")

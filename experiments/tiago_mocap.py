@@ -158,7 +158,7 @@ def figaroh_procedure(data_dir: Path = DATA, seeds=range(6)) -> dict | None:
     except Exception as exc:  # noqa: BLE001 - optional peer; record why it is absent
         return {"available": False, "error": f"{type(exc).__name__}: {exc}"}
     from estcal.estimate import calibrate_lsq, register_base
-    from estcal.estimate.lsq import score
+    from estcal.estimate.result import score
     from estcal.methods import Problem
 
     urdf = data_dir / "tiago_48_schunk.urdf"

@@ -56,7 +56,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from estcal.discrepancy import diagnose  # noqa: E402
-from estcal.discrepancy.geometric import derive_approach  # noqa: E402
+from estcal.io.prepare import derive_approach  # noqa: E402
 from estcal.discrepancy.masses import with_urdf_masses  # noqa: E402
 from estcal.estimate.levels import select_free  # noqa: E402
 from estcal.io import load_dataset  # noqa: E402
@@ -81,7 +81,7 @@ def _session(path, robot):
 
 def _prepared(res, d):
     """A session prepared for the extended robot (effect columns into the context)."""
-    from estcal.discrepancy.geometric import with_effect_context
+    from estcal.io.prepare import with_effect_context
 
     return with_effect_context(res.robot, d)
 
@@ -110,7 +110,7 @@ def model_on(sessions, names, quick: bool, log) -> dict:
     """Steps 3–5 on ``sessions``: diagnosis, free set, varying parameters, fit."""
     stacked = stack_sessions(sessions, names)
     k = 5 if quick else min(stacked.n, 10)
-    res = diagnose(ROBOT, stacked, k_folds=k, noise=None, geometric="auto", plots=False, robot_spec="tiago")
+    res = diagnose(ROBOT, stacked, k_folds=k, noise=None, geometric="auto", robot_spec="tiago")
     log(f"  diagnosis on {' + '.join(names)}: {res.named or 'no cause'} "
         f"(geometric level {res.analysis['geometric_level']})")
     prepared = [_prepared(res, d) for d in sessions]

@@ -12,10 +12,12 @@ import json
 import numpy as np
 import pytest
 
-from estcal.discrepancy import Candidate, default_candidates, diagnose, identifiable_subset, partial_joint_residuals
+from estcal.discrepancy import Candidate, default_candidates, diagnose, partial_joint_residuals
 from estcal.discrepancy.hidden import cartesian_distortion, eligible_joints, simulate_hidden
 from estcal.io.robotfile import load_robot
+from estcal.identify import DATA_TOL, select_identifiable
 from estcal.methods import NoiseModel, Problem
+from estcal.report.diagnose import diagnose_report
 
 SIGMA = 5e-5  # 0.05 mm per coordinate, a laser tracker / good mocap
 EFFECTS = ["joint_compliance", "backlash", "encoder_gain", "gear_harmonic"]
@@ -89,16 +91,21 @@ def test_out_of_library_distortion_is_not_misnamed(puma):
     assert not res.analysis["noise_floor"]["at_noise_floor"]
 
 
-def test_identifiable_subset_matches_rank():
+def _data_level(A, names, tol=DATA_TOL):
+    sel = select_identifiable(A, names=names, tol=tol)
+    return sel.identifiable, sel.dropped
+
+
+def test_data_level_subset_matches_rank():
     rng = np.random.default_rng(0)
     B = rng.normal(size=(40, 5))
     A = np.c_[B, B[:, 0] + 2 * B[:, 3], np.zeros(40), B[:, 1] * 3.0]
     names = list("abcdefgh")
-    keep, dropped = identifiable_subset(A, names)
+    keep, dropped = _data_level(A, names)
     assert len(keep) == np.linalg.matrix_rank(A) == 5
     assert keep == list("abcde") and dropped == list("fgh")
     # priority order decides which of a dependent pair is kept
-    keep2, _ = identifiable_subset(A[:, ::-1], names[::-1])
+    keep2, _ = _data_level(A[:, ::-1], names[::-1])
     assert "h" in keep2 and "b" not in keep2
 
 
@@ -120,7 +127,8 @@ def test_partial_joint_residual_recovers_an_offset(puma):
 
 def test_report_folder_and_plots(puma, tmp_path):
     sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=40, measure="points", seed=7)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, report=tmp_path / "rep")
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
+    diagnose_report(tmp_path / "rep", res)
     assert res.named == [("encoder_gain", ("j2",))]
     for f in ("partial_residuals.png", "vs_gravity_torque.png", "residual_norm.png", "spectrum.png",
               "diagnosis.json", "summary.txt", "partial_residuals_extended.png"):
@@ -135,7 +143,7 @@ def test_report_folder_and_plots(puma, tmp_path):
     assert e["rss"] < 0.05 * d["steps"][0]["rss_before"]
 
 
-def test_identifiable_subset_agrees_with_identify_module(puma):
+def test_data_level_subset_agrees_with_identify_module(puma):
     """Same priority-ordered base set as estcal.identify.identifiable (GECARO App. III) on a
     PUMA points problem, when both use the same numerical zero."""
     from estcal.discrepancy import geometric_candidates
@@ -147,7 +155,7 @@ def test_identifiable_subset_agrees_with_identify_module(puma):
     problem = Problem(robot, [(None, sim.dataset, NoiseModel(position=SIGMA, known=True))])
     names = geometric_candidates(robot)
     _, A, _ = weighted_system(problem, robot.params.values, names)
-    keep, _ = identifiable_subset(A, names, tol=1e-8)
+    keep, _ = _data_level(A, names, tol=1e-8)
     ref = identifiable(A, names, tau_floor=1e-8)
     assert keep == ref.identifiable
 
@@ -161,7 +169,7 @@ def test_context_driven_effects(puma, hidden, kw, expect):
     """Effects driven by recorded columns: temperature, time, approach direction (j1's axis is
     vertical, so its backlash is only visible through the approach column)."""
     sim, truth = simulate_hidden(puma, [hidden], SIGMA, n_poses=50, measure="points", seed=8, **kw)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
     assert res.named == [expect]
     for name, v in truth[0]["params"].items():
         p = res.causes[0].parameters[name]
@@ -204,12 +212,12 @@ def test_quadratic_joint_error_located_not_misnamed(puma, quadratic_effect):
     sim, truth = simulate_hidden(puma, [(quadratic_effect, ["j3"], 10.0)], SIGMA, n_poses=50, measure="points",
                                  seed=0)
     library = ["joint_compliance", "backlash", "gear_harmonic", "encoder_gain"]
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, candidates=library, plots=False)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, candidates=library)
     assert res.causes == []
     assert "not explained" in res.verdict
     assert [d["joints"] for d in res.located] == [["j3"]]
     # the user's own effect joins the candidates through the registry
-    res2 = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    res2 = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
     assert res2.named == [("quadratic_error", ("j3",))]
     p = res2.causes[0].parameters["quad_j3"]
     assert abs(p["estimate"] - truth[0]["params"]["quad_j3"]) < 5 * p["std"]
@@ -248,7 +256,7 @@ def test_thermal_found_on_tool_data(puma, scope, measure):
     sim, truth = simulate_hidden(robot, [("thermal_expansion", None, 10.0, {"scope": scope})], SIGMA, n_poses=50,
                                  measure=measure, seed=8, temperature=(20.0, 35.0))
     assert sim.nominal_robot.n_markers == 0
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
     assert res.named[:1] == [("thermal_expansion", ())]
     assert res.causes[0].options.get("scope", "arm") == scope
     p = res.causes[0].parameters["thermal_alpha"]
@@ -278,7 +286,7 @@ def test_family_candidates():
     for j in js:
         sim = simulate(puma, effect_params={f"encgain_{k}": (1e-4 if k == j else 0.0) for k in js},
                        noise=SimNoise(position=0.0, orientation=0.0), **kw)
-        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False, max_effects=1, n_refit=0,
+        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, max_effects=1, n_refit=0,
                        candidates=[Candidate("encoder_gain", [j])])
         row = res.steps[0]["table"][0]
         lam[j] = res.steps[0]["rss_before"] - row["rss_linear"]
@@ -286,7 +294,7 @@ def test_family_candidates():
     sim = simulate(puma, effect_params=gains, noise=SimNoise(position=SIGMA, orientation=SIGMA), **kw)
     named = {}
     for fam in (False, True):
-        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, plots=False, families=fam)
+        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, families=fam)
         named[fam] = {j for e, jj in res.named if e == "encoder_gain" for j in jj}
         assert {e for e, _ in res.named} == {"encoder_gain"}
     assert named[True] == set(js) and len(named[False]) < 3

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_tiago_arm6_backlash_and_compliance(tiago_dir):
     from estcal.discrepancy import diagnose
-    from estcal.discrepancy.geometric import derive_approach, with_effect_context
+    from estcal.io.prepare import derive_approach, with_effect_context
     from estcal.discrepancy.masses import with_urdf_masses
     from estcal.estimate.result import pose_errors
     from estcal.io import load_dataset
@@ -29,7 +29,7 @@ def test_tiago_arm6_backlash_and_compliance(tiago_dir):
     assert robot.links[8].mass == pytest.approx(0.234252 + hand, abs=1e-9)
     train = load_dataset(tiago_dir / "qualisys_2021-11-30_static_postures.csv", robot)
     valid = load_dataset(tiago_dir / "qualisys_2021-11-26_static_postures.csv", robot)
-    res = diagnose(robot, train, validate=[valid], geometric="aic", approach_from_order=True, plots=False)
+    res = diagnose(robot, train, validate=[valid], geometric="aic", approach_from_order=True)
     assert sorted(res.named) == [("backlash", ("arm_6_joint",)), ("joint_compliance", ("arm_6_joint",))]
     b = res.causes[[c.effect for c in res.causes].index("backlash")].parameters["backlash_arm_6_joint"]
     assert b["estimate"] > 5 * b["std"]  # positive: the link lags the motor, as backlash does

@@ -27,14 +27,14 @@ def _estcal_exceptions():
 
 def test_every_estcal_exception_derives_from_estcal_error():
     found = dict(_estcal_exceptions())
-    assert "estcal.io.dataset.DatasetError" in found and "estcal.io.robotfile.RobotFileError" in found
+    assert "estcal.io.dataset.DatasetError" in found and "estcal.base.errors.RobotFileError" in found
     outside = sorted(n for n, c in found.items()
                      if not issubclass(c, (EstcalError, EstcalWarning)) and n not in NOT_YET_IN_HIERARCHY)
     assert not outside, f"exceptions outside estcal.base.errors' hierarchy: {outside}"
 
 
 def test_input_errors_and_refusals_are_value_errors():
-    from estcal.estimate.lsq import UnidentifiableError
+    from estcal.identify.select import UnidentifiableError
     from estcal.io.dataset import DatasetError
     from estcal.io.robotfile import RobotFileError
     from estcal.kinematics.parameters import ParameterError

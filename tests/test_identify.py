@@ -194,9 +194,9 @@ def test_excitation_check_flags_poor_data():
 def test_select_identifiable_for_a_problem():
     r = puma560()
     prob = Problem(r, [("location", measurement_data(r, 30, "location", 8))])
-    free = select_identifiable(prob, GEOM + ["gain_*"])
+    free = select_identifiable(prob, GEOM + ["gain_*"]).identifiable
     assert len(free) == 36
-    from estcal.estimate.lsq import check_identifiable
+    from estcal.identify.select import check_identifiable
 
     W, names = observation_matrix(prob.with_free(free))
     check_identifiable(W, names)  # the lead's estimator check accepts the set

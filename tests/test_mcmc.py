@@ -127,7 +127,9 @@ def test_arviz_and_corner(tmp_path):
     sim = simulated_problem("planar2", n_poses=30, seed=24, method="position", free=["a_1", "a_2", "offset_2"])
     smp = sample_posterior(sim.problem, target_ess=100, max_steps=1000, n_walkers=16)
     pytest.importorskip("corner")
-    path = smp.corner(tmp_path / "corner.png")
+    from estcal.report.figures import save_figure
+
+    path = save_figure(smp.corner_figure(), tmp_path / "corner.png")
     assert path.exists() and path.stat().st_size > 1000
     az = pytest.importorskip("arviz")
     idata = smp.to_inference_data()

@@ -5,8 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estcal.identify.analysis import observation_matrix, reduced_observation_matrix
-from estcal.identify.core import identifiable
+from estcal.identify.select import identifiable, observation_matrix, reduced_observation_matrix
 from estcal.io import dataset as D
 from estcal.kinematics.chunked import tool_poses
 from estcal.kinematics.robots import get_builtin
@@ -77,7 +76,7 @@ def test_chunked_least_squares_equals_unchunked():
     prob, _ = _problem(n=300, seed=5)
     sel = select_free(prob, "full")
     sel_c = None
-    import estcal.estimate.reduced as red
+    import estcal.methods.reduced as red
 
     old = red.CHUNK_POSES
     red.CHUNK_POSES = 100  # force the chunked path of select_free on 300 poses
@@ -112,20 +111,21 @@ def test_chunked_least_squares_equals_unchunked():
 def test_online_default_free_set_unchanged_by_chunking(monkeypatch):
     """`estcal online FILE` without --free picks an identifiable set from the whole file: on large
     files from the chunked R factor — the same set (forced here with a 100-pose chunk)."""
-    import estcal.estimate.reduced as red
-    from estcal.estimate._common import identifiable_free
+    import estcal.methods.reduced as red
+    from estcal.identify import select_identifiable
 
     prob, _ = _problem(n=300, seed=6)
-    a = identifiable_free(prob)
+    a = select_identifiable(prob).identifiable
     monkeypatch.setattr(red, "CHUNK_POSES", 100)
-    assert identifiable_free(prob) == a and len(a) > 20
+    assert select_identifiable(prob).identifiable == a and len(a) > 20
 
 
 def test_chunked_robust_fit_and_outlier_report_equal_unchunked(monkeypatch):
     """Iteratively reweighted (robust) least squares on the chunked R factor — row weights sliced
     chunk by chunk — gives the unchunked estimate, weights and named outlier rows."""
-    import estcal.estimate.reduced as red
-    from estcal.estimate.levels import robust_report, select_free
+    import estcal.methods.reduced as red
+    from estcal.estimate.levels import select_free
+    from estcal.estimate.levels import robust_report
     from estcal.estimate.lsq import calibrate_lsq
     from estcal.estimate.robust import group_norms
 
@@ -184,7 +184,7 @@ def test_gtsam_and_kalman_on_large_data_equal_the_unchunked_fits(monkeypatch):
     """The gtsam Gaussian-graph LM on the chunked factor [R c] (RᵀR = AᵀA, Rᵀc = Aᵀb, the true bᵀb)
     and the Kalman filter with its groups, χ² and sub-problems built chunk-wise / as used give the
     fits of the unchunked paths."""
-    import estcal.estimate.reduced as red
+    import estcal.methods.reduced as red
     from estcal.estimate.factorgraph import calibrate_gtsam
     from estcal.estimate.kalman import calibrate_kalman
     from estcal.estimate.levels import select_free

@@ -154,7 +154,7 @@ def test_combined_position_and_distance_problem_recovers_truth():
     cands = ["theta_*", "d_*", "a_*", "alpha_*", "beta_*", "base_*", "tool_*", "gain_*"]
     probe = Problem(robot, [("position", measurement_data(robot, 30, "position", 8)),
                             ("distance", distance_data(robot, 40, 9), noise_d)])
-    free = select_identifiable(probe, cands)
+    free = select_identifiable(probe, cands).identifiable
     assert len(free) == 30  # 25 geometric (tool origin on axis 6) + gains 1-5
     truth = robot.params.values.copy()
     idx = robot.params.indices(free)

@@ -78,7 +78,7 @@ def test_large_data_commands_show_a_bar(clean_env, tmp_path, capsys):
     chunk size lowered so that a 300-pose file is "large"); stdout stays the result alone."""
     from typer.testing import CliRunner
 
-    import estcal.estimate.reduced as red
+    import estcal.methods.reduced as red
     import estcal.kinematics.chunked as chk
     from estcal.cli.main import app
 

@@ -101,6 +101,7 @@ def _check_folder(folder):
 @pytest.fixture(scope="module")
 def captured():
     """Record every figure the report code saves ({file name: Figure}) while the CLI runs."""
+    import estcal.report.diagnose as rdiag
     import estcal.report.figures as figures
     import estcal.report.html as rhtml
 
@@ -114,6 +115,7 @@ def captured():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(figures, "save_figure", record)
         mp.setattr(rhtml, "save_figure", record)
+        mp.setattr(rdiag, "save_figure", record)
         yield figs
 
 

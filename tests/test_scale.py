@@ -89,7 +89,7 @@ def test_monte_carlo_identical_on_dask(client):
 # ------------------------------------------------------------------ fleet
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    from estcal.scale.simfleet import simulate_fleet
+    from estcal.simulate.fleet import simulate_fleet
 
     root = tmp_path_factory.mktemp("fleet")
     sim = simulate_fleet(4, root, n_poses=25, n_validate=15, seed=3, p_effect=0.0)

@@ -231,7 +231,7 @@ def test_diagnose_takes_several_sessions(tmp_path):
 
     robot = puma560()
     ds, _ = simulate_sessions(robot, 2, 15, {}, noise=5e-5, seed=6, error_std=2e-4)
-    res = diagnose(robot, ds, noise=5e-5, plots=False, approach_from_order=True, k_folds=3, max_effects=1)
+    res = diagnose(robot, ds, noise=5e-5, approach_from_order=True, k_folds=3, max_effects=1)
     assert isinstance(res.train_data, list) and len(res.train_data) == 2
     files = []
     for i, d in enumerate(ds):
@@ -245,7 +245,7 @@ def test_diagnose_takes_several_sessions(tmp_path):
     assert shas == [hashlib.sha256(f.read_bytes()).hexdigest() for f in files]
     # approach per session: stacking first and deriving after would give the second session's
     # first pose an approach from the first session's last pose
-    from estcal.discrepancy.geometric import derive_approach
+    from estcal.io.prepare import derive_approach
     from estcal.sessions.data import stack_sessions
 
     per = stack_sessions([derive_approach(d) for d in ds])

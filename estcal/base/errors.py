@@ -17,7 +17,7 @@
 """
 from __future__ import annotations
 
-__all__ = ["EstcalError", "InputError", "NumericalRefusal", "MissingExtraError", "EstcalWarning"]
+__all__ = ["EstcalError", "InputError", "NumericalRefusal", "MissingExtraError", "EstcalWarning", "RobotFileError"]
 
 
 class EstcalError(Exception):
@@ -26,6 +26,13 @@ class EstcalError(Exception):
 
 class InputError(EstcalError, ValueError):
     """Bad input: the message names the file, line, option or parameter, and what to do."""
+
+
+class RobotFileError(InputError):
+    """A problem in a robot file or URDF; the message starts with the file name and the key/joint.
+
+    Raised by the robot-file loader (:mod:`estcal.io.robotfile`) and the URDF parser
+    (:mod:`estcal.kinematics.urdf`), hence defined here, below both."""
 
 
 class NumericalRefusal(EstcalError, ValueError):

@@ -92,12 +92,6 @@ class _Quiet:
     def set_postfix(self, *args, **kwargs):
         pass
 
-    def set_postfix_str(self, *args, **kwargs):
-        pass
-
-    def set_description(self, *args, **kwargs):
-        pass
-
     def close(self):
         pass
 

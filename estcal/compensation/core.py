@@ -16,6 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.io.robotfile import calibration_covariance, load_robot
+from estcal.kinematics.transforms import quat_to_matrix
+
 from .solve import parameter_jacobian, propagate, solve_readings
 
 __all__ = ["CompensationResult", "compensate", "split_targets"]
@@ -98,8 +101,6 @@ def split_targets(targets, orientations=None):
 
     ``targets``: (N, 3) points, (N, 7) ``x, y, z, qw, qx, qy, qz`` or (N, 4, 4) frames;
     ``orientations``: optional (N, 3, 3) rotations or (N, 4) quaternions (scalar first)."""
-    from estcal.kinematics.transforms import quat_to_matrix
-
     T = np.asarray(targets, float)
     R = None
     if T.ndim == 3 and T.shape[1:] == (4, 4):
@@ -146,8 +147,6 @@ def compensate(robot, targets, q_start, orientations=None, context: dict | None 
     rot_weight_m : metres per radian weighting orientation against position in the solve.
     lines : CSV line numbers used in messages (default row index + 2).
     """
-    from estcal.io.robotfile import calibration_covariance, load_robot
-
     import math
 
     for name, v in (("tol_mm", tol_mm), ("tol_mrad", tol_mrad), ("rot_weight_m", rot_weight_m)):

@@ -23,7 +23,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.identify.core import STRUCTURAL_TOL
+from estcal.identify.select import select_identifiable
+from estcal.io.savedmodel import design_values
 from estcal.kinematics.chain import SerialRobot
+from estcal.kinematics.robots import get_builtin
+
+from .criteria import accuracy_map, covariance
 
 __all__ = ["DesignModel", "identifiable_subset", "resolve_robot", "ToolBox"]
 
@@ -44,7 +50,6 @@ def resolve_robot(spec) -> SerialRobot:
         load_robot = None
     if load_robot is not None:
         return load_robot(spec)
-    from estcal.kinematics.robots import get_builtin
 
     return get_builtin(str(spec))
 
@@ -175,8 +180,6 @@ class DesignModel:
 
     def covariance(self, Q) -> np.ndarray:
         """Predicted parameter covariance ``(JᵀWJ + Σ₀⁻¹)⁻¹`` of plan ``Q`` (m, n)."""
-        from .criteria import covariance
-
         return covariance(self.information(Q))
 
     def accuracy_map(self, C, region=None, n: int = 1000, rng=None, grid: int | None = None, constraint=None):
@@ -194,8 +197,6 @@ class DesignModel:
         -------
         :class:`~estcal.design.criteria.AccuracyMap` (std = sqrt(trace(J_k C J_kᵀ)) per pose, m).
         """
-        from .criteria import accuracy_map
-
         box = self.robot.limits if region is None else np.asarray(region, float)
         if grid:
             axes = [np.linspace(lo, hi, grid) for lo, hi in box]
@@ -222,9 +223,9 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
                         rng=0, tol: float | None = None, exclude=("gain_*",), prefer=None) -> list[str]:
     """A set of free parameters with independent Jacobian columns (a base set).
 
-    The stacked Jacobian over ``n_poses`` random poses (or ``candidates``) is
-    analysed by :func:`estcal.identify.core.identifiable` (GECARO App. III,
-    priority-ordered sequential QR on unit-norm columns) with priorities
+    The stacked Jacobian over ``n_poses`` random poses (or ``candidates``) goes through
+    :func:`estcal.identify.select_identifiable` (GECARO App. III, priority-ordered
+    sequential QR on unit-norm columns) with priorities
     ``prefer`` (highest, in the given order) > joint offsets > geometric >
     base > tool > markers; ``tol`` is its structural tolerance on the unit-norm columns
     (:data:`estcal.identify.core.STRUCTURAL_TOL`).
@@ -233,8 +234,6 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
     Returns the selected names in the robot's parameter order.
     """
     import fnmatch
-
-    from estcal.io.savedmodel import design_values
 
     names = [nm for nm in robot.params.free_names if not any(fnmatch.fnmatchcase(nm, e) for e in exclude or ())]
     dv = design_values(robot)  # a saved model: the structure of its design geometry
@@ -249,10 +248,8 @@ def identifiable_subset(robot: SerialRobot, method: str = "position", candidates
     for i, nm in enumerate(prefer or []):
         if nm in names:
             pri[names.index(nm)] = 100 + len(prefer) - i
-    from estcal.identify.core import STRUCTURAL_TOL, identifiable
-
-    res = identifiable(J, names, priorities=pri, tau_floor=STRUCTURAL_TOL if tol is None else tol)
-    keep = set(res.identifiable)
+    tol = STRUCTURAL_TOL if tol is None else tol
+    keep = set(select_identifiable(J, names=names, priorities=pri, tol=tol, zero_tol=tol).identifiable)
     return [n for n in robot.params.names if n in keep]
 
 

@@ -20,6 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estcal.estimate.lsq import calibrate_lsq
+from estcal.io.dataset import dataset_from_arrays
+from estcal.kinematics.transforms import so3_exp
+from estcal.methods.base import NoiseModel
+from estcal.methods.problem import Problem
+
 from .model import DesignModel
 
 __all__ = ["MonteCarloResult", "monte_carlo_test_pose_error"]
@@ -62,8 +68,6 @@ def _noise_draws(model, n_poses, rng):
 
 
 def _simulate_measurements(model, robot_true, Q, z):
-    from estcal.io.dataset import dataset_from_arrays
-    from estcal.kinematics.transforms import so3_exp
 
     kin = robot_true.kinematics(Q, jacobian=False)
     names = robot_true.joint_names
@@ -80,9 +84,6 @@ def _simulate_measurements(model, robot_true, Q, z):
 def _one_calibration(draw, model, Q, q_test, std, planar):
     """One Monte-Carlo repetition (a task of :func:`estcal.scale.run_tasks`): draw the truth,
     simulate, calibrate by LM, return the RMS position error at the test poses (m)."""
-    from estcal.estimate.lsq import calibrate_lsq
-    from estcal.methods.base import NoiseModel
-    from estcal.methods.problem import Problem
 
     z_theta, z_noise = draw
     robot = model.robot
@@ -120,7 +121,6 @@ def monte_carlo_test_pose_error(model: DesignModel, readings, q_test, n_reps: in
     rng = np.random.default_rng(rng)
     Q = np.atleast_2d(np.asarray(readings, float))
     q_test = np.atleast_2d(np.asarray(q_test, float))
-    robot = model.robot
     std = np.broadcast_to(np.asarray(param_std, float), (model.p,))
     J0 = model.position_jacobian(q_test)
     C = model.covariance(Q)

@@ -29,15 +29,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estcal.base.jsonio import to_jsonable
+from estcal.base.progress import progress
+from estcal.base.textinput import read_text, sniff_delimiter
+from estcal.scale.runner import TaskError, run_tasks
 
-from .criteria import (criterion_loss, criterion_value, evaluate_all, larger_is_better,
-                       normalise_criterion)
+from .criteria import CRITERIA, criterion_loss, criterion_value, evaluate_all, larger_is_better, normalise_criterion
 from .model import DesignModel
 from .update import FAST_CRITERIA, added_criterion_value, whiten
 
 __all__ = ["Plan", "BaselineStats", "random_candidates", "load_candidates", "greedy", "fedorov_exchange",
            "detmax", "optimise_discrete", "optimise_continuous", "replicate", "random_baseline",
-           "evaluate_plan", "plan_loss"]
+           "evaluate_plan"]
 
 
 # ------------------------------------------------------------------ results
@@ -135,7 +137,6 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
     import io
     from pathlib import Path
 
-    from estcal.base.textinput import read_text, sniff_delimiter
 
     path = Path(path)
     text = read_text(path, "candidates", ValueError)  # folder, binary, encoding: one clear message
@@ -227,8 +228,6 @@ def _ridge(F):
 
 
 def _needs_test(criterion):
-    from .criteria import CRITERIA
-
     return CRITERIA[normalise_criterion(criterion)][1]
 
 
@@ -245,11 +244,6 @@ def evaluate_plan(model: DesignModel, readings, q_test=None, J_test=None):
     Q = np.atleast_2d(np.asarray(readings, float))
     J_test = _check_test(model, "A", J_test, q_test)
     return evaluate_all(model.information(Q), len(Q), J_test, model.free)
-
-
-def plan_loss(model, readings, criterion, J_test=None) -> float:
-    Q = np.atleast_2d(np.asarray(readings, float))
-    return float(criterion_loss(criterion, model.information(Q), len(Q), J_test))
 
 
 # ---------------------------------------------------------------- discrete
@@ -411,7 +405,6 @@ def optimise_discrete(model: DesignModel, m: int, criterion: str = "D", candidat
     sc = _Scorer(criterion, m, J_test, _ridge(F))
     best_idx, best = None, np.inf
     history = []
-    from estcal.base.progress import progress
 
     n_runs = 1 if algorithm == "greedy" else max(1, restarts)
     with progress(total=n_runs, desc=f"design ({algorithm}, m={m})", unit="restart") as bar:
@@ -514,7 +507,6 @@ def optimise_continuous(model: DesignModel, m: int, criterion: str = "D", n_star
             Qs = Qs[np.argsort(L)]
         S += list(Qs[:need])
     tasks = [(model, s.ravel(), m, crit, J_test, constraint, maxiter) for s in S]
-    from estcal.scale.runner import TaskError, run_tasks
 
     if scheduler is None:
         scheduler = executor

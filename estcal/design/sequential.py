@@ -31,6 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.jsonio import write_json
+from estcal.base.textinput import read_json
+from estcal.io.dataset import dataset_from_arrays
+from estcal.kinematics.transforms import so3_exp
+from estcal.methods.base import NoiseModel
+from estcal.methods.problem import Problem
+
 from .criteria import CRITERIA, covariance, criterion_value, larger_is_better, normalise_criterion
 from .model import DesignModel
 from .update import FAST_CRITERIA, added_criterion_value, whiten, woodbury_covariance
@@ -116,16 +123,8 @@ class CalibrationState:
 
     @classmethod
     def from_json(cls, path) -> "CalibrationState":
-        from estcal.base.textinput import read_json
-
         path = Path(path)
         return cls.from_dict(read_json(path, "state", ValueError), str(path))
-
-    @classmethod
-    def from_result(cls, result) -> "CalibrationState":
-        """From a :class:`~estcal.estimate.result.CalibrationResult` (or any object with
-        ``names``, ``estimate``, ``covariance``)."""
-        return cls(list(result.names), np.asarray(result.estimate), np.asarray(result.covariance))
 
     @classmethod
     def prior(cls, model: DesignModel, std) -> "CalibrationState":
@@ -144,8 +143,6 @@ class CalibrationState:
         return d
 
     def to_json(self, path) -> Path:
-        from estcal.base.jsonio import write_json
-
         return write_json(path, self.to_dict())
 
 
@@ -311,8 +308,6 @@ class ActiveRun:
 
 def _measure(true_robot, method, q, sigma, sigma_rot, rng, n_markers):
     """Simulated measurement of one pose by ``method`` on the true robot (dataset)."""
-    from estcal.io.dataset import dataset_from_arrays
-    from estcal.kinematics.transforms import so3_exp
 
     kin = true_robot.kinematics(q[None], jacobian=False)
     names = true_robot.joint_names
@@ -364,8 +359,6 @@ def active_calibration(true_robot, model: DesignModel, state0: CalibrationState,
         ``'ekf'`` (that one, required) or ``'own'`` (:func:`kalman_update`).
     run_to_max : continue after the target is reached (to record whole curves).
     """
-    from estcal.methods.base import NoiseModel
-    from estcal.methods.problem import Problem
 
     rng = np.random.default_rng(rng)
     q_test = np.atleast_2d(np.asarray(q_test, float))

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .criteria import normalise_criterion
+
 __all__ = ["woodbury_covariance", "added_logdet_cov", "added_trace", "added_test_pose_variance",
            "added_criterion_value", "FAST_CRITERIA", "whiten"]
 
@@ -91,8 +93,6 @@ def added_test_pose_variance(C, B, J0) -> np.ndarray:
 
 def added_criterion_value(criterion: str, C, B, J_test=None, logdet_C=None) -> np.ndarray:
     """Criterion value of ``C⁺`` for each candidate, for the criteria in :data:`FAST_CRITERIA`."""
-    from .criteria import normalise_criterion
-
     name = normalise_criterion(criterion)
     C = np.asarray(C, float)
     p = C.shape[0]

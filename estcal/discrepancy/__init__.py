@@ -7,10 +7,10 @@ extend the model and measure the gain (docs/discrepancy.md).
 
 See ``docs/discrepancy.md``.
 """
-from .analysis import partial_joint_residuals, residual_analysis, save_plots
+from .analysis import partial_joint_residuals, residual_analysis, residual_figures
 from .diagnose import Candidate, Cause, DiagnosisResult, cross_validate, default_candidates, diagnose
-from .geometric import fit_geometric, geometric_candidates, gravity_ready, identifiable_subset
+from .geometric import fit_geometric, geometric_candidates, gravity_ready
 
 __all__ = ["diagnose", "DiagnosisResult", "Cause", "Candidate", "default_candidates", "cross_validate",
-           "residual_analysis", "partial_joint_residuals", "save_plots", "fit_geometric", "geometric_candidates",
-           "gravity_ready", "identifiable_subset"]
+           "residual_analysis", "partial_joint_residuals", "residual_figures", "fit_geometric", "geometric_candidates",
+           "gravity_ready"]

@@ -20,16 +20,15 @@ The statistics reported:
   √(a_k² + b_k²) of ``δq̂_j ≈ c + Σ_k a_k sin(k q_j) + b_k cos(k q_j)``, k = 1…3,
   and their R² (harmonics of the joint angle).
 
-:func:`save_plots` writes the corresponding figures (:mod:`estcal.plots.diagnose`).
+:func:`residual_figures` draws the corresponding figures (:mod:`estcal.plots.diagnose`).
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-from scipy import stats
 
-__all__ = ["residual_analysis", "partial_joint_residuals", "save_plots", "r2_line"]
+from estcal.plots.diagnose import partial_residuals_figure, residual_norm_figure, spectrum_figure
+
+__all__ = ["residual_analysis", "partial_joint_residuals", "residual_figures", "r2_line"]
 
 
 def r2_line(x, y) -> float:
@@ -81,6 +80,8 @@ def residual_analysis(problem, theta, noise_known: bool, n_params: int, features
 
     ``features_extra`` adds per-pose features, e.g. ``{"tau": (N, n) gravity torques}``.
     """
+    from scipy import stats
+
     robot = problem.robot
     term = problem.terms[0]
     data = term.data
@@ -160,49 +161,38 @@ def residual_analysis(problem, theta, noise_known: bool, n_params: int, features
             "pose_rms_mm": (pose_rms * 1e3).tolist(), "partial_joint_residuals_rad": dq.tolist()}
 
 
-def save_plots(folder, problem, theta, analysis: dict, tau=None, title: str = "", extended=None) -> list[str]:
-    """Residual figures (PNG) in ``folder``; returns the file names.
+def residual_figures(problem, theta, analysis: dict, tau=None, title: str = "", extended=None) -> dict:
+    """The residual figures of a diagnosis, ``{file name: matplotlib Figure}`` (nothing is written:
+    :func:`estcal.report.diagnose.diagnose_report` saves them).
 
     ``partial_residuals.png`` (δq̂_j vs q_j per joint), ``vs_gravity_torque.png``
     (δq̂_j vs τ_j), ``residual_norm.png`` (per-pose residual vs time / workspace),
     ``spectrum.png`` (harmonic amplitudes per joint) and, with ``extended=(problem,
     theta)``, the same partial residuals after the extension
     (``partial_residuals_extended.png``). The figures come from
-    :mod:`estcal.plots.diagnose` (no pyplot, no backend switch); each file is
-    written atomically.
+    :mod:`estcal.plots.diagnose` (no pyplot, no backend switch).
     """
-    from estcal.plots.diagnose import partial_residuals_figure, residual_norm_figure, spectrum_figure
-    from estcal.report.figures import save_figure
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     robot = problem.robot
     data = problem.terms[0].data
     dq = np.asarray(analysis["partial_joint_residuals_rad"])
     names = robot.joint_names
-    out = []
-
-    def save(fname, fig):
-        save_figure(fig, folder / fname)
-        out.append(fname)
-
-    save("partial_residuals.png", partial_residuals_figure(
+    out = {"partial_residuals.png": partial_residuals_figure(
         data.readings, dq, names, "reading (rad | m)", f"{title} partial joint residuals vs joint reading "
-                                                       f"(geometric model)"))
+                                                       f"(geometric model)")}
     if tau is not None:
-        save("vs_gravity_torque.png", partial_residuals_figure(
-            tau, dq, names, "gravity torque (N·m | N)", f"{title} partial joint residuals vs gravity torque"))
+        out["vs_gravity_torque.png"] = partial_residuals_figure(
+            tau, dq, names, "gravity torque (N·m | N)", f"{title} partial joint residuals vs gravity torque")
     if extended is not None:
         dq2, _ = partial_joint_residuals(*extended)
-        save("partial_residuals_extended.png", partial_residuals_figure(
-            data.readings, dq2, names, "reading (rad | m)", f"{title} partial joint residuals after the extension"))
+        out["partial_residuals_extended.png"] = partial_residuals_figure(
+            data.readings, dq2, names, "reading (rad | m)", f"{title} partial joint residuals after the extension")
     pr = np.asarray(analysis["pose_rms_mm"])
     kin = robot.kinematics(data.readings, theta, data.context, jacobian=False)
     xs = [("pose index", np.arange(data.n))] + [(f"tool {a} (m)", kin.p[:, i]) for i, a in enumerate("xyz")]
     if "t" in data.context:
         xs[0] = ("t − t0 (s)", data.context["t"] - data.context["t"].min())
-    save("residual_norm.png", residual_norm_figure(xs, pr, f"{title} residual norm vs time and workspace position"))
+    out["residual_norm.png"] = residual_norm_figure(xs, pr, f"{title} residual norm vs time and workspace position")
     spec = analysis.get("spectrum", {})
     if spec:
-        save("spectrum.png", spectrum_figure(spec, f"{title} harmonics of the partial joint residuals"))
+        out["spectrum.png"] = spectrum_figure(spec, f"{title} harmonics of the partial joint residuals")
     return out

@@ -7,7 +7,7 @@ Workflow of :func:`diagnose` (docs/discrepancy.md):
    no joint gains (an encoder gain error is a candidate effect, so it gets named).
 2. **Residual analysis** — partial joint residuals against joint angles, gravity
    torques, their sign, time/temperature, workspace position; χ² against the
-   noise; harmonics (:mod:`estcal.discrepancy.analysis`); plots in ``report``.
+   noise; harmonics (:mod:`estcal.discrepancy.analysis`); figures from :meth:`DiagnosisResult.figures`.
 3. **Candidates** — every registered effect (:mod:`estcal.effects`, users add
    theirs with :func:`~estcal.effects.register_effect`) on every joint it applies
    to (harmonic orders 1, 2, 3 as separate candidates; drift with ``t0`` = first
@@ -46,17 +46,21 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from scipy import stats
 
+from estcal.base.atomic import refuse_input
+from estcal.base.jsonio import write_json
+from estcal.base.progress import progress
+from estcal.effects import EFFECTS, make_effect
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
+from estcal.io.prepare import derive_approach, prepare_data, with_effect_context
+from estcal.io.robotfile import load_robot, robot_to_dict
+from estcal.io.savedmodel import save_diagnosis
 from estcal.methods import NoiseModel, Problem
-from estcal.base.progress import progress
 from estcal.validation import grouped_folds, posture_groups
 
-from .analysis import residual_analysis, save_plots
-from .geometric import (derive_approach, fit_geometric, gravity_ready, orthonormal_basis, weighted_system,
-                        with_effect_context)
+from .analysis import residual_analysis, residual_figures
+from .geometric import fit_geometric, gravity_ready, orthonormal_basis, weighted_system
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates", "cross_validate"]
 
@@ -76,8 +80,6 @@ class Candidate:
         return f"{self.effect}{o}({j})"
 
     def make(self, robot):
-        from estcal.effects import make_effect
-
         return make_effect(self.effect, robot, joints=self.joints, **self.options)
 
     def make_names(self, robot) -> list:
@@ -121,8 +123,6 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     both forms, whole arm and links only (``scope``). Time/temperature effects
     only when the data have the column they need.
     """
-    from estcal.effects import EFFECTS
-
     names = list(EFFECTS) if effects is None else list(effects)
     unknown = [e for e in names if e not in EFFECTS]
     if unknown:
@@ -253,12 +253,26 @@ class DiagnosisResult:
     # the error budget (estcal.discrepancy.budget, posture-grouped CV) when asked for, and its residual GP
     budget: dict | None = None
     residual_model: object = field(default=None, repr=False)
+    # what :meth:`figures` draws from: (geometric problem, θ, analysis, gravity torques, title, extended fit)
+    figure_inputs: tuple = field(default=None, repr=False)
+
+    def figures(self) -> dict:
+        """The residual figures, ``{file name: matplotlib Figure}``
+        (:func:`estcal.discrepancy.analysis.residual_figures`), and the error budget's when computed;
+        written by ``--report DIR``."""
+        out = {}
+        if self.figure_inputs is not None:
+            problem, theta, analysis, tau, title, extended = self.figure_inputs
+            out = residual_figures(problem, theta, analysis, tau=tau, title=title, extended=extended)
+        if self.budget:
+            from estcal.plots.budget import budget_figure
+
+            out["budget.png"] = budget_figure(self.budget)
+        return out
 
     def save_model(self, path, provenance: dict | None = None):
         """Write the identified robot (geometry + named effects at the joint estimate) as a
         robot file with a ``calibration:`` block (docs/robot-file.md, "Saved models")."""
-        from estcal.base.atomic import refuse_input
-        from estcal.io.savedmodel import save_diagnosis
 
         refuse_input(path, self._inputs())
         return save_diagnosis(self, path, provenance)
@@ -272,8 +286,6 @@ class DiagnosisResult:
         """``data`` prepared as the diagnosis prepared its own: approach columns from the posture
         order (if used), effect columns moved into the context, session time. Score new data
         with ``self.robot`` (extended) or ``self.geometric_robot`` after this."""
-        from estcal.io.savedmodel import prepare_data
-
         return prepare_data(self.robot, data, {k: self.model.get(k) for k in ("approach_from_order",
                                                                                 "session_time")})
 
@@ -301,8 +313,6 @@ class DiagnosisResult:
                        "report_files": self.report_files, "budget": self.budget})
 
     def to_json(self, path) -> Path:
-        from estcal.base.atomic import refuse_input
-        from estcal.base.jsonio import write_json
 
         refuse_input(path, self._inputs())
         return write_json(path, self.to_dict())
@@ -373,6 +383,8 @@ def _ic(rss, M, p, known):
 
 def _test(rss0, rss1, k, M, p1, known):
     """Significance of adding k parameters: LR (known σ) or nested F."""
+    from scipy import stats
+
     if known:
         stat = max(rss0 - rss1, 0.0)
         return "likelihood ratio", stat, float(stats.chi2.sf(stat, k))
@@ -406,9 +418,37 @@ def _fit(problem, theta, free, max_iter=100):
 
 
 # ------------------------------------------------------------------ main
+@dataclass
+class _Model:
+    """The model of the current step of the forward selection: its problem, estimate, free set, the
+    weighted residual sum of squares, its number of parameters, its cross-validated (RMSE, max) and fit."""
+
+    problem: object
+    theta: np.ndarray
+    free: list
+    rss: float
+    p: int
+    cv: tuple
+    res: object
+
+
+@dataclass
+class _Rules:
+    """The rules of every selection step (the diagnose options they come from)."""
+
+    known: bool
+    M: int
+    folds: list
+    alpha: float
+    min_explained: float
+    n_refit: int
+    regroup_tol: float
+    cv_max_iter: int
+
+
 def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, alpha: float = 0.01,
              max_effects: int = 3, min_explained: float = 0.3, n_refit: int = 3, regroup_tol: float = 1e-3,
-             ident_tol: float = 1e-4, free=None, report=None, rng=0, robot_spec=None, plots: bool = True,
+             ident_tol: float = 1e-4, free=None, rng=0, robot_spec=None,
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
              session_time: bool = True, approach_from_order: bool = False,
              families: bool = True, posture_tol=(1e-3, 1e-3), budget: bool = False,
@@ -433,8 +473,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         ``predicted_validation_mm``, all by posture-grouped CV with ``k_folds``) into ``result.budget``.
     residual_model : ``"gp"``: the budget's residual Gaussian process becomes part of the recommended
         model (``result.residual_model``; docs/real-data.md).
-    noise : measurement noise — a :class:`NoiseModel`, or a float (position std,
-        m, taken as known). None: unknown (relative weights, F tests).
+    noise : measurement noise, any form of :meth:`estcal.methods.NoiseModel.parse` — a float is the
+        position std σ (m) with orientation σ / 0.1 m (rad) — taken as known (a NoiseModel keeps
+        its own ``known``). None: unknown (relative weights, F tests).
     alpha : family-wise significance level of each selection step.
     max_effects : most effects named.
     min_explained : least fraction of the residual above the noise floor an effect
@@ -448,13 +489,12 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         :func:`~estcal.discrepancy.geometric.fit_geometric`. ``auto``: the one of the
         three with the lowest cross-validated RMSE on ``data``.
     approach_from_order : infer ``approach_<joint>`` columns from the posture order
-        (:func:`~estcal.discrepancy.geometric.derive_approach`) for data and validation
+        (:func:`~estcal.io.prepare.derive_approach`) for data and validation
         data, so that backlash is tested against the approach direction.
     session_time : measure ``t`` from the first pose of each dataset (drift and
         warm-up are session effects; a validation file from another day then
         starts at its own t = 0). The absolute time stays in ``columns["t_abs"]``.
     free : explicit geometric free set (default: identifiable geometric parameters).
-    report : folder for plots, ``diagnosis.json`` and ``summary.txt``.
     rng : seed of the fold assignment.
     families : also screen each joint effect as one family over all its joints
         (see :func:`default_candidates`); tried only at steps where no single-joint
@@ -462,8 +502,63 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     robot_spec : how to reload the nominal robot (stored in the fit for
         :func:`estcal.discrepancy.feedback.simulate_from_fit`).
     """
-    from estcal.io.robotfile import load_robot
+    robot, robot_spec, data, validate, sessions = _prepare_data(robot, data, validate, robot_spec,
+                                                                approach_from_order, session_time)
+    # the one rule of every noise= (NoiseModel.parse): a number σ is taken as known
+    nm = NoiseModel(known=False) if noise is None else NoiseModel.parse(noise, known=True)
+    known = bool(nm.known)
 
+    # 1. geometric model
+    folds = grouped_folds(posture_groups(data.readings, robot.joint_types, *posture_tol), k_folds, rng)
+    geometric, level_cv = _geometric_level(robot, data, nm, folds, geometric, ident_tol, cv_max_iter)
+    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
+    theta_g = gres.theta.copy()
+    grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
+    problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])
+    b, _, _ = weighted_system(problem, theta_g, gfree)
+    geo = _Model(problem, theta_g, list(gfree), float(b @ b), len(gfree),
+                 cross_validate(problem, theta_g, gfree, folds, cv_max_iter), gres)
+
+    # 2. residual analysis
+    tau = grobot.gravity_torques(data.readings, theta_g, data.context)
+    analysis = residual_analysis(problem, theta_g, known, geo.p, {"tau": tau})
+    analysis.update(lumped_masses=lumped, geometric_level=geometric)
+    if level_cv:
+        analysis["geometric_level_cv_mm"] = level_cv
+
+    # 3.-4. forward selection of effects
+    rules = _Rules(known, len(b), folds, alpha, min_explained, n_refit, regroup_tol, cv_max_iter)
+    cands = _candidates(candidates, grobot, data, families)
+    causes, steps, final = _forward_selection(geo, cands, rules, max_effects, verbose)
+    causes, located = _locate_harmonic_series(causes)
+
+    # 5. output
+    result = _result(robot, robot_spec, data, validate, sessions, nm, geo, final, causes, located, steps, analysis,
+                     gdropped, lumped, geometric, approach_from_order, session_time)
+    result.figure_inputs = (problem, theta_g, analysis, tau, robot.name,
+                            (final.problem, final.theta) if causes else None)
+    if budget or residual_model:
+        _error_budget(result, robot, data, nm, geometric, k_folds, rng, posture_tol, residual_model, causes)
+    return result
+
+
+def _error_budget(result, robot, data, nm, geometric, k_folds, rng, posture_tol, residual_model, causes) -> None:
+    """The error budget of the diagnosis (:func:`estcal.discrepancy.budget.error_budget`, posture-grouped CV)
+    into ``result.budget``, and its residual Gaussian process into ``result.residual_model``."""
+    from estcal.discrepancy.budget import error_budget
+
+    b = error_budget(robot, data, nm, level=geometric, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
+                     tol_m=posture_tol[1], residual_model=residual_model,
+                     effects=[(c.effect, list(c.joints), dict(c.options or {})) for c in causes])
+    result.budget = b.to_dict()
+    result.residual_model = b.residual_model
+
+
+def _prepare_data(robot, data, validate, robot_spec, approach_from_order, session_time):
+    """The robot (loaded, with one marker per measured point) and the data as the diagnosis reads them:
+    sessions stacked, approach columns from the posture order, effect columns in the context, ``t``
+    from each session's first pose. Returns ``(robot, robot_spec, data, validate, sessions)``;
+    ``sessions`` is the list of datasets when several were stacked, else None."""
     sessions = list(data) if isinstance(data, (list, tuple)) else None
     if sessions is not None:
         if not sessions:
@@ -475,13 +570,6 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     if data.kind == "points" and robot.n_markers == 0:
         # unknown points on the tool: markers initialised at the tool origin, estimated with the rest
         robot = load_robot(robot, n_markers=data.n_points)
-    if isinstance(noise, NoiseModel):
-        nm = noise
-    elif noise is None:
-        nm = NoiseModel(known=False)
-    else:
-        nm = NoiseModel(position=float(noise), orientation=float(noise), scalar=float(noise), known=True)
-    known = bool(nm.known)
     stacked = sessions is not None and len(sessions) > 1
     if stacked:
         # several sessions (one dataset each): approach directions and session time are
@@ -491,9 +579,8 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         parts = []
         for d in sessions:
             d = derive_approach(d) if approach_from_order else d.subset(slice(None))
-            if session_time and "t" in d.context:
-                d.columns["t_abs"] = d.context["t"].copy()
-                d.context["t"] = d.context["t"] - d.context["t"].min()
+            if session_time:
+                _session_time(d)
             parts.append(d)
         data = stack_sessions(parts)
     if approach_from_order:
@@ -504,190 +591,224 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     validate = [with_effect_context(robot, d) for d in validate]
     if session_time:
         for d in ([] if stacked else [data]) + validate:
-            if "t" in d.context:
-                d.columns["t_abs"] = d.context["t"].copy()
-                d.context["t"] = d.context["t"] - d.context["t"].min()
+            _session_time(d)
+    return robot, robot_spec, data, validate, (sessions if stacked else None)
 
-    # 1. geometric model ------------------------------------------------------
-    postures = posture_groups(data.readings, robot.joint_types, *posture_tol)
-    folds = grouped_folds(postures, k_folds, rng)
+
+def _session_time(d) -> None:
+    """``t`` measured from the dataset's first pose (the absolute time kept in ``columns["t_abs"]``)."""
+    if "t" in d.context:
+        d.columns["t_abs"] = d.context["t"].copy()
+        d.context["t"] = d.context["t"] - d.context["t"].min()
+
+
+def _geometric_level(robot, data, noise, folds, geometric, ident_tol, cv_max_iter):
+    """``(level, {level: CV RMSE mm})``: ``geometric`` itself, or for ``"auto"`` the level of
+    ``joint_offset``, ``aic`` and ``full`` with the lowest cross-validated RMSE on these data."""
+    if geometric != "auto":
+        return geometric, {}
     level_cv = {}
-    if geometric == "auto":
-        # the level with the lowest cross-validated RMSE on these data
-        for lv in ("joint_offset", "aic", "full"):
-            pb_l, res_l, free_l, _ = fit_geometric(robot, data, nm, tol=ident_tol, level=lv)
-            level_cv[lv] = cross_validate(pb_l, res_l.theta, free_l, folds, cv_max_iter)[0]
-        geometric = min(level_cv, key=level_cv.get)
-    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
-    theta_g = gres.theta.copy()
-    grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
-    problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])
-    b, A, _ = weighted_system(problem, theta_g, gfree)
-    M = len(b)
-    rss_g = float(b @ b)
-    p_g = len(gfree)
-    cv_g = cross_validate(problem, theta_g, gfree, folds, cv_max_iter)
+    for lv in ("joint_offset", "aic", "full"):
+        pb_l, res_l, free_l, _ = fit_geometric(robot, data, noise, tol=ident_tol, level=lv)
+        level_cv[lv] = cross_validate(pb_l, res_l.theta, free_l, folds, cv_max_iter)[0]
+    return min(level_cv, key=level_cv.get), level_cv
 
-    # 2. residual analysis -----------------------------------------------------
-    tau = grobot.gravity_torques(data.readings, theta_g, data.context)
-    analysis = residual_analysis(problem, theta_g, known, p_g, {"tau": tau})
-    analysis["lumped_masses"] = lumped
-    analysis["geometric_level"] = geometric
-    if level_cv:
-        analysis["geometric_level_cv_mm"] = level_cv
 
-    # 3.-4. forward selection ---------------------------------------------------
+def _candidates(candidates, robot, data, families) -> list:
+    """The candidate effects: every registered one (None), or the given candidates and effect names."""
     if candidates is None:
-        cands = default_candidates(grobot, data, families=families)
-    else:
-        cands = []
-        for c in candidates:
-            if isinstance(c, Candidate):
-                cands.append(c)
-            elif isinstance(c, str):
-                cands += default_candidates(grobot, data, effects=[c], families=families)
-            else:
-                cands.append(Candidate(*c))
-    cur_problem, cur_theta, cur_free = problem, theta_g, list(gfree)
-    cur_rss, cur_p, cur_cv = rss_g, p_g, cv_g
-    causes, steps, used = [], [], set()
-    cur_res = gres
+        return default_candidates(robot, data, families=families)
+    cands = []
+    for c in candidates:
+        if isinstance(c, Candidate):
+            cands.append(c)
+        elif isinstance(c, str):
+            cands += default_candidates(robot, data, effects=[c], families=families)
+        else:
+            cands.append(Candidate(*c))
+    return cands
+
+
+def _forward_selection(geo: _Model, cands, rules: _Rules, max_effects: int, verbose: bool):
+    """Add one effect per step while one passes every test (module docstring, steps 3-4).
+
+    Returns ``(causes, steps, final)``: the named causes with the estimates of the final joint fit,
+    the record of every step, and the final model."""
+    cur, causes, steps, used = geo, [], [], set()
     for step in range(max_effects):
-        b, A, _ = weighted_system(cur_problem, cur_theta, cur_free)
-        Q = orthonormal_basis(A)
-        b_perp = b - Q @ (Q.T @ b)
-        table = []
-        for c in progress(cands, desc=f"diagnose: step {step + 1}, candidate effects", unit="effect"):
-            if c.label in used:
-                continue
-            have = set(cur_problem.robot.params.names)
-            if c.joints and len(c.joints) > 1:
-                # a family: the joints of this effect not yet in the model (≥ 2), so the rest of a
-                # compound effect is still searched after some of its joints were named singly
-                rest = [j for j in c.joints
-                        if not have.intersection(Candidate(c.effect, [j], c.options).make_names(cur_problem.robot))]
-                if len(rest) < 2:
-                    continue
-                c = Candidate(c.effect, rest, c.options)
-                if c.label in used:
-                    continue
-            elif c.joints and have.intersection(c.make_names(cur_problem.robot)):
-                continue  # already in the model as part of an accepted family
-            entry = {"candidate": c.label, "effect": c.effect, "joints": c.joints}
-            try:
-                eff = c.make(cur_problem.robot)
-                rob = cur_problem.robot.with_values(cur_theta).add_effect(eff)
-                prob = Problem(rob, [(t.method, t.data, t.noise) for t in cur_problem.terms])
-                names = list(eff.param_names)
-                th_c = rob.params.values.copy()
-                _, E, _ = weighted_system(prob, th_c, names)
-            except Exception as exc:  # an effect that cannot run on these data (missing column …)
-                entry.update(status="skipped", reason=str(exc))
-                table.append(entry)
-                continue
-            En = np.linalg.norm(E, axis=0)
-            Ep = E - Q @ (Q.T @ E)
-            rel = np.linalg.norm(Ep, axis=0) / np.maximum(En, 1e-300)
-            sv = np.linalg.svd(Ep / np.maximum(En, 1e-300), compute_uv=False)
-            if np.any(En == 0) or rel.min() < regroup_tol or sv.min() < regroup_tol * sv.max():
-                entry.update(status="regroups", orthogonal_fraction=float(min(rel.min(), sv.min() / sv.max())
-                                                                          if En.all() else 0.0),
-                             relation=_regrouping(A, cur_free, E, names))
-                table.append(entry)
-                continue
-            x, *_ = np.linalg.lstsq(Ep, b_perp, rcond=None)
-            r = b_perp - Ep @ x
-            rss1 = float(r @ r)
-            k = len(names)
-            entry.update(status="ok", k=k, rss_linear=rss1,
-                         delta_bic_linear=_ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known),
-                         _obj=(c, rob, prob, names))
-            table.append(entry)
-        ok = [e for e in table if e["status"] == "ok"]
-        n_tested = max(len(ok), 1)
-        ok.sort(key=lambda e: e["delta_bic_linear"])
-        # Single-joint and whole-arm candidates first; a family (one effect over several
-        # joints) only when none of them is accepted at this step, so a compound effect
-        # of weak per-joint terms is found without a family absorbing a single-joint cause.
-        accepted = None
-        for group in ([e for e in ok if not _is_family(e)], [e for e in ok if _is_family(e)]):
-            if accepted is not None:
-                break
-            refits, n_cv = [], 0
-            for e in group[:n_refit]:
-                c, rob, prob, names = e["_obj"]
-                res = _fit(prob, rob.params.values, cur_free + names)
-                rss1 = float(res.chi2)
-                k = len(names)
-                dbic = _ic(rss1, M, cur_p + k, known) - _ic(cur_rss, M, cur_p, known)
-                tname, stat, pval = _test(cur_rss, rss1, k, M, cur_p + k, known)
-                e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
-                refits.append((dbic, e, res))
-            refits.sort(key=lambda t: t[0])
-            for dbic, e, res in refits:
-                c, rob, prob, names = e["_obj"]
-                excess = cur_rss - (max(M - cur_p, 0) if known else 0.0)
-                frac_excess = (cur_rss - e["rss"]) / excess if excess > 0 else 0.0
-                e["explained_excess_fraction"] = float(frac_excess)
-                reasons = []
-                if not dbic < 0:
-                    reasons.append("ΔBIC ≥ 0")
-                if not e["p_value"] < alpha / n_tested:
-                    reasons.append(f"p = {e['p_value']:.2g} ≥ α/{n_tested}")
-                if not frac_excess >= min_explained:
-                    reasons.append(f"explains {100 * frac_excess:.0f}% < {100 * min_explained:.0f}% of the excess")
-                if not reasons and n_cv < 2:
-                    n_cv += 1
-                    cv_e = cross_validate(prob, res.theta, cur_free + names, folds, cv_max_iter)
-                    e["cv_rmse_mm"] = cv_e[0]
-                    if not cv_e[0] < cur_cv[0]:
-                        reasons.append(f"CV RMSE {cv_e[0]:.4g} ≥ {cur_cv[0]:.4g} mm")
-                elif not reasons:
-                    reasons.append("not cross-validated (limit)")
-                e["rejected"] = reasons
-                if not reasons:
-                    accepted = (e, res, cv_e)
-                    break
-        steps.append({"step": step + 1, "rss_before": cur_rss, "n_candidates": len(cands) - len(used),
-                      "n_tested": len(ok), "alpha_per_test": alpha / n_tested,
-                      "table": [{k: _plain(v) for k, v in e.items() if not k.startswith("_")}
-                                for e in sorted(table, key=lambda e: e.get("delta_bic_linear", np.inf))[:12]],
-                      "regroups": {e["candidate"]: _plain(e.get("relation", {})) for e in table
-                                   if e["status"] == "regroups"},
-                      "accepted": accepted[0]["candidate"] if accepted else None})
+        table = _screen(cur, cands, used, rules, step)
+        ok = sorted((e for e in table if e["status"] == "ok"), key=lambda e: e["delta_bic_linear"])
+        accepted, refits = _refit_and_test(cur, ok, rules)
+        steps.append(_step_record(step, cur, cands, used, table, ok, accepted, rules))
         if verbose:
             print(f"step {step + 1}: " + ", ".join(f"{e['candidate']} ΔBIC {e['delta_bic']:.1f} "
                                                    f"p {e['p_value']:.2g} {e.get('rejected')}"
                                                    for _, e, _ in refits))
         if accepted is None:
             break
-        e, res, cv_e = accepted
-        c, rob, prob, names = e["_obj"]
-        used.add(c.label)
-        params = {n: {"estimate": float(res.parameter(n)[0]), "std": float(res.parameter(n)[1])} for n in names}
-        causes.append(Cause(c.effect, list(c.joints or []), params, float(e["delta_bic"]), e["test"],
-                            float(e["statistic"]), float(e["p_value"]), (cur_rss - e["rss"]) / rss_g,
-                            float(e["explained_excess_fraction"]), cur_cv[0], cv_e[0], _plain(c.options)))
-        # Competing explanations: refitted candidates whose BIC is within 10 of the accepted one
-        # (Kass & Raftery: a BIC difference above 10 is very strong evidence).
-        causes[-1].alternatives = [{"candidate": o["candidate"], "delta_bic_difference": float(o["delta_bic"]
-                                                                                            - e["delta_bic"])}
-                                   for _, o, _ in refits if o is not e and o["delta_bic"] - e["delta_bic"] < 10]
-        cur_problem, cur_theta, cur_free = prob, res.theta.copy(), cur_free + names
-        cur_rss, cur_p, cur_cv = float(e["rss"]), cur_p + len(names), cv_e
-        cur_res = res
-    if causes:
-        # estimates of the final (jointly fitted) model, not those of the step that added each effect
-        for c in causes:
-            c.parameters = {n: {"estimate": float(cur_res.parameter(n)[0]), "std": float(cur_res.parameter(n)[1])}
-                            for n in c.parameters}
+        cur = _add_cause(cur, accepted, refits, causes, used, geo.rss)
+    for c in causes:  # estimates of the final (jointly fitted) model, not those of the step that added each
+        c.parameters = {n: {"estimate": float(cur.res.parameter(n)[0]), "std": float(cur.res.parameter(n)[1])}
+                        for n in c.parameters}
+    return causes, steps, cur
 
-    # A gear harmonic is one order of the joint angle. When several orders of the same joint
-    # are selected, the data describe a smooth function of that angle that the harmonics only
-    # approximate term by term (a Fourier series of, e.g., a quadratic error): the joint is
-    # located, but no library mechanism is named for it.
-    located = []
-    groups: dict = {}
+
+def _screen(cur: _Model, cands, used, rules: _Rules, step: int) -> list[dict]:
+    """Every candidate not in the model yet, linearised at the current estimate: its columns projected
+    orthogonally to the model's; regrouped (not identifiable) when they vanish there, else the
+    linear least-squares gain and ΔBIC."""
+    b, A, _ = weighted_system(cur.problem, cur.theta, cur.free)
+    Q = orthonormal_basis(A)
+    b_perp = b - Q @ (Q.T @ b)
+    table = []
+    for c in progress(cands, desc=f"diagnose: step {step + 1}, candidate effects", unit="effect"):
+        c = _remaining(c, cur.problem.robot, used)
+        if c is None:
+            continue
+        entry = {"candidate": c.label, "effect": c.effect, "joints": c.joints}
+        try:
+            eff = c.make(cur.problem.robot)
+            rob = cur.problem.robot.with_values(cur.theta).add_effect(eff)
+            prob = Problem(rob, [(t.method, t.data, t.noise) for t in cur.problem.terms])
+            names = list(eff.param_names)
+            _, E, _ = weighted_system(prob, rob.params.values.copy(), names)
+        except Exception as exc:  # an effect that cannot run on these data (missing column …)
+            entry.update(status="skipped", reason=str(exc))
+            table.append(entry)
+            continue
+        En = np.linalg.norm(E, axis=0)
+        Ep = E - Q @ (Q.T @ E)
+        rel = np.linalg.norm(Ep, axis=0) / np.maximum(En, 1e-300)
+        sv = np.linalg.svd(Ep / np.maximum(En, 1e-300), compute_uv=False)
+        if np.any(En == 0) or rel.min() < rules.regroup_tol or sv.min() < rules.regroup_tol * sv.max():
+            entry.update(status="regroups", orthogonal_fraction=float(min(rel.min(), sv.min() / sv.max())
+                                                                      if En.all() else 0.0),
+                         relation=_regrouping(A, cur.free, E, names))
+            table.append(entry)
+            continue
+        x, *_ = np.linalg.lstsq(Ep, b_perp, rcond=None)
+        r = b_perp - Ep @ x
+        rss1 = float(r @ r)
+        k = len(names)
+        entry.update(status="ok", k=k, rss_linear=rss1,
+                     delta_bic_linear=_ic(rss1, rules.M, cur.p + k, rules.known) - _ic(cur.rss, rules.M, cur.p,
+                                                                                      rules.known),
+                     _obj=(c, rob, prob, names))
+        table.append(entry)
+    return table
+
+
+def _remaining(c, robot, used):
+    """The candidate as it can still be added: None when it is in the model; a family reduced to its
+    joints not yet in the model (≥ 2), so that the rest of a compound effect is still searched
+    after some of its joints were named singly."""
+    if c.label in used:
+        return None
+    have = set(robot.params.names)
+    if c.joints and len(c.joints) > 1:
+        rest = [j for j in c.joints if not have.intersection(Candidate(c.effect, [j], c.options).make_names(robot))]
+        if len(rest) < 2:
+            return None
+        c = Candidate(c.effect, rest, c.options)
+        return None if c.label in used else c
+    if c.joints and have.intersection(c.make_names(robot)):
+        return None  # already in the model as part of an accepted family
+    return c
+
+
+def _refit_and_test(cur: _Model, ok, rules: _Rules):
+    """Refit the best linearised candidates nonlinearly and test them in order of ΔBIC: the first
+    that lowers BIC, is significant at α / (candidates tested), explains enough of the excess
+    residual and lowers the cross-validated RMSE is accepted. Single-joint and whole-arm
+    candidates first; a family (one effect over several joints) only when none of them is
+    accepted, so that a compound effect of weak per-joint terms is found without a family
+    absorbing a single-joint cause. Returns ``(accepted or None, refits)``."""
+    n_tested = max(len(ok), 1)
+    accepted, refits = None, []
+    for group in ([e for e in ok if not _is_family(e)], [e for e in ok if _is_family(e)]):
+        if accepted is not None:
+            break
+        refits = sorted((_refit(cur, e, rules) for e in group[:rules.n_refit]), key=lambda t: t[0])
+        n_cv = 0
+        for dbic, e, res in refits:
+            reasons, cv_e, n_cv = _rejections(cur, e, res, dbic, n_tested, n_cv, rules)
+            e["rejected"] = reasons
+            if not reasons:
+                accepted = (e, res, cv_e)
+                break
+    return accepted, refits
+
+
+def _refit(cur: _Model, e, rules: _Rules):
+    """``(ΔBIC, entry, fit)`` of the model with the candidate's parameters, refitted nonlinearly."""
+    c, rob, prob, names = e["_obj"]
+    res = _fit(prob, rob.params.values, cur.free + names)
+    rss1 = float(res.chi2)
+    k = len(names)
+    dbic = _ic(rss1, rules.M, cur.p + k, rules.known) - _ic(cur.rss, rules.M, cur.p, rules.known)
+    tname, stat, pval = _test(cur.rss, rss1, k, rules.M, cur.p + k, rules.known)
+    e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
+    return dbic, e, res
+
+
+def _rejections(cur: _Model, e, res, dbic, n_tested, n_cv, rules: _Rules):
+    """``(reasons, cv, n_cv)``: why the refitted candidate is not named (empty: it is), its
+    cross-validated (RMSE, max) when it was cross-validated (at most two per step)."""
+    c, rob, prob, names = e["_obj"]
+    excess = cur.rss - (max(rules.M - cur.p, 0) if rules.known else 0.0)
+    frac_excess = (cur.rss - e["rss"]) / excess if excess > 0 else 0.0
+    e["explained_excess_fraction"] = float(frac_excess)
+    reasons, cv_e = [], None
+    if not dbic < 0:
+        reasons.append("ΔBIC ≥ 0")
+    if not e["p_value"] < rules.alpha / n_tested:
+        reasons.append(f"p = {e['p_value']:.2g} ≥ α/{n_tested}")
+    if not frac_excess >= rules.min_explained:
+        reasons.append(f"explains {100 * frac_excess:.0f}% < {100 * rules.min_explained:.0f}% of the excess")
+    if not reasons and n_cv < 2:
+        n_cv += 1
+        cv_e = cross_validate(prob, res.theta, cur.free + names, rules.folds, rules.cv_max_iter)
+        e["cv_rmse_mm"] = cv_e[0]
+        if not cv_e[0] < cur.cv[0]:
+            reasons.append(f"CV RMSE {cv_e[0]:.4g} ≥ {cur.cv[0]:.4g} mm")
+    elif not reasons:
+        reasons.append("not cross-validated (limit)")
+    return reasons, cv_e, n_cv
+
+
+def _step_record(step, cur: _Model, cands, used, table, ok, accepted, rules: _Rules) -> dict:
+    """What one step tried (the 12 best linearised candidates), what regroups, what was accepted."""
+    return {"step": step + 1, "rss_before": cur.rss, "n_candidates": len(cands) - len(used),
+            "n_tested": len(ok), "alpha_per_test": rules.alpha / max(len(ok), 1),
+            "table": [{k: _plain(v) for k, v in e.items() if not k.startswith("_")}
+                      for e in sorted(table, key=lambda e: e.get("delta_bic_linear", np.inf))[:12]],
+            "regroups": {e["candidate"]: _plain(e.get("relation", {})) for e in table if e["status"] == "regroups"},
+            "accepted": accepted[0]["candidate"] if accepted else None}
+
+
+def _add_cause(cur: _Model, accepted, refits, causes, used, rss_geometric) -> _Model:
+    """Name the accepted effect (with its competing explanations) and return the extended model."""
+    e, res, cv_e = accepted
+    c, rob, prob, names = e["_obj"]
+    used.add(c.label)
+    params = {n: {"estimate": float(res.parameter(n)[0]), "std": float(res.parameter(n)[1])} for n in names}
+    cause = Cause(c.effect, list(c.joints or []), params, float(e["delta_bic"]), e["test"], float(e["statistic"]),
+                  float(e["p_value"]), (cur.rss - e["rss"]) / rss_geometric, float(e["explained_excess_fraction"]),
+                  cur.cv[0], cv_e[0], _plain(c.options))
+    # Competing explanations: refitted candidates whose BIC is within 10 of the accepted one
+    # (Kass & Raftery: a BIC difference above 10 is very strong evidence).
+    cause.alternatives = [{"candidate": o["candidate"], "delta_bic_difference": float(o["delta_bic"] - e["delta_bic"])}
+                          for _, o, _ in refits if o is not e and o["delta_bic"] - e["delta_bic"] < 10]
+    causes.append(cause)
+    return _Model(prob, res.theta.copy(), cur.free + names, float(e["rss"]), cur.p + len(names), cv_e, res)
+
+
+def _locate_harmonic_series(causes):
+    """``(causes, located)``: a gear harmonic is one order of the joint angle. When several orders of
+    the same joint are selected, the data describe a smooth function of that angle that the
+    harmonics only approximate term by term (a Fourier series of, e.g., a quadratic error): the
+    joint is located, but no library mechanism is named for it."""
+    located, groups = [], {}
     for c in causes:
         if c.effect == "gear_harmonic":
             groups.setdefault(tuple(c.joints), []).append(c)
@@ -699,74 +820,48 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
                             "explained_fraction": float(sum(c.explained_fraction for c in cs)),
                             "terms": [c.to_dict() for c in cs]})
             causes = [c for c in causes if c not in cs]
+    return causes, located
 
-    # 5. output ---------------------------------------------------------------
-    gr = problem.robot
-    xr = cur_problem.robot
-    tr_g = _scores(gr, theta_g, [data])
-    tr_x = _scores(xr, cur_theta, [data])
-    va_g = _scores(gr, theta_g, validate)
-    va_x = _scores(xr, cur_theta, validate)
-    rmse = {"geometric": {"train": tr_g[0], "cv": cv_g[0], "validation": va_g[0]},
-            "extended": {"train": tr_x[0], "cv": cur_cv[0], "validation": va_x[0]}}
-    mx = {"geometric": {"train": tr_g[1], "cv": cv_g[1], "validation": va_g[1]},
-          "extended": {"train": tr_x[1], "cv": cur_cv[1], "validation": va_x[1]}}
+
+def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final: _Model, causes, located, steps,
+            analysis, gdropped, lumped, geometric, approach_from_order, session_time) -> DiagnosisResult:
+    """The :class:`DiagnosisResult`: RMSE / max of both models on the training data, in cross-validation
+    and on the validation data, the verdict, and the two models as plain data."""
+    gr, xr = geo.problem.robot, final.problem.robot
+    tr_g, tr_x = _scores(gr, geo.theta, [data]), _scores(xr, final.theta, [data])
+    va_g, va_x = _scores(gr, geo.theta, validate), _scores(xr, final.theta, validate)
+    rmse = {"geometric": {"train": tr_g[0], "cv": geo.cv[0], "validation": va_g[0]},
+            "extended": {"train": tr_x[0], "cv": final.cv[0], "validation": va_x[0]}}
+    mx = {"geometric": {"train": tr_g[1], "cv": geo.cv[1], "validation": va_g[1]},
+          "extended": {"train": tr_x[1], "cv": final.cv[1], "validation": va_x[1]}}
     if validate:
-        rmse["validation_each"] = {"geometric": [_scores(gr, theta_g, [d])[0] for d in validate],
-                                   "extended": [_scores(xr, cur_theta, [d])[0] for d in validate],
+        rmse["validation_each"] = {"geometric": [_scores(gr, geo.theta, [d])[0] for d in validate],
+                                   "extended": [_scores(xr, final.theta, [d])[0] for d in validate],
                                    "paths": [d.where for d in validate]}
-    final_floor = residual_analysis(cur_problem, cur_theta, known, cur_p)["noise_floor"]
+    final_floor = residual_analysis(final.problem, final.theta, bool(nm.known), final.p)["noise_floor"]
     analysis["noise_floor_extended"] = final_floor
-    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, known, located)
+    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, bool(nm.known), located)
     model = {"robot": getattr(robot, "name", None), "robot_spec": robot_spec, "n_markers": int(robot.n_markers),
              "gravity": gr.gravity.tolist(), "lumped_masses": lumped,
              "effects": [e.to_dict() for e in xr.effects],
-             "theta": dict(zip(xr.params.names, map(float, cur_theta))),
-             "free": cur_free, "noise": nm.to_dict(), "geometric_level": geometric,
+             "theta": dict(zip(xr.params.names, map(float, final.theta))),
+             "free": final.free, "noise": nm.to_dict(), "geometric_level": geometric,
              "approach_from_order": bool(approach_from_order), "session_time": bool(session_time),
              "residual": {"rmse_mm": tr_x[0], "max_mm": tr_x[1], "chi2_per_dof": final_floor["chi2_per_dof"]}}
-    gmodel = {"theta": dict(zip(gr.params.names, map(float, theta_g))), "free": gfree,
+    gmodel = {"theta": dict(zip(gr.params.names, map(float, geo.theta))), "free": geo.free,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],
                            "chi2_per_dof": analysis["noise_floor"]["chi2_per_dof"]}}
     try:  # the nominal robot itself, so the fit needs no robot file to be simulated again
-        from estcal.io.robotfile import robot_to_dict
-
         model["robot_dict"] = robot_to_dict(robot)
     except ValueError:  # a robot the file format cannot express: the fit names it by robot_spec
         pass
-    final = cur_res  # the last accepted joint fit (the geometric fit when nothing was named)
-    result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), gfree, gdropped, model,
-                             gmodel, lumped, robot=xr.with_values(cur_theta),
-                             geometric_robot=gr.with_values(theta_g), covariance=np.asarray(final.covariance),
-                             covariance_names=list(final.names), sigma0=float(final.sigma0),
-                             train_data=list(sessions) if stacked else data,
-                             validation_data=list(validate))
+    # the last accepted joint fit (the geometric fit when nothing was named) gives the covariance
+    result = DiagnosisResult(causes, verdict, rmse, mx, analysis, steps, nm.to_dict(), geo.free, gdropped, model,
+                             gmodel, lumped, robot=xr.with_values(final.theta),
+                             geometric_robot=gr.with_values(geo.theta), covariance=np.asarray(final.res.covariance),
+                             covariance_names=list(final.res.names), sigma0=float(final.res.sigma0),
+                             train_data=list(sessions) if sessions else data, validation_data=list(validate))
     result.located = located
-    if budget or residual_model:
-        from estcal.discrepancy.budget import error_budget
-
-        b = error_budget(robot, data, nm, level=geometric, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
-                         tol_m=posture_tol[1], residual_model=residual_model,
-                         effects=[(c.effect, list(c.joints), dict(c.options or {})) for c in causes])
-        result.budget = b.to_dict()
-        result.residual_model = b.residual_model
-    if report is not None:
-        folder = Path(report)
-        folder.mkdir(parents=True, exist_ok=True)
-        files = []
-        if plots:
-            files = save_plots(folder, problem, theta_g, analysis, tau=tau, title=robot.name,
-                               extended=(cur_problem, cur_theta) if causes else None)
-        if result.budget:
-            from estcal.plots.budget import budget_figure
-
-            budget_figure(result.budget).savefig(folder / "budget.png", dpi=110)
-            files.append("budget.png")
-        result.report_files = files + ["diagnosis.json", "summary.txt"]
-        result.to_json(folder / "diagnosis.json")
-        from estcal.base.atomic import atomic_write_text
-
-        atomic_write_text(folder / "summary.txt", str(result) + "\n")
     return result
 
 

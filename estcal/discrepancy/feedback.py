@@ -18,6 +18,18 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.textinput import read_json
+from estcal.effects import make_effect
+from estcal.io.prepare import with_effect_context
+from estcal.io.robotfile import load_robot
+from estcal.kinematics.chain import SerialRobot
+from estcal.simulate import NoiseModel, simulate
+from estcal.simulate.core import simulation_noise
+
+from .analysis import partial_joint_residuals
+from .diagnose import _scores
+from .geometric import fit_geometric, gravity_ready
+
 __all__ = ["load_fit", "identified_robot", "simulate_from_fit", "simulate_like", "residual_comparison"]
 
 
@@ -27,7 +39,6 @@ def load_fit(fit) -> dict:
         return fit.to_dict()
     if isinstance(fit, dict):
         return fit
-    from estcal.base.textinput import read_json
 
     path = Path(fit)
     d = read_json(path, "diagnosis fit", ValueError)
@@ -49,9 +60,6 @@ def identified_robot(fit, robot=None, geometric_only: bool = False):
     Returns ``(geometric robot at the identified values, effect specs)`` where the specs are
     ``[{effect, joints, options, params}]`` ready for :func:`estcal.simulate.simulate`.
     """
-    from estcal.kinematics.chain import SerialRobot
-
-    from .geometric import gravity_ready
 
     d = load_fit(fit)
     m = d["model"]
@@ -70,8 +78,6 @@ def identified_robot(fit, robot=None, geometric_only: bool = False):
     specs = []
     if not geometric_only:
         for e in m.get("effects", []):
-            from estcal.effects import make_effect
-
             eff = make_effect(e["effect"], geo, joints=e.get("joints") or None, **(e.get("options") or {}))
             missing = [n for n in eff.param_names if n not in theta]
             if missing:
@@ -84,8 +90,6 @@ def identified_robot(fit, robot=None, geometric_only: bool = False):
 
 def _nominal(m: dict, robot=None):
     """The nominal robot of a fit's ``model`` section (or ``robot`` when given)."""
-    from estcal.io.robotfile import load_robot
-    from estcal.kinematics.chain import SerialRobot
 
     if robot is None and m.get("robot_dict"):
         # the fit carries its nominal robot (masses included): no robot file needed
@@ -123,7 +127,8 @@ def simulate_from_fit(fit, robot=None, readings=None, n_poses: int = 50, strateg
         otherwise ``n_poses`` from ``strategy``.
     measure : ``points`` / ``position`` / ``pose`` (default: ``points`` when the
         fit has several markers, else ``position``).
-    noise : :class:`estcal.simulate.NoiseModel`, dict, or a float position σ (m);
+    noise : any form of :meth:`estcal.methods.NoiseModel.parse` (a float σ: position σ m, orientation
+        σ / 0.1 m rad);
         default the fit's known noise, else the per-coordinate RMS the extended
         model left (``rmse / √3``).
     context : per-pose ``t`` / ``temperature`` / ``payload`` (dict) for the effects.
@@ -133,7 +138,6 @@ def simulate_from_fit(fit, robot=None, readings=None, n_poses: int = 50, strateg
     -------
     estcal.simulate.SimulationResult — its ``true_robot`` is the identified robot.
     """
-    from estcal.simulate import NoiseModel, simulate
 
     d = load_fit(fit)
     geo, specs = identified_robot(d, robot, geometric_only)
@@ -146,8 +150,8 @@ def simulate_from_fit(fit, robot=None, readings=None, n_poses: int = 50, strateg
         else:
             s = float(d["model"]["residual"]["rmse_mm"]) * 1e-3 / np.sqrt(3.0)
         noise = NoiseModel(position=s, orientation=float(nz.get("orientation", s)) if nz.get("known") else s)
-    elif isinstance(noise, (int, float)):
-        noise = NoiseModel(position=float(noise), orientation=float(noise))
+    else:
+        noise = simulation_noise(noise)
     ctx = dict(context or {})
     if d["model"].get("approach_from_order") and any(sp["effect"] == "backlash" for sp in specs):
         # the backlash was identified against the approach direction: keep that meaning
@@ -167,9 +171,6 @@ def simulate_like(fit, data, robot=None, noise=None, seed: int | None = 0):
     approach direction, drift, thermal expansion) act as they did on the real robot.
     ``noise``: position σ (m); default as in :func:`simulate_from_fit`.
     """
-    from estcal.effects import make_effect
-
-    from .geometric import with_effect_context
 
     d = load_fit(fit)
     geo, specs = identified_robot(d, robot)
@@ -184,7 +185,7 @@ def simulate_like(fit, data, robot=None, noise=None, seed: int | None = 0):
             float(d["model"]["residual"]["rmse_mm"]) * 1e-3 / np.sqrt(3.0)
     m = d["model"]
     if m.get("approach_from_order"):
-        from .geometric import derive_approach
+        from estcal.io.prepare import derive_approach
 
         data = derive_approach(data)
     data_c = with_effect_context(rob, data)
@@ -214,11 +215,6 @@ def residual_comparison(fit, measured, simulated, robot=None, noise=None) -> dic
     partial joint residual of every joint (mrad or mm). Similar rows mean the simulation
     reproduces what the geometric model misses on the real robot.
     """
-    from estcal.methods import NoiseModel
-
-    from .analysis import partial_joint_residuals
-    from .diagnose import _scores
-    from .geometric import fit_geometric
 
     d = load_fit(fit)
     nominal = _nominal(d["model"], robot)

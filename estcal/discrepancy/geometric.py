@@ -4,11 +4,11 @@
   calibration in priority order: base, markers (or tool), joint offsets, link
   parameters, tool. Joint gains are *not* candidates: an encoder gain error is
   one of the non-geometric effects the diagnosis can name.
-* :func:`identifiable_subset` — the identifiable subset by sequential rank
-  growth in priority order (a column is kept when its component orthogonal to
-  the columns kept so far is at least ``tol`` of its norm). This is the
-  priority-ordered QR of GECARO App. III: equivalent to QR with the columns
-  taken in the given order and a relative numerical zero ``tol``.
+* the identifiable subset is :func:`estcal.identify.select_identifiable` in priority order
+  with the *data-level* tolerance :data:`~estcal.identify.core.DATA_TOL` (1e-4): a column is
+  kept when its component orthogonal to the columns kept so far is at least ``tol`` of its
+  norm — the diagnosis fits only what the data pin down, not every structurally independent
+  column.
 * :func:`fit_geometric` — registration (Kabsch), then base + markers, then the
   identifiable set, by Levenberg–Marquardt.
 * :func:`gravity_ready` — the robot with gravity expressed in the measurement
@@ -19,12 +19,14 @@ from __future__ import annotations
 import numpy as np
 
 from estcal.estimate import calibrate_lsq, register_base
-from estcal.identify.core import DATA_TOL, sequential_rank
+from estcal.identify.core import DATA_TOL
+from estcal.identify.select import select_identifiable
+from estcal.kinematics.chain import SerialRobot
 from estcal.kinematics.transforms import rpy_to_matrix
 from estcal.methods import Problem
 
-__all__ = ["geometric_candidates", "identifiable_subset", "fit_geometric", "gravity_ready", "weighted_system",
-           "with_effect_context", "orthonormal_basis", "derive_approach"]
+__all__ = ["geometric_candidates", "fit_geometric", "gravity_ready", "weighted_system",
+           "orthonormal_basis"]
 
 BASE = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
 
@@ -58,58 +60,6 @@ def orthonormal_basis(A, tol: float = 1e-9):
     return U[:, S > tol * max(S.max(), 1e-300)]
 
 
-def identifiable_subset(A, names, tol: float = DATA_TOL):
-    """Columns of ``A`` kept in the given (priority) order when they add rank.
-
-    :func:`estcal.identify.core.sequential_rank` with the *data-level* tolerance
-    :data:`~estcal.identify.core.DATA_TOL` (1e-4): a column is kept when the norm of its
-    component orthogonal to the kept columns is above ``tol`` times its own norm — the
-    diagnosis fits only what the data pin down, not every structurally independent column.
-    Columns without effect (:data:`~estcal.identify.core.STRUCTURAL_TOL`) are dropped.
-
-    Returns
-    -------
-    keep : list of names, dropped : list of names
-    """
-    scan = sequential_rank(A, tol)
-    kept = set(scan.kept)
-    return [n for j, n in enumerate(names) if j in kept], [n for j, n in enumerate(names) if j not in kept]
-
-
-def with_effect_context(robot, data):
-    """Dataset copy whose ``context`` also carries the columns the robot's effects read
-    (e.g. ``approach_<joint>`` for backlash), so :class:`Problem` passes them on."""
-    d = data.subset(slice(None))
-    for k, v in (data.columns or {}).items():
-        if k.startswith("approach_") and k not in d.context:
-            d.context[k] = np.asarray(v, float)
-    return d
-
-
-def derive_approach(data, threshold: float = 1e-3):
-    """Copy of ``data`` with ``approach_<joint>`` columns inferred from the posture order.
-
-    Static postures recorded one after the other are each reached by moving from
-    the previous one, so joint j approached posture i from the side
-    ``sign(q_j(i) − q_j(i−1))`` (time order from ``t`` when present, else the row
-    order). Moves smaller than ``threshold`` (rad or m), and the first posture, get 0
-    (unknown). Existing ``approach_*`` columns are kept. The backlash effect then uses
-    the approach direction (``δq = −b·sign(approach)``) instead of the load sign.
-    """
-    d = data.subset(slice(None))
-    order = np.argsort(d.context["t"], kind="stable") if "t" in d.context else np.arange(d.n)
-    dq = np.zeros_like(d.readings)
-    dq[order[1:]] = np.diff(d.readings[order], axis=0)
-    for j, name in enumerate(d.joint_names):
-        key = f"approach_{name}"
-        if key in d.columns or key in d.context:
-            continue
-        a = np.sign(dq[:, j])
-        a[np.abs(dq[:, j]) < threshold] = 0.0
-        d.columns[key] = a
-    return d
-
-
 def gravity_ready(robot, theta=None, nominal_theta=None):
     """Copy of ``robot`` ready for gravity-driven effects.
 
@@ -125,7 +75,6 @@ def gravity_ready(robot, theta=None, nominal_theta=None):
     """
     import dataclasses
 
-    from estcal.kinematics.chain import SerialRobot
 
     links = list(robot.links)
     lumped = not any(lk.mass > 0 for lk in links)
@@ -172,7 +121,7 @@ def fit_geometric(robot, data, noise, free=None, tol: float = DATA_TOL, register
     first = [n for n in geometric_candidates(robot) if n.startswith("base_") or n.startswith("marker")]
     if first:
         _, A0, _ = weighted_system(problem, theta, first)
-        k0, _ = identifiable_subset(A0, first, tol)
+        k0 = select_identifiable(A0, names=first, tol=tol).identifiable
         if k0:
             r0 = calibrate_lsq(problem, "lm", free=k0, check=False, max_iter=max_iter)
             theta = r0.theta
@@ -185,7 +134,8 @@ def fit_geometric(robot, data, noise, free=None, tol: float = DATA_TOL, register
         cands = [n for n in cands if kinds[n] in ("base", "marker", "offset")
                  or (kinds[n] == "tool" and problem.robot.n_markers == 0)]
     _, A, _ = weighted_system(problem, theta, cands)
-    keep, dropped = identifiable_subset(A, cands, tol)
+    sel = select_identifiable(A, names=cands, tol=tol)
+    keep, dropped = sel.identifiable, sel.dropped
     if free is None and level == "aic":
         from estcal.estimate.levels import select_free
 
@@ -203,7 +153,8 @@ def fit_geometric(robot, data, noise, free=None, tol: float = DATA_TOL, register
     res = calibrate_lsq(problem, "lm", free=keep, check=False, max_iter=max_iter)
     # Re-check at the solution: a parameter can lose identifiability away from nominal.
     _, A, _ = weighted_system(problem, res.theta, keep)
-    keep2, dropped2 = identifiable_subset(A, keep, tol)
+    sel = select_identifiable(A, names=keep, tol=tol)
+    keep2, dropped2 = sel.identifiable, sel.dropped
     if dropped2:
         problem = problem.with_values(res.theta)
         res = calibrate_lsq(problem, "lm", free=keep2, check=False, max_iter=max_iter)

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from estcal.effects import make_effect
+from estcal.simulate import NoiseModel, simulate
+
 __all__ = ["effect_params_for_magnitude", "simulate_hidden", "cartesian_distortion", "eligible_joints"]
 
 
@@ -47,8 +50,6 @@ def effect_params_for_magnitude(true_robot, effect, readings, context, magnitude
 def eligible_joints(robot, effect_name, readings, context=None, min_torque=1e-3):
     """Joints on which ``effect_name`` is identifiable in principle: gravity-driven effects need
     a torque that varies (compliance) or changes sign (backlash)."""
-    from estcal.effects import make_effect
-
     out = []
     tau = None
     for j, name in enumerate(robot.joint_names):
@@ -83,8 +84,6 @@ def simulate_hidden(robot, hidden, sigma, n_poses=60, measure="points", seed=0, 
 
     Returns ``(SimulationResult, truth)`` with ``truth = [{effect, joints, params}]``.
     """
-    from estcal.simulate import NoiseModel, simulate
-
     rng = np.random.default_rng(seed)
     err = error_std or {"angle": 5e-4, "length": 5e-4, "offset": 1e-3}
     specs = [{"effect": h[0], "joints": h[1], "options": dict(h[3]) if len(h) > 3 else {}} for h in hidden]

@@ -18,13 +18,14 @@ import dataclasses
 
 import numpy as np
 
+from estcal.kinematics.chain import SerialRobot
+from estcal.kinematics.urdf import load_urdf
+
 __all__ = ["urdf_chain_masses", "with_urdf_masses"]
 
 
 def urdf_chain_masses(urdf_path, joint_names) -> dict:
     """``{joint: (mass kg, com (3,) in the joint's child-link frame)}`` for the chain joints."""
-    from estcal.kinematics.urdf import load_urdf
-
     urdf = load_urdf(urdf_path)
     children = {}
     for j in urdf.robot.joints:
@@ -60,8 +61,6 @@ def with_urdf_masses(robot, urdf_path=None):
     (the chain applies origin · placement error · joint motion and nothing after),
     so the centres of mass are used as computed.
     """
-    from estcal.kinematics.chain import SerialRobot
-
     path = urdf_path or robot.meta.get("urdf")
     if path is None:
         raise ValueError(f"robot {robot.name!r} was not built from a URDF; give urdf_path")

@@ -16,7 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GroupedProblem", "PER_POSE_METHODS", "evaluate_many", "resolve_free", "noise_known", "identifiable_free", "finish_result",
+from estcal.methods.base import Rows
+from estcal.methods.problem import Problem, Term
+from estcal.methods.reduced import PER_POSE_METHODS, chi2_and_rows, evaluate_chunks, use_chunks
+
+from .result import CalibrationResult, score
+
+__all__ = ["GroupedProblem", "evaluate_many", "resolve_free", "noise_known", "finish_result",
            "default_prior_std", "prior_std_vector"]
 
 
@@ -68,56 +74,6 @@ def prior_std_vector(problem, names, prior_std=None) -> np.ndarray:
     return out
 
 
-def identifiable_free(problem, candidates=None, theta=None, use_identify: bool = True) -> list[str]:
-    """An identifiable free set: candidates kept in order while they add rank.
-
-    Uses :func:`estcal.identify.select_identifiable` when it exists; otherwise a
-    greedy, order-preserving rank test of the whitened, column-normalised
-    Jacobian at ``theta`` (a parameter is kept if its column is not in the span
-    of the columns kept before it). ``use_identify=False`` forces the rank test
-    (reproducible sets for the simulated test problems, whatever the priority
-    rules of :mod:`estcal.identify`).
-    """
-    pv = problem.params
-    if candidates is None:
-        candidates = list(pv.names)
-    else:
-        cand = []
-        for c in candidates:
-            cand += pv.select(c) if any(ch in c for ch in "*?[") else [c]
-        candidates = cand
-    if use_identify:
-        try:  # the identification engineer's selector, when present
-            from estcal.identify import select_identifiable  # type: ignore
-
-            names = select_identifiable(problem, candidates=candidates, theta=theta)
-            if isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names):
-                return list(names)
-        except (ImportError, ValueError, KeyError, TypeError):  # fall back to the rank test below
-            pass
-    rows = problem.evaluate(theta)
-    A = rows.H[:, pv.indices(candidates)] / rows.sigma[:, None]
-    nrm = np.linalg.norm(A, axis=0)
-    keep: list[int] = []
-    Q = np.zeros((A.shape[0], 0))
-    tol = 1e-8
-    for j in range(A.shape[1]):
-        if nrm[j] <= 1e-12 * max(nrm.max(), 1e-300):
-            continue
-        a = A[:, j] / nrm[j]
-        r = a - Q @ (Q.T @ a)
-        r = r - Q @ (Q.T @ r)  # re-orthogonalise (classical Gram–Schmidt twice)
-        if np.linalg.norm(r) > tol ** 0.5 * 1e-2:
-            keep.append(j)
-            Q = np.column_stack([Q, r / np.linalg.norm(r)])
-    return [candidates[j] for j in keep]
-
-
-#: methods whose rows each come from one dataset row alone; others (links, plane normals,
-#: distances) compare rows of a ``group`` / ``pair`` and must be processed together
-PER_POSE_METHODS = ("position", "location", "pose", "points", "plane-known", "plane-unknown")
-
-
 def _units(term, n):
     """Unit id of every dataset row of a term: the row itself, or its ``group`` / ``pair`` id."""
     name = getattr(term.method, "name", "")
@@ -163,8 +119,6 @@ class GroupedProblem:
         self.problem = problem
         terms = getattr(problem, "terms", None)
         self.splittable = bool(terms) and all(hasattr(t.data, "subset") for t in terms)
-        from .reduced import evaluate_chunks, use_chunks
-
         ck = use_chunks(problem) if terms else None
         if ck is not None:  # large per-pose data (one term): the row → pose map chunk by chunk
             pose = np.concatenate([np.asarray(r.pose, int) + a for a, r in evaluate_chunks(problem, None, ck, False)])
@@ -227,8 +181,6 @@ class GroupedProblem:
         return self._split(ids)[0]
 
     def _split(self, ids):
-        from estcal.methods.problem import Problem, Term
-
         terms, back = [], []
         for ti, t in enumerate(self.problem.terms):
             poses = [self.groups[i].poses for i in ids if self.groups[i].term == ti]
@@ -264,8 +216,6 @@ class _SelectRows:
         return self.problem.params
 
     def evaluate(self, theta=None, jacobian=True):
-        from estcal.methods.base import Rows
-
         r = self.problem.evaluate(theta, jacobian)
         i = self.idx
         return Rows(r.e[i], None if r.H is None else r.H[i], r.sigma[i], r.pose[i], r.kind[i],
@@ -278,10 +228,7 @@ def finish_result(problem, method, names, fidx, estimate, cov, theta_full, nomin
     """Build the shared :class:`CalibrationResult` (χ² and dof from the problem's rows at the estimate)."""
     import time
 
-    from .lsq import score
-    from .result import CalibrationResult
 
-    from .reduced import chi2_and_rows
 
     chi2, m = chi2_and_rows(problem, theta_full)
     dof = int(m - len(fidx))

@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.atomic import atomic_path
 from estcal.base.errors import InputError
+
 __all__ = ["ChainFileError", "BufferedHDFBackend", "check_chain_path", "open_chain", "fingerprint"]
 
 
@@ -119,7 +121,6 @@ def _backend_class():
                 return
             t0 = time.monotonic()
             n = len(self._buf)
-            from estcal.base.atomic import atomic_path
 
             path = Path(self.filename)
             with atomic_path(path) as tmp:

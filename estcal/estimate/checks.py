@@ -45,6 +45,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estcal.base.errors import NumericalRefusal
+from estcal.io.dataset import dataset_from_arrays
+from estcal.methods.problem import Problem
+from estcal.methods.reduced import chi2_and_rows, reduce_system, use_chunks, weighted
+
+from .levels import select_free
 
 __all__ = ["Assessment", "COND_MAX", "NOMINAL_SCALE", "SHIFT_MULTIPLE", "precheck",
            "postcheck", "distinct_poses", "refuse_repeated_early", "generic_identifiable", "scaled_condition"]
@@ -127,8 +132,6 @@ GENERIC_POSES_MAX = 5000
 
 def _generic_dataset(robot, data, theta, n_min: int, seed: int = 0):
     """Same kind of data on uniform random poses, measured exactly at ``theta``."""
-    from estcal.io.dataset import dataset_from_arrays
-
     # as many poses as the data, capped: a few thousand uniform random poses identify whatever
     # this kind of measurement can identify, and the reference must not cost memory on 10⁶-pose data
     n = max(min(int(data.n), GENERIC_POSES_MAX), n_min)
@@ -147,9 +150,6 @@ def _generic_dataset(robot, data, theta, n_min: int, seed: int = 0):
 def generic_identifiable(problem, level, theta, exclude=(), groups=None):
     """The selection the same method makes on generic poses (see module docstring), or None when
     the data are not direct measurements (links, planes: their analysis is ``estcal identifiable``)."""
-    from estcal.estimate.levels import select_free
-    from estcal.methods import Problem
-
     if len(problem.terms) != 1:
         return None
     t = problem.terms[0]
@@ -176,8 +176,6 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     t = problem.terms[0]
     data = t.data
     theta = sel.theta if (sel is not None and sel.theta is not None) else pv.values
-    from estcal.estimate.reduced import chi2_and_rows
-
     m = chi2_and_rows(problem, theta)[1]
     p = len(free)
     out.figures.update(rows=int(m), n_parameters=int(p), dof=int(m - p))
@@ -205,8 +203,6 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     if sel is not None:
         gen = generic_identifiable(problem, level, np.asarray(theta, float), exclude=exclude)
     elif data.kind in ("position", "points", "pose"):
-        from estcal.estimate.levels import select_free
-
         gen = generic_identifiable(problem, level, np.asarray(theta, float), groups=[list(free)])
         here = select_free(problem, groups=[list(free)], theta=theta, refine_registration=False)
         if gen is not None and len(here.identifiable) == len(gen.identifiable) and len(gen.identifiable) < p:
@@ -228,19 +224,15 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
 
 def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessment:
     """Checks of a :class:`~estcal.estimate.result.CalibrationResult` (see module docstring)."""
-    from estcal.estimate.lsq import _weighted
-
     out = Assessment()
     pv = problem.params
     fidx = pv.indices(res.names)
-    from estcal.estimate.reduced import reduce_system, use_chunks
-
     try:
         ck = use_chunks(problem)
         if ck is not None:  # large data: the triangular factor has A's singular values
             A = reduce_system(problem, res.theta, fidx, ck)[0]
         else:
-            A, _ = _weighted(problem.evaluate(res.theta), fidx)
+            A, _ = weighted(problem.evaluate(res.theta), fidx)
         cond = scaled_condition(A)
     except (ValueError, np.linalg.LinAlgError):
         cond = float("nan")

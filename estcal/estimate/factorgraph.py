@@ -43,8 +43,13 @@ import time
 import numpy as np
 
 from estcal.base.blas import single_thread_blas
+from estcal.identify.select import check_identifiable
+from estcal.kinematics.transforms import matrix_to_rpy, rot_y, rot_z, rpy_to_matrix
+from estcal.methods.reduced import DenseSystem, ReducedSystem, chi2_and_rows, reduce_system, use_chunks, weighted
 
 from ._common import GroupedProblem, finish_result, noise_known, prior_std_vector, resolve_free
+from .kalman import process_noise
+from .robust import kernel_threshold
 
 __all__ = ["calibrate_gtsam", "calibrate_isam2", "calibrate_timevarying", "robust_noise", "rpy_rate_matrix"]
 
@@ -64,8 +69,6 @@ def robust_noise(dim: int, kernel: str | None = None, k: float | None = None):
     weighs the norm of the factor's ``dim`` rows, so the scalar threshold is carried to ``dim``
     dimensions at the same inlier probability (:func:`estcal.estimate.robust.kernel_threshold`).
     """
-    from .robust import kernel_threshold
-
     gtsam = _gtsam()
     base = gtsam.noiseModel.Unit.Create(dim)
     if kernel is None or kernel in ("none", "l2", "gaussian"):
@@ -146,8 +149,6 @@ def rpy_rate_matrix(rpy) -> np.ndarray:
 
     Columns: roll axis Rz Ry x̂, pitch axis Rz ŷ, yaw axis ẑ. Singular at pitch = ±90°.
     """
-    from estcal.kinematics.transforms import rot_y, rot_z
-
     r, p, y = rpy
     Rz = rot_z(y)
     return np.column_stack([Rz @ rot_y(p) @ np.array([1.0, 0, 0]), Rz @ np.array([0, 1.0, 0]), np.array([0, 0, 1.0])])
@@ -181,15 +182,11 @@ class _PoseLayout:
         self.vec = np.setdiff1d(np.arange(len(names)), used)
 
     def pose_of(self, x, f):
-        from estcal.kinematics.transforms import rpy_to_matrix
-
         gtsam = _gtsam()
         p6 = x[self.pos6[f]]
         return gtsam.Pose3(gtsam.Rot3(rpy_to_matrix(p6[3:])), gtsam.Point3(*p6[:3]))
 
     def write(self, x, f, pose):
-        from estcal.kinematics.transforms import matrix_to_rpy
-
         x[self.pos6[f][:3]] = np.asarray(pose.translation())
         x[self.pos6[f][3:]] = matrix_to_rpy(pose.rotation().matrix())
 
@@ -242,8 +239,6 @@ def _stationary(graph, values, rtol: float = 1e-9) -> bool:
 
 def _fit_statistics(problem, theta, fidx, x):
     """The full parameter vector with the free values ``x``, its χ² and dof = M − p."""
-    from .reduced import chi2_and_rows
-
     theta_full = theta.copy()
     theta_full[fidx] = x
     chi2, m = chi2_and_rows(problem, theta_full)  # chunk by chunk on large data
@@ -257,11 +252,9 @@ def _prior_std(problem, names, prior_std):
 
 
 def _check(problem, fidx, names, theta):
-    from .lsq import _weighted, check_identifiable
-    from .reduced import reduce_system, use_chunks
 
     ck = use_chunks(problem)  # large data: R has A's rank and conditioning
-    A = reduce_system(problem, theta, fidx, ck)[0] if ck is not None else _weighted(problem.evaluate(theta), fidx)[0]
+    A = reduce_system(problem, theta, fidx, ck)[0] if ck is not None else weighted(problem.evaluate(theta), fidx)[0]
     check_identifiable(A, names)
 
 
@@ -350,82 +343,167 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     plain = robust is None and not latent_joints and not base_pose3 and not tool_pose3 and optimizer == "lm"
     if linear is None:  # asking for grouped CustomFactors means asking for the nonlinear graph
         linear = plain and poses_per_factor == 1
+    prior = (nominal.copy(), _prior_std(problem, names, prior_std)) if (use_prior or prior_std is not None) else None
     if linear:
         if not plain:
             raise ValueError("linear=True needs the plain graph: no robust kernel, latent joints or Pose3 frames, "
                              "optimizer 'lm'")
-        prior = (nominal.copy(), _prior_std(problem, names, prior_std)) if (use_prior or prior_std is not None) \
-            else None
-
-        with single_thread_blas():  # tall thin matrices: BLAS threads only spin (see single_thread_blas)
-            x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior,
-                                                               marginals)
-        theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
-        src = "gtsam marginals (Gaussian factor graph)"
-        if not noise_known(problem) and dof > 0:
-            cov = cov * (chi2 / dof)
-            src += " scaled by sigma0^2"
-        extra = {"optimizer": "lm (Gaussian factor graph per step)", "robust": "none", **info,
-                 "python_factor_time_s": 0.0, "python_factor_fraction": 0.0}
-        return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
-                             converged=info["converged"], covariance_source=src, theta_before=theta,
-                             validation=validation, t0=t0, extra=extra)
-    gp = GroupedProblem(problem)
-    timer = _Timer()
-    X = gtsam.symbol("x", 0)
-    graph = gtsam.NonlinearFactorGraph()
-    init = gtsam.Values()
-    init.insert(X, nominal.copy())
-    p = len(fidx)
-    allpos = np.arange(p)
+        return _gtsam_linear(problem, fidx, names, theta, nominal, max_iter, prior, marginals, validation, t0)
+    g = _Graph(gtsam, GroupedProblem(problem), _Timer(), nominal, theta, fidx, names)
     if latent_joints:
+        g.add_latent_joints(encoder_std, robust, robust_k)
+    elif base_pose3 or tool_pose3:
+        g.add_pose3_frames(base_pose3, tool_pose3, base_prior, robust, robust_k)
+    else:
+        g.add_measurements(poses_per_factor, robust, robust_k)
+    if prior is not None:
+        g.graph.add(gtsam.PriorFactorVector(g.X, prior[0], gtsam.noiseModel.Diagonal.Sigmas(prior[1])))
+    result, n_iter, solve_s = _optimise(gtsam, g.graph, g.init, optimizer, max_iter)
+    x = g.solution(result)
+    t_m = time.perf_counter()
+    cov = g.marginal_covariance(result, x) if marginals else np.full((len(fidx), len(fidx)), np.nan)
+    marg_s = time.perf_counter() - t_m if marginals else 0.0
+    theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
+    src = "gtsam marginals"
+    if not noise_known(problem) and dof > 0 and robust is None:
+        cov = cov * (chi2 / dof)
+        src = "gtsam marginals scaled by sigma0^2"
+    extra = {"optimizer": optimizer, "robust": robust or "none", "graph_error": float(g.graph.error(result)),
+             "pose3_frames": [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on],
+             "n_factors": int(g.graph.size()), "solve_time_s": solve_s, "marginals_time_s": marg_s,
+             "python_factor_time_s": g.timer.t, "python_factor_calls": g.timer.calls,
+             "kinematics_evaluations": g.timer.evals,
+             "python_factor_fraction": g.timer.t / max(solve_s + marg_s, 1e-12)}
+    if latent_joints:
+        extra["latent_readings_correction"] = np.array([np.asarray(result.atVector(k)) - r0 for k, r0 in g.qkeys])
+        extra["encoder_std"] = g.encoder_std
+    return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
+                         converged=n_iter < max_iter and _stationary(g.graph, result), covariance_source=src,
+                         theta_before=theta, validation=validation, t0=t0, extra=extra)
+
+
+def _gtsam_linear(problem, fidx, names, theta, nominal, max_iter, prior, marginals, validation, t0):
+    """The plain graph solved step by step as gtsam Gaussian factor graphs (:func:`_levenberg_marquardt_linear`)."""
+    with single_thread_blas():  # tall thin matrices: BLAS threads only spin (see single_thread_blas)
+        x, cov, n_iter, info = _levenberg_marquardt_linear(problem, fidx, theta, nominal, max_iter, prior, marginals)
+    theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
+    src = "gtsam marginals (Gaussian factor graph)"
+    if not noise_known(problem) and dof > 0:
+        cov = cov * (chi2 / dof)
+        src += " scaled by sigma0^2"
+    extra = {"optimizer": "lm (Gaussian factor graph per step)", "robust": "none", **info,
+             "python_factor_time_s": 0.0, "python_factor_fraction": 0.0}
+    return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
+                         converged=info["converged"], covariance_source=src, theta_before=theta,
+                         validation=validation, t0=t0, extra=extra)
+
+
+class _Graph:
+    """The nonlinear factor graph of :func:`calibrate_gtsam`: the free-parameter vector ``X`` and,
+    depending on the options, latent joint readings or Pose3 base / tool frames."""
+
+    def __init__(self, gtsam, gp, timer, nominal, theta, fidx, names):
+        self.gtsam, self.gp, self.timer = gtsam, gp, timer
+        self.nominal, self.theta, self.fidx, self.names = nominal, theta, fidx, names
+        self.X = gtsam.symbol("x", 0)
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.init = gtsam.Values()
+        self.init.insert(self.X, nominal.copy())
+        self.layout, self.pkeys, self.qkeys, self.encoder_std = None, [], [], None
+
+    def add_latent_joints(self, encoder_std, robust, robust_k):
+        """Errors-in-variables: one latent reading vector per pose with an encoder prior."""
+        gtsam, gp = self.gtsam, self.gp
         if not gp.splittable:
             raise ValueError("latent joints need a Problem whose terms have datasets")
         if any(g.poses.size > 1 for g in gp.groups):
             raise ValueError("latent joints are implemented for per-pose methods (position, location, points, "
                              "planes); link and distance methods compare several rows per factor")
-        robot = problem.robot
-        n = robot.n_joints
-        es = np.broadcast_to(np.asarray(1e-4 if encoder_std is None else encoder_std, float), (n,))
+        robot = gp.problem.robot
+        es = np.broadcast_to(np.asarray(1e-4 if encoder_std is None else encoder_std, float), (robot.n_joints,))
+        self.encoder_std = es
         enc_noise = gtsam.noiseModel.Diagonal.Sigmas(es.copy())
-        qkeys = []
-        for gi, g in enumerate(gp.groups):
+        for gi in range(len(gp.groups)):
             sub = gp.subproblem([gi])
             r0 = sub.terms[0].data.readings[0].astype(float)
             qk = gtsam.symbol("q", gi)
-            qkeys.append((qk, r0))
-            init.insert(qk, r0.copy())
-            graph.add(gtsam.PriorFactorVector(qk, r0.copy(), enc_noise))
-            m = len(sub.evaluate(theta, jacobian=False).e)
-            graph.add(_latent_factor(sub, theta, fidx, robot, X, qk, robust_noise(m, robust, robust_k), timer))
-    elif base_pose3 or tool_pose3:
-        layout = _PoseLayout(names, [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on])
-        init.erase(X)
+            self.qkeys.append((qk, r0))
+            self.init.insert(qk, r0.copy())
+            self.graph.add(gtsam.PriorFactorVector(qk, r0.copy(), enc_noise))
+            m = len(sub.evaluate(self.theta, jacobian=False).e)
+            self.graph.add(_latent_factor(sub, self.theta, self.fidx, robot, self.X, qk,
+                                          robust_noise(m, robust, robust_k), self.timer))
+
+    def add_pose3_frames(self, base_pose3, tool_pose3, base_prior, robust, robust_k):
+        """The base and/or tool frame as Pose3 variables (their six entries leave ``X``)."""
+        gtsam, gp, nominal = self.gtsam, self.gp, self.nominal
+        layout = _PoseLayout(self.names, [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on])
+        self.layout = layout
+        self.init.erase(self.X)
         if layout.vec.size:
-            init.insert(X, nominal[layout.vec].copy())
-        pkeys = [gtsam.symbol(f[0], 0) for f in layout.frames]
-        for f, k in zip(layout.frames, pkeys):
-            init.insert(k, layout.pose_of(nominal, f))
-        block = _Block(gp, range(len(gp)), theta, fidx, timer)
+            self.init.insert(self.X, nominal[layout.vec].copy())
+        self.pkeys = [gtsam.symbol(f[0], 0) for f in layout.frames]
+        for f, k in zip(layout.frames, self.pkeys):
+            self.init.insert(k, layout.pose_of(nominal, f))
+        block = _Block(gp, range(len(gp)), self.theta, self.fidx, self.timer)
         for g in range(len(gp)):
             m = block.slices[g].size
-            graph.add(_pose_factor(block, g, X, layout.vec, layout, pkeys, nominal, robust_noise(m, robust, robust_k)))
+            self.graph.add(_pose_factor(block, g, self.X, layout.vec, layout, self.pkeys, nominal,
+                                        robust_noise(m, robust, robust_k)))
         if base_prior is not None:
             if not base_pose3:
                 raise ValueError("base_prior needs base_pose3=True")
             Tb, sb = base_prior
             Tb = np.asarray(Tb, float)
-            graph.add(gtsam.PriorFactorPose3(pkeys[0], gtsam.Pose3(gtsam.Rot3(Tb[:3, :3]), gtsam.Point3(*Tb[:3, 3])),
-                                             gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sb, float))))
-    else:
-        block = _Block(gp, range(len(gp)), theta, fidx, timer)
+            self.graph.add(gtsam.PriorFactorPose3(self.pkeys[0],
+                                                  gtsam.Pose3(gtsam.Rot3(Tb[:3, :3]), gtsam.Point3(*Tb[:3, 3])),
+                                                  gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sb, float))))
+
+    def add_measurements(self, poses_per_factor, robust, robust_k):
+        """One CustomFactor per ``poses_per_factor`` measurement groups on ``X``."""
+        gp = self.gp
+        block = _Block(gp, range(len(gp)), self.theta, self.fidx, self.timer)
+        allpos = np.arange(len(self.fidx))
         for start in range(0, len(gp), poses_per_factor):
             gs = list(range(start, min(start + poses_per_factor, len(gp))))
             m = sum(block.slices[g].size for g in gs)
-            graph.add(_measurement_factor(block, gs, [X], [allpos], nominal, robust_noise(m, robust, robust_k)))
-    if use_prior or prior_std is not None:
-        s = _prior_std(problem, names, prior_std)
-        graph.add(gtsam.PriorFactorVector(X, nominal.copy(), gtsam.noiseModel.Diagonal.Sigmas(s)))
+            self.graph.add(_measurement_factor(block, gs, [self.X], [allpos], self.nominal,
+                                               robust_noise(m, robust, robust_k)))
+
+    def solution(self, result) -> np.ndarray:
+        """The free parameters at the optimum (Pose3 frames written back as their six entries)."""
+        if self.layout is None:
+            return np.asarray(result.atVector(self.X), float)
+        x = self.nominal.copy()
+        if self.layout.vec.size:
+            x[self.layout.vec] = np.asarray(result.atVector(self.X), float)
+        for f, k in zip(self.layout.frames, self.pkeys):
+            self.layout.write(x, f, result.atPose3(k))
+        return x
+
+    def marginal_covariance(self, result, x) -> np.ndarray:
+        """Covariance of the free parameters from :class:`gtsam.Marginals`; with Pose3 frames the joint
+        marginal of (X, pose keys) in tangent coordinates, mapped to the parameters."""
+        mg = self.gtsam.Marginals(self.graph, result)
+        layout = self.layout
+        if layout is None:
+            return np.asarray(mg.marginalCovariance(self.X))
+        keys = ([self.X] if layout.vec.size else []) + self.pkeys
+        jm = mg.jointMarginalCovariance(self.gtsam.KeyVector(keys))
+        blocks = ([layout.vec] if layout.vec.size else []) + [layout.pos6[f] for f in layout.frames]
+        maps = ([np.eye(layout.vec.size)] if layout.vec.size else []) + [
+            _pose3_param_map(result.atPose3(k).rotation().matrix(), x[layout.pos6[f][3:]])
+            for f, k in zip(layout.frames, self.pkeys)]
+        p = len(self.fidx)
+        cov = np.zeros((p, p))
+        for ka, ia, Ga in zip(keys, blocks, maps):
+            for kb, ib, Gb in zip(keys, blocks, maps):
+                cov[np.ix_(ia, ib)] = Ga @ np.asarray(jm.at(ka, kb)) @ Gb.T
+        return cov
+
+
+def _optimise(gtsam, graph, init, optimizer: str, max_iter: int):
+    """``(values, iterations, seconds)`` of gtsam's Levenberg–Marquardt or Dogleg on ``graph``."""
     if optimizer == "lm":
         params = gtsam.LevenbergMarquardtParams()
         params.setDiagonalDamping(True)
@@ -440,58 +518,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     t_opt = time.perf_counter()
     opt = (gtsam.LevenbergMarquardtOptimizer if optimizer == "lm" else gtsam.DoglegOptimizer)(graph, init, params)
     result = opt.optimize()
-    solve_s = time.perf_counter() - t_opt
-    n_iter = int(opt.iterations())
-    pose_mode = (base_pose3 or tool_pose3) and not latent_joints
-    if pose_mode:
-        x = nominal.copy()
-        if layout.vec.size:
-            x[layout.vec] = np.asarray(result.atVector(X), float)
-        for f, k in zip(layout.frames, pkeys):
-            layout.write(x, f, result.atPose3(k))
-    else:
-        x = np.asarray(result.atVector(X), float)
-    cov = None
-    if marginals:
-        t_m = time.perf_counter()
-        mg = gtsam.Marginals(graph, result)
-        if pose_mode:
-            # joint marginal of (x0, pose keys) in tangent coordinates, mapped to the parameters
-            keys = ([X] if layout.vec.size else []) + pkeys
-            jm = mg.jointMarginalCovariance(gtsam.KeyVector(keys))
-            blocks = ([layout.vec] if layout.vec.size else []) + [layout.pos6[f] for f in layout.frames]
-            maps = ([np.eye(layout.vec.size)] if layout.vec.size else []) + [
-                _pose3_param_map(result.atPose3(k).rotation().matrix(), x[layout.pos6[f][3:]])
-                for f, k in zip(layout.frames, pkeys)]
-            cov = np.zeros((p, p))
-            for a, (ka, ia, Ga) in enumerate(zip(keys, blocks, maps)):
-                for b, (kb, ib, Gb) in enumerate(zip(keys, blocks, maps)):
-                    cov[np.ix_(ia, ib)] = Ga @ np.asarray(jm.at(ka, kb)) @ Gb.T
-        else:
-            cov = np.asarray(mg.marginalCovariance(X))
-        marg_s = time.perf_counter() - t_m
-    else:
-        marg_s = 0.0
-        cov = np.full((p, p), np.nan)
-    theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
-    src = "gtsam marginals"
-    if not noise_known(problem) and dof > 0 and robust is None:
-        cov = cov * (chi2 / dof)
-        src = "gtsam marginals scaled by sigma0^2"
-    extra = {"optimizer": optimizer, "robust": robust or "none", "graph_error": float(graph.error(result)),
-             "pose3_frames": [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on],
-             "n_factors": int(graph.size()), "solve_time_s": solve_s, "marginals_time_s": marg_s,
-             "python_factor_time_s": timer.t, "python_factor_calls": timer.calls,
-             "kinematics_evaluations": timer.evals,
-             "python_factor_fraction": timer.t / max(solve_s + marg_s, 1e-12)}
-    if latent_joints:
-        corr = np.array([np.asarray(result.atVector(k)) - r0 for k, r0 in qkeys])
-        extra["latent_readings_correction"] = corr
-        extra["encoder_std"] = es
-    return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
-                         converged=n_iter < max_iter and _stationary(graph, result), covariance_source=src,
-                         theta_before=theta,
-                         validation=validation, t0=t0, extra=extra)
+    return result, int(opt.iterations()), time.perf_counter() - t_opt
 
 
 def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, marginals=True,
@@ -511,16 +538,14 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
     ``gtsam.Marginals`` of the undamped graph at the solution. Returns
     ``(x, cov, iterations, info)``.
 
-    On large per-pose data (:func:`estcal.estimate.reduced.use_chunks`) the block is built from
+    On large per-pose data (:func:`estcal.methods.reduced.use_chunks`) the block is built from
     the triangular factor ``[R c]`` of ``[A b]`` instead (``RᵀR = AᵀA``, ``Rᵀc = Aᵀb``; the
     constant is the true ``bᵀb``), chunk by chunk: the same graph in O(chunk · p) memory.
     """
-    from .lsq import _DenseSystem, _ReducedSystem
-    from .reduced import use_chunks
 
     gtsam = _gtsam()
     ck = use_chunks(problem)
-    system = _DenseSystem(problem, fidx) if ck is None else _ReducedSystem(problem, fidx, ck)
+    system = DenseSystem(problem, fidx) if ck is None else ReducedSystem(problem, fidx, ck)
     X = gtsam.symbol("x", 0)
     th = theta.copy()
     p = len(fidx)
@@ -819,8 +844,6 @@ def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_siz
     ``extra["trajectory"]``; the returned estimate is the last batch's state (the
     quantity the Kalman filter reports after the last update).
     """
-    from .kalman import process_noise
-
     gtsam = _gtsam()
     t0 = time.perf_counter()
     problem, fidx, names = resolve_free(problem, free)

@@ -631,7 +631,7 @@ def calibrate_kalman(problem, free=None, validation=(), *, filter: str = "ekf", 
                                                             int(max_iter), float(tol))
     x, P = flt.x, flt.P
     theta_full = flt.full(x)
-    from .reduced import chi2_and_rows
+    from estcal.methods.reduced import chi2_and_rows
 
     chi2, m_rows = chi2_and_rows(problem, theta_full)
     dof = m_rows - len(fidx)

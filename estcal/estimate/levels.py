@@ -8,7 +8,7 @@ data only: columns of the weighted observation matrix in priority order
 "offsets before geometry before base/tool", with the registration set nested
 first because the data frame is unknown); a column is kept when its component
 orthogonal to the kept ones is not numerically zero (GECARO App. III, the shared
-:func:`estcal.identify.core.sequential_rank` with the structural tolerance
+:func:`estcal.identify.select_identifiable` with the structural tolerance
 :data:`~estcal.identify.core.STRUCTURAL_TOL` on unit-norm columns). Dropped columns are reported as *no
 effect* or *regrouped* with ``a_j = Σ β_k a_k`` (β = R1⁻¹R2). ``criterion="aic"``
 / ``"bic"`` additionally prunes, greedily, candidates that do not lower the
@@ -19,51 +19,19 @@ before/after) is :func:`estcal.workflows.calibrate.run_calibration`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
-__all__ = ["LEVELS", "Selection", "level_candidates", "select_free", "robust_report"]
+from estcal.identify.core import STRUCTURAL_TOL
+from estcal.identify.select import Selection, select_identifiable
+from estcal.kinematics.design import design_structure
+from estcal.methods.reduced import reduce_system, use_chunks, weighted
+
+from .lsq import calibrate_lsq
+from .robust import check_kernel, group_norms, outlier_report
+
+__all__ = ["LEVELS", "level_candidates", "select_free", "robust_report"]
 
 LEVELS = ("registration", "joint_offset", "full")
-
-# --------------------------------------------------------------------------- selection
-@dataclass
-class Selection:
-    """Outcome of :func:`select_free`.
-
-    identifiable : chosen free parameters (estimation order)
-    no_effect : candidates whose column is zero on these data
-    regrouped : {dropped name: {kept name: β}} — the kept parameter absorbs β·Δη_dropped
-    rejected : identifiable candidates not supported by the information criterion
-    condition_number : of the column-scaled weighted observation matrix of the chosen set
-    """
-
-    level: str
-    criterion: str
-    identifiable: list
-    no_effect: list = field(default_factory=list)
-    regrouped: dict = field(default_factory=dict)
-    rejected: list = field(default_factory=list)
-    condition_number: float = float("nan")
-    theta: np.ndarray | None = field(default=None, repr=False)  # linearisation point (full vector)
-
-    def to_dict(self) -> dict:
-        return {"level": self.level, "criterion": self.criterion, "n_identifiable": len(self.identifiable),
-                "identifiable": list(self.identifiable), "no_effect": list(self.no_effect),
-                "regrouped": {k: dict(v) for k, v in self.regrouped.items()}, "rejected": list(self.rejected),
-                "condition_number": float(self.condition_number)}
-
-    def regroup_label(self, name: str) -> str:
-        """``name`` followed by the dropped parameters it absorbs (readable regrouping)."""
-        terms = [(d, b) for d, rel in self.regrouped.items() for k, b in rel.items() if k == name]
-        terms.sort(key=lambda t: -abs(t[1]))
-        parts = [f"{b:+.3g}·{d}" for d, b in terms]
-        if not parts:
-            return name
-        shown = " ".join(parts[:3]) + (" …" if len(parts) > 3 else "")
-        return f"{name} [{shown}]"
-
 
 def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]:
     """Candidate groups of a level, in priority order (the first group is the registration set)."""
@@ -88,24 +56,19 @@ def level_candidates(pv, level: str, pose_data: bool = False) -> list[list[str]]
 
 
 def _weighted_matrix(problem, theta):
-    """``(A, b, M, bᵀb)``; on large data (A, b) = (R, Qᵀb) of :mod:`estcal.estimate.reduced` — the
+    """``(A, b, M, bᵀb)``; on large data (A, b) = (R, Qᵀb) of :mod:`estcal.methods.reduced` — the
     ordered QR below, the regrouping coefficients and the condition number are invariant under Qᵀ."""
-    from estcal.estimate.lsq import _weighted
-    from estcal.estimate.reduced import reduce_system, use_chunks
-
     ck = use_chunks(problem)
     if ck is not None:
         R, c, rss, m = reduce_system(problem, theta, np.arange(len(problem.params.names)), ck)
         return R, c, m, rss
-    A, b = _weighted(problem.evaluate(theta), slice(None))
+    A, b = weighted(problem.evaluate(theta), slice(None))
     return A, b, A.shape[0], float(b @ b)
 
 
 def _design_matrix(problem, theta):
     """The weighted observation matrix of the problem's robot at its design structure
     (:func:`estcal.kinematics.design.design_structure`), or None when the robot is its own design."""
-    from estcal.kinematics.design import design_structure
-
     design = design_structure(problem.robot)
     if design is None:
         return None
@@ -132,7 +95,7 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
     exclude : names reported as *no effect* without looking at their columns (e.g. the
         parameters a structural analysis on consistent simulated data found without effect)
 
-    The scan is :func:`estcal.identify.core.sequential_rank` — QR without pivoting on the
+    The scan is :func:`estcal.identify.select_identifiable` — QR without pivoting on the
     priority-sorted, unit-norm columns: ``|R_jj| ≤ STRUCTURAL_TOL`` marks a dependent column
     (GECARO App. III, with the priority order of §1.5 deciding which of dependent columns is kept).
     The columns scanned are those of the robot's design structure
@@ -150,7 +113,6 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
         groups = [[n for n in g if n not in exclude] for g in groups]
     theta = pv.values.copy() if theta is None else np.asarray(theta, float)
     A, b, M, rss = _weighted_matrix(problem, theta)
-    norms = np.linalg.norm(A, axis=0)
     first = set(pv.indices(groups[0])) if groups and groups[0] else set()
     order = [pv.index(n) for g in groups for n in g]
     if known_noise is None:
@@ -159,19 +121,14 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
         # Linearise where the registration set fits the data: at the nominal point the
         # unknown markers sit at the tool origin, which creates dependencies (marker vs
         # last-joint placement) that vanish once the markers are located.
-        from estcal.estimate.lsq import calibrate_lsq
-
         reg_sel = select_free(problem, groups=[groups[0]], theta=theta)
         if reg_sel.identifiable:
             try:
                 r0 = calibrate_lsq(problem.with_values(theta), "lm", free=reg_sel.identifiable, check=False)
                 theta = r0.theta
                 A, b, M, rss = _weighted_matrix(problem, theta)
-                norms = np.linalg.norm(A, axis=0)
             except (ValueError, np.linalg.LinAlgError):  # keep the given linearisation point
                 pass
-    from estcal.identify.core import STRUCTURAL_TOL, sequential_rank
-
     # the rank is the design's: at axes off their right angles by calibration errors, regrouped
     # parameters are separable by terms of the size of those errors (estcal.kinematics.design)
     W = _design_matrix(problem, theta)
@@ -193,34 +150,19 @@ def select_free(problem, level: str = "full", criterion: str = "structural", the
         rss, n_kept = r_new, n_kept + 1
         return True
 
-    scan = sequential_rank(W, STRUCTURAL_TOL, order, accept=accept)
-    kept, regrouped_idx = scan.kept, scan.dependent
-    no_effect = [pv.names[i] for i in scan.no_effect]
-    rejected = [pv.names[i] for i in scan.rejected]
-    regrouped = {}
-    if kept and regrouped_idx:
-        wn = np.linalg.norm(W, axis=0)
-        Wk = W[:, kept] / wn[kept]
-        for j in regrouped_idx:
-            beta, *_ = np.linalg.lstsq(Wk, W[:, j] / wn[j], rcond=None)
-            coef = beta * wn[j] / wn[kept]  # unscaled: a_j = Σ coef_k a_k
-            rel = {pv.names[kept[m]]: float(c) for m, c in enumerate(coef) if abs(beta[m]) > 1e-6}
-            regrouped[pv.names[j]] = rel
-    cond = float("nan")
-    if kept:
-        s = np.linalg.svd(A[:, kept] / norms[kept], compute_uv=False)
-        cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    no_effect = [n for n in pv.names if n in exclude] + no_effect
-    # estimation order: the vector's own order (stable, readable tables)
-    names = [pv.names[i] for i in sorted(kept)]
-    return Selection(level, criterion, names, no_effect, regrouped, rejected, cond, theta)
+    sel = select_identifiable(W, names=list(pv.names), order=order, tol=STRUCTURAL_TOL, accept=accept)
+    if W is not A and sel.identifiable:  # the condition number is the data's
+        kept = pv.indices(sel.identifiable)
+        s = np.linalg.svd(A[:, kept] / np.linalg.norm(A[:, kept], axis=0), compute_uv=False)
+        sel.condition_number = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    sel.no_effect = [n for n in pv.names if n in exclude] + sel.no_effect
+    sel.level, sel.criterion, sel.theta = level, criterion, theta
+    return sel
 
 
 def robust_report(problem, res, kernel, k=None) -> dict:
     """:func:`estcal.estimate.robust.outlier_report` at the estimate — at each batch's state for the
     time-varying smoother (its poses were fitted by their own batch's parameters)."""
-    from estcal.estimate.robust import check_kernel, group_norms, outlier_report
-
     kernel = check_kernel(kernel)
     traj = res.extra.get("trajectory")
     if res.method == "gtsam-timevarying" and traj is not None:

@@ -29,54 +29,17 @@ import numpy as np
 import scipy.linalg as sla
 
 from estcal.base.blas import single_thread_blas
-from estcal.base.errors import InputError
+from estcal.base.progress import progress
+from estcal.identify.select import UnidentifiableError, check_identifiable
+from estcal.methods.reduced import DenseSystem, ReducedSystem, chi2_and_rows, use_chunks
 
 from ._common import noise_known, resolve_free
-from .result import CalibrationResult, accuracy
+from .result import CalibrationResult, score
+from .robust import WeightedProblem, check_kernel, group_norms, kernel_threshold, kernel_weight
 
-__all__ = ["calibrate_lsq", "UnidentifiableError", "check_identifiable", "LSQ_METHODS"]
+__all__ = ["calibrate_lsq", "LSQ_METHODS", "calibrate_irls"]
 
 LSQ_METHODS = ("lm", "gauss-newton", "iterated-lls", "scipy-lm")
-
-
-class UnidentifiableError(InputError):
-    """The free parameters are not all identifiable from these data."""
-
-
-def _weighted(rows, free):
-    w = 1.0 / rows.sigma
-    A = rows.H[:, free] * w[:, None]
-    b = rows.e * w
-    return A, b
-
-
-def check_identifiable(A, names, tol_factor: float = None):
-    """Raise :class:`UnidentifiableError` naming dependent / no-effect columns of ``A``.
-
-    Uses QR with column pivoting of the unit-norm-scaled matrix and GECARO's
-    numerical zero τ = c·ε·max|R_jj| (App. III, eq. [34]).
-    """
-    norms = np.linalg.norm(A, axis=0)
-    zero = norms <= np.finfo(float).eps * max(norms.max(), 1e-300) * A.shape[0]
-    if zero.any():
-        bad = [n for n, z in zip(names, zero) if z]
-        raise UnidentifiableError(
-            f"parameters without effect on these measurements: {bad}. Fix them (remove from --free) — "
-            f"run `estcal identifiable` to see the identifiable set")
-    As = A / norms
-    _, R, piv = sla.qr(As, mode="economic", pivoting=True)
-    d = np.abs(np.diag(R))
-    c = A.shape[1]
-    tau = (tol_factor or c) * np.finfo(float).eps * d.max() * max(A.shape) / c
-    tau = max(tau, 1e-10 * d.max())
-    rank = int(np.sum(d > tau))
-    if rank < c:
-        dep = [names[i] for i in piv[rank:]]
-        raise UnidentifiableError(
-            f"{c - rank} of the {c} free parameters are not identifiable from these data "
-            f"(linearly dependent columns; e.g. {dep}). Fix or regroup them — "
-            f"`estcal identifiable` lists an identifiable set")
-    return float(d[0] / d[rank - 1])
 
 
 def _solve(A, b, mu=0.0):
@@ -127,21 +90,17 @@ def calibrate_lsq(problem, method: str = "lm", free=None, max_iter: int = 100, t
     prior_mean : ``{name: value}`` or array aligned with the free names (default: the initial values)
     robust, robust_k : ``"huber"`` / ``"cauchy"`` kernel (scalar threshold in σ): iteratively
         reweighted least squares, :func:`estcal.estimate.robust.calibrate_irls`
-    chunk : poses per chunk of the bounded-memory path (:mod:`estcal.estimate.reduced`; default:
+    chunk : poses per chunk of the bounded-memory path (:mod:`estcal.methods.reduced`; default:
         automatic above ``CHUNK_POSES`` poses for lm / gauss-newton / iterated-lls, with or without prior)
 
     Returns
     -------
     CalibrationResult
     """
-    from .robust import calibrate_irls, check_kernel
-
     if check_kernel(robust) is not None:
         return calibrate_irls(problem, method, free, robust=robust, robust_k=robust_k, max_iter=max_iter, tol=tol,
                               theta0=theta0, validation=validation, check=check, single_thread=single_thread,
                               prior_std=prior_std, prior_mean=prior_mean)
-    from .reduced import use_chunks
-
     ck = use_chunks(problem, chunk) if method != "scipy-lm" else None
     with single_thread_blas(single_thread):
         return _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
@@ -176,55 +135,6 @@ def prior_arrays(names, prior_std, prior_mean, start) -> tuple[np.ndarray, np.nd
     return 1.0 / tau, mu
 
 
-class _DenseSystem:
-    """The weighted data rows of the whole problem: ``A = H_free/σ``, ``b = e/σ`` (M × p)."""
-
-    def __init__(self, problem, fidx):
-        self.problem, self.fidx = problem, fidx
-        self.m = 0
-        self._trial = None  # (θ, rows) of the last trial evaluated with its Jacobian
-
-    def linear(self, theta):
-        """``(A, b, bᵀb)`` at θ (reusing the trial's rows when the trial was accepted)."""
-        if self._trial is not None and np.array_equal(self._trial[0], theta):
-            rows = self._trial[1]
-        else:
-            rows = self.problem.evaluate(theta)
-        self._trial = None
-        A, b = _weighted(rows, self.fidx)
-        self.m = rows.e.size
-        return A, b, float(b @ b)
-
-    def cost(self, theta, jacobian: bool) -> float:
-        """``Σ (e/σ)²`` at a trial θ; with ``jacobian`` the rows are kept, so that an accepted
-        step (the common case) needs no second forward-kinematics pass."""
-        rows = self.problem.evaluate(theta, jacobian=jacobian)
-        if jacobian:
-            self._trial = (theta.copy(), rows)
-        return float(np.sum((rows.e / rows.sigma) ** 2))
-
-
-class _ReducedSystem:
-    """The same least-squares problem as its triangular factor ``(R, Qᵀb)``, built ``chunk`` poses
-    at a time (:mod:`estcal.estimate.reduced`): every quantity below is unchanged, the memory is
-    O(chunk · p) instead of O(M · p)."""
-
-    def __init__(self, problem, fidx, chunk: int):
-        self.problem, self.fidx, self.chunk = problem, fidx, int(chunk)
-        self.m = 0
-
-    def linear(self, theta):
-        from .reduced import reduce_system
-
-        R, c, rss, self.m = reduce_system(self.problem, theta, self.fidx, self.chunk)
-        return R, c, rss
-
-    def cost(self, theta, jacobian: bool) -> float:
-        from .reduced import chunked_cost
-
-        return chunked_cost(self.problem, theta, self.chunk)
-
-
 def _covariance(A) -> np.ndarray:
     """Σ = (AᵀA)⁻¹ via the QR factor of the column-scaled A (stable for poorly scaled columns)."""
     s = np.linalg.norm(A, axis=0)
@@ -234,154 +144,232 @@ def _covariance(A) -> np.ndarray:
     return (Rinv @ Rinv.T) / np.outer(s, s)
 
 
+class _Penalised:
+    """The weighted data system of the free parameters (:class:`~estcal.methods.reduced.DenseSystem`,
+    or :class:`~estcal.methods.reduced.ReducedSystem` in bounded memory) with the prior rows
+    ``(μ − θ)/τ`` of the penalised parameters appended (MAP; none without ``prior_std``)."""
+
+    def __init__(self, problem, fidx, names, nominal, prior_std, prior_mean, chunk):
+        self.fidx = fidx
+        self.system = DenseSystem(problem, fidx) if chunk is None else ReducedSystem(problem, fidx, chunk)
+        self.pk = np.zeros(0, int)
+        if prior_std is not None:
+            self.winv, self.mu = prior_arrays(names, prior_std, prior_mean, nominal)
+            self.pk = np.flatnonzero(self.winv > 0)
+            self.P = np.zeros((self.pk.size, fidx.size))
+            self.P[np.arange(self.pk.size), self.pk] = self.winv[self.pk]
+
+    def prior_cost(self, th) -> float:
+        pk = self.pk
+        return float(np.sum(((th[self.fidx][pk] - self.mu[pk]) * self.winv[pk]) ** 2)) if pk.size else 0.0
+
+    def prior_rows(self, x):
+        """Residuals ``(x − μ)/τ`` of the penalised free values ``x`` (scipy's sign)."""
+        return (x[self.pk] - self.mu[self.pk]) * self.winv[self.pk]
+
+    def linear(self, th):
+        """``(A, b, cost, data rows of A, data χ²)`` at ``th``."""
+        A, b, rss = self.system.linear(th)
+        n_data = A.shape[0]
+        if self.pk.size:
+            A = np.vstack([A, self.P])
+            b = np.concatenate([b, -self.prior_rows(th[self.fidx])])
+        return A, b, rss + self.prior_cost(th), n_data, rss
+
+    def cost(self, th, jacobian: bool) -> float:
+        return self.system.cost(th, jacobian=jacobian) + self.prior_cost(th)
+
+    @property
+    def m(self) -> int:
+        return self.system.m
+
+
 def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, check, verbose,
                    prior_std=None, prior_mean=None, chunk=None):
-    """Gauss–Newton / Levenberg–Marquardt / iterated linear least squares on the weighted system
-    of :class:`_DenseSystem`, or of :class:`_ReducedSystem` when ``chunk`` is given (the same
-    iterations, steps and covariance in bounded memory); scipy's LM on the dense system."""
+    """Gauss–Newton / Levenberg–Marquardt / iterated linear least squares on the weighted system of
+    :class:`_Penalised` (dense, or reduced when ``chunk`` is given: the same iterations, steps and
+    covariance in bounded memory); scipy's LM on the dense system."""
     if method not in LSQ_METHODS:
         raise ValueError(f"unknown least-squares method {method!r}; choose one of {LSQ_METHODS}")
     problem, fidx, names = resolve_free(problem, free)
-    pv = problem.params
-    theta = pv.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
     nominal = theta[fidx].copy()
     t0 = time.perf_counter()
-    if prior_std is not None:
-        winv, mu_p = prior_arrays(names, prior_std, prior_mean, nominal)
-        pk = np.flatnonzero(winv > 0)
-        P = np.zeros((pk.size, fidx.size))
-        P[np.arange(pk.size), pk] = winv[pk]
-    else:
-        pk = np.zeros(0, int)
-    system = _DenseSystem(problem, fidx) if chunk is None else _ReducedSystem(problem, fidx, chunk)
-
-    def prior_cost(th):
-        return float(np.sum(((th[fidx][pk] - mu_p[pk]) * winv[pk]) ** 2)) if pk.size else 0.0
-
-    def linear(th):
-        """``(A, b, cost, data rows of A, data χ²)``: the data system, then the prior rows
-        ``(μ − θ)/τ`` of the penalised parameters."""
-        A_, b_, rss = system.linear(th)
-        n_data = A_.shape[0]
-        if pk.size:
-            A_ = np.vstack([A_, P])
-            b_ = np.concatenate([b_, (mu_p[pk] - th[fidx][pk]) * winv[pk]])
-        return A_, b_, rss + prior_cost(th), n_data, rss
-
-    A, b, cost, n_data, rss = linear(theta)
-    if system.m + pk.size < fidx.size:  # fewer equations than unknowns: singular whatever the data
-        raise UnidentifiableError(f"{system.m + pk.size} equations for {fidx.size} free parameters — measure more poses "
-                                  f"or estimate fewer parameters")
+    sysp = _Penalised(problem, fidx, names, nominal, prior_std, prior_mean, chunk)
+    A, b, cost, n_data, rss = sysp.linear(theta)
+    if sysp.m + sysp.pk.size < fidx.size:  # fewer equations than unknowns: singular whatever the data
+        raise UnidentifiableError(f"{sysp.m + sysp.pk.size} equations for {fidx.size} free parameters — measure "
+                                  f"more poses or estimate fewer parameters")
     if check:
         check_identifiable(A, names)
-    converged = False
-    it = 0
     if method == "scipy-lm":
-        from scipy.optimize import least_squares
-
-        def fun(x):
-            th = theta.copy()
-            th[fidx] = x
-            r = problem.evaluate(th, jacobian=False)
-            out = -r.e / r.sigma
-            return np.concatenate([out, (x[pk] - mu_p[pk]) * winv[pk]]) if pk.size else out
-
-        def jac(x):
-            th = theta.copy()
-            th[fidx] = x
-            r = problem.evaluate(th)
-            out = r.H[:, fidx] / r.sigma[:, None]
-            return np.vstack([out, P]) if pk.size else out
-
-        sol = least_squares(fun, theta[fidx], jac=jac, method="lm", x_scale="jac", xtol=tol, ftol=tol,
-                            gtol=tol, max_nfev=max_iter * 10)
-        theta[fidx] = sol.x
-        it, converged = int(sol.njev or sol.nfev), bool(sol.success)
-        A, b, cost, n_data, rss = linear(theta)
+        theta, it, converged = _scipy_lm(problem, sysp, theta, max_iter, tol)
+        A, b, cost, n_data, rss = sysp.linear(theta)
     else:
-        mu, nu = 1e-2, 10.0
-        from estcal.base.progress import progress
+        theta, it, converged, (A, b, n_data, rss) = _iterate(sysp, theta, (A, b, cost, n_data, rss), method,
+                                                             max_iter, tol, verbose)
+    res = _lsq_result(problem, sysp, method, names, nominal, theta, A, n_data, rss, it, converged, validation)
+    res.extra["time_s"] = time.perf_counter() - t0
+    if chunk is not None:
+        res.extra["chunk_poses"] = int(chunk)
+    res.accuracy = score(problem, problem.params.values if theta0 is None else np.asarray(theta0, float), theta,
+                         validation)
+    return res
 
-        with progress(total=max_iter, desc=f"calibrate ({method}, {fidx.size} parameters)", unit="iter") as bar:
-            for it in range(1, max_iter + 1):
-                if method == "lm":
-                    while True:
-                        dx = _solve(A, b, mu)
-                        trial = theta.copy()
-                        trial[fidx] += dx
-                        c_t = system.cost(trial, jacobian=True) + prior_cost(trial)
-                        if c_t <= cost or mu > 1e12:
-                            break
-                        mu *= nu
-                    mu = max(mu / nu, 1e-12)
-                else:
-                    dx = _solve(A, b)
-                    step = 1.0
-                    trial = theta.copy()
-                    trial[fidx] += dx
-                    if method == "gauss-newton":
-                        while True:
-                            c_t = system.cost(trial, jacobian=step == 1.0) + prior_cost(trial)
-                            if c_t <= cost or step < 1e-6:
-                                break
-                            step *= 0.5
-                            trial = theta.copy()
-                            trial[fidx] += step * dx
-                        dx = step * dx
-                theta = trial
-                A, b, new_cost, n_data, rss = linear(theta)
-                scale = np.maximum(np.abs(theta[fidx]), 1e-3)
-                small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
-                small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
-                cost = new_cost
-                bar.update(1)
-                bar.set_postfix(cost=f"{cost:.4g}")
-                if verbose:
-                    print(f"iter {it}: cost {cost:.6g}, max|step| {np.max(np.abs(dx)):.3g}")
-                if small_step or small_cost:
-                    converged = True
-                    break
+
+def _scipy_lm(problem, sysp: _Penalised, theta, max_iter, tol):
+    """``(θ, iterations, converged)`` of :func:`scipy.optimize.least_squares` (MINPACK LM) with the
+    analytic Jacobian."""
+    from scipy.optimize import least_squares
+
+    fidx, pk = sysp.fidx, sysp.pk
+
+    def fun(x):
+        th = theta.copy()
+        th[fidx] = x
+        r = problem.evaluate(th, jacobian=False)
+        out = -r.e / r.sigma
+        return np.concatenate([out, sysp.prior_rows(x)]) if pk.size else out
+
+    def jac(x):
+        th = theta.copy()
+        th[fidx] = x
+        r = problem.evaluate(th)
+        out = r.H[:, fidx] / r.sigma[:, None]
+        return np.vstack([out, sysp.P]) if pk.size else out
+
+    sol = least_squares(fun, theta[fidx], jac=jac, method="lm", x_scale="jac", xtol=tol, ftol=tol,
+                        gtol=tol, max_nfev=max_iter * 10)
+    theta = theta.copy()
+    theta[fidx] = sol.x
+    return theta, int(sol.njev or sol.nfev), bool(sol.success)
+
+
+def _iterate(sysp: _Penalised, theta, linear, method, max_iter, tol, verbose):
+    """``(θ, iterations, converged, (A, b, data rows, data χ²))`` of LM, Gauss–Newton with a
+    backtracking line search, or iterated linear least squares (module docstring)."""
+    fidx = sysp.fidx
+    A, b, cost, n_data, rss = linear
+    converged, it, mu = False, 0, 1e-2
+    with progress(total=max_iter, desc=f"calibrate ({method}, {fidx.size} parameters)", unit="iter") as bar:
+        for it in range(1, max_iter + 1):
+            if method == "lm":
+                trial, dx, mu = _lm_step(sysp, theta, A, b, cost, mu)
+            else:
+                trial, dx = _gauss_newton_step(sysp, theta, A, b, cost, line_search=method == "gauss-newton")
+            theta = trial
+            A, b, new_cost, n_data, rss = sysp.linear(theta)
+            scale = np.maximum(np.abs(theta[fidx]), 1e-3)
+            small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
+            small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
+            cost = new_cost
+            bar.update(1)
+            bar.set_postfix(cost=f"{cost:.4g}")
+            if verbose:
+                print(f"iter {it}: cost {cost:.6g}, max|step| {np.max(np.abs(dx)):.3g}")
+            if small_step or small_cost:
+                converged = True
+                break
+    return theta, it, converged, (A, b, n_data, rss)
+
+
+def _lm_step(sysp: _Penalised, theta, A, b, cost, mu, nu: float = 10.0):
+    """Marquardt's rule: damping μ multiplied by ν until the cost falls, then divided by ν."""
+    while True:
+        dx = _solve(A, b, mu)
+        trial = theta.copy()
+        trial[sysp.fidx] += dx
+        if sysp.cost(trial, jacobian=True) <= cost or mu > 1e12:
+            break
+        mu *= nu
+    return trial, dx, max(mu / nu, 1e-12)
+
+
+def _gauss_newton_step(sysp: _Penalised, theta, A, b, cost, line_search: bool):
+    """The full Gauss–Newton step; with ``line_search`` halved until the cost falls (down to 1e-6)."""
+    dx = _solve(A, b)
+    step = 1.0
+    trial = theta.copy()
+    trial[sysp.fidx] += dx
+    if line_search:
+        while not (sysp.cost(trial, jacobian=step == 1.0) <= cost or step < 1e-6):
+            step *= 0.5
+            trial = theta.copy()
+            trial[sysp.fidx] += step * dx
+        dx = step * dx
+    return trial, dx
+
+
+def _lsq_result(problem, sysp: _Penalised, method, names, nominal, theta, A, n_data, rss, it, converged,
+                validation) -> CalibrationResult:
+    """The result at the solution: ``Σ = (AᵀA)⁻¹``, scaled by σ0² when the noise is not known (with a
+    prior, over the effective number of parameters ``tr(Σ HᵀWH)``)."""
+    fidx, pk = sysp.fidx, sysp.pk
     chi2 = float(rss)  # the data part (the prior rows are not measurements)
-    dof = int(system.m - fidx.size)
+    dof = int(sysp.m - fidx.size)
     cov = _covariance(A)
-    p_eff = float(fidx.size)
+    p_eff, dof_eff = float(fidx.size), dof
     if pk.size:  # effective number of parameters tr(Σ HᵀWH) of the regularised fit
         Ad = A[:n_data]
         p_eff = float(np.einsum("ij,ji->", cov, Ad.T @ Ad))
-        dof_eff = system.m - p_eff
-    else:
-        dof_eff = dof
+        dof_eff = sysp.m - p_eff
     known = noise_known(problem)
     if not known and dof_eff > 0:
         cov = cov * (chi2 / dof_eff)
     res = CalibrationResult(method=method, names=names, estimate=theta[fidx].copy(),
                             std=np.sqrt(np.diag(cov)), covariance=cov, nominal=nominal, theta=theta,
-                            all_names=list(pv.names), n_iterations=it, converged=converged, chi2=chi2, dof=dof,
-                            covariance_source="model" if known else "scaled by sigma0^2",
+                            all_names=list(problem.params.names), n_iterations=it, converged=converged, chi2=chi2,
+                            dof=dof, covariance_source="model" if known else "scaled by sigma0^2",
                             problem=problem, validation_data=list(validation))
-    res.extra["time_s"] = time.perf_counter() - t0
-    if chunk is not None:
-        res.extra["chunk_poses"] = int(chunk)
     if pk.size:
-        res.extra["prior"] = {"std": {names[k]: float(1.0 / winv[k]) for k in pk},
-                              "mean": {names[k]: float(mu_p[k]) for k in pk},
+        res.extra["prior"] = {"std": {names[k]: float(1.0 / sysp.winv[k]) for k in pk},
+                              "mean": {names[k]: float(sysp.mu[k]) for k in pk},
                               "effective_parameters": p_eff, "dof_effective": dof_eff}
-    res.accuracy = score(problem, pv.values if theta0 is None else np.asarray(theta0, float), theta, validation)
     return res
 
 
-def score(problem, theta_before, theta_after, validation=()) -> dict:
-    """Accuracy before/after on the training terms and on each validation dataset."""
-    robot = problem.robot
-    out = {}
-    t = problem.terms[0]
-    if t.data.kind != "none":
-        out["train"] = {"before": accuracy(robot, theta_before, t.data),
-                        "after": accuracy(robot, theta_after, t.data), "path": t.data.where}
-    vals = []
-    for d in validation:
-        vals.append({"path": d.where, "before": accuracy(robot, theta_before, d),
-                     "after": accuracy(robot, theta_after, d)})
-    if vals:
-        out["validation"] = vals
-    return out
+def calibrate_irls(problem, method: str = "lm", free=None, robust: str = "huber", robust_k=None,
+                   max_outer: int = 200, tol: float = 1e-6, validation=(), inner_iter: int = 1, **options):
+    """Robust least squares by iteratively reweighted LS (module docstring).
+
+    Each outer iteration fits with the σ of every group divided by √w (weights fixed), then
+    recomputes the weights at the new estimate; stops when no weight changes by more than
+    ``tol`` or the estimate moved by less than ``tol`` standard deviations. The covariance is that of the last weighted fit (the approximation gtsam's robust
+    marginals also give; scaled by that fit's σ0² when the noise is not known).
+    """
+    kernel = check_kernel(robust)
+    options.pop("max_iter", None)
+    problem, fidx, names = resolve_free(problem, free)
+    theta0 = options.pop("theta0", None)
+    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
+    theta_before = theta.copy()
+    r, dims, _, row_group = group_norms(problem, theta)
+    km = np.array([kernel_threshold(kernel, int(m), robust_k) for m in dims])
+    w = np.ones(r.size)
+    res = None
+    # the fixed point does not depend on the inner solver; Gauss–Newton with its line search
+    # takes full steps where LM's damping, restarted at every reweighting, would crawl
+    inner = "scipy-lm" if method == "scipy-lm" else "gauss-newton"
+    for it in range(1, max_outer + 1):
+        wp = WeightedProblem(problem, 1.0 / np.sqrt(w[row_group]))
+        # one Gauss–Newton / LM step per reweighting (as gtsam's robust LM re-weighs at every
+        # linearisation): far fewer fits than iterating each weighted fit to convergence
+        res = calibrate_lsq(wp, inner, theta0=theta, max_iter=inner_iter, **options)
+        step = np.max(np.abs(res.theta[fidx] - theta[fidx]) / np.maximum(res.std, 1e-300))
+        theta = res.theta
+        r = group_norms(problem, theta)[0]
+        w_new = kernel_weight(kernel, r, km)
+        # converged when the weights are stable or the estimate moves by < tol standard deviations
+        done = np.max(np.abs(w_new - w)) <= tol or step <= tol
+        w = w_new
+        if done:
+            break
+    res.n_iterations = it
+    res.converged = bool(done)
+    res.method = method
+    # χ² and accuracy of the unweighted data (the report adds the split with / without outliers)
+    res.chi2 = chi2_and_rows(problem, theta)[0]
+    res.covariance_source = f"weighted LS at the robust ({kernel}) weights"
+    res.accuracy = score(problem, theta_before, theta, validation)
+    res.extra["robust_outer_iterations"] = it
+    return res

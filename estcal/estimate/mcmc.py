@@ -62,7 +62,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.base.lock import LockedError, RunLock
+from estcal.plots.posterior import corner_figure
+
 from ._common import evaluate_many, finish_result, noise_known, prior_std_vector, resolve_free
+from .chainfile import ChainFileError, check_chain_path
 
 __all__ = ["calibrate_mcmc", "sample_posterior", "PosteriorSamples", "LogPosterior"]
 
@@ -152,17 +156,12 @@ class PosteriorSamples:
             post["noise_scale"] = self.noise_scale.T
         return az.from_dict(posterior=post, sample_stats={"lp": self.log_prob.T})
 
-    def corner(self, path, params=None, truths=None):
-        """Corner plot (:func:`estcal.plots.posterior.corner_figure`) of ``params`` (default: up
-        to the first 8) written to a PNG (atomically); returns the path."""
-        from estcal.plots.posterior import corner_figure
-        from estcal.report.figures import save_figure
-
+    def corner_figure(self, params=None, truths=None):
+        """Corner plot (:func:`estcal.plots.posterior.corner_figure`, a matplotlib Figure) of ``params``
+        (default: up to the first 8); save it with :func:`estcal.report.figures.save_figure`."""
         idx = list(range(min(8, len(self.names)))) if params is None else [self.names.index(p) for p in params]
-        fig = corner_figure(self.flat[:, idx], [self.names[i] for i in idx],
-                            truths=None if truths is None else np.asarray(truths)[idx])
-        save_figure(fig, path, dpi=80)
-        return path
+        return corner_figure(self.flat[:, idx], [self.names[i] for i in idx],
+                             truths=None if truths is None else np.asarray(truths)[idx])
 
 
 def _laplace_move(mean, sd):
@@ -227,9 +226,7 @@ def sample_posterior(problem, free=None, *, prior_std=None, noise_scale: bool | 
               proposal_scale=proposal_scale, init_scale=init_scale, chain=chain)
     if chain is None:
         return _sample_posterior(problem, free, **kw)
-    from estcal.base.lock import LockedError, RunLock
 
-    from .chainfile import ChainFileError, check_chain_path
 
     check_chain_path(chain)  # before the lock file is made beside it
     try:
@@ -347,14 +344,14 @@ def theta_full_of(theta, fidx, x):
     return th
 
 
-def calibrate_mcmc(problem, free=None, validation=(), *, corner_path=None, corner_params=None,
-                   level: float = 0.95, **options):
+def calibrate_mcmc(problem, free=None, validation=(), *, level: float = 0.95, **options):
     """Posterior summary as a :class:`CalibrationResult` (same JSON as the other methods).
 
     ``estimate`` = posterior mean, ``std`` = posterior std, ``covariance`` = sample covariance;
     ``extra``: ``credible_intervals`` ({name: [lo, hi]} at ``level``), ``posterior_median``,
     ``tau``, ``ess``, ``acceptance_fraction``, ``n_steps``, ``n_walkers``, ``burn_in``,
-    ``noise_scale`` (mean, std) when sampled, ``corner_plot`` path when written.
+    ``noise_scale`` (mean, std) when sampled; the draws are in ``result.samples`` (the corner plot
+    of ``--report DIR``: :func:`estcal.plots.posterior.corner_figure`).
     Options are those of :func:`sample_posterior`.
     """
     t0 = time.perf_counter()
@@ -374,8 +371,6 @@ def calibrate_mcmc(problem, free=None, validation=(), *, corner_path=None, corne
              "moves": smp.extra["moves"], "prior_std": smp.extra["prior_std"]}
     if smp.noise_scale is not None:
         extra["noise_scale"] = {"mean": float(smp.noise_scale.mean()), "std": float(smp.noise_scale.std())}
-    if corner_path:
-        extra["corner_plot"] = str(smp.corner(corner_path, corner_params))
     res = finish_result(problem, "mcmc", names, fidx, mean, cov, theta_full_of(theta, fidx, mean), theta[fidx],
                         n_iterations=smp.n_steps, converged=smp.converged, covariance_source="posterior samples",
                         theta_before=theta, validation=validation, t0=t0, extra=extra)

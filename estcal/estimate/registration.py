@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estcal.kinematics.chunked import tool_poses
 from estcal.kinematics.transforms import matrix_to_rpy, rpy_to_matrix
 
 __all__ = ["kabsch", "register_base"]
@@ -33,7 +34,6 @@ def register_base(robot, data, theta=None):
     transform is composed with the correction, so it works for any starting base.
     """
     theta = robot.params.values.copy() if theta is None else np.asarray(theta, float).copy()
-    from estcal.kinematics.chunked import tool_poses
 
     kin = tool_poses(robot, data.readings, theta, data.context, fields=("p", "points"))  # bounded memory
     if data.kind == "pose":

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import math
 
-__all__ = ["ESTIMATORS", "get_estimator", "register_estimator", "estimator_names", "estimator_options",
+__all__ = ["ESTIMATORS", "get_estimator", "estimator_names", "estimator_options",
            "check_options"]
 
 ESTIMATORS: dict[str, str] = {
@@ -24,11 +24,6 @@ ESTIMATORS: dict[str, str] = {
     "ukf": "estcal.estimate.kalman:calibrate_ukf",
     "mcmc": "estcal.estimate.mcmc:calibrate_mcmc",
 }
-
-
-def register_estimator(name: str, target) -> None:
-    """Add an estimator: ``target`` is a callable or a ``"module:function"`` string."""
-    ESTIMATORS[name] = target
 
 
 def estimator_names() -> list[str]:

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._common import resolve_free
-from .lsq import _weighted
+from estcal.methods.reduced import weighted
 
 __all__ = ["loo_curve", "choose_prior_std", "RegularizationChoice", "DEFAULT_GRID"]
 
@@ -130,7 +130,7 @@ def loo_curve(problem, free, penalised, taus, theta=None, posture_tol=(1e-3, 1e-
     problem, fidx, names = resolve_free(problem, free)
     theta = problem.params.values if theta is None else np.asarray(theta, float)
     rows = problem.evaluate(theta)
-    A, b = _weighted(rows, fidx)
+    A, b = weighted(rows, fidx)
     pen = np.isin(names, list(penalised))
     blocks, mask = _posture_blocks(problem, rows, posture_tol)
     Ab = np.where(mask[..., None], A[blocks], 0.0)  # (G, m, p); padding rows are zero

@@ -10,13 +10,19 @@ serialise to the same JSON::
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from estcal.base.jsonio import to_jsonable, write_json
+from estcal.base.atomic import refuse_input
+from estcal.base.jsonio import to_jsonable
+from estcal.base.result import Result
+from estcal.base.tables import Table, parameter_table, si_unit
+from estcal.base.units import display_unit
+from estcal.io.savedmodel import save_calibration
+from estcal.kinematics.chunked import tool_poses
+from estcal.kinematics.transforms import pose_error
 
-__all__ = ["CalibrationResult", "accuracy", "pose_errors"]
+__all__ = ["CalibrationResult", "accuracy", "pose_errors", "score"]
 
 
 def pose_errors(robot, theta, data):
@@ -25,9 +31,6 @@ def pose_errors(robot, theta, data):
     Returns ``(pos (N, k), rot (N,) or None)``. For pose data the point is the tool
     origin; for point data each marker is compared with its measured point.
     """
-    from estcal.kinematics.transforms import pose_error
-
-    from estcal.kinematics.chunked import tool_poses
 
     # chunked: only the tool frame and the points are kept (bounded memory on large files)
     kin = tool_poses(robot, data.readings, theta, data.context,
@@ -61,9 +64,10 @@ def accuracy(robot, theta, data) -> dict:
     return out
 
 
-@dataclass
-class CalibrationResult:
-    """Estimated parameters with uncertainty, fit statistics and accuracy.
+@dataclass(repr=False)
+class CalibrationResult(Result):
+    """Estimated parameters with uncertainty, fit statistics and accuracy (the result protocol of
+    :class:`estcal.base.result.Result`: ``to_dict``, ``to_json``, ``save_model``, ``table``).
 
     Attributes
     ----------
@@ -148,8 +152,6 @@ class CalibrationResult:
         ``provenance`` adds or overrides keys of the block (e.g. ``level``, ``options``).
         Returns the path.
         """
-        from estcal.base.atomic import refuse_input
-        from estcal.io.savedmodel import save_calibration
 
         refuse_input(path, self.inputs)
         return save_calibration(self, path, provenance)
@@ -179,25 +181,20 @@ class CalibrationResult:
         d.update({k: to_jsonable(v) for k, v in self.extra.items()})
         return d
 
-    def to_json(self, path) -> Path:
-        from estcal.base.atomic import refuse_input
+    def table(self) -> Table:
+        """Initial value, estimate and std of every estimated parameter
+        (:func:`estcal.base.tables.parameter_table`): mm / mrad when the robot is known, else SI."""
+        robot = getattr(self.problem, "robot", None)
+        unit = si_unit if robot is None else (lambda n: display_unit(n, robot) if n in robot.params else ("SI", 1.0))
+        return parameter_table(self, unit, title="")
 
-        refuse_input(path, self.inputs)
-        return write_json(path, self.to_dict())
-
-    def table(self) -> str:
-        w = max([len(n) for n in self.names] + [9])
-        rows = [f"{'parameter':<{w}}  {'nominal':>13}  {'estimate':>13}  {'std':>11}  {'t':>8}"]
-        for n, v, e, s in zip(self.names, self.nominal, self.estimate, self.std):
-            t = (e - v) / s if s > 0 else float("inf")
-            rows.append(f"{n:<{w}}  {v:>13.6g}  {e:>13.6g}  {s:>11.3g}  {t:>8.2f}")
-        return "\n".join(rows)
-
-    def __str__(self) -> str:
-        head = (f"CalibrationResult(method={self.method!r}, {len(self.names)} parameters, "
+    def summary(self) -> str:
+        return (f"CalibrationResult(method={self.method!r}, {len(self.names)} parameters, "
                 f"iterations={self.n_iterations}, converged={self.converged}, "
                 f"sigma0={self.sigma0:.4g}, covariance={self.covariance_source})")
-        lines = [head, self.table()]
+
+    def __str__(self) -> str:
+        lines = [self.summary(), str(self.table())]
         acc = self.accuracy or {}
         if "train" in acc:
             b, a = acc["train"].get("before", {}), acc["train"].get("after", {})
@@ -206,3 +203,20 @@ class CalibrationResult:
             lines.append(f"validation[{i}] {v.get('path', '')}: RMSE {v.get('before', {}).get('rmse_mm', float('nan')):.3f}"
                          f" mm -> {v.get('after', {}).get('rmse_mm', float('nan')):.3f} mm")
         return "\n".join(lines)
+
+
+def score(problem, theta_before, theta_after, validation=()) -> dict:
+    """Accuracy before/after on the training terms and on each validation dataset."""
+    robot = problem.robot
+    out = {}
+    t = problem.terms[0]
+    if t.data.kind != "none":
+        out["train"] = {"before": accuracy(robot, theta_before, t.data),
+                        "after": accuracy(robot, theta_after, t.data), "path": t.data.where}
+    vals = []
+    for d in validation:
+        vals.append({"path": d.where, "before": accuracy(robot, theta_before, d),
+                     "after": accuracy(robot, theta_after, d)})
+    if vals:
+        out["validation"] = vals
+    return out

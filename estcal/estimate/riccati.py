@@ -33,6 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
+from estcal.io.dataset import dataset_from_arrays
+from estcal.methods.base import NoiseModel
+from estcal.methods.problem import Problem
+
 __all__ = ["covariance_sequence", "steady_state", "riccati_residual", "periodic_steady_state",
            "repetition_covariance", "stopping_index", "stopping_index_sequence", "information_matrix",
            "planned_jacobians", "matrix_norm", "plan_calibration", "CalibrationPlan"]
@@ -233,9 +237,6 @@ def planned_jacobians(robot, readings, method: str = "location", free=None, thet
     Only the robot model and the readings are used (the predicted measurement
     stands in for the data, which H does not depend on).
     """
-    from estcal.io.dataset import dataset_from_arrays
-    from estcal.methods.base import NoiseModel
-    from estcal.methods.problem import Problem
 
     readings = np.atleast_2d(np.asarray(readings, float))
     th = robot.params.values if theta is None else np.asarray(theta, float)

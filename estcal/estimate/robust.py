@@ -17,7 +17,7 @@ Estimators
 * ``gtsam``, ``isam2``, ``gtsam-timevarying``: ``gtsam.noiseModel.Robust`` with the kernel at
   ``k_m`` on each pose factor (:func:`estcal.estimate.factorgraph.robust_noise`);
 * ``lm``, ``gauss-newton``, ``iterated-lls``, ``scipy-lm``: iteratively reweighted least squares
-  (:func:`calibrate_irls`: the M-estimate is the fixed point of a weighted LS fit whose σ are
+  (:func:`estcal.estimate.lsq.calibrate_irls`: the M-estimate is the fixed point of a weighted LS fit whose σ are
   divided by √w — the same normal equations gtsam's robust LM solves);
 * ``kalman`` (EKF): each innovation is weighed by the kernel of its normalised norm
   ``√(νᵀS⁻¹ν)`` and R is divided by the weight before the update (a Huber/Cauchy-robust
@@ -36,10 +36,13 @@ its weight, and its residual in σ; χ², dof and σ0 with all poses and without
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+
+from estcal.methods.reduced import evaluate_chunks, use_chunks
+
+from ._common import GroupedProblem
 
 __all__ = ["KERNELS", "OUTLIER_ALPHA", "kernel_threshold", "kernel_weight", "group_norms", "outlier_report",
-           "calibrate_irls", "WeightedProblem", "check_kernel"]
+           "WeightedProblem", "check_kernel"]
 
 KERNELS = {"huber": 1.345, "cauchy": 2.385}
 OUTLIER_ALPHA = 1e-4
@@ -59,6 +62,8 @@ def kernel_threshold(kernel: str, dim: int, k: float | None = None) -> float:
     k1 = KERNELS[kernel] if k is None else float(k)
     if dim <= 1:
         return k1
+    from scipy import stats
+
     p = stats.chi2.cdf(k1 ** 2, 1)  # P(|z| ≤ k)
     return float(np.sqrt(stats.chi2.ppf(p, dim)))
 
@@ -73,9 +78,6 @@ def kernel_weight(kernel: str, r, km) -> np.ndarray:
 def group_norms(problem, theta):
     """``(r, dims, lines, row_group)``: whitened residual norm and row count of every measurement
     group at ``theta``, the CSV line of its first dataset row, and the group of every row."""
-    from ._common import GroupedProblem
-    from .reduced import use_chunks
-
     ck = use_chunks(problem)
     if ck is not None:
         return _pose_norms_chunked(problem, theta, ck)
@@ -96,8 +98,6 @@ def group_norms(problem, theta):
 def _pose_norms_chunked(problem, theta, chunk):
     """:func:`group_norms` of a large per-pose problem (one group per pose, in file order),
     evaluated ``chunk`` poses at a time: memory O(rows), not O(rows × kinematics)."""
-    from .reduced import evaluate_chunks
-
     (t,) = problem.terms
     n = t.data.n
     r2 = np.zeros(n)
@@ -120,6 +120,8 @@ def outlier_report(problem, theta, kernel: str, k: float | None = None, n_params
 
     ``norms``: precomputed ``(r, dims, lines)`` (e.g. per-batch states of a smoother).
     """
+    from scipy import stats
+
     r, dims, lines = norms if norms is not None else group_norms(problem, theta)[:3]
     km = np.array([kernel_threshold(kernel, int(m), k) for m in dims])
     w = kernel_weight(kernel, r, km)
@@ -192,55 +194,3 @@ class WeightedProblem:
 
     def with_values(self, theta):
         return WeightedProblem(self.base.with_values(theta), self.row_scale)
-
-
-def calibrate_irls(problem, method: str = "lm", free=None, robust: str = "huber", robust_k=None,
-                   max_outer: int = 200, tol: float = 1e-6, validation=(), inner_iter: int = 1, **options):
-    """Robust least squares by iteratively reweighted LS (module docstring).
-
-    Each outer iteration fits with the σ of every group divided by √w (weights fixed), then
-    recomputes the weights at the new estimate; stops when no weight changes by more than
-    ``tol`` or the estimate moved by less than ``tol`` standard deviations. The covariance is that of the last weighted fit (the approximation gtsam's robust
-    marginals also give; scaled by that fit's σ0² when the noise is not known).
-    """
-    from ._common import resolve_free
-    from .lsq import calibrate_lsq, score
-
-    kernel = check_kernel(robust)
-    options.pop("max_iter", None)
-    problem, fidx, names = resolve_free(problem, free)
-    theta0 = options.pop("theta0", None)
-    theta = problem.params.values.copy() if theta0 is None else np.asarray(theta0, float).copy()
-    theta_before = theta.copy()
-    r, dims, _, row_group = group_norms(problem, theta)
-    km = np.array([kernel_threshold(kernel, int(m), robust_k) for m in dims])
-    w = np.ones(r.size)
-    res = None
-    # the fixed point does not depend on the inner solver; Gauss–Newton with its line search
-    # takes full steps where LM's damping, restarted at every reweighting, would crawl
-    inner = "scipy-lm" if method == "scipy-lm" else "gauss-newton"
-    for it in range(1, max_outer + 1):
-        wp = WeightedProblem(problem, 1.0 / np.sqrt(w[row_group]))
-        # one Gauss–Newton / LM step per reweighting (as gtsam's robust LM re-weighs at every
-        # linearisation): far fewer fits than iterating each weighted fit to convergence
-        res = calibrate_lsq(wp, inner, theta0=theta, max_iter=inner_iter, **options)
-        step = np.max(np.abs(res.theta[fidx] - theta[fidx]) / np.maximum(res.std, 1e-300))
-        theta = res.theta
-        r = group_norms(problem, theta)[0]
-        w_new = kernel_weight(kernel, r, km)
-        # converged when the weights are stable or the estimate moves by < tol standard deviations
-        done = np.max(np.abs(w_new - w)) <= tol or step <= tol
-        w = w_new
-        if done:
-            break
-    res.n_iterations = it
-    res.converged = bool(done)
-    res.method = method
-    # χ² and accuracy of the unweighted data (the report adds the split with / without outliers)
-    from .reduced import chi2_and_rows
-
-    res.chi2 = chi2_and_rows(problem, theta)[0]
-    res.covariance_source = f"weighted LS at the robust ({kernel}) weights"
-    res.accuracy = score(problem, theta_before, theta, validation)
-    res.extra["robust_outer_iterations"] = it
-    return res

@@ -15,10 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estcal.identify.select import observation_matrix, select_identifiable
 from estcal.io.dataset import dataset_from_arrays
+from estcal.kinematics.robots import get_builtin
 from estcal.kinematics.transforms import so3_exp
+from estcal.methods.base import NoiseModel
+from estcal.methods.problem import Problem
 
-__all__ = ["Simulated", "simulated_problem", "drifting_problem", "puma_free_set", "PUMA_CANDIDATES"]
+__all__ = ["Simulated", "simulated_problem", "drifting_problem", "puma_free_set", "ordered_free_set", "PUMA_CANDIDATES"]
 
 #: candidate PUMA 560 parameters (the identifiable set is selected among them in order)
 PUMA_CANDIDATES = ["base_*", "d_*", "a_*", "alpha_*", "beta_2", "theta_*", "tool_*"]
@@ -38,16 +42,24 @@ class Simulated:
 
 
 def _robot(name):
-    from estcal.kinematics.robots import get_builtin
-
     return get_builtin(name) if isinstance(name, str) else name
 
 
-def puma_free_set(problem, candidates=None) -> list:
-    """Identifiable PUMA free set for ``problem`` (rank test, see :func:`identifiable_free`)."""
-    from ._common import identifiable_free
+def ordered_free_set(problem, candidates=None) -> list:
+    """The candidates (names or patterns, in the given order; default every parameter) kept in that
+    order while they add rank: :func:`estcal.identify.select_identifiable` with the structural
+    tolerance on the problem's weighted rows — reproducible sets for the simulated problems,
+    whatever GECARO's priority rules would prefer."""
+    pv = problem.params
+    names = list(pv.names) if candidates is None else \
+        [n for c in candidates for n in (pv.select(c) if any(ch in c for ch in "*?[") else [c])]
+    W, names = observation_matrix(problem, names)
+    return select_identifiable(W, names=names).identifiable
 
-    return identifiable_free(problem, PUMA_CANDIDATES if candidates is None else candidates, use_identify=False)
+
+def puma_free_set(problem, candidates=None) -> list:
+    """Identifiable PUMA free set for ``problem`` (:func:`ordered_free_set` of :data:`PUMA_CANDIDATES`)."""
+    return ordered_free_set(problem, PUMA_CANDIDATES if candidates is None else candidates)
 
 
 def _measure(robot, theta, readings, kind, sigma_p, sigma_r, rng, context=None):
@@ -78,8 +90,6 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
     truth : explicit true full vector (overrides ``deviation``)
     outliers : fraction of poses whose position gets an extra error of ``outlier_scale·sigma_p``
     """
-    from estcal.methods.base import NoiseModel
-    from estcal.methods.problem import Problem
 
     rng = np.random.default_rng(seed)
     rob = _robot(robot)
@@ -90,7 +100,7 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
     meas = _measure(rob, nominal, q, method, 0.0, 0.0, rng)
     prob = Problem(rob, [(method, dataset_from_arrays(rob.joint_names, q, **meas), noise)])
     if free is None:
-        free = puma_free_set(prob) if rob.name.startswith("puma") else identifiable_free_default(prob)
+        free = puma_free_set(prob) if rob.name.startswith("puma") else ordered_free_set(prob)
     pv = prob.params
     if truth is None:
         truth = nominal.copy()
@@ -109,12 +119,6 @@ def simulated_problem(robot="puma560", n_poses: int = 100, seed=0, sigma_p: floa
     return Simulated(prob, truth, list(prob.params.free_names))
 
 
-def identifiable_free_default(problem):
-    from ._common import identifiable_free
-
-    return identifiable_free(problem, use_identify=False)
-
-
 def drifting_problem(robot="puma560", n_poses: int = 200, seed=0, drift: dict | None = None, **kw) -> Simulated:
     """Like :func:`simulated_problem`, but the true parameters drift linearly over the poses.
 
@@ -122,8 +126,6 @@ def drifting_problem(robot="puma560", n_poses: int = 200, seed=0, drift: dict | 
     pose i is measured with ``truth + (i/(N−1)) · drift``; ``t = i`` (s) is stored
     in the dataset context. ``truth`` of the result is the last pose's vector.
     """
-    from estcal.methods.problem import Problem
-
     drift = drift or {"theta_2": 2e-3}
     base = simulated_problem(robot, n_poses, seed, **kw)
     prob, pv = base.problem, base.problem.params

@@ -30,16 +30,26 @@ Every error names the file and the offending key or joint, e.g.
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from estcal.base.errors import InputError
-from estcal.kinematics.builder import DH_PARAMS, KHALIL_PARAMS, URDF_PARAMS, build_robot
+from estcal.base.atomic import atomic_write_text
+from estcal.base.errors import RobotFileError
+from estcal.base.jsonio import to_jsonable
+from estcal.base.textinput import read_text, read_yaml
+from estcal.effects import make_effect
+from estcal.kinematics.builder import (DH_PARAMS, KHALIL_PARAMS, MAX_ANGLE_RAD, MAX_LENGTH_M, MAX_LIMIT_RAD,
+                                       URDF_PARAMS, build_robot, frame_labels)
 from estcal.kinematics.chain import SerialRobot
+from estcal.kinematics.robots import BUILTIN
 from estcal.kinematics.transforms import make_transform, matrix_to_rpy, rpy_to_matrix
+from estcal.robots import available
+
+from .integrity import stamp_text, verify_text
 
 __all__ = ["RobotFileError", "load_robot", "robot_names", "save_robot", "robot_from_dict", "robot_to_dict",
            "read_robot_file", "calibration_covariance", "FORMAT_VERSION", "LENGTH_UNITS", "ANGLE_UNITS"]
@@ -55,10 +65,6 @@ _CONV_KEYS = {"khalil": KHALIL_PARAMS, "dh": DH_PARAMS, "urdf": ("origin", "axis
 # which convention parameters are angles (the others are lengths)
 _ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
 _TYPES = ("revolute", "prismatic", "fixed")
-
-
-class RobotFileError(InputError):
-    """A problem in a robot file; the message starts with the file name and the key/joint."""
 
 
 def _suggest(key: str, valid) -> str:
@@ -96,13 +102,6 @@ class _Ctx:
                 raise self.err(where, f"unknown key {k!r}{_suggest(k, valid)}; valid keys: {', '.join(valid)}")
 
 
-#: physical range of a robot-file value once in SI; beyond it the file's unit is wrong (a length in
-#: millimetres, an angle in degrees without a ``units:`` line). Joint limits may span several turns.
-MAX_LENGTH_M = 50.0
-MAX_ANGLE_RAD = 2 * np.pi
-MAX_LIMIT_RAD = 4 * np.pi
-
-
 def _check_unit(ctx: _Ctx, where: str, key: str, value_si, angle: bool, limit: bool = False) -> None:
     """Refuse a value beyond the physical range of its unit, naming the likely mistake."""
     v = np.max(np.abs(np.atleast_1d(value_si)))
@@ -135,6 +134,43 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
     the zero defaults.
     """
     ctx = _Ctx(source)
+    name, convention = _check_header(ctx, d, source)
+    lu, au = _file_units(ctx, d)
+    joints = d.get("joints")
+    if not isinstance(joints, list) or not joints:
+        raise ctx.err("joints", "a non-empty list of joints is required")
+    frames, gear, extra_values = [], {}, {}
+    for i, jd in enumerate(joints):
+        frames.append(_joint_frame(ctx, i, jd, convention, lu, au, strict, [f["name"] for f in frames], gear,
+                                   extra_values))
+    markers = _markers(ctx, d, lu)
+    tool_d, tool_mass = _tool_with_mass(ctx, d.get("tool"), lu)
+    base_f, tool_f = _frame6(ctx, d.get("base"), "base", lu, au), _frame6(ctx, tool_d, "tool", lu, au)
+    if strict:
+        for key, fr in (("base", base_f), ("tool", tool_f)):
+            _check_unit(ctx, key, "xyz", fr["xyz"], False)
+            _check_unit(ctx, key, "rpy", fr["rpy"], True)
+        if markers is not None:
+            _check_unit(ctx, "markers", "marker", markers, False)
+    try:
+        robot = build_robot(name, frames, base=base_f, tool=tool_f, markers=markers,
+                            gravity=_gravity(ctx, d), payload=_payload(ctx, d, lu), coupling=_coupling(ctx, d, frames),
+                            convention=convention, tool_const=_tool_const(ctx, d.get("tool_origin"), lu, au),
+                            meta=_meta(ctx, d, source, gear))
+    except ValueError as exc:
+        raise ctx.err("", str(exc)) from exc
+    for pname, v in extra_values.items():
+        robot.params[pname] = v
+    if tool_mass is not None:
+        robot.links = list(robot.links[:-1]) + [dataclasses.replace(robot.links[-1], mass=tool_mass[0],
+                                                                   com=tool_mass[1])]
+    if d.get("effects"):
+        robot = _attach_effects(ctx, robot, d["effects"])
+    return robot
+
+
+def _check_header(ctx: _Ctx, d, source: str) -> tuple[str, str]:
+    """``(name, convention)`` after the checks of the top level (format version, keys)."""
     if not isinstance(d, Mapping):
         raise ctx.err("", "a robot file must be a YAML mapping with 'estcal_robot: 1' at the top")
     if "estcal_robot" not in d:
@@ -142,11 +178,14 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
     if d["estcal_robot"] != FORMAT_VERSION:
         raise ctx.err("estcal_robot", f"unsupported format version {d['estcal_robot']!r} (this estcal reads 1)")
     ctx.check_keys(d, _TOP_KEYS, "")
-    name = str(d.get("name", Path(source).stem))
     convention = d.get("convention", "khalil")
     if convention not in ("khalil", "dh", "urdf"):
         raise ctx.err("convention", f"unknown convention {convention!r} (expected khalil or dh)")
+    return str(d.get("name", Path(source).stem)), convention
 
+
+def _file_units(ctx: _Ctx, d) -> tuple[float, float]:
+    """Factors from the file's length and angle units (``units:``) to SI."""
     units = d.get("units") or {}
     ctx.check_keys(units, ("length", "angle"), "units")
     lu_name, au_name = units.get("length", "m"), units.get("angle", "rad")
@@ -154,129 +193,160 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
         raise ctx.err("units", f"unknown length unit {lu_name!r} (expected one of {sorted(LENGTH_UNITS)})")
     if au_name not in ANGLE_UNITS:
         raise ctx.err("units", f"unknown angle unit {au_name!r} (expected one of {sorted(ANGLE_UNITS)})")
-    lu, au = LENGTH_UNITS[lu_name], ANGLE_UNITS[au_name]
+    return LENGTH_UNITS[lu_name], ANGLE_UNITS[au_name]
 
-    joints = d.get("joints")
-    if not isinstance(joints, list) or not joints:
-        raise ctx.err("joints", "a non-empty list of joints is required")
-    frames, seen, gear, extra_values = [], set(), {}, {}
-    for i, jd in enumerate(joints):
-        if not isinstance(jd, Mapping):
-            raise ctx.err(f"joints[{i}]", f"expected a mapping, got {jd!r}")
-        jname = str(jd.get("name", f"joint{i + 1}"))
-        where = f"joint {jname!r}"
-        if "name" not in jd:
-            raise ctx.err(f"joints[{i}]", "missing 'name'")
-        if jname in seen:
-            raise ctx.err(where, "duplicate joint name")
-        seen.add(jname)
-        jtype = jd.get("type", "revolute")
-        if jtype not in _TYPES:
-            raise ctx.err(where, f"unknown type {jtype!r}{_suggest(jtype, _TYPES)} "
-                                 f"(expected revolute, prismatic or fixed)")
-        conv = jd.get("convention", convention)
-        if conv not in _CONV_KEYS:
-            raise ctx.err(where, f"unknown convention {conv!r} (expected khalil, dh or urdf)")
-        ctx.check_keys(jd, _JOINT_COMMON + _CONV_KEYS[conv], where)
-        f: dict[str, Any] = {"name": jname, "type": jtype, "convention": conv}
-        if "label" in jd:
-            f["label"] = str(jd["label"])
-        if conv == "urdf":
-            if strict and "origin" not in jd:
-                raise ctx.err(where, "no 'origin' {xyz, rpy} — give it ({xyz: [0, 0, 0], rpy: [0, 0, 0]} where "
-                                     "the joint frame is the parent's) so that a missing line is not read as zeros")
-            o = _frame6(ctx, jd.get("origin"), f"{where}: origin", lu, au)
+
+def _joint_frame(ctx: _Ctx, i: int, jd, convention: str, lu: float, au: float, strict: bool, seen, gear: dict,
+                 extra_values: dict) -> dict:
+    """The frame description (:func:`estcal.kinematics.builder.build_robot`) of joint ``i``, in SI;
+    gear ratios and URDF placement errors go to ``gear`` and ``extra_values``."""
+    if not isinstance(jd, Mapping):
+        raise ctx.err(f"joints[{i}]", f"expected a mapping, got {jd!r}")
+    jname = str(jd.get("name", f"joint{i + 1}"))
+    where = f"joint {jname!r}"
+    if "name" not in jd:
+        raise ctx.err(f"joints[{i}]", "missing 'name'")
+    if jname in seen:
+        raise ctx.err(where, "duplicate joint name")
+    jtype = jd.get("type", "revolute")
+    if jtype not in _TYPES:
+        raise ctx.err(where, f"unknown type {jtype!r}{_suggest(jtype, _TYPES)} "
+                             f"(expected revolute, prismatic or fixed)")
+    conv = jd.get("convention", convention)
+    if conv not in _CONV_KEYS:
+        raise ctx.err(where, f"unknown convention {conv!r} (expected khalil, dh or urdf)")
+    ctx.check_keys(jd, _JOINT_COMMON + _CONV_KEYS[conv], where)
+    f: dict[str, Any] = {"name": jname, "type": jtype, "convention": conv}
+    if "label" in jd:
+        f["label"] = str(jd["label"])
+    if conv == "urdf":
+        _urdf_geometry(ctx, jd, f, where, lu, au, strict, extra_values)
+    else:
+        _convention_geometry(ctx, jd, f, where, conv, lu, au, strict)
+    _joint_variable(ctx, jd, f, where, jtype, lu, au, strict, gear)
+    if "mass" in jd:
+        m = ctx.number(jd["mass"], where, "mass")
+        if m < 0:
+            raise ctx.err(where, f"'mass' must be >= 0 kg, got {m}")
+        f["mass"] = m
+    if "com" in jd:
+        f["com"] = ctx.vector(jd["com"], 3, where, "com") * lu
+    return f
+
+
+def _urdf_geometry(ctx: _Ctx, jd, f: dict, where: str, lu: float, au: float, strict: bool, extra_values: dict):
+    """A URDF-convention joint: its origin, axis and 6-D placement errors (set after building)."""
+    if strict and "origin" not in jd:
+        raise ctx.err(where, "no 'origin' {xyz, rpy} — give it ({xyz: [0, 0, 0], rpy: [0, 0, 0]} where "
+                             "the joint frame is the parent's) so that a missing line is not read as zeros")
+    o = _frame6(ctx, jd.get("origin"), f"{where}: origin", lu, au)
+    if strict:
+        _check_unit(ctx, f"{where}: origin", "xyz", o["xyz"], False)
+        _check_unit(ctx, f"{where}: origin", "rpy", o["rpy"], True)
+    f["origin"] = make_transform(rpy_to_matrix(o["rpy"]), o["xyz"])
+    ax = ctx.vector(jd.get("axis", [0, 0, 1]), 3, where, "axis")
+    if np.linalg.norm(ax) == 0:
+        raise ctx.err(where, "'axis' must be non-zero")
+    f["axis"] = ax
+    for k in URDF_PARAMS:  # the builder does not take the 6-D placement errors
+        if k in jd:
+            extra_values[f"{k}_{f.get('label', f['name'])}"] = ctx.number(jd[k], where, k) * (
+                au if k in _ANGLE_KEYS else lu)
+
+
+def _convention_geometry(ctx: _Ctx, jd, f: dict, where: str, conv: str, lu: float, au: float, strict: bool):
+    """A Khalil or DH joint: its geometric parameters in SI."""
+    if strict and not any(k in jd for k in _CONV_KEYS[conv]):
+        # a forgotten line would otherwise be read as a zero-length, untwisted link
+        raise ctx.err(where, f"no geometric parameters ({', '.join(_CONV_KEYS[conv])}) — give them "
+                             f"(0 where zero) so that a missing line is not read as zeros")
+    for k in _CONV_KEYS[conv]:
+        if k in jd:
+            f[k] = ctx.number(jd[k], where, k) * (au if k in _ANGLE_KEYS else lu)
             if strict:
-                _check_unit(ctx, f"{where}: origin", "xyz", o["xyz"], False)
-                _check_unit(ctx, f"{where}: origin", "rpy", o["rpy"], True)
-            f["origin"] = make_transform(rpy_to_matrix(o["rpy"]), o["xyz"])
-            ax = ctx.vector(jd.get("axis", [0, 0, 1]), 3, where, "axis")
-            if np.linalg.norm(ax) == 0:
-                raise ctx.err(where, "'axis' must be non-zero")
-            f["axis"] = ax
-            # 6-D placement errors are not taken by the builder; set after building.
-            for k in URDF_PARAMS:
-                if k in jd:
-                    extra_values[f"{k}_{f.get('label', jname)}"] = ctx.number(jd[k], where, k) * (
-                        au if k in _ANGLE_KEYS else lu)
-        else:
-            if strict and not any(k in jd for k in _CONV_KEYS[conv]):
-                # a forgotten line would otherwise be read as a zero-length, untwisted link
-                raise ctx.err(where, f"no geometric parameters ({', '.join(_CONV_KEYS[conv])}) — give them "
-                                     f"(0 where zero) so that a missing line is not read as zeros")
-            for k in _CONV_KEYS[conv]:
-                if k in jd:
-                    f[k] = ctx.number(jd[k], where, k) * (au if k in _ANGLE_KEYS else lu)
-                    if strict:
-                        _check_unit(ctx, where, k, f[k], k in _ANGLE_KEYS)
-        ju = au if jtype == "revolute" else lu  # unit of the joint variable
-        if jtype == "fixed":
-            for k in ("offset", "gain", "limits", "gear_ratio"):
-                if k in jd:
-                    raise ctx.err(where, f"{k!r} is not allowed on a fixed frame")
-        else:
-            if "offset" in jd:
-                f["offset"] = ctx.number(jd["offset"], where, "offset") * ju
-                if strict:
-                    _check_unit(ctx, where, "offset", f["offset"], jtype == "revolute")
-            if "gain" in jd:
-                f["gain"] = ctx.number(jd["gain"], where, "gain")
-                if f["gain"] == 0:
-                    raise ctx.err(where, "'gain' must be non-zero (q = gain · reading + offset: a zero gain "
-                                         "freezes the joint; 1 for a transmission without error)")
-            if "limits" in jd:
-                lim = ctx.vector(jd["limits"], 2, where, "limits") * ju
-                if not lim[0] < lim[1]:
-                    raise ctx.err(where, f"'limits' must be [lower, upper] with lower < upper, got {jd['limits']}")
-                if strict:
-                    _check_unit(ctx, where, "limits", lim, jtype == "revolute", limit=True)
-                f["limits"] = lim.tolist()
-            elif jtype == "prismatic":
-                raise ctx.err(where, "a prismatic joint needs 'limits' (metres)")
-            if "gear_ratio" in jd:
-                g = ctx.number(jd["gear_ratio"], where, "gear_ratio")
-                if g == 0:
-                    raise ctx.err(where, "'gear_ratio' must be non-zero")
-                gear[jname] = g
-        if "mass" in jd:
-            m = ctx.number(jd["mass"], where, "mass")
-            if m < 0:
-                raise ctx.err(where, f"'mass' must be >= 0 kg, got {m}")
-            f["mass"] = m
-        if "com" in jd:
-            f["com"] = ctx.vector(jd["com"], 3, where, "com") * lu
-        frames.append(f)
+                _check_unit(ctx, where, k, f[k], k in _ANGLE_KEYS)
 
-    markers = None
-    if d.get("markers") is not None:
-        mk = d["markers"]
-        if not isinstance(mk, list):
-            raise ctx.err("markers", "expected a list of [x, y, z] points (tool frame)")
-        markers = np.array([ctx.vector(m, 3, f"markers[{i}]", "marker") for i, m in enumerate(mk)]) * lu
-        markers = markers.reshape(-1, 3) if len(markers) else None
-    payload = None
-    if d.get("payload") is not None:
-        ctx.check_keys(d["payload"], ("mass", "com"), "payload")
-        payload = {"mass": ctx.number(d["payload"].get("mass", 0.0), "payload", "mass"),
-                   "com": ctx.vector(d["payload"].get("com", [0, 0, 0]), 3, "payload", "com") * lu}
-    gravity = (0.0, 0.0, -9.81)
-    if d.get("gravity") is not None:
-        gravity = tuple(ctx.vector(d["gravity"], 3, "gravity", "gravity"))
-    coupling = None
-    if d.get("coupling") is not None:
-        c = d["coupling"]
-        ctx.check_keys(c, ("joint", "motor"), "coupling")
-        n = sum(f["type"] != "fixed" for f in frames)
-        mats = []
-        for k in ("joint", "motor"):
-            try:
-                M = np.array(c.get(k, np.eye(n).tolist()), float)
-            except (TypeError, ValueError):
-                raise ctx.err("coupling", f"{k!r} must be a {n}x{n} matrix of numbers") from None
-            if M.shape != (n, n):
-                raise ctx.err("coupling", f"{k!r} must be {n}x{n}, got shape {M.shape}")
-            mats.append(M)
-        coupling = tuple(mats)
+
+def _joint_variable(ctx: _Ctx, jd, f: dict, where: str, jtype: str, lu: float, au: float, strict: bool,
+                    gear: dict):
+    """The joint model: offset, gain, limits (in the unit of the joint variable) and gear ratio."""
+    ju = au if jtype == "revolute" else lu  # unit of the joint variable
+    if jtype == "fixed":
+        for k in ("offset", "gain", "limits", "gear_ratio"):
+            if k in jd:
+                raise ctx.err(where, f"{k!r} is not allowed on a fixed frame")
+        return
+    if "offset" in jd:
+        f["offset"] = ctx.number(jd["offset"], where, "offset") * ju
+        if strict:
+            _check_unit(ctx, where, "offset", f["offset"], jtype == "revolute")
+    if "gain" in jd:
+        f["gain"] = ctx.number(jd["gain"], where, "gain")
+        if f["gain"] == 0:
+            raise ctx.err(where, "'gain' must be non-zero (q = gain · reading + offset: a zero gain "
+                                 "freezes the joint; 1 for a transmission without error)")
+    if "limits" in jd:
+        lim = ctx.vector(jd["limits"], 2, where, "limits") * ju
+        if not lim[0] < lim[1]:
+            raise ctx.err(where, f"'limits' must be [lower, upper] with lower < upper, got {jd['limits']}")
+        if strict:
+            _check_unit(ctx, where, "limits", lim, jtype == "revolute", limit=True)
+        f["limits"] = lim.tolist()
+    elif jtype == "prismatic":
+        raise ctx.err(where, "a prismatic joint needs 'limits' (metres)")
+    if "gear_ratio" in jd:
+        g = ctx.number(jd["gear_ratio"], where, "gear_ratio")
+        if g == 0:
+            raise ctx.err(where, "'gear_ratio' must be non-zero")
+        gear[f["name"]] = g
+
+
+def _markers(ctx: _Ctx, d, lu: float):
+    """(k, 3) marker points on the tool (m), or None."""
+    if d.get("markers") is None:
+        return None
+    mk = d["markers"]
+    if not isinstance(mk, list):
+        raise ctx.err("markers", "expected a list of [x, y, z] points (tool frame)")
+    markers = np.array([ctx.vector(m, 3, f"markers[{i}]", "marker") for i, m in enumerate(mk)]) * lu
+    return markers.reshape(-1, 3) if len(markers) else None
+
+
+def _payload(ctx: _Ctx, d, lu: float):
+    if d.get("payload") is None:
+        return None
+    ctx.check_keys(d["payload"], ("mass", "com"), "payload")
+    return {"mass": ctx.number(d["payload"].get("mass", 0.0), "payload", "mass"),
+            "com": ctx.vector(d["payload"].get("com", [0, 0, 0]), 3, "payload", "com") * lu}
+
+
+def _gravity(ctx: _Ctx, d) -> tuple:
+    if d.get("gravity") is None:
+        return (0.0, 0.0, -9.81)
+    return tuple(ctx.vector(d["gravity"], 3, "gravity", "gravity"))
+
+
+def _coupling(ctx: _Ctx, d, frames):
+    """``(joint, motor)`` coupling matrices (n × n over the actuated joints), or None."""
+    if d.get("coupling") is None:
+        return None
+    c = d["coupling"]
+    ctx.check_keys(c, ("joint", "motor"), "coupling")
+    n = sum(f["type"] != "fixed" for f in frames)
+    mats = []
+    for k in ("joint", "motor"):
+        try:
+            M = np.array(c.get(k, np.eye(n).tolist()), float)
+        except (TypeError, ValueError):
+            raise ctx.err("coupling", f"{k!r} must be a {n}x{n} matrix of numbers") from None
+        if M.shape != (n, n):
+            raise ctx.err("coupling", f"{k!r} must be {n}x{n}, got shape {M.shape}")
+        mats.append(M)
+    return tuple(mats)
+
+
+def _meta(ctx: _Ctx, d, source: str, gear: dict) -> dict:
+    """The robot's ``meta``: the file, its description, gear ratios and a saved model's calibration block."""
     meta: dict[str, Any] = {"robot_file": source}
     if "description" in d:
         meta["source"] = str(d["description"])
@@ -286,39 +356,20 @@ def robot_from_dict(d: Mapping[str, Any], source: str = "<dict>", strict: bool =
         if not isinstance(d["calibration"], dict):
             raise ctx.err("calibration", "expected a mapping (provenance of a saved model)")
         meta["calibration"] = _calibration_block(ctx, d["calibration"])
-    tool_d, tool_mass = d.get("tool"), None
-    if isinstance(tool_d, Mapping) and ("mass" in tool_d or "com" in tool_d):
-        # mass carried by the tool link itself (e.g. the lumped mass model of a diagnosed robot)
-        ctx.check_keys(tool_d, ("xyz", "rpy", "mass", "com"), "tool")
-        tool_mass = (ctx.number(tool_d.get("mass", 0.0), "tool", "mass"),
-                     ctx.vector(tool_d.get("com", [0, 0, 0]), 3, "tool", "com") * lu)
-        if tool_mass[0] < 0:
-            raise ctx.err("tool", f"'mass' must be >= 0 kg, got {tool_mass[0]}")
-        tool_d = {k: v for k, v in tool_d.items() if k in ("xyz", "rpy")}
-    base_f, tool_f = _frame6(ctx, d.get("base"), "base", lu, au), _frame6(ctx, tool_d, "tool", lu, au)
-    if strict:
-        for key, fr in (("base", base_f), ("tool", tool_f)):
-            _check_unit(ctx, key, "xyz", fr["xyz"], False)
-            _check_unit(ctx, key, "rpy", fr["rpy"], True)
-        if markers is not None:
-            _check_unit(ctx, "markers", "marker", markers, False)
-    try:
-        robot = build_robot(name, frames, base=base_f,
-                            tool=tool_f, markers=markers,
-                            gravity=gravity, payload=payload, coupling=coupling, convention=convention,
-                            tool_const=_tool_const(ctx, d.get("tool_origin"), lu, au), meta=meta)
-    except ValueError as exc:
-        raise ctx.err("", str(exc)) from exc
-    for pname, v in extra_values.items():
-        robot.params[pname] = v
-    if tool_mass is not None:
-        import dataclasses
+    return meta
 
-        robot.links = list(robot.links[:-1]) + [dataclasses.replace(robot.links[-1], mass=tool_mass[0],
-                                                                   com=tool_mass[1])]
-    if d.get("effects"):
-        robot = _attach_effects(ctx, robot, d["effects"])
-    return robot
+
+def _tool_with_mass(ctx: _Ctx, tool_d, lu: float):
+    """``(tool frame mapping, (mass kg, com m) or None)``: the mass carried by the tool link itself
+    (e.g. the lumped mass model of a diagnosed robot) split from its placement."""
+    if not (isinstance(tool_d, Mapping) and ("mass" in tool_d or "com" in tool_d)):
+        return tool_d, None
+    ctx.check_keys(tool_d, ("xyz", "rpy", "mass", "com"), "tool")
+    tool_mass = (ctx.number(tool_d.get("mass", 0.0), "tool", "mass"),
+                 ctx.vector(tool_d.get("com", [0, 0, 0]), 3, "tool", "com") * lu)
+    if tool_mass[0] < 0:
+        raise ctx.err("tool", f"'mass' must be >= 0 kg, got {tool_mass[0]}")
+    return {k: v for k, v in tool_d.items() if k in ("xyz", "rpy")}, tool_mass
 
 
 def _calibration_block(ctx, c: dict) -> dict:
@@ -367,8 +418,6 @@ def _tool_const(ctx, d, lu, au):
 
 def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
     """``effects: [{effect: joint_compliance, joints: [j2], params: {compliance_j2: 1e-6}}, ...]``."""
-    from estcal.effects import make_effect
-
     if not isinstance(effects, list):
         raise ctx.err("effects", "expected a list of {effect, joints, params} mappings")
     for i, e in enumerate(effects):
@@ -391,8 +440,6 @@ def _attach_effects(ctx: _Ctx, robot: SerialRobot, effects) -> SerialRobot:
 
 def read_robot_file(path) -> dict:
     """Parse a YAML robot file into a mapping (clear error on YAML syntax problems)."""
-    from estcal.base.textinput import read_text, read_yaml
-    from estcal.io.integrity import verify_text
 
     verify_text(read_text(path, "robot", RobotFileError), str(path), RobotFileError, "robot file")
     return read_yaml(path, "robot", RobotFileError)
@@ -416,8 +463,6 @@ def _gough_names() -> list[str]:
 
 def robot_names() -> list[str]:
     """Every robot name :func:`load_robot` accepts besides files: built-ins and packaged robot files."""
-    from estcal.kinematics.robots import BUILTIN
-    from estcal.robots import available
 
     return sorted(set(BUILTIN) | set(available()))
 
@@ -572,7 +617,6 @@ def robot_to_dict(robot: SerialRobot) -> dict:
         joints.append(jd)
         labels.append(lab)
     # explicit labels only where the default numbering would differ
-    from estcal.kinematics.builder import frame_labels
 
     if conv_top == "urdf":
         default = [jd["name"] for jd in joints]
@@ -606,8 +650,6 @@ def robot_to_dict(robot: SerialRobot) -> dict:
 
 def _plain(x):
     """YAML-safe plain data (numpy arrays and scalars to lists and floats; the JSON rules)."""
-    from estcal.base.jsonio import to_jsonable
-
     return to_jsonable(x)
 
 
@@ -638,9 +680,7 @@ def save_robot(robot: SerialRobot, path, checksum: bool = False) -> Path:
     _Dumper.add_representer(list, _flow_list)
     header = (f"# estcal robot file (SI units: metres, radians, kg); see docs/robot-file.md\n"
               f"# written by estcal.io.robotfile.save_robot from robot {robot.name!r}\n")
-    from estcal.base.atomic import atomic_write_text
 
-    from estcal.io.integrity import stamp_text
 
     body = yaml.dump(d, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=110)
     # the checksum line lets a reader refuse a file cut at a line boundary or changed by a digit

@@ -25,7 +25,7 @@ it was obtained (docs/robot-file.md, "Saved models")::
 ``estcal fk`` with it reproduces the fit's predictions (for a diagnosed model,
 the data preparation the diagnosis applied — session time, approach directions
 from the posture order — is recorded in ``data_preparation`` and re-applied by
-:func:`prepare_data`).
+:func:`estcal.io.prepare.prepare_data`).
 """
 from __future__ import annotations
 
@@ -38,8 +38,10 @@ import numpy as np
 
 from estcal.base.version import __version__
 
-__all__ = ["write_saved_model", "robot_covariance", "design_values", "file_sha256", "data_entry", "calibration_block", "save_calibration", "save_diagnosis",
-           "prepare_data"]
+from .robotfile import _plain, load_robot, save_robot
+
+__all__ = ["write_saved_model", "robot_covariance", "design_values", "file_sha256", "data_entry", "calibration_block",
+           "save_calibration", "save_diagnosis"]
 
 
 def design_values(robot):
@@ -82,8 +84,6 @@ def _design(spec, root, tip, mtime):
     """``(names, values)`` of the design robot ``spec`` (cached per file version: a URDF takes
     ~0.1 s to parse and the identifiability helpers ask once per call)."""
     try:
-        from estcal.io.robotfile import load_robot
-
         nominal = load_robot(spec, root=root, tip=tip)
     except Exception:  # noqa: BLE001 - a design that cannot be loaded: analyse as given
         return None
@@ -170,8 +170,6 @@ def _finite_or_none(x):
 
 def write_saved_model(robot, block: dict, path) -> Path:
     """Write ``robot`` with the ``calibration:`` mapping ``block`` (:func:`calibration_block`) as a robot file."""
-    from estcal.io.robotfile import _plain, save_robot
-
     out = robot.copy()  # shallow: the caller's robot keeps its own meta
     out.meta = dict(robot.meta)
     out.meta["calibration"] = _finite_or_none(_plain(block))
@@ -258,22 +256,3 @@ def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
     return write_saved_model(result.robot, block, path)
 
 
-def prepare_data(robot, data, preparation: dict | None = None):
-    """``data`` prepared for ``robot`` as the fit that saved it prepared its own.
-
-    ``preparation`` (default: the robot's ``calibration.data_preparation``, written for a
-    diagnosed model): ``approach_from_order`` — approach columns from the posture order;
-    ``session_time`` — ``t`` measured from the first pose of the file (the absolute time
-    stays in ``columns["t_abs"]``). Effect columns (``approach_<joint>``) are moved into the
-    context in every case.
-    """
-    from estcal.discrepancy.geometric import derive_approach, with_effect_context
-
-    if preparation is None:
-        preparation = (robot.meta.get("calibration") or {}).get("data_preparation") or {}
-    d = derive_approach(data) if preparation.get("approach_from_order") else data
-    d = with_effect_context(robot, d)
-    if preparation.get("session_time") and "t" in d.context:
-        d.columns["t_abs"] = d.context["t"].copy()
-        d.context["t"] = d.context["t"] - d.context["t"].min()
-    return d

@@ -23,7 +23,14 @@ import numpy as np
 from .chain import Elementary, Link, SerialRobot
 from .parameters import ParameterVector
 
-__all__ = ["build_robot", "frame_labels", "KHALIL_PARAMS", "DH_PARAMS", "URDF_PARAMS", "FRAME6_PARAMS"]
+__all__ = ["build_robot", "frame_labels", "KHALIL_PARAMS", "DH_PARAMS", "URDF_PARAMS", "FRAME6_PARAMS",
+           "MAX_LENGTH_M", "MAX_ANGLE_RAD", "MAX_LIMIT_RAD"]
+
+#: physical range of a robot-file or URDF value once in SI; beyond it the file's unit is wrong (a length
+#: in millimetres, an angle in degrees without a ``units:`` line). Joint limits may span several turns.
+MAX_LENGTH_M = 50.0
+MAX_ANGLE_RAD = 2 * np.pi
+MAX_LIMIT_RAD = 4 * np.pi
 
 KHALIL_PARAMS = ("alpha", "d", "theta", "r", "beta")
 DH_PARAMS = ("theta", "d", "a", "alpha", "beta")  # beta: Hayati Ry, nominal 0

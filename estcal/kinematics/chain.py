@@ -41,6 +41,7 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Sequence
 
 import numpy as np
@@ -402,68 +403,99 @@ class SerialRobot:
         if theta.shape[-1:] != (self.n_params,) or theta.ndim > 2:
             raise ValueError(f"theta must have {self.n_params} entries (or shape (W, {self.n_params})), "
                              f"got {theta.shape}")
-        N, n = readings.shape
+        n_w = theta.shape[0] if many else 1
+        q, dqdth, seg = self._joint_stage(readings, theta, context, jacobian, q_override)
+        N = n_w * readings.shape[0]
+        ch = self._chain_pass(q, theta, seg, N, many)
+        points = self._marker_points(ch.R, ch.p, theta, n_w, N, many)
+        # Cartesian effects (thermal expansion) move every measured point: the tool origin and the
+        # markers, so they act on tool positions, full poses, markers and the link/plane/distance
+        # methods alike. With many parameter vectors they are evaluated walker by walker.
+        cart = [eff for eff in self.effects if hasattr(eff, "point_correction")]
+        walkers = ([(w, slice(w * (N // n_w), (w + 1) * (N // n_w))) for w in range(n_w)] if many
+                   else [(None, slice(None))])
+        p, allp = ch.p, None
+        if cart:
+            p, points, allp = self._cartesian_points(cart, walkers, readings, theta, context, ch, points)
+        J = J_points = J_q = None
+        if jacobian:
+            J, J_points, J_q = self._jacobians(ch, p, points, dqdth, N)
+            if cart:
+                J, J_points = self._cartesian_jacobians(cart, walkers, readings, theta, context, ch, allp, J, J_points)
+        out = [q, np.ascontiguousarray(ch.R.transpose(2, 0, 1)), np.ascontiguousarray(p.T), points, J, J_points, J_q,
+               ch.link_R.transpose(3, 0, 1, 2), ch.link_p.transpose(2, 0, 1), ch.ja.transpose(2, 1, 0),
+               ch.jo.transpose(2, 1, 0)]
         if many:
+            out = [None if a is None else a.reshape((n_w, N // n_w) + a.shape[1:]) for a in out]
+        return Kinematics(*out)
+
+    def _joint_stage(self, readings, theta, context, jacobian, q_override):
+        """``(q, dq/dθ, segment)``: the joint values of every pose (walker-major for many θ) and the
+        function that composes the constant and parameter motions of one segment."""
+        if theta.ndim == 2:
             if q_override is not None:
                 raise ValueError("q_override needs a single parameter vector")
-            n_w = theta.shape[0]
             q, dqdth = self._joint_values_many(readings, theta, context, jacobian)
-            seg = lambda const, elems, R, p, W, O, is_rot, k: self._segment_many(  # noqa: E731
+            return q, dqdth, lambda const, elems, R, p, W, O, is_rot, k: self._segment_many(
                 const, elems, theta, R, p, W, O, is_rot, k, jacobian)
-            N = n_w * N
-        elif q_override is None:
+        if q_override is None:
             q, dqdth = self._joint_values(readings, theta, context, jacobian)
         else:
             q, dqdth = np.asarray(q_override, float), None
-        if not many:
-            seg = lambda const, elems, R, p, W, O, is_rot, k: self._segment(  # noqa: E731
-                const, elems, theta, R, p, W, O, is_rot, k)
-        # Internal layout is component-major with poses last — R (3, 3, N), p (3, N),
-        # axes (3, C, N) — so every operation runs on contiguous length-N rows.
+        return q, dqdth, lambda const, elems, R, p, W, O, is_rot, k: self._segment(
+            const, elems, theta, R, p, W, O, is_rot, k)
+
+    def _chain_pass(self, q, theta, seg, N, many) -> SimpleNamespace:
+        """One pass of the chain for the N poses: the tool frame ``R`` (3, 3, N), ``p`` (3, N), every
+        link frame, the joint axes ``ja`` and points on them ``jo`` (3, n, N), and the world axis ``W``
+        and point ``O`` (3, E, N) of every elementary motion (``is_rot``: rotation or translation).
+
+        The layout is component-major with poses last, so that every operation runs on contiguous
+        length-N rows; constant and parameter motions compose into one local transform per segment
+        (one small product per segment instead of one per motion)."""
         R = np.zeros((3, 3, N))
         R[0, 0] = R[1, 1] = R[2, 2] = 1.0
         p = np.zeros((3, N))
-        n_links = len(self.links)
-        link_R = np.empty((n_links, 3, 3, N))
-        link_p = np.empty((n_links, 3, N))
-        ja = np.empty((3, n, N))  # joint axes (world)
-        jo = np.empty((3, n, N))  # a point on each joint axis
-        n_el = len(self._elem_param)
-        W = np.empty((3, n_el, N))  # world axis of every elementary motion
-        O = np.empty((3, n_el, N))  # world point on that axis
-        is_rot = np.empty(n_el, bool)
+        n_links, n, n_el = len(self.links), self.n_joints, len(self._elem_param)
+        link_R, link_p = np.empty((n_links, 3, 3, N)), np.empty((n_links, 3, N))
+        ja, jo = np.empty((3, n, N)), np.empty((3, n, N))
+        W, O, is_rot = np.empty((3, n_el, N)), np.empty((3, n_el, N)), np.empty(n_el, bool)
         k = 0
         for li, link in enumerate(self.links):
-            # Constant and parameter motions compose into one local transform per
-            # segment: one small product per segment instead of one per motion.
             Cb_R, Cb_p, k = seg(link.const, link.before, R, p, W, O, is_rot, k)
             p = p + _rot_vec(R, Cb_p)
             R = _rot_mat(R, Cb_R)
             if link.joint is not None:
-                j = link.joint
-                jv = theta[..., link.joint_param] if link.joint_param >= 0 else 0.0
-                val = q[:, j] + (np.repeat(jv, N // len(jv)) if many and link.joint_param >= 0 else jv)
-                ax = link.joint_axis
-                jo[:, j] = p
-                ja[:, j] = _rot_vec(R, ax)
-                if link.joint_kind == "R":
-                    if ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0:
-                        c, s_ = np.cos(val), np.sin(val)
-                        x0, y0 = R[:, 0].copy(), R[:, 1].copy()
-                        R[:, 0] = c * x0 + s_ * y0
-                        R[:, 1] = c * y0 - s_ * x0
-                    else:
-                        Rj = rot_axis(ax, val)  # (N, 3, 3)
-                        R = np.einsum("ikn,nkj->ijn", R, Rj)
-                else:
-                    p = p + ja[:, j] * val
+                R, p = self._joint_motion(link, q, theta, R, p, ja, jo, N, many)
             if link.after:
                 Ca_R, Ca_p, k = seg(None, link.after, R, p, W, O, is_rot, k)
                 p = p + _rot_vec(R, Ca_p)
                 R = _rot_mat(R, Ca_R)
             link_R[li] = R
             link_p[li] = p
+        return SimpleNamespace(R=R, p=p, link_R=link_R, link_p=link_p, ja=ja, jo=jo, W=W, O=O, is_rot=is_rot)
 
+    @staticmethod
+    def _joint_motion(link, q, theta, R, p, ja, jo, N, many):
+        """The joint's rotation or translation by its value; records its world axis and a point on it."""
+        j = link.joint
+        jv = theta[..., link.joint_param] if link.joint_param >= 0 else 0.0
+        val = q[:, j] + (np.repeat(jv, N // len(jv)) if many and link.joint_param >= 0 else jv)
+        ax = link.joint_axis
+        jo[:, j] = p
+        ja[:, j] = _rot_vec(R, ax)
+        if link.joint_kind != "R":
+            return R, p + ja[:, j] * val
+        if ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0:
+            c, s_ = np.cos(val), np.sin(val)
+            x0, y0 = R[:, 0].copy(), R[:, 1].copy()
+            R[:, 0] = c * x0 + s_ * y0
+            R[:, 1] = c * y0 - s_ * x0
+            return R, p
+        return np.einsum("ikn,nkj->ijn", R, rot_axis(ax, val)), p  # rot_axis: (N, 3, 3)
+
+    def _marker_points(self, R, p, theta, n_w, N, many) -> np.ndarray:
+        """(N, k, 3) marker points ``p + R m`` (each walker's markers for many θ)."""
         if many:
             m = theta[:, self.marker_idx] if self.n_markers else np.zeros((n_w, 0, 3))
             Rm = np.einsum("ijwn,wkj->ikwn", R.reshape(3, 3, n_w, -1), m).reshape(3, m.shape[1], N)
@@ -471,75 +503,57 @@ class SerialRobot:
         else:
             m = theta[self.marker_idx] if self.n_markers else np.zeros((0, 3))
             pts = p[:, None, :] + np.einsum("ijn,kj->ikn", R, m)  # (3, k, N)
-        points = pts.transpose(2, 1, 0).copy()
-        # Cartesian effects (thermal expansion) move every measured point: the tool
-        # origin (row 0 of ``allp``) and the markers, so they act on tool positions,
-        # full poses, markers and the link/plane/distance methods alike. With many
-        # parameter vectors they are evaluated walker by walker, with that walker's θ.
-        cart = [eff for eff in self.effects if hasattr(eff, "point_correction")]
-        walkers = ([(w, slice(w * (N // n_w), (w + 1) * (N // n_w))) for w in range(n_w)] if many
-                   else [(None, slice(None))])
-        if cart:
-            link_pn = link_p.transpose(2, 0, 1)
-            allp = np.concatenate([p.T[:, None, :], points], 1)
-            for eff in cart:
-                for w, sl in walkers:
-                    d, _ = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
-                                                context or {}, derivatives=False,
-                                                **_frames_kw(eff, link_pn[sl]))
-                    allp[sl] = allp[sl] + d
-            p = np.ascontiguousarray(allp[:, 0].T)
-            points = allp[:, 1:].copy()
-        Rn = np.ascontiguousarray(R.transpose(2, 0, 1))
-        pn = np.ascontiguousarray(p.T)
+        return pts.transpose(2, 1, 0).copy()
 
-        J = J_points = J_q = None
-        if jacobian:
-            P = self.n_params
-            jrot = self._joint_is_rot
-            el = self._elem_param
-            Wr = W * is_rot[:, None]
-            # tool pose: JT (6, P, N) -> J (N, 6, P) as a view
-            Sq = _screw_at(ja, jo, jrot, p[:, None, :])
-            JqT = np.concatenate([Sq, ja * jrot[:, None]], 0)  # (6, n, N)
-            JT = np.zeros((6, P, N))
-            JT[:3, el] = _screw_at(W, O, is_rot, p[:, None, :])
-            JT[3:, el] = Wr
-            _add_joint_blocks(JT, JqT, dqdth)
-            J = JT.transpose(2, 0, 1)
-            J_q = JqT.transpose(2, 0, 1)
-            JpT = np.zeros((self.n_markers, 3, P, N))
-            for i in range(self.n_markers):
-                x = points[:, i].T[:, None, :]
-                JpT[i][:, el] = _screw_at(W, O, is_rot, x)
-                _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
-                JpT[i][:, self.marker_idx[i]] += R  # d(p + R m)/dm = R, R[a, c] per pose
-            J_points = JpT.transpose(3, 0, 1, 2)
-            if cart:
-                # the tool origin's position rows are corrected like a marker's
-                Jall = np.concatenate([J[:, None, :3, :], J_points], 1)
-                for eff in cart:
-                    # Effects that scale the whole point (thermal) also need the pose
-                    # Jacobian to correct the other columns; older effects may not take it.
-                    wants_J = "J" in inspect.signature(eff.point_correction).parameters
-                    for w, sl in walkers:
-                        Jp = Jall[sl]
-                        kw = {"J_points": Jp, **({"J": J[sl]} if wants_J else {}), **_frames_kw(eff, link_pn[sl])}
-                        _, dd = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
-                                                     context or {}, derivatives=True, **kw)
-                        if dd is not None:
-                            Jp[..., eff.indices] += dd
-                JT[:3] = Jall[:, 0].transpose(1, 2, 0)
-                J_points = Jall[:, 1:]
-        R, p = Rn, pn
-        link_R = link_R.transpose(3, 0, 1, 2)
-        link_p = link_p.transpose(2, 0, 1)
-        j_axis = ja.transpose(2, 1, 0)
-        j_orig = jo.transpose(2, 1, 0)
-        out = [q, R, p, points, J, J_points, J_q, link_R, link_p, j_axis, j_orig]
-        if many:
-            out = [None if a is None else a.reshape((n_w, N // n_w) + a.shape[1:]) for a in out]
-        return Kinematics(*out)
+    def _cartesian_points(self, cart, walkers, readings, theta, context, ch, points):
+        """``(p (3, N), points, allp)``: the tool origin (row 0 of ``allp``) and the markers moved by the
+        Cartesian effects."""
+        link_pn = ch.link_p.transpose(2, 0, 1)
+        allp = np.concatenate([ch.p.T[:, None, :], points], 1)
+        for eff in cart:
+            for w, sl in walkers:
+                d, _ = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
+                                            context or {}, derivatives=False, **_frames_kw(eff, link_pn[sl]))
+                allp[sl] = allp[sl] + d
+        return np.ascontiguousarray(allp[:, 0].T), allp[:, 1:].copy(), allp
+
+    def _jacobians(self, ch, p, points, dqdth, N):
+        """``(J (N, 6, P), J_points (N, k, 3, P), J_q (N, 6, n))``: the screw of every elementary motion
+        and joint at the tool origin and at each marker, chained with dq/dθ (joint offsets, gains)."""
+        P = self.n_params
+        jrot, el = self._joint_is_rot, self._elem_param
+        W, O, is_rot, ja, jo = ch.W, ch.O, ch.is_rot, ch.ja, ch.jo
+        # tool pose: JT (6, P, N) -> J (N, 6, P) as a view
+        JqT = np.concatenate([_screw_at(ja, jo, jrot, p[:, None, :]), ja * jrot[:, None]], 0)  # (6, n, N)
+        JT = np.zeros((6, P, N))
+        JT[:3, el] = _screw_at(W, O, is_rot, p[:, None, :])
+        JT[3:, el] = W * is_rot[:, None]
+        _add_joint_blocks(JT, JqT, dqdth)
+        JpT = np.zeros((self.n_markers, 3, P, N))
+        for i in range(self.n_markers):
+            x = points[:, i].T[:, None, :]
+            JpT[i][:, el] = _screw_at(W, O, is_rot, x)
+            _add_joint_blocks(JpT[i], _screw_at(ja, jo, jrot, x), dqdth)
+            JpT[i][:, self.marker_idx[i]] += ch.R  # d(p + R m)/dm = R, R[a, c] per pose
+        return JT.transpose(2, 0, 1), JpT.transpose(3, 0, 1, 2), JqT.transpose(2, 0, 1)
+
+    def _cartesian_jacobians(self, cart, walkers, readings, theta, context, ch, allp, J, J_points):
+        """The position rows of the tool origin and the markers corrected by the Cartesian effects."""
+        link_pn = ch.link_p.transpose(2, 0, 1)
+        Jall = np.concatenate([J[:, None, :3, :], J_points], 1)
+        for eff in cart:
+            # Effects that scale the whole point (thermal) also need the pose Jacobian to correct the
+            # other columns; older effects may not take it.
+            wants_J = "J" in inspect.signature(eff.point_correction).parameters
+            for w, sl in walkers:
+                Jp = Jall[sl]
+                kw = {"J_points": Jp, **({"J": J[sl]} if wants_J else {}), **_frames_kw(eff, link_pn[sl])}
+                _, dd = eff.point_correction(self, readings, allp[sl], theta if w is None else theta[w],
+                                             context or {}, derivatives=True, **kw)
+                if dd is not None:
+                    Jp[..., eff.indices] += dd
+        J[:, :3] = Jall[:, 0]
+        return J, Jall[:, 1:]
 
     def _joint_values_many(self, r, TH, context, derivatives):
         """Joint values of W parameter vectors: q (W·N, n), walker-major, and merged dq/dθ blocks."""

@@ -205,14 +205,6 @@ class ParameterVector:
             out.free[self.indices(matched)] = False
         return out
 
-    def unfix(self, names: Iterable[str]) -> "ParameterVector":
-        """Copy with ``names`` made free."""
-        out = self.copy()
-        for n in names:
-            matched = self.select(n) if any(ch in n for ch in "*?[") else [n]
-            out.free[self.indices(matched)] = True
-        return out
-
     # ------------------------------------------------------------ flat maps
     def to_flat(self) -> np.ndarray:
         """Free values as a flat vector (what an estimator iterates on)."""

@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.io.robotfile import MAX_LENGTH_M, MAX_LIMIT_RAD, RobotFileError
+from estcal.base.errors import RobotFileError
+from estcal.base.textinput import read_text
 
-from .builder import build_robot
+from .builder import MAX_LENGTH_M, MAX_LIMIT_RAD, build_robot
 from .chain import SerialRobot
 
 __all__ = ["robot_from_urdf", "load_urdf", "root_links"]
@@ -31,8 +32,6 @@ def load_urdf(path):
     """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
     :func:`estcal.base.textinput.read_text` first (folder, binary, encoding)."""
     import yourdfpy
-
-    from estcal.base.textinput import read_text
 
     path = Path(path)
     text = read_text(path, "URDF", RobotFileError)

@@ -44,8 +44,11 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.atomic import atomic_write_bytes
+
 from .chain import SerialRobot
 from .transforms import make_transform, rot_axis
+from .urdf import load_urdf
 
 __all__ = ["export_urdf", "UrdfExport", "link_transform_parts"]
 
@@ -177,8 +180,6 @@ def _write(urdf, path: Path, header: list[str], joint_notes: dict, extra=None) -
     import yourdfpy
     from lxml import etree
 
-    from estcal.base.atomic import atomic_write_bytes
-
     # Mesh file names are written as given (package://…), not resolved on this machine.
     urdf._filename_handler = yourdfpy.filename_handler_null
     tree = urdf.write_xml()
@@ -305,8 +306,6 @@ def _guess_chain(urdf_robot, robot: SerialRobot, root, tip):
 
 
 def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
-    from estcal.kinematics.urdf import load_urdf
-
     if not all(f"tx_{lk.label}" in robot.params.names for lk in robot.links[1:-1]):
         raise ValueError("--from-urdf needs a model whose every frame is a URDF joint (convention urdf); "
                          "export Khalil/DH models without --from-urdf")

@@ -19,33 +19,126 @@ frame — the markers).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from estcal.base.errors import InputError
 from estcal.kinematics.transforms import pose_error, so3_right_jacobian_inv
 
-__all__ = ["Rows", "NoiseModel", "Method", "PositionMethod", "PoseMethod", "PointsMethod", "METHODS",
+__all__ = ["Rows", "NoiseModel", "NOISE_LEVER_M", "Method", "PositionMethod", "PoseMethod", "PointsMethod", "METHODS",
            "register_method", "get_method", "method_for_dataset"]
+
+
+#: lever arm (m) turning a bare position std into the orientation std: σ_rot = σ_pos / 0.1 m
+#: (the ratio of the command line's defaults, 0.1 mm and 1 mrad; docs/conventions.md, "Noise")
+NOISE_LEVER_M = 0.1
+_NOISE_KEYS = ("position", "orientation", "scalar", "known", "joint", "resolution", "distribution")
 
 
 @dataclass
 class NoiseModel:
-    """Measurement noise standard deviations (SI): position (m) and orientation (rad).
+    """The measurement noise, one class for estimation (row weights) and simulation (draws).
 
-    ``scalar`` is the std of scalar measurements (distances (m), plane residuals (m)).
-    ``known`` says whether these are trusted absolute values (covariance from them)
-    or only relative weights (covariance scaled by the posterior variance factor).
+    Attributes (SI)
+    ---------------
+    position : σ of each measured coordinate, m (default 0.1 mm).
+    orientation : σ of each rotation-vector component of a measured orientation, rad (default 1 mrad).
+    scalar : σ of scalar measurements — distances and plane residuals, m (default 0.1 mm).
+    known : the stds are trusted absolute values (covariance from them) rather than relative
+        weights (covariance scaled by the posterior variance factor σ0²).
+    joint : σ of each joint reading, rad or m (simulation; default 0).
+    resolution : encoder resolution, rad or m, a scalar or one per joint (simulation: recorded
+        readings are multiples of it; default 0 = none).
+    distribution : ``"gaussian"`` (the stds above are σ) or ``"uniform"`` (they are half-widths;
+        simulation).
+
+    :meth:`parse` turns the forms users write (a number, a pair, a mapping) into a NoiseModel by one
+    rule (docs/conventions.md, "Noise"); :meth:`none` is the noise-free model of the simulator.
     """
 
     position: float = 1e-4
     orientation: float = 1e-3
     scalar: float = 1e-4
     known: bool = False
+    joint: float = 0.0
+    resolution: Any = 0.0
+    distribution: str = "gaussian"
 
-    def to_dict(self) -> dict:
-        return {"position": self.position, "orientation": self.orientation, "scalar": self.scalar,
-                "known": self.known}
+    def __post_init__(self):
+        if self.distribution not in ("gaussian", "uniform"):
+            raise ValueError(f"noise distribution must be 'gaussian' or 'uniform', got {self.distribution!r}")
+        for k in ("position", "orientation", "scalar", "joint"):
+            if not getattr(self, k) >= 0:
+                raise ValueError(f"noise {k} must be >= 0, got {getattr(self, k)}")
+
+    @classmethod
+    def none(cls) -> "NoiseModel":
+        """No noise at all (the simulator's default)."""
+        return cls(position=0.0, orientation=0.0, scalar=0.0)
+
+    @classmethod
+    def parse(cls, value=None, known: bool | None = None) -> "NoiseModel":
+        """The NoiseModel meant by ``value`` — the one rule of every ``noise=`` (docs/conventions.md):
+
+        * ``None`` — the defaults (0.1 mm, 1 mrad, 0.1 mm);
+        * a number σ > 0 — position and scalar std σ (m), orientation std σ / 0.1 m (rad);
+        * a pair ``(position m, orientation rad)`` — the scalar std is the position std;
+        * a mapping of the attributes (``position``, ``orientation``, ``scalar``, ``known``, ``joint``,
+          ``resolution``, ``distribution``) — the others keep their defaults, except ``scalar``, which
+          follows ``position``;
+        * a NoiseModel — returned as is.
+
+        ``known`` (when not None) marks the stds as trusted absolute values; a mapping's own
+        ``known`` key wins.
+        """
+        if isinstance(value, cls):
+            return value
+        kn = {} if known is None else {"known": bool(known)}
+        if value is None:
+            return cls(**kn)
+        if isinstance(value, Mapping):
+            bad = sorted(set(value) - set(_NOISE_KEYS))
+            if bad:
+                raise InputError(f"noise: unknown key(s) {bad}; use position (m), orientation (rad), scalar (m), "
+                                 f"known (bool), joint (rad or m), resolution (rad or m), distribution")
+            d = {**kn, **value}
+            d.setdefault("scalar", d.get("position", cls.scalar))
+            return cls(**d)
+        if isinstance(value, (tuple, list)):
+            if len(value) != 2:
+                raise InputError(f"noise: expected (position m, orientation rad), got {value!r}")
+            p, r = float(value[0]), float(value[1])
+            return cls(position=p, orientation=r, scalar=p, **kn)
+        s = float(value)
+        if not s > 0:
+            raise InputError(f"noise: the position std must be > 0 m, got {value!r}")
+        return cls(position=s, orientation=s / NOISE_LEVER_M, scalar=s, **kn)
+
+    def draw(self, scale: float, shape, rng) -> np.ndarray:
+        """A draw of noise of std (Gaussian) or half-width (uniform) ``scale``."""
+        if scale == 0:
+            return np.zeros(shape)
+        if self.distribution == "gaussian":
+            return rng.normal(0.0, scale, shape)
+        return rng.uniform(-scale, scale, shape)
+
+    def std(self, scale: float) -> float:
+        """Standard deviation of one component (uniform half-width a → a/√3)."""
+        return scale if self.distribution == "gaussian" else scale / np.sqrt(3.0)
+
+    def to_dict(self, simulation: bool = False) -> dict:
+        """``{position, orientation, scalar, known}`` (SI); with ``simulation`` also the joint noise,
+        the resolution, the distribution and the units (a simulation's truth)."""
+        d = {"position": self.position, "orientation": self.orientation, "scalar": self.scalar, "known": self.known}
+        if simulation:
+            d.update(joint=self.joint, resolution=np.asarray(self.resolution, float).tolist(),
+                     distribution=self.distribution,
+                     units={"position": "m", "orientation": "rad", "scalar": "m", "joint": "rad or m",
+                            "resolution": "rad or m"})
+        return d
 
 
 @dataclass
@@ -213,11 +306,8 @@ def register_method(name: str, cls: type) -> None:
 
 
 def get_method(name: str, **kwargs) -> Method:
-    # Importing the module of the other GECARO methods registers them.
-    try:
-        import estcal.methods.links  # noqa: F401
-    except ImportError:
-        pass
+    """The measurement method ``name`` (the GECARO link, plane and distance methods are registered by
+    :mod:`estcal.methods.links`, which the package imports)."""
     try:
         return METHODS[name](**kwargs)
     except KeyError:

@@ -29,7 +29,9 @@ from __future__ import annotations
 import numpy as np
 
 from estcal.io.dataset import Dataset, dataset_from_arrays
-from estcal.kinematics.transforms import pose_error
+from estcal.kinematics.transforms import pose_error, so3_exp
+
+from .links import group_pairs
 
 __all__ = ["solve_ik", "link_data", "plane_data", "distance_data", "measurement_data", "generate",
            "branch_report", "default_plane", "joint_distance"]
@@ -230,8 +232,6 @@ def branch_report(robot, data) -> dict:
     "changed_fraction": {joint: fraction}}``; a joint counts as changed when its
     (wrapped) reading differs by more than 1e-6 from the group's first member.
     """
-    from .links import group_pairs
-
     i, j = group_pairs(np.asarray(data.columns["group"]))
     d = data.readings[j] - data.readings[i]
     rev = np.array([t == "revolute" for t in robot.joint_types])
@@ -329,8 +329,6 @@ def measurement_data(robot, n: int, kind: str = "position", rng=0, theta=None, m
     """Random configurations with the measured tool position (``kind="position"``, marker 1
     when the robot has markers) or pose (``"location"``), with optional Gaussian noise
     (m; rad as a random rotation vector applied in the world frame)."""
-    from estcal.kinematics.transforms import so3_exp
-
     rng = np.random.default_rng(rng)
     theta = robot.params.values if theta is None else np.asarray(theta, float)
     r = _random(robot, n, rng, margin)

@@ -53,6 +53,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from estcal.kinematics.transforms import skew, so3_log
+
 from .base import Method, NoiseModel, Rows, register_method
 
 __all__ = ["PointLink", "FrameLink", "PlaneKnown", "PlaneUnknown", "PlaneNormalKnown", "PlaneNormalUnknown",
@@ -139,8 +141,6 @@ def so3_left_jacobian_inv(phi) -> np.ndarray:
     ``J_l⁻¹ = I − ½[φ]× + (1/θ² − (1+cos θ)/(2θ sin θ)) [φ]×²`` (Barfoot, eq. 7.83);
     the last coefficient tends to 1/12 at θ → 0 (series used below 1e-4).
     """
-    from estcal.kinematics.transforms import skew
-
     phi = np.asarray(phi, float)
     th = np.linalg.norm(phi, axis=-1)
     small = th < 1e-4
@@ -231,8 +231,6 @@ class FrameLink(Method):
     name = "frame-link"
 
     def rows(self, robot, theta, data, noise: NoiseModel, jacobian=True) -> Rows:
-        from estcal.kinematics.transforms import so3_log
-
         i, j = _groups_of(data, self.name)
         kin = robot.kinematics(data.readings, theta, data.context, jacobian=jacobian)
         D = kin.R[i] @ np.swapaxes(kin.R[j], -1, -2)

@@ -1,9 +1,9 @@
 """``--report DIR``: PNG figures and an ``index.html`` that shows them with the tables.
 
 * :mod:`.figures` — save a Figure as PNG atomically;
-* :mod:`.html` — :class:`Table` and :class:`Report` (collects tables, figures and text,
-  writes ``index.html``);
-* :mod:`.units` — display units (mm / mrad) of parameter names;
+* :mod:`.html` — :class:`Report` (collects tables, figures and text, writes ``index.html``);
+  the tables are :class:`estcal.base.tables.Table`, built by :mod:`estcal.base.tables`;
+* :mod:`.tables` — the same tables on the terminal (rich);
 * one builder per command: :mod:`.calibration`, :mod:`.online`, :mod:`.design`
   (``design`` and ``next-pose``), :mod:`.diagnose`.
 
@@ -14,6 +14,6 @@ Documented in ``docs/reports.md``.
 """
 from __future__ import annotations
 
-from .html import Report, Table
+from .html import Report
 
-__all__ = ["Report", "Table"]
+__all__ = ["Report"]

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .html import Report
-from .tables import accuracy_table, mcmc_table, parameter_table
+from estcal.base.tables import accuracy_table, mcmc_table, parameter_table
 from estcal.base.units import joint_display
+from estcal.estimate.result import pose_errors
+from estcal.plots.errors import pose_error_figure, residual_vs_joints_figure
+from estcal.plots.parameters import correlation_figure, parameter_figure
+
+from .html import Report
 
 __all__ = ["calibration_report", "per_pose_errors"]
 
@@ -14,8 +18,6 @@ __all__ = ["calibration_report", "per_pose_errors"]
 def per_pose_errors(robot, theta, data):
     """Per-pose position error (mm, RMS over the measured points of the pose) and orientation
     error (mrad, None without orientation data)."""
-    from estcal.estimate.result import pose_errors
-
     pos, rot = pose_errors(robot, theta, data)
     if pos is None:
         return None, None
@@ -35,8 +37,6 @@ def calibration_report(folder, res, problem, validation=(), *, unit, label=None,
     unit : ``unit(name) -> (unit, factor from SI)``; label : readable regrouping of a name.
     result_dict : the command's JSON (written as ``result.json`` next to ``index.html``).
     """
-    from estcal.plots.errors import pose_error_figure, residual_vs_joints_figure
-    from estcal.plots.parameters import correlation_figure, parameter_figure
 
     rep = Report(folder, title or f"estcal calibrate — {res.method}",
                  subtitle=f"{len(res.names)} parameters, {res.n_iterations} iterations, "

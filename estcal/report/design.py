@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .html import Report, Table
+from estcal.base.tables import Table
 from estcal.base.units import joint_display
+from estcal.design.sequential import model_for_state
+from estcal.plots.design import accuracy_map_figure, baseline_figure
+
+from .html import Report
 
 __all__ = ["design_report", "next_pose_report", "readings_table"]
 
@@ -33,8 +37,6 @@ def design_report(folder, model, plan, criteria, baseline, accuracy_map=None, rh
     accuracy_map : :class:`~estcal.design.criteria.AccuracyMap` of the plan's covariance.
     rho_mm : predicted RMS position error (mm) at the test poses ``q_test``.
     """
-    from estcal.plots.design import accuracy_map_figure, baseline_figure
-
     rb = model.robot
     rep = Report(folder, title, subtitle=f"{rb.name}, method {model.method}, {model.p} free parameters, "
                                          f"plan of m = {plan.m} poses ({plan.method}), criterion {plan.criterion}")
@@ -85,8 +87,6 @@ def next_pose_report(folder, model, nxt, state, maps, *, unit, title: str = "est
     ``maps``: ``(before, after)`` :class:`~estcal.design.criteria.AccuracyMap` on the same
     poses, with the state's covariance and with the covariance after measuring ``nxt``.
     """
-    from estcal.plots.design import accuracy_map_figure
-
     rb = model.robot
     rep = Report(folder, title, subtitle=f"{rb.name}, method {model.method}, {len(state.parameters)} parameters "
                                          f"in the state, criterion {nxt.criterion}")
@@ -119,6 +119,4 @@ def next_pose_report(folder, model, nxt, state, maps, *, unit, title: str = "est
 
 
 def _next_position(model, state, nxt):
-    from estcal.design.sequential import model_for_state
-
     return model_for_state(model, state).positions(np.atleast_2d(nxt.readings))

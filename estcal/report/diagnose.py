@@ -1,13 +1,19 @@
 """Report of ``estcal diagnose``: verdict, named causes, RMSE table and the residual figures.
 
-:func:`estcal.discrepancy.diagnose` (``report=DIR``) writes the figures
-(:func:`estcal.discrepancy.analysis.save_plots`), ``diagnosis.json`` and
-``summary.txt``; :func:`diagnose_report` adds the ``index.html`` that shows them
-with the tables, like the other commands' reports.
+:func:`diagnose_report` writes the residual figures of a diagnosis
+(:meth:`estcal.discrepancy.diagnose.DiagnosisResult.figures`), ``diagnosis.json``,
+``summary.txt`` and the ``index.html`` that shows them with the tables, like the other
+commands' reports.
 """
 from __future__ import annotations
 
-from .html import Report, Table
+from pathlib import Path
+
+from estcal.base.atomic import atomic_write_text
+from estcal.base.tables import Table
+
+from .figures import save_figure
+from .html import Report
 
 __all__ = ["diagnose_report"]
 
@@ -27,9 +33,22 @@ _CAPTIONS = {
 }
 
 
-def diagnose_report(folder, result, title: str = "estcal diagnose") -> Report:
-    """``index.html`` in ``folder`` for a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`
-    whose figures are already there (``result.report_files``)."""
+_DPI = {"budget.png": 110}
+
+
+def diagnose_report(folder, result, title: str = "estcal diagnose", plots: bool = True) -> Report:
+    """The report of a :class:`~estcal.discrepancy.diagnose.DiagnosisResult` in ``folder``: its
+    residual figures (``plots``), ``diagnosis.json``, ``summary.txt`` and ``index.html``; the file
+    names are in ``result.report_files``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    files = []
+    for name, fig in (result.figures().items() if plots else ()):
+        save_figure(fig, folder / name, dpi=_DPI.get(name, 90))
+        files.append(name)
+    result.report_files = files + ["diagnosis.json", "summary.txt"]
+    result.to_json(folder / "diagnosis.json")
+    atomic_write_text(folder / "summary.txt", str(result) + "\n")
     d = result.to_dict()
     rep = Report(folder, title, subtitle=d["verdict"])
     rep.heading("Named causes")

@@ -9,60 +9,26 @@ command's JSON.
 from __future__ import annotations
 
 import html
-import math
 from dataclasses import dataclass, field
-from typing import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
 from estcal.base.atomic import atomic_write_text
+from estcal.base.tables import Table
 
 from .figures import save_figure
 
-__all__ = ["Table", "Report", "format_cell"]
+__all__ = ["Report", "table_html"]
 
 
-def format_cell(v, digits: int = 6) -> str:
-    """Text of a table cell: floats with ``digits`` significant digits, None / NaN as '—'."""
-    if v is None:
-        return "—"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return "—" if not math.isfinite(v) else f"{v:.{digits}g}"
-    if hasattr(v, "item") and not isinstance(v, (str, bytes)):  # numpy scalars
-        return format_cell(v.item(), digits)
-    return str(v)
-
-
-@dataclass
-class Table:
-    """A titled table; ``key`` becomes the HTML ``id`` (``table-<key>``).
-
-    ``fmt(row, col, value, digits)``, when given, formats the numeric cells (e.g. decimals
-    chosen per row from an interval's width); otherwise :func:`format_cell`."""
-
-    key: str
-    title: str
-    columns: list
-    rows: list
-    note: str = ""
-    digits: int = 6
-    fmt: Callable | None = field(default=None, repr=False)
-
-    def cell(self, i: int, j: int, v, digits: int | None = None) -> str:
-        d = self.digits if digits is None else digits
-        if self.fmt is not None and isinstance(v, float) and math.isfinite(v):
-            return self.fmt(i, j, v, d)
-        return format_cell(v, d)
-
-    def html(self) -> str:
-        head = "".join(f"<th>{html.escape(str(c))}</th>" for c in self.columns)
-        body = "\n".join("<tr>" + "".join(f"<td>{html.escape(self.cell(i, j, v))}</td>" for j, v in enumerate(r))
-                         + "</tr>" for i, r in enumerate(self.rows))
-        note = f'<p class="note">{html.escape(self.note)}</p>' if self.note else ""
-        return (f'<h3>{html.escape(self.title)}</h3>\n<table id="table-{html.escape(self.key)}">\n'
-                f"<thead><tr>{head}</tr></thead>\n<tbody>\n{body}\n</tbody></table>\n{note}")
+def table_html(table: Table) -> str:
+    """HTML of a :class:`~estcal.base.tables.Table` (``id="table-<key>"``)."""
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.columns)
+    body = "\n".join("<tr>" + "".join(f"<td>{html.escape(table.cell(i, j, v))}</td>" for j, v in enumerate(r))
+                     + "</tr>" for i, r in enumerate(table.rows))
+    note = f'<p class="note">{html.escape(table.note)}</p>' if table.note else ""
+    return (f'<h3>{html.escape(table.title)}</h3>\n<table id="table-{html.escape(table.key)}">\n'
+            f"<thead><tr>{head}</tr></thead>\n<tbody>\n{body}\n</tbody></table>\n{note}")
 
 
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:1em auto;padding:0 1em;color:#222}
@@ -98,7 +64,7 @@ class Report:
         self.parts.append(f"<pre>{t}</pre>" if pre else f"<p>{t}</p>")
 
     def table(self, table: Table) -> Table:
-        self.parts.append(table.html())
+        self.parts.append(table_html(table))
         return table
 
     def figure(self, name: str, fig, caption: str = "") -> str:

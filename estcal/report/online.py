@@ -1,9 +1,13 @@
 """Report of ``estcal online``: estimate ± σ after every row and the innovation tests."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
-from .html import Report, Table
+from estcal.base.tables import Table, parameter_table
+
+from .html import Report
 
 __all__ = ["online_report"]
 
@@ -36,10 +40,8 @@ def online_report(folder, names, nominal, trace_estimate, trace_std, nis, dims, 
     f = np.array([k for _, k in us])
     rep = Report(folder, title, subtitle=f"{len(X)} rows, {len(names)} free parameters")
     rep.heading("Final estimate")
-    rep.table(Table("parameters", "estimate after the last row (display units)",
-                    ["parameter", "initial", "estimate", "± std", "unit"],
-                    [[n, float(nominal[i] * f[i]), float(X[-1, i] * f[i]), float(S[-1, i] * f[i]), us[i][0]]
-                     for i, n in enumerate(names)]))
+    final = SimpleNamespace(names=list(names), nominal=nominal, estimate=X[-1], std=S[-1])
+    rep.table(parameter_table(final, unit, title="estimate after the last row (display units)"))
     rep.heading("Innovation tests")
     verdict = ""
     if "error" in tests:

@@ -1,9 +1,13 @@
 """Report of ``estcal sessions``: population parameters, between-session variation, new sessions."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
-from .html import Report, Table
+from estcal.base.tables import Table, parameter_table
+
+from .html import Report
 
 __all__ = ["sessions_report"]
 
@@ -22,10 +26,8 @@ def sessions_report(folder, run, *, unit, title: str = "estcal sessions", result
     rep = Report(folder, title, subtitle=f"{len(run.names)} sessions, {len(fit.names)} free parameters, "
                                          f"{fit.formulation}: {fit.n_iterations} iterations")
     rep.heading("Population parameters")
-    rep.table(Table("parameters", "population estimate (display units)", ["parameter", "initial", "estimate",
-                                                                           "± std", "unit"],
-                    [[n, float(nominal[i] * f[i]), float(fit.estimate[i] * f[i]), float(fit.std[i] * f[i]), us[i][0]]
-                     for i, n in enumerate(fit.names)]))
+    population = SimpleNamespace(names=list(fit.names), nominal=nominal, estimate=fit.estimate, std=fit.std)
+    rep.table(parameter_table(population, unit, title="population estimate (display units)"))
     rep.figure("parameters.png", parameter_figure(list(fit.names), (fit.estimate - nominal) * f, fit.std * f,
                                                   [u for u, _ in us]),
                "Population estimate − initial value with its ±2σ bar, one panel per unit.")

@@ -2,8 +2,8 @@
 
 * :mod:`estcal.scale.runner` — :func:`run_tasks`, one task runner for serial,
   process-pool and Dask execution with per-task seeds and reported failures;
-* :mod:`estcal.scale.simfleet` — a simulated fleet for tests and benchmarks
-  (``estcal simulate --fleet N``); the fleet job itself is :mod:`estcal.workflows.fleet`.
+* the fleet job itself is :mod:`estcal.workflows.fleet`, and a simulated fleet for tests and
+  benchmarks (``estcal simulate --fleet N``) :mod:`estcal.simulate.fleet`.
 """
 from .runner import SCHEDULERS, RunResult, TaskError, TaskFailure, check_scheduler, run_tasks, task_seeds
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from estcal.base.blas import single_thread_blas
 from estcal.base.errors import EstcalError
+from estcal.base.progress import nested
 
 __all__ = ["SCHEDULERS", "TaskFailure", "TaskError", "RunResult", "run_tasks", "task_seeds",
            "check_scheduler", "short_repr"]
@@ -156,8 +157,6 @@ def _run_chunk(fn, chunk):
     reductions' order), and OpenBLAS's spinning threads do not slow a serial run
     on a busy machine (the serial fleet ran 4× slower with them, docs/scaling.md).
     Progress bars inside a task stay quiet (the runner's own bar counts the tasks)."""
-    from estcal.base.progress import nested
-
     with single_thread_blas(), nested():
         return _run_items(fn, chunk)
 

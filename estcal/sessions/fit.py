@@ -17,6 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.base.atomic import refuse_input
+from estcal.base.jsonio import to_jsonable
+from estcal.base.result import Result
+from estcal.base.tables import Table, parameter_table, si_unit
+from estcal.base.units import display_unit
+from estcal.io.savedmodel import calibration_block, write_saved_model
+from estcal.methods import NoiseModel, Problem
+
 from .formulations import solve_factor_graph, solve_gls, solve_kalman
 from .system import blocks_from_rows, reml, reml_objective
 
@@ -36,9 +44,10 @@ def _is_angle(robot, name: str) -> bool:
     return name.split("_")[0] in _ANGLE_PREFIXES or name.endswith(("_rx", "_ry", "_rz"))
 
 
-@dataclass
-class SessionFit:
-    """Result of :func:`fit_sessions` (plain data; ``to_dict()`` for JSON).
+@dataclass(repr=False)
+class SessionFit(Result):
+    """Result of :func:`fit_sessions` (the result protocol of :class:`estcal.base.result.Result`:
+    ``to_dict``, ``to_json``, ``save_model``, ``table``).
 
     names : free parameter names; estimate (p,) and cov (p, p) their population
     values and covariance (SI); vary : the parameters that vary between sessions,
@@ -65,6 +74,10 @@ class SessionFit:
     noise: object = field(repr=False, default=None)
     reml_objective: float = float("nan")
     n_rows: int = 0
+    #: the sessions' datasets (for :meth:`save_model`'s provenance; not serialised)
+    datasets: list = field(default_factory=list, repr=False)
+    #: files the fit was computed from: never written over
+    inputs: tuple = field(default=(), repr=False)
 
     @property
     def std(self) -> np.ndarray:
@@ -94,9 +107,32 @@ class SessionFit:
                         "varies": bool(q > 0)})
         return out
 
-    def to_dict(self) -> dict:
-        from estcal.base.jsonio import to_jsonable
+    def table(self) -> Table:
+        """Population estimate and std of every free parameter (mm / mrad when the robot is known)."""
+        robot = self.robot
+        unit = si_unit if robot is None else (lambda n: display_unit(n, robot))
+        return parameter_table(self, unit, title="")
 
+    def summary(self) -> str:
+        return (f"SessionFit({self.formulation}, {len(self.sessions)} sessions, {len(self.names)} parameters, "
+                f"{len(self.vary)} varying, iterations={self.n_iterations}, converged={self.converged})")
+
+    def save_model(self, path, provenance: dict | None = None):
+        """Write the population robot (every session's mean geometry) as a saved model: a robot file
+        with a ``calibration:`` block holding the free names, the population covariance, the
+        sessions' files and the between-session variance components (docs/robot-file.md)."""
+        if self.robot is None:
+            raise ValueError("this SessionFit does not know its robot; it was not made by fit_sessions")
+        refuse_input(path, self.inputs)
+        robot = self.robot.with_values(self.theta[: self.robot.n_params])
+        block = calibration_block(estimator=f"sessions ({self.formulation})", train=list(self.datasets),
+                                  free=self.names, covariance=self.cov, noise=self.noise,
+                                  sigma0=float(np.sqrt(self.s2)),
+                                  variance_components=self.variance_components(),
+                                  converged=bool(self.converged), **(provenance or {}))
+        return write_saved_model(robot, block, path)
+
+    def to_dict(self) -> dict:
         return to_jsonable({
             "formulation": self.formulation, "sessions": list(self.sessions), "n_rows": self.n_rows,
             "parameters": {n: {"estimate": float(v), "std": float(s)}
@@ -110,8 +146,6 @@ class SessionFit:
 
 def session_problems(robot, datasets, noise):
     """One :class:`estcal.methods.Problem` per session, all on the same robot."""
-    from estcal.methods import Problem
-
     return [Problem(robot, [(None, ds, noise)], noise) for ds in datasets]
 
 
@@ -144,8 +178,6 @@ def fit_sessions(robot, datasets, free, vary=(), *, noise=None, q=None, formulat
     q : fixed variance components (SI², one per ``vary``), or None to estimate them by REML.
     formulation : ``"gls"``, ``"gtsam"`` or ``"kalman"`` (:mod:`estcal.sessions.formulations`).
     """
-    from estcal.methods import NoiseModel
-
     if formulation not in SOLVERS:
         raise ValueError(f"unknown formulation {formulation!r}; choose one of {sorted(SOLVERS)}")
     noise = noise or NoiseModel()
@@ -214,7 +246,8 @@ def fit_sessions(robot, datasets, free, vary=(), *, noise=None, q=None, formulat
                       list(session_names or [getattr(d, "where", None) or f"session{i + 1}"
                                              for i, d in enumerate(datasets)]),
                       formulation, it, converged, theta, problems[0].robot, noise, float(obj),
-                      int(sum(A.shape[0] for A in A_list)))
+                      int(sum(A.shape[0] for A in A_list)), datasets=list(datasets),
+                      inputs=tuple(p for d in datasets if (p := getattr(d, "path", None))))
 
 
 def _check_rank(A_list, c, free, max_cond: float = 1e10):

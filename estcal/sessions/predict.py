@@ -22,7 +22,6 @@ to the new session's prior).
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 __all__ = ["predict_session", "coverage_band", "update_session", "choose_poses", "recalibration_curve"]
 
@@ -54,6 +53,8 @@ def predict_session(fit, data, cov=None, theta=None, level: float = 0.95) -> dic
     per-pose ``d2`` (N, k) squared Mahalanobis distances. ``cov`` defaults to
     ``fit.new_session_cov()``; pass ``fit.cov`` to score without the repeatability term.
     """
+    from scipy import stats
+
     e, J, sig = _pose_blocks(fit, data, theta)
     N, d, p = J.shape
     C = fit.new_session_cov() if cov is None else cov

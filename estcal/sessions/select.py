@@ -10,7 +10,6 @@ screening step relinearises at the current fit (:func:`fit_sessions`).
 """
 from __future__ import annotations
 
-from scipy import stats
 
 from .fit import fit_sessions
 
@@ -30,6 +29,8 @@ def choose_vary(robot, datasets, free, candidates=None, *, noise=None, alpha: fl
     ``steps`` lists, per step, every candidate's LR statistic and p-value; needs at least
     two sessions (with one session there is no between-session information: ``vary = []``).
     """
+    from scipy import stats
+
     fit = fit_sessions(robot, datasets, free, [], noise=noise, theta=theta)
     if len(datasets) < 2:
         return {"vary": [], "steps": [], "fit": fit, "note": "one session: no between-session information"}

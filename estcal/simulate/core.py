@@ -24,13 +24,17 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from estcal.effects import make_effect
+from estcal.io.dataset import dataset_from_arrays, write_dataset
+from estcal.io.robotfile import load_robot, robot_from_dict, robot_to_dict
 from estcal.kinematics.chain import SerialRobot
 from estcal.kinematics.chunked import tool_poses
 from estcal.kinematics.transforms import pose_error, so3_exp
+from estcal.methods.base import NoiseModel
 
 from .strategies import generate_poses
 
-__all__ = ["NoiseModel", "ErrorModel", "SimulationResult", "SimulationSummary", "simulate", "random_errors",
+__all__ = ["ErrorModel", "simulation_noise", "SimulationResult", "SimulationSummary", "simulate", "random_errors",
            "parse_effect_spec", "DEFAULT_EFFECT_STD"]
 
 # Typical magnitudes used when an effect is requested without values (documented in docs/simulation.md).
@@ -44,51 +48,6 @@ DEFAULT_EFFECT_STD = {
 }
 _POSITIVE = {"backlash"}
 _FIXED = {"thermal_expansion"}
-
-
-@dataclass
-class NoiseModel:
-    """Measurement and joint-reading noise.
-
-    Attributes
-    ----------
-    position : σ (Gaussian) or half-width (uniform) of each coordinate, metres.
-    orientation : σ or half-width of each rotation-vector component, radians.
-    joint : σ or half-width of each joint reading (rad, or m for prismatic joints).
-    resolution : encoder resolution (rad / m): recorded readings are multiples of it (0 = none).
-        A scalar or one value per joint.
-    distribution : ``"gaussian"`` or ``"uniform"``.
-    """
-
-    position: float = 0.0
-    orientation: float = 0.0
-    joint: float = 0.0
-    resolution: Any = 0.0
-    distribution: str = "gaussian"
-
-    def __post_init__(self):
-        if self.distribution not in ("gaussian", "uniform"):
-            raise ValueError(f"noise distribution must be 'gaussian' or 'uniform', got {self.distribution!r}")
-        for k in ("position", "orientation", "joint"):
-            if getattr(self, k) < 0:
-                raise ValueError(f"noise {k} must be >= 0, got {getattr(self, k)}")
-
-    def draw(self, scale: float, shape, rng) -> np.ndarray:
-        if scale == 0:
-            return np.zeros(shape)
-        if self.distribution == "gaussian":
-            return rng.normal(0.0, scale, shape)
-        return rng.uniform(-scale, scale, shape)
-
-    def std(self, scale: float) -> float:
-        """Standard deviation of one component (uniform half-width a → a/√3)."""
-        return scale if self.distribution == "gaussian" else scale / np.sqrt(3.0)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["resolution"] = np.asarray(self.resolution, float).tolist()
-        d["units"] = {"position": "m", "orientation": "rad", "joint": "rad or m", "resolution": "rad or m"}
-        return d
 
 
 @dataclass
@@ -229,8 +188,6 @@ class SimulationResult:
 
     def write(self, csv_path, truth_path=None, float_format: str = "%.15g") -> tuple[Path, Path | None]:
         """Write the dataset CSV (documented format) and the ground-truth JSON."""
-        from estcal.io.dataset import write_dataset
-
         p = write_dataset(csv_path, self.dataset, float_format=float_format)
         t = None
         if truth_path is not None:
@@ -249,8 +206,6 @@ class SimulationResult:
 
 
 def _with_markers(robot: SerialRobot, markers) -> SerialRobot:
-    from estcal.io.robotfile import robot_from_dict, robot_to_dict
-
     d = robot_to_dict(robot)
     d["markers"] = np.asarray(markers, float).reshape(-1, 3).tolist()
     return robot_from_dict(d, source=f"{robot.name} (+markers)")
@@ -280,6 +235,14 @@ def _profile(spec, N: int, t: np.ndarray | None, what: str, rng) -> np.ndarray |
     return a
 
 
+def simulation_noise(value) -> NoiseModel:
+    """The noise of a simulation: ``None`` or 0 is no noise at all (:meth:`NoiseModel.none`), anything
+    else is read by the one rule of :meth:`NoiseModel.parse` (docs/conventions.md, "Noise")."""
+    if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool) and value == 0):
+        return NoiseModel.none()
+    return NoiseModel.parse(value)
+
+
 def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "position",
              errors=None, error_std: ErrorModel | dict | None = None, effects: Sequence = (),
              noise: NoiseModel | dict | None = None, seed: int | None = 0, margin: float = 0.0,
@@ -301,7 +264,8 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     effects : effect specs — ``"joint_compliance:j2,j3"``, ``"thermal_expansion"``, or
         dicts ``{effect, joints, options, params}``; parameters not given are drawn
         with :data:`DEFAULT_EFFECT_STD`.
-    noise : NoiseModel or dict of its fields (default: noise-free).
+    noise : the measurement and reading noise (:func:`simulation_noise`): any form of
+        :meth:`estcal.methods.NoiseModel.parse`; ``None`` or 0: noise-free.
     seed : seed of every random draw (errors, effects, poses, context, noise each use
         an independent stream spawned from it, so changing the noise keeps the poses).
     margin : fraction of each joint range left out at both ends.
@@ -317,23 +281,44 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     home : (n,) home readings of strategy S2 (default mid-range).
     markers : (k, 3) tool-frame points replacing the robot's markers.
     """
-    from estcal.effects import make_effect
-    from estcal.io.dataset import dataset_from_arrays
-    from estcal.io.robotfile import load_robot, robot_to_dict
-
     nominal = load_robot(robot)
     if nominal.effects:
         raise ValueError(f"{nominal.name}: the nominal robot already has effects; pass a geometric model "
                          f"and list the effects to simulate in `effects`")
     if measure not in ("position", "points", "pose"):
         raise ValueError(f"measure must be 'position', 'points' or 'pose', got {measure!r}")
-    noise = noise if isinstance(noise, NoiseModel) else NoiseModel(**(noise or {}))
+    noise = simulation_noise(noise)
     ss = np.random.SeedSequence(seed)
     r_err, r_eff, r_pose, r_ctx, r_noise = (np.random.default_rng(s) for s in ss.spawn(5))
     notes: list[str] = []
     specs = [parse_effect_spec(e) for e in effects]
     names = [s["effect"] for s in specs]
+    nominal = _measured_markers(nominal, markers, measure, n_points, r_pose, notes)
+    err, error_model = _parameter_errors(nominal, errors, error_std, r_err)
+    true = _true_robot(nominal, err, specs, effect_params, r_eff)
+    if readings is not None:
+        r_true = nominal.check_readings(readings, "readings")
+        strategy = "given"
+    else:
+        r_true = generate_poses(nominal, n_poses, strategy, r_pose, margin=margin, home=home)
+        strategy = str(strategy).upper()
+    context, columns = _context(true, specs, names, r_true, t, dt, temperature, payload, record_approach, r_ctx, notes)
+    meas = _measure(true, nominal, r_true, measure, {**context, **columns}, noise, r_noise)
+    rec = _recorded_readings(r_true, noise, r_noise, nominal.n_joints)
+    # approach columns are effect context too: in Dataset.context so that code passing
+    # ``dataset.context`` to the kinematics sees them (and in columns, as a CSV reload gives)
+    ds = dataset_from_arrays(nominal.joint_names, rec, points=meas["points"], R=meas["R"], p=meas["p"],
+                             context={**context, **columns}, columns=columns, path=None)
+    summary = _summary(nominal, true, rec, meas, measure, strategy, err, context, columns, seed, notes)
+    truth = _truth(nominal, true, seed, strategy, measure, margin, noise, error_model, err, context, columns,
+                   summary, notes)
+    return SimulationResult(ds, truth, true, nominal, r_true, meas["true_points"], meas["true_R"], meas["true_p"],
+                            summary)
 
+
+def _measured_markers(nominal, markers, measure, n_points, r_pose, notes):
+    """The nominal robot with the given markers, or with ``n_points`` default markers on the tool when
+    ``points`` are measured on a robot with fewer than two."""
     if markers is not None:
         nominal = _with_markers(nominal, markers)
     if measure == "points" and nominal.n_markers < 2:
@@ -342,21 +327,27 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         m = default[:k] if k <= 6 else r_pose.normal(0, 0.1, (k, 3))
         nominal = _with_markers(nominal, m)
         notes.append(f"added {k} markers on the tool (m): {np.round(m, 4).tolist()}")
+    return nominal
 
-    # ---- true robot: nominal + errors + effects
-    true = nominal.copy()
-    error_model = None
+
+def _parameter_errors(nominal, errors, error_std, r_err):
+    """``({parameter: error}, ErrorModel or None)`` of the forms ``errors`` takes."""
     if errors is None or (isinstance(errors, str) and errors.lower() == "none"):
-        err = {}
-    elif isinstance(errors, str) and errors.lower() == "random":
+        return {}, None
+    if isinstance(errors, str) and errors.lower() == "random":
         error_model = error_std if isinstance(error_std, ErrorModel) else ErrorModel(**(error_std or {}))
-        err = random_errors(nominal, error_model, r_err)
-    elif isinstance(errors, dict):
+        return random_errors(nominal, error_model, r_err), error_model
+    if isinstance(errors, dict):
         err = {str(k): float(v) for k, v in errors.items()}
         for k in err:
             nominal.params.index(k)  # clear error for unknown names
-    else:
-        raise ValueError(f"errors must be None, 'none', 'random' or a dict of parameter errors, got {errors!r}")
+        return err, None
+    raise ValueError(f"errors must be None, 'none', 'random' or a dict of parameter errors, got {errors!r}")
+
+
+def _true_robot(nominal, err, specs, effect_params, r_eff):
+    """Nominal + parameter errors + effects (their parameters given, fixed or drawn)."""
+    true = nominal.copy()
     for k, v in err.items():
         true.params[k] = nominal.params[k] + v
     given = {str(k): float(v) for k, v in (effect_params or {}).items()}
@@ -380,18 +371,15 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         if unknown:
             raise ValueError(f"effect {s['effect']!r}: unknown parameters {sorted(unknown)}; "
                              f"its parameters are {eff.param_names}")
-
     if set(given) - owned:
         raise ValueError(f"effect parameters {sorted(set(given) - owned)} belong to none of the requested "
                          f"effects; their parameters are {sorted(owned)}")
+    return true
 
-    # ---- poses and context
-    if readings is not None:
-        r_true = nominal.check_readings(readings, "readings")
-        strategy = "given"
-    else:
-        r_true = generate_poses(nominal, n_poses, strategy, r_pose, margin=margin, home=home)
-        strategy = str(strategy).upper()
+
+def _context(true, specs, names, r_true, t, dt, temperature, payload, record_approach, r_ctx, notes):
+    """``(context, columns)`` of every pose: time, temperature and payload profiles; random approach
+    directions of the backlash joints. Effects that need a context the call lacks get a default."""
     N = r_true.shape[0]
     if t is None and dt is None and "drift" in names:
         dt = 60.0
@@ -406,15 +394,9 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
     if temperature is None and "thermal_expansion" in names and times is None:
         temperature = (20.0, 30.0)
         notes.append("thermal_expansion needs temperature: using a 20 -> 30 degC ramp over the poses")
-    temp = _profile(temperature, N, times, "temperature", r_ctx)
-    pay = _profile(payload, N, times, "payload", r_ctx)
-    context: dict[str, np.ndarray] = {}
-    if times is not None:
-        context["t"] = times
-    if temp is not None:
-        context["temperature"] = temp
-    if pay is not None:
-        context["payload"] = pay
+    profiles = {"t": times, "temperature": _profile(temperature, N, times, "temperature", r_ctx),
+                "payload": _profile(payload, N, times, "payload", r_ctx)}
+    context = {k: v for k, v in profiles.items() if v is not None}
     columns: dict[str, np.ndarray] = {}
     if record_approach:
         for s, eff in zip(specs, [e for e in true.effects]):
@@ -426,80 +408,90 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         if not np.any(tau):
             notes.append("gravity torques are zero (no link masses or payload): compliance/backlash have "
                          "no effect — give masses in the robot file or a payload")
+    return context, columns
 
-    # ---- measurements
-    ctx_all = {**context, **columns}
+
+def _measure(true, nominal, r_true, measure, ctx, noise, r_noise) -> dict:
+    """The true measurements at the true readings and the noisy ones (``points`` or ``R, p``), and the
+    noise added to the positions (``added``)."""
     # tool frames and points only, 20,000 poses at a time (a million poses would otherwise hold
     # every link frame of every pose: ~3.5 kB per pose)
-    kin = tool_poses(true, r_true, context=ctx_all, fields=("R", "p", "points"))
-    true_points = true_R = true_p = None
-    pts = R = p = None
+    kin = tool_poses(true, r_true, context=ctx, fields=("R", "p", "points"))
+    out = dict(true_points=None, true_R=None, true_p=None, points=None, R=None, p=None)
+    N = r_true.shape[0]
     if measure == "pose":
-        true_R, true_p = kin.R, kin.p
-        p = true_p + noise.draw(noise.position, true_p.shape, r_noise)
-        R = so3_exp(noise.draw(noise.orientation, (N, 3), r_noise)) @ true_R
-        added = p - true_p
-    else:
-        true_points = kin.points[:, :1] if measure == "position" and nominal.n_markers else kin.points
-        if measure == "position" and nominal.n_markers == 0:
-            true_points = kin.p[:, None, :]
-        pts = true_points + noise.draw(noise.position, true_points.shape, r_noise)
-        added = pts - true_points
-    # recorded readings: reading noise then quantisation
+        out.update(true_R=kin.R, true_p=kin.p)
+        out["p"] = kin.p + noise.draw(noise.position, kin.p.shape, r_noise)
+        out["R"] = so3_exp(noise.draw(noise.orientation, (N, 3), r_noise)) @ kin.R
+        out["added"] = out["p"] - kin.p
+        return out
+    true_points = kin.points[:, :1] if measure == "position" and nominal.n_markers else kin.points
+    if measure == "position" and nominal.n_markers == 0:
+        true_points = kin.p[:, None, :]
+    out.update(true_points=true_points, points=true_points + noise.draw(noise.position, true_points.shape, r_noise))
+    out["added"] = out["points"] - true_points
+    return out
+
+
+def _recorded_readings(r_true, noise, r_noise, n_joints):
+    """The recorded joint readings: reading noise, then quantisation to the encoder resolution."""
     rec = r_true + noise.draw(noise.joint, r_true.shape, r_noise)
-    res = np.broadcast_to(np.asarray(noise.resolution, float), (nominal.n_joints,))
+    res = np.broadcast_to(np.asarray(noise.resolution, float), (n_joints,))
     q_mask = res > 0
     if q_mask.any():
         rec[:, q_mask] = np.round(rec[:, q_mask] / res[q_mask]) * res[q_mask]
+    return rec
 
-    # approach columns are effect context too: in Dataset.context so that code passing
-    # ``dataset.context`` to the kinematics sees them (and in columns, as a CSV reload gives)
-    ds = dataset_from_arrays(nominal.joint_names, rec, points=pts, R=R, p=p, context={**context, **columns},
-                             columns=columns, path=None)
 
-    # ---- how wrong is the nominal model (at the recorded readings) w.r.t. the true measurement
+def _summary(nominal, true, rec, meas, measure, strategy, err, context, columns, seed, notes) -> SimulationSummary:
+    """How wrong the nominal model is (at the recorded readings) with respect to the true measurement."""
     kn = tool_poses(nominal, rec, fields=("R", "p", "points"))
     rot_rms = rot_max = None
     if measure == "pose":
-        e = pose_error(true_R, true_p, kn.R, kn.p)
+        e = pose_error(meas["true_R"], meas["true_p"], kn.R, kn.p)
         dpos = np.linalg.norm(e[:, :3], axis=1)
         drot = np.degrees(np.linalg.norm(e[:, 3:], axis=1))
         rot_rms, rot_max = float(np.sqrt(np.mean(drot**2))), float(drot.max())
     else:
+        true_points = meas["true_points"]
         pred = kn.points[:, :true_points.shape[1]] if nominal.n_markers else kn.p[:, None, :]
         dpos = np.linalg.norm(true_points - pred, axis=-1).reshape(-1)
     header = list(nominal.joint_names)
     if measure == "pose":
         header += ["x", "y", "z", "qw", "qx", "qy", "qz"]
-    elif pts.shape[1] == 1:
+    elif meas["points"].shape[1] == 1:
         header += ["x", "y", "z"]
     else:
-        header += [f"{c}{k + 1}" for k in range(pts.shape[1]) for c in "xyz"]
+        header += [f"{c}{k + 1}" for k in range(meas["points"].shape[1]) for c in "xyz"]
     header += list(context) + list(columns)
-    summary = SimulationSummary(
-        robot=nominal.name, n_poses=N, strategy=strategy, measure=measure, columns=header,
+    return SimulationSummary(
+        robot=nominal.name, n_poses=rec.shape[0], strategy=strategy, measure=measure, columns=header,
         n_parameters_with_error=sum(1 for v in err.values() if v != 0.0),
         effects=[f"{e.name}:{','.join(e.joints)}" if e.joints else e.name for e in true.effects],
         nominal_rms_mm=float(np.sqrt(np.mean(dpos**2)) * 1e3), nominal_max_mm=float(dpos.max() * 1e3),
         nominal_rot_rms_deg=rot_rms, nominal_rot_max_deg=rot_max,
-        noise_rms_mm=float(np.sqrt(np.mean(added**2)) * 1e3), seed=seed, notes=notes)
+        noise_rms_mm=float(np.sqrt(np.mean(meas["added"]**2)) * 1e3), seed=seed, notes=notes)
 
+
+def _truth(nominal, true, seed, strategy, measure, margin, noise, error_model, err, context, columns, summary,
+           notes) -> dict:
+    """The ground truth as JSON-ready data (docs/simulation.md, "Truth file")."""
     pv = true.params
-    truth = {
+    return {
         "estcal_truth": 1,
         "robot": nominal.name,
         "seed": seed,
-        "n_poses": N,
+        "n_poses": summary.n_poses,
         "strategy": strategy,
         "measure": measure,
         "margin": margin,
-        "noise": noise.to_dict(),
+        "noise": noise.to_dict(simulation=True),
         "error_model": error_model.to_dict() if error_model is not None else None,
         "parameters": {n: float(v) for n, v in zip(pv.names, pv.values)},
         "nominal": {n: float(v) for n, v in zip(nominal.params.names, nominal.params.values)},
         "errors": {n: v for n, v in err.items() if v != 0.0},  # true = nominal + error
         "effects": [{**e.to_dict(), "params": {n: float(pv[n]) for n in e.param_names}} for e in true.effects],
-        "context": {"t": times is not None, "temperature": temp is not None, "payload": pay is not None,
+        "context": {"t": "t" in context, "temperature": "temperature" in context, "payload": "payload" in context,
                     "approach": sorted(columns)},
         "units": {"length": "m", "angle": "rad", "t": "s", "temperature": "degC", "payload": "kg"},
         "nominal_robot": robot_to_dict(nominal),
@@ -507,4 +499,3 @@ def simulate(robot, n_poses: int = 50, strategy: str = "S4", measure: str = "pos
         "summary": summary.to_dict(),
         "notes": notes,
     }
-    return SimulationResult(ds, truth, true, nominal, r_true, true_points, true_R, true_p, summary)

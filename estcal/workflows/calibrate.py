@@ -190,7 +190,7 @@ def _run(rob, ds, spec, estimator, measure, free, level, selection, vals, noise,
          allow_ill):
     """:func:`run_calibration` with the lower layers' failures named for the user."""
     from estcal.estimate.chainfile import ChainFileError
-    from estcal.estimate.lsq import UnidentifiableError
+    from estcal.identify.select import UnidentifiableError
     from estcal.kinematics.parameters import ParameterError
 
     try:
@@ -351,7 +351,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     if reg_choice is not None:
         res.extra["regularization"] = reg_choice.to_dict()
     if start is not problem:
-        from estcal.estimate.lsq import score
+        from estcal.estimate.result import score
 
         res.accuracy = score(problem, theta0, res.theta, list(validate))
         res.nominal = theta0[problem.params.indices(res.names)]

@@ -49,7 +49,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     Returns a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`.
     """
     from estcal.discrepancy import diagnose as _diagnose
-    from estcal.estimate.lsq import UnidentifiableError
+    from estcal.identify.select import UnidentifiableError
 
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
@@ -69,6 +69,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     spec = str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None
     kw.setdefault("robot_spec", spec)
     ds = sessions[0] if len(sessions) == 1 else sessions
+    report = kw.pop("report", None)
     try:
         with input_errors():
             res = _diagnose(rob, ds, validate=vals, candidates=cands, noise=noise, k_folds=k_folds, **kw)
@@ -81,4 +82,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         res.model["robot_spec"] = str(robot)
     res.model["root"], res.model["tip"] = root, tip
     res.model["urdf_chain_masses"] = bool(urdf_chain_masses and rob.meta.get("urdf"))
+    if report is not None:  # the analysis writes no file: figures, diagnosis.json, summary.txt, index.html
+        from estcal.report.diagnose import diagnose_report
+
+        where = ", ".join(str(getattr(d, "where", d)) for d in sessions)
+        diagnose_report(report, res, title=f"estcal diagnose — {res.robot.name if res.robot else robot}, {where}")
     return res

@@ -42,7 +42,7 @@ def fk_file(robot, data, output, *, root=None, tip=None, with_joints: bool = Fal
     from estcal.effects import effect_context
     from estcal.io.dataset import load_dataset
     from estcal.io.robotfile import load_robot
-    from estcal.io.savedmodel import prepare_data
+    from estcal.io.prepare import prepare_data
     from estcal.kinematics.chunked import CHUNK, tool_poses
     from estcal.kinematics.transforms import matrix_to_quat
 

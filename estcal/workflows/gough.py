@@ -35,7 +35,7 @@ from estcal.estimate._common import prior_std_vector
 from estcal.estimate.lsq import prior_arrays
 from estcal.estimate.registry import check_options, get_estimator
 from estcal.estimate.result import CalibrationResult
-from estcal.identify.core import identifiable
+from estcal.identify.select import identifiable
 from estcal.base.atomic import atomic_write_text, refuse_input
 from estcal.base.errors import EstcalWarning, InputError, NumericalRefusal
 from estcal.base.jsonio import to_jsonable, write_json
@@ -49,7 +49,7 @@ from estcal.parallel.data import GoughData, load_gough_data, simulate_gough_data
 from estcal.parallel.gough import GoughPlatform, load_gough, split_pose
 from estcal.parallel.residuals import DEFAULT_SIGMA, GoughResiduals
 from estcal.simulate import ErrorModel
-from estcal.simulate import NoiseModel as SimNoise
+from estcal.simulate.core import simulation_noise
 
 __all__ = ["ESTIMATORS", "GoughProblem", "GoughCalibrationResult", "calibrate_gough", "identifiable_gough",
            "simulate_gough", "GoughSimulation", "save_gough_data", "STEP_TOL_SIGMA", "STEP_TOL_M"]
@@ -286,7 +286,7 @@ def _free_parameters(robot: GoughPlatform, model: int, theta: np.ndarray, free) 
 
 def _identify(W: np.ndarray, names: Sequence[str]) -> dict:
     """Identifiability of the columns of the whitened Jacobian ``W``: the shared
-    :func:`estcal.identify.core.identifiable` (GECARO App. III, sequential QR in parameter order)."""
+    :func:`estcal.identify.select.identifiable` (GECARO App. III, sequential QR in parameter order)."""
     out = identifiable(W, list(names)).to_dict()
     for g in out["regrouped"]:
         g.setdefault("combination", dict(g["relation"]))
@@ -475,7 +475,7 @@ def identifiable_gough(
     """Identifiability of the Gough parameters (``estcal identifiable`` with a Gough robot).
 
     Uses the measured poses of ``data`` if given, else ``n_poses`` random workspace poses
-    (noise-free, from ``seed``): the shared :func:`estcal.identify.core.identifiable` on the whitened
+    (noise-free, from ``seed``): the shared :func:`estcal.identify.select.identifiable` on the whitened
     Jacobian. Returns its dict (``n_parameters, n_identifiable, identifiable, no_effect, regrouped,
     condition_number`` …) plus ``robot``, ``model``, ``residual``, ``n_poses``.
     """
@@ -557,7 +557,7 @@ def simulate_gough(robot: GoughPlatform | str | Path | Mapping = "left_hand", n_
     seed : seeds independent streams for errors, poses and noise.
     """
     nominal = robot if isinstance(robot, GoughPlatform) else load_gough(robot)
-    noise = noise if isinstance(noise, SimNoise) else SimNoise(**(noise or {}))
+    noise = simulation_noise(noise)
     em = error_std if isinstance(error_std, ErrorModel) else ErrorModel(**(error_std or {}))
     r_err, r_pose, r_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
     pv = nominal.parameter_vector(42)
@@ -579,7 +579,7 @@ def simulate_gough(robot: GoughPlatform | str | Path | Mapping = "left_hand", n_
         "robot": nominal.name, "n_poses": int(len(Tt)), "seed": seed,
         "errors": err, "true_parameters": dict(zip(pv.names, theta.tolist())),
         "nominal_parameters": dict(zip(pv.names, pv.values.tolist())),
-        "noise": noise.to_dict() | {"meaning": {"position": "platform position, each coordinate (m)",
+        "noise": noise.to_dict(simulation=True) | {"meaning": {"position": "platform position, each coordinate (m)",
                                                 "orientation": "rotation-vector component (rad)",
                                                 "joint": "leg reading (m)"}},
         "error_std": em.to_dict(),

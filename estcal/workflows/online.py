@@ -40,7 +40,8 @@ import numpy as np
 
 from estcal.base.blas import single_thread_blas
 from estcal.base.errors import InputError
-from estcal.estimate._common import PER_POSE_METHODS, prior_std_vector
+from estcal.estimate._common import prior_std_vector
+from estcal.methods.reduced import PER_POSE_METHODS
 from estcal.estimate.checkpoint import (CheckpointError, Journal, PrefixHasher, file_sha256, filter_checkpoint,
                                         load_checkpoint, option_differences, restore_filter, save_checkpoint)
 from estcal.estimate.innovation import InnovationTests
@@ -577,26 +578,24 @@ def check_file(path, robot) -> Dataset:
 
 def file_free_set(robot, data, free=None, measure=None, noise=None) -> list[str]:
     """The free set ``estcal online FILE`` uses: an identifiable set of the whole file (rank test,
-    :func:`estcal.estimate._common.identifiable_free`) when ``free`` is None, else ``free``,
+    :func:`estcal.identify.select_identifiable`) when ``free`` is None, else ``free``,
     checked identifiable from the whole file as ``estcal calibrate`` checks it
-    (:class:`~estcal.estimate.lsq.UnidentifiableError` otherwise). ``data``: a Dataset."""
-    from estcal.estimate._common import identifiable_free
+    (:class:`~estcal.identify.select.UnidentifiableError` otherwise). ``data``: a Dataset."""
+    from estcal.identify.select import check_identifiable, select_identifiable
+    from estcal.methods.reduced import DenseSystem, ReducedSystem, use_chunks
 
     meth = get_method(measure) if measure else None
     nz = _noise_model(noise)
     names = _names(free)
     with single_thread_blas():  # a QR of a tall thin matrix: BLAS threads only spin
         if names is None:
-            return identifiable_free(Problem(robot, [(meth, data, nz)]))
-        from estcal.estimate.lsq import _DenseSystem, _ReducedSystem, check_identifiable
-        from estcal.estimate.reduced import use_chunks
-
+            return select_identifiable(Problem(robot, [(meth, data, nz)])).identifiable
         rb = robot.copy(robot.params.with_free(names))
         problem = Problem(rb, [(meth, data, nz)])
         pv = problem.params
         ck = use_chunks(problem)
-        system = (_DenseSystem(problem, pv.free_indices) if ck is None
-                  else _ReducedSystem(problem, pv.free_indices, ck))
+        system = (DenseSystem(problem, pv.free_indices) if ck is None
+                  else ReducedSystem(problem, pv.free_indices, ck))
         check_identifiable(system.linear(pv.values)[0], pv.free_names)
     return names
 

@@ -173,9 +173,9 @@ def simulate(robot, n: int = 50, *, strategy: str = "S4", measure: str = "positi
 def simulate_fleet(n_robots: int, out, *, robot: str = "puma560", n: int = 50, measure: str = "position",
                    noise_pos: float | None = None, noise_rot: float | None = None, seed: int = 0,
                    scheduler: str = "serial"):
-    """A fleet folder of ``n_robots`` simulated robots (:func:`estcal.scale.simfleet.simulate_fleet`):
+    """A fleet folder of ``n_robots`` simulated robots (:func:`estcal.simulate.fleet.simulate_fleet`):
     measured as full poses unless asked otherwise; noise defaults 0.05 mm / 0.5 mrad (SI here)."""
-    from estcal.scale.simfleet import simulate_fleet as _fleet
+    from estcal.simulate.fleet import simulate_fleet as _fleet
     from estcal.workflows.fleet import check_scheduler
 
     if out is None:

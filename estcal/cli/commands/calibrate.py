@@ -104,7 +104,8 @@ def _print_report(console, cal) -> None:
                   _fmt(af.get("rmse_mrad")), _fmt(af.get("max_mrad")))
     console.print(a)
     console.print("'before' = initial guess: " + res.extra.get("initial_guess", "nominal"))
-    from estcal.report.tables import mcmc_table, rich_table
+    from estcal.base.tables import mcmc_table
+    from estcal.report.tables import rich_table
 
     mt = mcmc_table(res, lambda n: _unit(n, robot))  # MCMC: credible intervals, ESS and τ per parameter
     if mt is not None:

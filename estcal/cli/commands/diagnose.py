@@ -120,12 +120,7 @@ def diagnose(
               posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
               residual_model=_residual(residual_model))
     typer.echo(str(res))
-    if report is not None:
-        from estcal.report.diagnose import diagnose_report
-
-        where = ", ".join(str(d) for d in data)
-        res.to_json(Path(report) / "diagnosis.json")
-        diagnose_report(report, res, title=f"estcal diagnose — {res.robot.name if res.robot else robot}, {where}")
+    if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
     if json_path:
         res.to_json(json_path)

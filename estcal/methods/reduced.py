@@ -12,22 +12,37 @@ rows would need 2.6 GB for H alone.
 Used automatically above :data:`CHUNK_POSES` poses (single-term problems of per-pose methods:
 position, location, points — also with the row weights of iteratively reweighted robust fits,
 :class:`estcal.estimate.robust.WeightedProblem`), or with ``chunk=N`` in
-:func:`estcal.estimate.lsq.calibrate_lsq`.
+:func:`estcal.estimate.lsq.calibrate_lsq`. :class:`DenseSystem` and :class:`ReducedSystem` give
+the least-squares solvers the same system either way.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CHUNK_POSES", "chunkable", "subproblems", "evaluate_chunks", "reduce_system", "chunked_cost",
-           "chi2_and_rows"]
+from estcal.base.progress import progress
+
+from .problem import Problem, Term
+
+__all__ = ["CHUNK_POSES", "PER_POSE_METHODS", "chunkable", "subproblems", "evaluate_chunks", "reduce_system",
+           "chunked_cost", "chi2_and_rows", "weighted", "DenseSystem", "ReducedSystem"]
 
 #: poses per chunk (≈ 60 MB of Jacobian and kinematics for a 6-axis arm with 54 parameters)
 CHUNK_POSES = 20_000
 
+#: methods whose rows each come from one dataset row alone; others (links, plane normals,
+#: distances) compare rows of a ``group`` / ``pair`` and must be processed together
+PER_POSE_METHODS = ("position", "location", "pose", "points", "plane-known", "plane-unknown")
+
+
+def weighted(rows, free):
+    """``(A, b)`` = ``(H[:, free]/σ, e/σ)``: the weighted system of the rows ``rows``."""
+    w = 1.0 / rows.sigma
+    A = rows.H[:, free] * w[:, None]
+    b = rows.e * w
+    return A, b
+
 
 def chunkable(problem) -> bool:
-    from ._common import PER_POSE_METHODS
-
     terms = getattr(problem, "terms", None)
     return (bool(terms) and len(terms) == 1 and hasattr(terms[0].data, "subset")
             and getattr(terms[0].method, "name", "") in PER_POSE_METHODS)
@@ -44,8 +59,6 @@ def use_chunks(problem, chunk=None):
 
 def subproblems(problem, chunk: int):
     """Sub-problems of ``chunk`` consecutive poses (the same robot, method and noise)."""
-    from estcal.methods.problem import Problem, Term
-
     (t,) = problem.terms
     n = t.data.n
     for a in range(0, n, chunk):
@@ -58,8 +71,6 @@ def subproblems(problem, chunk: int):
 def evaluate_chunks(problem, theta, chunk: int, jacobian: bool = True):
     """``(first pose, rows)`` of every chunk, in order; a problem with ``row_scale`` (IRLS weights)
     has its rows' σ scaled by the matching slice, as its own ``evaluate`` would."""
-    from estcal.base.progress import progress
-
     scale = getattr(problem, "row_scale", None)
     off = 0
     n = problem.terms[0].data.n
@@ -113,3 +124,48 @@ def chi2_and_rows(problem, theta) -> tuple[float, int]:
         return _chi2_rows_chunked(problem, theta, ck)
     r = problem.evaluate(theta, jacobian=False)
     return float(np.sum((r.e / r.sigma) ** 2)), int(r.e.size)
+
+
+class DenseSystem:
+    """The weighted data rows of the whole problem: ``A = H_free/σ``, ``b = e/σ`` (M × p)."""
+
+    def __init__(self, problem, fidx):
+        self.problem, self.fidx = problem, fidx
+        self.m = 0
+        self._trial = None  # (θ, rows) of the last trial evaluated with its Jacobian
+
+    def linear(self, theta):
+        """``(A, b, bᵀb)`` at θ (reusing the trial's rows when the trial was accepted)."""
+        if self._trial is not None and np.array_equal(self._trial[0], theta):
+            rows = self._trial[1]
+        else:
+            rows = self.problem.evaluate(theta)
+        self._trial = None
+        A, b = weighted(rows, self.fidx)
+        self.m = rows.e.size
+        return A, b, float(b @ b)
+
+    def cost(self, theta, jacobian: bool) -> float:
+        """``Σ (e/σ)²`` at a trial θ; with ``jacobian`` the rows are kept, so that an accepted
+        step (the common case) needs no second forward-kinematics pass."""
+        rows = self.problem.evaluate(theta, jacobian=jacobian)
+        if jacobian:
+            self._trial = (theta.copy(), rows)
+        return float(np.sum((rows.e / rows.sigma) ** 2))
+
+
+class ReducedSystem:
+    """The same least-squares problem as its triangular factor ``(R, Qᵀb)``, built ``chunk`` poses
+    at a time (this module): every quantity below is unchanged, the memory is
+    O(chunk · p) instead of O(M · p)."""
+
+    def __init__(self, problem, fidx, chunk: int):
+        self.problem, self.fidx, self.chunk = problem, fidx, int(chunk)
+        self.m = 0
+
+    def linear(self, theta):
+        R, c, rss, self.m = reduce_system(self.problem, theta, self.fidx, self.chunk)
+        return R, c, rss
+
+    def cost(self, theta, jacobian: bool) -> float:
+        return chunked_cost(self.problem, theta, self.chunk)

@@ -21,6 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
+from estcal.base.atomic import atomic_write_text
+from estcal.io.dataset import write_dataset
+from estcal.io.robotfile import load_robot, save_robot
+from estcal.scale.runner import run_tasks, task_seeds
+
+from estcal.methods.base import NoiseModel
+
+from .core import simulate
+
 __all__ = ["FLEET_EFFECTS", "simulate_fleet", "simulate_robot"]
 
 # Effects drawn for a fleet robot, on one of its first three (major) joints, with magnitudes
@@ -49,11 +58,6 @@ def _effect_spec(name: str, rng, robot) -> dict | None:
 
 def simulate_robot(job) -> dict:
     """Simulate one robot folder (a task of :func:`simulate_fleet`); returns its summary row."""
-    from estcal.base.atomic import atomic_write_text
-    from estcal.io.dataset import write_dataset
-    from estcal.io.robotfile import load_robot
-    from estcal.simulate import NoiseModel, simulate
-
     (folder, robot_file, n_poses, n_validate, measure, noise_pos, noise_rot, p_effect, effects, seed) = job
     folder = Path(folder)
     nominal = load_robot(robot_file)
@@ -86,10 +90,6 @@ def simulate_fleet(n: int, out, robot="puma560", n_poses: int = 50, n_validate: 
     Returns the :class:`~estcal.scale.runner.RunResult` of the per-robot simulations
     (one summary row per robot: name, effects, nominal-vs-true RMS in mm).
     """
-    from estcal.io.robotfile import load_robot, save_robot
-
-    from .runner import run_tasks, task_seeds
-
     if n < 1:
         raise ValueError(f"--fleet: the number of robots must be ≥ 1, got {n}")
     out = Path(out)
