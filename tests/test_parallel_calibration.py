@@ -326,7 +326,10 @@ def test_result_protocol(true_robot, nominal, tmp_path):
     res.to_json(tmp_path / "r.json")
     assert json.loads((tmp_path / "r.json").read_text())["theta"]["a3_x"] == pytest.approx(res.theta[14])
     a3x = res.parameters["a3_x"]
-    assert f"{a3x['estimate'] * 1e3:.6g}" in res.table() and "rmse" not in res.table()
+    table = res.table()  # the shared Table (estcal.base.tables), in mm
+    assert table.columns == ["parameter", "initial", "estimate", "± std", "unit"] and len(table.rows) == 42
+    assert table.rows[14][2] == pytest.approx(a3x["estimate"] * 1e3) and table.rows[14][4] == "mm"
+    assert f"{a3x['estimate'] * 1e3:.6g}" in str(table) and str(table) in str(res) and str(res) == repr(res)
     res.save_model(tmp_path / "cal.yaml")
     cal = load_gough(tmp_path / "cal.yaml")
     np.testing.assert_allclose(cal.theta, res.theta, rtol=1e-15)

@@ -27,18 +27,20 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from estcal.base.atomic import atomic_write_text, refuse_input
+from estcal.base.errors import EstcalWarning, InputError, NumericalRefusal
+from estcal.base.jsonio import to_jsonable, write_json
+from estcal.base.tables import Table, parameter_table
 from estcal.estimate._common import prior_std_vector
 from estcal.estimate.lsq import prior_arrays
 from estcal.estimate.registry import check_options, get_estimator
 from estcal.estimate.result import CalibrationResult
 from estcal.identify.select import identifiable
-from estcal.base.atomic import atomic_write_text, refuse_input
-from estcal.base.errors import EstcalWarning, InputError, NumericalRefusal
-from estcal.base.jsonio import to_jsonable, write_json
 from estcal.io.savedmodel import calibration_block
 from estcal.kinematics.parameters import ParameterVector
 from estcal.methods.base import Method, NoiseModel, Rows
@@ -151,10 +153,11 @@ class GoughProblem:
 
 
 # ---------------------------------------------------------------- the result
-@dataclass
+@dataclass(repr=False)
 class GoughCalibrationResult(CalibrationResult):
-    """A :class:`~estcal.estimate.result.CalibrationResult` of a Gough platform (same protocol:
-    ``to_dict``, ``to_json``, ``save_model``, ``table``, ``robot()``), with
+    """A :class:`~estcal.estimate.result.CalibrationResult` of a Gough platform (the result protocol
+    of :class:`estcal.base.result.Result`: ``to_dict``, ``to_json``, ``save_model``, ``table``;
+    and ``robot()``), with
 
     residual : ``"ik"`` or ``"fk"``; model : 42 or 36;
     requested : the free parameters asked for — those found not identifiable at the initial
@@ -194,22 +197,24 @@ class GoughCalibrationResult(CalibrationResult):
                  fk_failures=int(self.fk_failures), identifiability=to_jsonable(self.identifiability))
         return d
 
-    def table(self) -> str:
-        """Initial value, estimate and standard deviation of every requested parameter, in mm."""
-        rows = [f"{'parameter':<10}{'initial mm':>14}{'estimate mm':>14}{'std mm':>12}"]
-        for n, v in self.parameters.items():
-            std = "—" if v["std"] is None else f"{v['std'] * 1e3:.3e}"
-            rows.append(f"{n:<10}{v['nominal'] * 1e3:>14.6g}{v['estimate'] * 1e3:>14.6g}{std:>12}")
-        return "\n".join(rows)
+    def table(self) -> Table:
+        """Initial value, estimate and standard deviation of every requested parameter, in mm
+        (:func:`estcal.base.tables.parameter_table`; '—' for those not identifiable)."""
+        p = self.parameters
+        rows = SimpleNamespace(names=list(p), estimate=[v["estimate"] for v in p.values()],
+                               std=[np.nan if v["std"] is None else v["std"] for v in p.values()],
+                               nominal=[v["nominal"] for v in p.values()])
+        return parameter_table(rows, lambda name: ("mm", 1e3), title="")
 
-    def __str__(self) -> str:
+    def summary(self) -> str:
         after = (self.accuracy.get("train") or {}).get("after", {})
         rot = after.get("rmse_mrad")
-        head = (f"Gough calibration ({self.method}, {self.residual.upper()} residuals, Model {self.model}): "
-                f"RMS {after.get('rmse_mm', float('nan')):.4g} mm"
-                + ("" if rot is None else f" / {rot:.4g} mrad")
+        return (f"Gough calibration ({self.method}, {self.residual.upper()} residuals, Model {self.model}): "
+                f"RMS {after.get('rmse_mm', float('nan')):.4g} mm" + ("" if rot is None else f" / {rot:.4g} mrad")
                 + f", {self.n_iterations} iterations, {'converged' if self.converged else 'NOT converged'}")
-        rows = [head, self.table()]
+
+    def __str__(self) -> str:
+        rows = [self.summary(), str(self.table())]
         ide = self.identifiability
         lost = ide.get("no_effect", []) + [r["parameter"] for r in ide.get("regrouped", [])]
         if lost:
