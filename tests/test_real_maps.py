@@ -48,3 +48,24 @@ def test_frames_on_the_published_ur10():
     r = runner.invoke(app, ["frames", str(data), "--robot", ROBOTS["ur10"][0], "--map", str(MAPS / "ur10.yaml")])
     assert r.exit_code == 0, r.output
     assert "   1  world            camera_color_optical_frame" in r.output
+
+
+CALIBRATE = [("ur10", "calibration.csv", "joint_offset", 4.0), ("talos", "talos_feb_arm_02_10_contact.csv",
+             "joint_offset", 2.0), ("talos", "talos_feb_arm_2_contact.csv", "registration", 12.0),
+             ("tiago", "qualisys_2021-11-30_static_postures.csv", "joint_offset", 4.0)]
+
+
+@pytest.mark.parametrize("folder, name, level, rmse_mm", CALIBRATE, ids=[n for _, n, _, _ in CALIBRATE])
+def test_calibrate_reads_the_published_file(folder, name, level, rmse_mm, tmp_path):
+    """docs/dataset.md's calibrations: the file as published, its map, --drop-flagged naming TALOS 02-10's first
+    row; the RMSE after the fit as printed there (to a margin)."""
+    data = _need(D / folder / name)
+    out = tmp_path / "c.json"
+    r = runner.invoke(app, ["calibrate", str(data), "--robot", *ROBOTS[folder], "--map", str(MAPS / f"{folder}.yaml"),
+                            "--level", level, "--drop-flagged", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    acc = json.loads(out.read_text())
+    if name == "talos_feb_arm_02_10_contact.csv":
+        assert "--drop-flagged: 1 row(s) left out (lines 2)" in r.output
+    train = acc["accuracy"]["train"]["after"]["rmse_mm"]
+    assert train < rmse_mm, train

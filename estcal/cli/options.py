@@ -11,7 +11,8 @@ One vocabulary (docs/conventions.md, "One vocabulary"):
   command line, SI in files and JSON); ``--known-noise`` trusts them as absolute.
 * ``--level`` (``registration`` | ``joint_offset`` | ``full``, default ``full`` everywhere).
 * ``--map FILE.yaml`` reads the data files through a column map (the loader's hook,
-  docs/dataset.md); commands that read datasets declare it with :func:`map_option`.
+  docs/dataset.md); commands that read datasets declare it with :func:`map_option`, and those
+  that fit them ``--drop-flagged`` (:func:`drop_flagged_option`).
 * output files: ``--json``, ``--report DIR``, ``--save-model``, ``-o/--output``.
 
 Nothing here imports more than typer: the command modules import this at start-up.
@@ -22,7 +23,7 @@ import typer
 
 __all__ = ["robot_option", "root_option", "tip_option", "points_option", "estimator_option", "measure_option",
            "method_option", "noise_pos_option", "noise_rot_option", "known_noise_option", "level_option",
-           "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option",
+           "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option", "drop_flagged_option",
            "plan_option", "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL",
            "posture_tol_mrad_option", "posture_tol_mm_option", "posture_tol"]
 
@@ -134,6 +135,15 @@ def posture_tol(mrad: float, mm: float) -> tuple[float, float]:
     if not (mrad > 0 and mm > 0):
         raise typer.BadParameter(f"posture tolerances must be > 0 (got {mrad} mrad, {mm} mm)")
     return mrad * 1e-3, mm * 1e-3
+
+
+def drop_flagged_option():
+    """``--drop-flagged``: leave out the rows that the data screening flags (``estcal check``'s defect
+    kinds; docs/dataset.md) — their findings are printed as warnings either way."""
+    return typer.Option(False, "--drop-flagged",
+                        help="Leave out the rows flagged by the data screening (swapped or ghost markers, outliers, "
+                             "readings beyond the limits, duplicates), naming their lines; `estcal check` lists "
+                             "them.")
 
 
 def deprecated_option(old: str):

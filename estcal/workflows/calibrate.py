@@ -108,7 +108,8 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
               level: str | None = None, selection: str | None = None, validate=(), noise=None,
               regularize=None, robust: str | None = None, options: dict | None = None, points: int | None = None,
               root: str | None = None, tip: str | None = None, checks: bool = True,
-              allow_ill_conditioned: bool = False, column_map=None, posture_tol=(1e-3, 1e-3)) -> Calibration:
+              allow_ill_conditioned: bool = False, column_map=None, posture_tol=(1e-3, 1e-3),
+              drop_flagged: bool = False) -> Calibration:
     """Calibrate ``robot`` on ``data`` — the job of ``estcal calibrate``.
 
     Parameters
@@ -125,6 +126,8 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     regularize : None, ``"loo"`` or a prior std (SI); robust : ``huber`` | ``cauchy``.
     options : estimator options (SI); ``{"chain": path}`` keeps an MCMC chain.
     points, root, tip, column_map : as the loader's (first N points, URDF chain, column map).
+    drop_flagged : leave out the rows that :func:`estcal.workflows.check.screen` flags (their
+        findings are warned either way; docs/dataset.md, "Checking a file").
     checks, allow_ill_conditioned : the numerical refusals (docs/reliability.md).
     posture_tol : ``(rad, m)``: validation rows whose readings agree with a calibration row within it are at
         *seen* postures; each validation score is split into ``seen`` / ``new`` (docs/real-data.md).
@@ -140,8 +143,15 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     if robust is not None:
         options["robust"] = robust
     check_input_files([*sessions, *validate])
-    rob, n_markers = robot_for_data(robot, sessions[0], points, root, tip)
+    rob, n_markers = robot_for_data(robot, sessions[0], points, root, tip, column_map)
     parts = load_datasets(sessions, rob, n_markers, column_map)
+    if checks:
+        from estcal.estimate.checks import refuse_repeated_early
+        from estcal.workflows.check import screen
+
+        for part in parts:  # the cheap refusal before the screening's robust fit
+            refuse_repeated_early(part)
+        parts = screen(parts, rob, drop_flagged)
     vals = load_datasets(validate, rob, n_markers, column_map)
     check_held_out(parts, [], "session")
     check_held_out(parts, vals)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warnings
 
-__all__ = ["check_file", "findings_for", "drop_flagged"]
+__all__ = ["check_file", "findings_for", "drop_flagged", "screen", "SCREEN_OUTLIER_MAX_ROWS"]
 
 
 def _robot_for(robot, data_path, root=None, tip=None, column_map=None, points=None):
@@ -40,6 +40,34 @@ def check_file(data, robot, *, root=None, tip=None, column_map=None, points=None
     rb = _robot_for(robot, data, root, tip, column_map, points)
     ds = load_dataset(data, rb, points=points, column_map=column_map)
     return check_data(rb, ds, outliers=outliers, level=level), rb, ds
+
+
+#: rows above which the data screening of calibrate, diagnose, sessions and online skips the robust
+#: fit of the outlier test (``estcal check`` always runs it)
+SCREEN_OUTLIER_MAX_ROWS = 5000
+
+
+def screen(datasets, robot, drop: bool = False) -> list:
+    """The data screening of calibrate, diagnose, sessions and online: each dataset's findings warned
+    (:func:`findings_for`); with ``drop`` (``--drop-flagged``) the defect rows removed and named in a
+    warning. Returns the datasets (the same objects when nothing is dropped)."""
+    from estcal.base.errors import EstcalWarning
+
+    out = []
+    for ds in datasets:
+        big = ds.n > SCREEN_OUTLIER_MAX_ROWS
+        report = findings_for(robot, ds, outliers=not big)
+        if big:
+            warnings.warn(f"{ds.where}: {ds.n} rows: no outlier test before the fit (run `estcal check` for it)",
+                          EstcalWarning, stacklevel=2)
+        if drop:
+            ds, lines = drop_flagged(ds, report)
+            if lines:
+                shown = ", ".join(str(x) for x in lines[:20]) + (" …" if len(lines) > 20 else "")
+                warnings.warn(f"{ds.where}: --drop-flagged: {len(lines)} row(s) left out (lines {shown})",
+                              EstcalWarning, stacklevel=2)
+        out.append(ds)
+    return out
 
 
 def findings_for(robot, ds, outliers: bool = True):

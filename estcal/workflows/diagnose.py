@@ -31,7 +31,7 @@ def check_effects(effects) -> list[str] | None:
 
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
-             urdf_chain_masses: bool = True, column_map=None, k_folds: int = 5, **kw):
+             urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = False, k_folds: int = 5, **kw):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose``.
 
     Parameters
@@ -43,6 +43,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     noise : a :class:`~estcal.methods.NoiseModel` (known: likelihood-ratio and noise-floor tests)
         or None (unknown: F tests).
     urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
+    column_map, drop_flagged : the data's column map; leave out the rows the screening flags
+        (:func:`estcal.workflows.check.screen`; their findings are warned either way).
     k_folds, **kw : options of :func:`estcal.discrepancy.diagnose` (``alpha``, ``max_effects``,
         ``geometric``, ``approach_from_order``, ``rng``, ``report`` …).
 
@@ -53,7 +55,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
 
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
-    rob, n_markers = robot_for_data(robot, items[0], points, root, tip)
+    rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)
     if urdf_chain_masses and rob.meta.get("urdf"):
         from estcal.discrepancy.masses import with_urdf_masses
 
@@ -64,6 +66,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     cands = check_effects(effects)
     for d in sessions:
         check_distinct_poses(d)
+    from estcal.workflows.check import screen
+
+    sessions = screen(sessions, rob, drop_flagged)
     check_held_out(sessions, [], "session")
     check_held_out(sessions, vals)
     spec = str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None

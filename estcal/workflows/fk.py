@@ -33,8 +33,10 @@ class Forward:
                                             if self.against else {})}
 
 
-def fk_file(robot, data, output, *, root=None, tip=None, with_joints: bool = False, markers: bool = False) -> Forward:
-    """Forward kinematics of every row of the dataset ``data`` written to ``output`` (CSV)."""
+def fk_file(robot, data, output, *, root=None, tip=None, with_joints: bool = False, markers: bool = False,
+            column_map=None) -> Forward:
+    """Forward kinematics of every row of the dataset ``data`` written to ``output`` (CSV);
+    ``column_map``: the data's column map (docs/dataset.md)."""
     import numpy as np
 
     from estcal.base.atomic import atomic_write
@@ -49,7 +51,7 @@ def fk_file(robot, data, output, *, root=None, tip=None, with_joints: bool = Fal
     check_input_files([data])
     with input_errors():
         rb = load_robot(robot, root=root, tip=tip)
-        ds = load_dataset(data, rb)
+        ds = load_dataset(data, rb, column_map=column_map)
         # a saved diagnosis model re-applies the data preparation of its fit (session time, approach
         # directions from the posture order); effect columns become the effects' context
         ds = prepare_data(rb, ds)

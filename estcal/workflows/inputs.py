@@ -62,18 +62,26 @@ def check_input_files(paths, what: str = "dataset", option: str = "") -> None:
                 raise error(f"{option} {exc}" if option else str(exc)) from None
 
 
-def point_layout(data) -> tuple[int, bool]:
-    """``(k, has_quaternion)`` of a dataset (path: from its header alone; ``k`` numbered points
-    ``x1..zk``, 0 if none). A file that cannot be read as a dataset raises ``DatasetError``."""
+def point_layout(data, column_map=None) -> tuple[int, bool]:
+    """``(k, has_quaternion)`` of a dataset (path: from its header alone, or from its column map;
+    ``k`` numbered points ``x1..zk``, 0 if none). A file that cannot be read as a dataset raises
+    ``DatasetError``."""
     from estcal.io.dataset import Dataset, measurement_layout
 
+    if column_map is not None and not isinstance(data, Dataset):
+        from estcal.io.columnmap import ColumnMap, load_column_map
+
+        with input_errors():
+            cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+        pose = cmap.rpy is not None or cmap.quaternion is not None
+        return (0 if pose or len(cmap.points) < 1 else len(cmap.points)), pose
     if isinstance(data, Dataset):
         return (data.n_points if data.kind == "points" else 0), data.kind == "pose"
     k, _, has_quat = measurement_layout(data)
     return k, has_quat
 
 
-def robot_for_data(robot, data, points: int | None = None, root=None, tip=None):
+def robot_for_data(robot, data, points: int | None = None, root=None, tip=None, column_map=None):
     """The robot (spec or object) with one unknown marker per measured point of ``data`` (path or
     Dataset; ``points``: keep the first N). Returns ``(robot, n_markers)``; ``n_markers`` is None
     unless the data are point data."""
@@ -82,7 +90,7 @@ def robot_for_data(robot, data, points: int | None = None, root=None, tip=None):
 
     if points is not None and (isinstance(points, bool) or not isinstance(points, numbers.Integral) or points < 1):
         raise InputError(f"points must be an integer ≥ 1 (the first N measured points), got {points!r}")
-    k, has_quat = point_layout(data)
+    k, has_quat = point_layout(data, column_map)
     n_markers = None
     if k and not has_quat:
         n_markers = points if points is not None else k

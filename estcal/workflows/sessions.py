@@ -93,13 +93,15 @@ def _vary_names(vary, prob, free_names) -> list[str]:
 
 def sessions(robot, data, *, level: str = "full", free=None, vary: str = "auto", formulation: str = "gls",
              noise=None, validate=(), recalibrate: int = 0, alpha: float = 0.01, points: int | None = None,
-             root=None, tip=None, column_map=None) -> SessionsRun:
+             root=None, tip=None, column_map=None, drop_flagged: bool = False) -> SessionsRun:
     """Fit several sessions at once with per-session deviations — the job of ``estcal sessions``.
 
     ``data``: one dataset (path or Dataset) per session, or a file with a ``session`` column;
     ``noise``: a :class:`~estcal.methods.NoiseModel` (default 0.1 mm / 1 mrad, relative weights:
     a variance factor is estimated with Q by REML); ``recalibrate``: with ``validate``, the error
-    on the rest of each new session after re-measuring k = 0…K poses.
+    on the rest of each new session after re-measuring k = 0…K poses. ``column_map``: the data's
+    column map; ``drop_flagged``: leave out the rows the screening flags
+    (:func:`estcal.workflows.check.screen`; their findings are warned either way).
     """
     from estcal.methods import NoiseModel, Problem
     from estcal.sessions import choose_vary, fit_sessions
@@ -111,9 +113,12 @@ def sessions(robot, data, *, level: str = "full", free=None, vary: str = "auto",
         raise InputError("--recalibrate must be ≥ 0")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
-    rob, n_markers = robot_for_data(robot, items[0], points, root, tip)
+    rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)
     loaded = load_datasets(items, rob, n_markers, column_map)
     vals = load_datasets(validate, rob, n_markers, column_map)
+    from estcal.workflows.check import screen
+
+    loaded = screen(loaded, rob, drop_flagged)
     with input_errors():
         parts = [s for d in loaded for s in split_sessions(d)]
     warn_datasets(loaded + vals)

@@ -27,7 +27,7 @@ from estcal.cli.options import (deprecated_option, estimator_option, free_option
                                 level_option, measure_option, method_option, noise_pos_option, noise_rot_option,
                                 points_option, posture_tol, posture_tol_mm_option, posture_tol_mrad_option,
                                 report_option, robot_option, root_option, save_model_option, tip_option,
-                                validate_option)
+                                validate_option, map_option, drop_flagged_option)
 
 __all__ = ["calibrate"]
 
@@ -188,6 +188,8 @@ def calibrate(
     posture_tol_mrad: float = posture_tol_mrad_option(),
     posture_tol_mm: float = posture_tol_mm_option(),
     points: Optional[int] = points_option(),
+    column_map: Optional[Path] = map_option(),
+    drop_flagged: bool = drop_flagged_option(),
     noise_pos_mm: float = noise_pos_option(0.1),
     noise_rot_mrad: float = noise_rot_option(1.0),
     old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
@@ -252,7 +254,8 @@ def calibrate(
     cal = wf.calibrate(robot, list(data), estimator=estimator, measure=measure, free=free, level=level,
                        selection=selection, validate=list(validate), noise=noise, regularize=_regularize(regularize),
                        robust=robust, options=options, points=points, root=root, tip=tip, checks=True,
-                       allow_ill_conditioned=allow_ill, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm))
+                       allow_ill_conditioned=allow_ill, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
+                       column_map=column_map, drop_flagged=drop_flagged)
     _outputs(cal, robot, root, tip, json_path, report, save_model)
 
 

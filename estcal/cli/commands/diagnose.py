@@ -24,7 +24,8 @@ import typer
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, json_option, known_noise_option, points_option,
                                 posture_tol, posture_tol_mm_option, posture_tol_mrad_option, report_option,
-                                robot_option, root_option, save_model_option, tip_option, validate_option)
+                                robot_option, root_option, save_model_option, tip_option, validate_option,
+                                drop_flagged_option, map_option)
 
 __all__ = ["diagnose"]
 
@@ -74,6 +75,8 @@ def diagnose(
     tip: Optional[str] = tip_option(),
     points: Optional[int] = points_option(),
     validate: list[Path] = validate_option(),
+    column_map: Optional[Path] = map_option(),
+    drop_flagged: bool = drop_flagged_option(),
     effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
                                                                   "(default: every registered effect)."),
     noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Position noise std per "
@@ -118,7 +121,7 @@ def diagnose(
               tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
               report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,
               posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
-              residual_model=_residual(residual_model))
+              residual_model=_residual(residual_model), column_map=column_map, drop_flagged=drop_flagged)
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")

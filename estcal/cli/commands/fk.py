@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from estcal.cli.app import command
-from estcal.cli.options import json_option, root_option, tip_option
+from estcal.cli.options import json_option, map_option, root_option, tip_option
 
 __all__ = ["fk"]
 
@@ -19,6 +19,7 @@ def fk(
     output: Path = typer.Option(..., "--output", "-o", help="CSV to write: x,y,z,qw,qx,qy,qz per row."),
     root: Optional[str] = root_option(),
     tip: Optional[str] = tip_option(),
+    column_map: Optional[Path] = map_option(),
     with_joints: bool = typer.Option(False, "--with-joints", help="Also copy the joint columns."),
     markers: bool = typer.Option(False, "--markers", help="Also write the robot's marker points x1,y1,z1,…"),
     json_path: Optional[Path] = json_option("Write a short JSON summary."),
@@ -36,7 +37,8 @@ def fk(
     from estcal.workflows.fk import fk_file
     from estcal.workflows.inputs import warn_datasets
 
-    fw = fk_file(robot, data, output, root=root, tip=tip, with_joints=with_joints, markers=markers)
+    fw = fk_file(robot, data, output, root=root, tip=tip, with_joints=with_joints, markers=markers,
+                 column_map=column_map)
     console = Console()
     console.print(f"{fw.rows} rows -> {output} ({', '.join(fw.columns)})")
     if fw.against:

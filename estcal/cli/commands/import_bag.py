@@ -6,9 +6,12 @@ from typing import List, Optional
 
 import typer
 
-__all__ = ["import_bag", "register"]
+from estcal.cli.app import command
+
+__all__ = ["import_bag"]
 
 
+@command("import-bag")
 def import_bag(
     bag: Path = typer.Argument(..., help="ROS 1 .bag file or ROS 2 bag folder."),
     joints: str = typer.Option(..., "--joints", help="sensor_msgs/JointState topic."),
@@ -26,19 +29,12 @@ def import_bag(
     """One row per static plateau of the joint stream: joints and measurement averaged over the plateau,
     with t_start_robot, t_end_robot, marker_std_mm and joint_std_mrad columns (like the TIAGo files).
     Topics may run at different rates and on clocks offset from each other. docs/dataset.md, "ROS bags"."""
-    from estcal.cli.common import fail, message
     from estcal.workflows.import_bag import import_bag_file
 
-    try:
-        out = import_bag_file(bag, output, joints, pose, point or (), tol=tol_mrad * 1e-3, tol_m=tol_mm * 1e-3,
-                              window_s=window_s, min_duration_s=min_duration_s, margin_s=margin_s, offset_s=offset_s)
-    except (ValueError, KeyError, FileNotFoundError) as exc:
-        fail(message(exc))
+    out = import_bag_file(bag, output, joints, pose, point or (), tol=tol_mrad * 1e-3, tol_m=tol_mm * 1e-3,
+                          window_s=window_s, min_duration_s=min_duration_s, margin_s=margin_s, offset_s=offset_s)
     offs = ", ".join(f"{t}: {o:+.3f} s" for t, o in out.offset_s.items())
     typer.echo(f"{out.n} plateau(s) -> {output} ({', '.join(out.columns)}); clock offsets {offs}")
     for a, b, why in out.skipped:
         typer.echo(f"warning: plateau {a:.3f}–{b:.3f} s skipped: {why}", err=True)
 
-
-def register(app: typer.Typer) -> None:
-    app.command("import-bag")(import_bag)

@@ -210,7 +210,11 @@ class _Run:
         from estcal.workflows.online import check_file
 
         self.rb = load_robot(robot, root=options["root"], tip=options["tip"])
-        return check_file(self.data, self.rb)
+        ds = check_file(self.data, self.rb)
+        from estcal.workflows.check import screen
+
+        screen([ds], self.rb)  # the data screening's findings, as calibrate prints them (docs/dataset.md)
+        return ds
 
     def _calibrator(self, robot, options, resume, every):
         from estcal.cli.common import fail, message

@@ -28,7 +28,7 @@ import typer
 from estcal.cli.app import command
 from estcal.cli.options import (free_option, json_option, known_noise_option, level_option, noise_pos_option,
                                 noise_rot_option, points_option, report_option, robot_option, root_option,
-                                save_model_option, tip_option)
+                                save_model_option, tip_option, map_option, drop_flagged_option)
 
 __all__ = ["sessions"]
 
@@ -40,6 +40,8 @@ def sessions(
     root: Optional[str] = root_option(),
     tip: Optional[str] = tip_option(),
     points: Optional[int] = points_option(),
+    column_map: Optional[Path] = map_option(),
+    drop_flagged: bool = drop_flagged_option(),
     level: str = level_option(help="Free set: registration | joint_offset | full (default), identifiable by QR "
                                    "on the stacked sessions."),
     free: Optional[str] = free_option("Explicit free set (names or patterns, comma-separated) instead of --level."),
@@ -74,7 +76,7 @@ def sessions(
                        known=known_noise)
     run = run_sessions(robot, list(data), level=level, free=free, vary=vary, formulation=formulation, noise=noise,
                        validate=list(validate), recalibrate=recalibrate, alpha=alpha, points=points, root=root,
-                       tip=tip)
+                       tip=tip, column_map=column_map, drop_flagged=drop_flagged)
     _print(run, vary, known_noise)
     out = run.to_dict()
     if json_path:
