@@ -61,7 +61,9 @@ def test_session_fit_follows_the_protocol(session_fit, tmp_path):
     path = session_fit.save_model(tmp_path / "pop.yaml")
     robot = load_robot(path)
     names, C = calibration_covariance(robot)
-    assert names == session_fit.names and np.allclose(C, session_fit.cov)
+    # a new session's covariance (population + between-session Q): what compensate should expect on a new day
+    assert names == session_fit.names and np.allclose(C, session_fit.new_session_cov())
+    assert np.allclose(robot.meta["calibration"]["population_covariance"], session_fit.cov)
     np.testing.assert_allclose(robot.params.values[robot.params.indices(names)], session_fit.estimate, rtol=1e-12)
     assert robot.meta["calibration"]["variance_components"][0]["parameter"] == "offset_2"
 

@@ -119,15 +119,20 @@ class SessionFit(Result):
 
     def save_model(self, path, provenance: dict | None = None):
         """Write the population robot (every session's mean geometry) as a saved model: a robot file
-        with a ``calibration:`` block holding the free names, the population covariance, the
-        sessions' files and the between-session variance components (docs/robot-file.md)."""
+        with a ``calibration:`` block holding the free names, the sessions' files, the between-session
+        variance components and, as ``covariance``, that of a *new* session's parameters
+        (:meth:`new_session_cov`: the population's plus Q) — what ``compensate`` should expect on a
+        day not measured yet; the population's own is ``population_covariance`` (docs/repeatability.md)."""
         if self.robot is None:
             raise ValueError("this SessionFit does not know its robot; it was not made by fit_sessions")
         refuse_input(path, self.inputs)
         robot = self.robot.with_values(self.theta[: self.robot.n_params])
         block = calibration_block(estimator=f"sessions ({self.formulation})", train=list(self.datasets),
-                                  free=self.names, covariance=self.cov, noise=self.noise,
+                                  free=self.names, covariance=self.new_session_cov(), noise=self.noise,
                                   sigma0=float(np.sqrt(self.s2)),
+                                  covariance_source="new session: population + between-session Q (REML)",
+                                  population_covariance=np.asarray(self.cov).tolist(),
+                                  sessions={"names": list(self.sessions), "vary": list(self.vary)},
                                   variance_components=self.variance_components(),
                                   converged=bool(self.converged), **(provenance or {}))
         return write_saved_model(robot, block, path)

@@ -6,7 +6,7 @@ the free set (``level``, default ``full`` as every command, or ``free``), the pa
 between sessions (``vary``: names / patterns among the free ones, ``"auto"`` — the REML
 likelihood-ratio selection among the free offsets and base — or ``"none"``), fits the mixed model
 (:func:`estcal.sessions.fit_sessions`) and scores new sessions against the new-session prediction
-ellipsoids. :func:`save_sessions_model` writes the population model as a saved model whose
+ellipsoids. ``run.fit.save_model(path)`` writes the population model as a saved model whose
 covariance is that of a *new* session (population θ + between-session Q).
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from estcal.base.errors import EstcalWarning, InputError, NumericalRefusal
 from estcal.workflows.inputs import (check_held_out, check_input_files, input_errors, load_datasets, robot_for_data,
                                      split_names, warn_datasets)
 
-__all__ = ["SessionsRun", "sessions", "save_sessions_model", "FORMULATIONS"]
+__all__ = ["SessionsRun", "sessions", "FORMULATIONS"]
 
 FORMULATIONS = ("gls", "gtsam", "kalman")
 
@@ -171,25 +171,3 @@ def _score(run, recalibrate: int) -> None:
         run.scores[key] = sc
         if recalibrate:
             run.recalibration[key] = recalibration_curve(run.fit, d, range(0, min(recalibrate, d.n - 1) + 1))
-
-
-def save_sessions_model(run: SessionsRun, path, provenance: dict | None = None) -> Path:
-    """Write the population model of ``run`` as a saved model (docs/robot-file.md, "Saved models"):
-    the robot at the population estimate, with a ``calibration:`` block whose covariance is a new
-    session's (``fit.new_session_cov()``: population θ and the between-session variance Q), and the
-    variance components. Reload it with ``load_robot(path)``; ``compensate`` then predicts the
-    error of a new session."""
-    from estcal.base.atomic import refuse_input
-    from estcal.io.savedmodel import calibration_block, write_saved_model
-
-    fit = run.fit
-    refuse_input(path, [d.path for d in run.datasets + run.validation if getattr(d, "path", None)])
-    block = calibration_block(estimator=f"sessions ({fit.formulation}, REML)", train=run.datasets,
-                              validation=run.validation, free=list(fit.names), covariance=fit.new_session_cov(),
-                              noise=fit.noise, sigma0=float(fit.s2) ** 0.5, rmse_mm=None,
-                              covariance_source="new session: population + between-session (REML)",
-                              converged=bool(fit.converged),
-                              sessions={"names": list(run.names), "vary": list(fit.vary),
-                                        "variance_components": fit.variance_components()},
-                              **(provenance or {}))
-    return write_saved_model(fit.robot.with_values(fit.theta), block, path)

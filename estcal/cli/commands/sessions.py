@@ -93,9 +93,8 @@ def sessions(
         typer.echo(f"report: {report}/index.html")
     if save_model:
         from estcal.workflows.inputs import provenance
-        from estcal.workflows.sessions import save_sessions_model
 
-        save_sessions_model(run, save_model, provenance(robot, root, tip))
+        run.fit.save_model(save_model, provenance(robot, root, tip))
         typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
 
 
