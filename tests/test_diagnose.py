@@ -296,5 +296,7 @@ def test_family_candidates():
     for fam in (False, True):
         res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, families=fam)
         named[fam] = {j for e, jj in res.named if e == "encoder_gain" for j in jj}
-        assert {e for e, _ in res.named} == {"encoder_gain"}
+        assert {e for e, _ in res.named} <= {"encoder_gain"}
+    # without families the weak single-joint terms are marginal: at most a part, and none that most
+    # posture-grouped folds name (the stability rule)
     assert named[True] == set(js) and len(named[False]) < 3

@@ -9,6 +9,8 @@ One vocabulary (docs/conventions.md, "One vocabulary"):
   (:func:`estimator_and_measure`).
 * ``--noise-pos-mm`` / ``--noise-rot-mrad`` are the measurement noise σ (mm / mrad on the
   command line, SI in files and JSON); ``--known-noise`` trusts them as absolute.
+* ``--row-sigma-mm COLUMN`` weights every row by its own position σ read from a data column (mm),
+  through :class:`estcal.methods.NoiseModel` (``row_sigma``): weighted least squares.
 * ``--level`` (``registration`` | ``joint_offset`` | ``full``, default ``full`` everywhere).
 * ``--map FILE.yaml`` reads the data files through a column map (the loader's hook,
   docs/dataset.md); commands that read datasets declare it with :func:`map_option`, and those
@@ -25,7 +27,7 @@ __all__ = ["robot_option", "root_option", "tip_option", "points_option", "estima
            "method_option", "noise_pos_option", "noise_rot_option", "known_noise_option", "level_option",
            "free_option", "validate_option", "json_option", "report_option", "save_model_option", "map_option", "drop_flagged_option",
            "plan_option", "deprecated_option", "estimator_and_measure", "LEVEL_HELP", "DEFAULT_LEVEL",
-           "posture_tol_mrad_option", "posture_tol_mm_option", "posture_tol"]
+           "posture_tol_mrad_option", "posture_tol_mm_option", "posture_tol", "row_sigma_option", "with_row_sigma"]
 
 DEFAULT_LEVEL = "full"
 LEVEL_HELP = ("Free set: registration | joint_offset | full (default), reduced to an identifiable set by QR on the "
@@ -144,6 +146,25 @@ def drop_flagged_option():
                         help="Leave out the rows flagged by the data screening (swapped or ghost markers, outliers, "
                              "readings beyond the limits, duplicates), naming their lines; `estcal check` lists "
                              "them.")
+
+
+def row_sigma_option():
+    """``--row-sigma-mm COLUMN``: each row's position noise σ (mm) read from a column of the data."""
+    return typer.Option(None, "--row-sigma-mm", metavar="COLUMN",
+                        help="Weight each row by its own position noise σ read from this column of the data, in mm "
+                             "(e.g. TIAGo's marker_std_mm): weighted least squares; orientation rows keep their σ.")
+
+
+def with_row_sigma(noise, column: str | None):
+    """``noise`` (a NoiseModel, or None = unknown noise) with the per-row position σ of ``--row-sigma-mm``:
+    the column is in mm (``row_sigma_unit_m`` = 1e-3). Unchanged when no column is given."""
+    if not column:
+        return noise
+    from dataclasses import replace
+
+    from estcal.methods import NoiseModel
+
+    return replace(noise if noise is not None else NoiseModel(known=False), row_sigma=column, row_sigma_unit_m=1e-3)
 
 
 def deprecated_option(old: str):

@@ -19,10 +19,19 @@ the named effects, the residual GP).
                            registration (raw when one session;
                            :func:`estcal.validation.repeatability_floor`); ``None``
                            when no posture repeats
-``predicted_validation_mm`` the CV RMSE of the recommended model (named, or named + GP
-                           when the residual model is used): the expected RMSE at new
-                           postures of the same sessions
+``predicted_validation_mm`` the expected RMSE at new postures of the recommended model
+                           (named, or named + GP): the **nested** CV of the procedure that
+                           recommends it — every outer fold chooses the level, the causes
+                           and the GP on its training rows only and scores its own choice
+                           (:mod:`estcal.discrepancy.prediction`)
 =========================  ==============================================================
+
+With a :class:`~estcal.discrepancy.prediction.Procedure` the stages are those of the procedure
+replayed in each fold (``geometric_mm``: the level each fold chose; ``named_mm``: the causes each
+fold named), so every figure is the error of what the tool would do, not of one choice made on
+all rows. ``region`` is the 95 % prediction region of a new posture (θ covariance + τ² + GP
+variance, conformal threshold from the nested held-out points); :func:`region_at` applies it to
+validation rows.
 
 The reduction is a plain difference of RMSEs (not a quadrature split): the budget reads
 "the GP would take the error from 2.6 to 2.4 mm". Folds are few on real data (tens of
@@ -35,178 +44,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.discrepancy.geometric import fit_geometric, gravity_ready
+from estcal.discrepancy.prediction import (GP_GAIN, Procedure, choose_level, conformal_threshold, region_coverage,
+                                           region_scores, region_tau2)
 from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
-from estcal.estimate import calibrate_lsq
-from estcal.methods import NoiseModel, Problem
+from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
+                                       point_covariance, predicted_points)
+from estcal.methods import NoiseModel
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
 
-__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "predicted_at", "fit_stage", "fit_stage_sessions", "predicted_points",
-           "measured_points", "prediction_coverage", "STAGES"]
-
-STAGES = ("nominal", "geometric", "named")
-
-
-def measured_points(data) -> np.ndarray:
-    """(N, k, 3) measured positions: the points, or the tool origin of pose data."""
-    if data.points is not None:
-        return np.asarray(data.points, float)
-    if data.p is not None:
-        return np.asarray(data.p, float)[:, None, :]
-    raise ValueError(f"{data.where}: no measured positions (kind {data.kind!r}) for an error budget")
-
-
-def predicted_points(robot, theta, data) -> np.ndarray:
-    """(N, k, 3) the model's prediction of :func:`measured_points`."""
-    from estcal.kinematics.chunked import tool_poses
-
-    kin = tool_poses(robot, data.readings, theta, data.context, fields=("p", "points"))
-    if data.points is not None and robot.n_markers >= data.n_points and data.n_points:
-        return kin.points[:, : data.n_points]
-    k = data.n_points or 1
-    return np.repeat(kin.p[:, None, :], k, axis=1)
-
-
-def _registration_free(robot) -> list[str]:
-    kinds = dict(zip(robot.params.names, robot.params.kinds))
-    return [n for n in robot.params.names if kinds[n] in ("base", "marker")
-            or (kinds[n] == "tool" and robot.n_markers == 0)]
-
-
-def fit_stage(robot, data, noise, stage: str, level: str = "full", effects=(), max_iter: int = 100):
-    """Fit one stage of the budget on ``data``; returns ``(robot, theta, free, result)``.
-
-    stage : ``nominal`` (registration), ``geometric`` (``level``) or ``named`` (``level`` +
-    ``effects``, a list of ``(effect name, joints, options)`` of :func:`estcal.effects.make_effect`).
-    The effects read their context columns (``approach_<joint>``, ``t`` …) from ``data.context``.
-    """
-    from estcal.effects import make_effect
-
-    if stage == "nominal":
-        problem, res, free, _ = fit_geometric(robot, data, noise, free=_registration_free(robot), max_iter=max_iter)
-        return problem.robot, res.theta, free, res
-    problem, res, free, _ = fit_geometric(robot, data, noise, level=level, max_iter=max_iter)
-    if stage == "geometric" or not effects:
-        return problem.robot, res.theta, free, res
-    if stage != "named":
-        raise ValueError(f"unknown budget stage {stage!r}; choose one of {STAGES}")
-    rb, _ = gravity_ready(problem.robot, res.theta, robot.params.values)
-    for name, joints, opts in effects:
-        rb = rb.add_effect(make_effect(name, rb, joints=list(joints), **dict(opts or {})))
-    en = [n for n, kd in zip(rb.params.names, rb.params.kinds) if kd == "effect"]
-    free = list(free) + en
-    res = calibrate_lsq(Problem(rb, [(None, data, noise)]), "lm", free=free, check=False, max_iter=max_iter)
-    return rb, res.theta, free, res
-
-
-@dataclass
-class FittedStage:
-    """A fitted stage: the robot at ``theta`` plus, per session, a rigid registration of the
-    measuring frame (``R_s``, ``t_s``) and a change of the measured points on the tool (``dm_s``,
-    (k, 3) in the tool frame) relative to the first session (identity, 0 for a session the fit
-    never saw). ``predict`` returns points in each row's own session frame."""
-
-    robot: object
-    theta: np.ndarray
-    free: list
-    result: object
-    sessions: dict = field(default_factory=dict)
-
-    def _each(self, data):
-        """(row mask, R, t, dm) of every session the fit knows, for the rows of ``data``."""
-        lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
-        for sv, (R, t, dm) in self.sessions.items():
-            yield lab == sv, R, t, dm
-
-    def predict_common(self, data):
-        """(N, k, 3) points in the common frame (first session), with each session's marker change."""
-        pred = predicted_points(self.robot, self.theta, data)
-        if not self.sessions:
-            return pred
-        from estcal.kinematics.chunked import tool_poses
-
-        R_tool = tool_poses(self.robot, data.readings, self.theta, data.context, fields=("R",)).R
-        for m, R, t, dm in self._each(data):
-            if m.any() and np.any(dm):
-                pred[m] += np.einsum("nij,kj->nki", R_tool[m], dm)
-        return pred
-
-    def _map(self, data, vec, forward: bool, shift: bool):
-        out = np.array(vec, float)
-        for m, R, t, dm in self._each(data):
-            out[m] = out[m] @ (R.T if forward else R) + (t if shift else 0.0)
-        return out
-
-    def to_session(self, data, pts):
-        """Points of the common frame in each row's session frame."""
-        return self._map(data, pts, True, True)
-
-    def residual_common(self, data):
-        """Measured − predicted, rotated back into the common frame (N, k, 3)."""
-        return self._map(data, measured_points(data) - self.predict(data), False, False)
-
-    def rotate_to_session(self, data, vec):
-        """Vectors (corrections) of the common frame in each row's session frame."""
-        return self._map(data, vec, True, False)
-
-    def predict(self, data):
-        return self.to_session(data, self.predict_common(data))
-
-
-def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effects=(), per_session: str | None = None,
-                       n_iter: int = 6, max_iter: int = 100) -> FittedStage:
-    """:func:`fit_stage` with, when ``per_session`` is ``"registration"`` (or ``"registration+points"``),
-    a rigid registration of every session's measuring frame (and a change of the measured points on the
-    tool) onto the first session's, by alternation: the shared model is fitted to the measurements mapped
-    into the common frame, then each session's transform (Kabsch) and point change (linear least squares)
-    are re-estimated from the model's prediction."""
-    from estcal.estimate.registration import kabsch
-    from estcal.kinematics.chunked import tool_poses
-
-    lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
-    svals = list(dict.fromkeys(lab.tolist()))
-    if per_session is None or len(svals) < 2:
-        return FittedStage(*fit_stage(robot, data, noise, stage, level, effects, max_iter))
-    if per_session not in ("registration", "registration+points"):
-        raise ValueError(f"per_session must be None, 'registration' or 'registration+points', got {per_session!r}")
-    k = measured_points(data).shape[1]
-    sess = {sv: (np.eye(3), np.zeros(3), np.zeros((k, 3))) for sv in svals}
-    meas = measured_points(data)
-    fitted = None
-    for _ in range(n_iter):
-        adj = data.subset(slice(None))
-        P = meas.copy()
-        if fitted is not None:
-            R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
-        for sv, (R, t, dm) in sess.items():
-            m = lab == sv
-            P[m] = (P[m] - t) @ R
-            if fitted is not None and np.any(dm):
-                P[m] -= np.einsum("nij,kj->nki", R_tool[m], dm)
-        if adj.points is not None:
-            adj.points = P
-        else:
-            adj.p = P[:, 0]
-        if adj.R is not None:  # pose data: the measured orientation in the common frame too
-            for sv, (R, t, dm) in sess.items():
-                m = lab == sv
-                adj.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
-        fitted = FittedStage(*fit_stage(robot, adj, noise, stage, level, effects, max_iter))
-        base = predicted_points(fitted.robot, fitted.theta, data)
-        R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
-        for sv in svals[1:]:
-            m = lab == sv
-            R, t, dm = sess[sv]
-            for _inner in range(3):
-                pred = base[m] + np.einsum("nij,kj->nki", R_tool[m], dm)
-                R, t = kabsch(pred.reshape(-1, 3), meas[m].reshape(-1, 3))
-                if per_session == "registration+points":
-                    local = np.einsum("nji,nkj->nki", R_tool[m], (meas[m] - t) @ R - base[m])
-                    dm = local.mean(axis=0)
-            sess[sv] = (R, t, dm)
-    fitted.sessions = {sv: sess[sv] for sv in svals[1:]}
-    return fitted
+__all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "predicted_at",
+           "region_at", "fit_stage", "fit_stage_sessions", "predicted_points", "measured_points", "point_covariance",
+           "STAGES"]
 
 
 @dataclass
@@ -265,17 +114,92 @@ def budget_lines(b: dict) -> list[str]:
             f"  unstructured             {b['unstructured_mm']:8.3f}",
             f"  repeatability floor      {rep:>8}",
             f"  predicted at new postures {b['predicted_validation_mm']:7.3f} ± {b['predicted_validation_se_mm']:.3f}"
-            f"  ({b['recommended']})"]
+            f"  ({b['recommended']}; {'nested CV: every fold makes its own choices' if b.get('nested') else 'CV'})"
+            ] + _region_lines(b)
+
+
+def _region_lines(b: dict) -> list[str]:
+    r = b.get("region")
+    if not r:
+        return []
+    out = [f"  95 % region at a new posture: J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, d² ≤ {r['threshold_d2']:.3g} "
+           f"(conformal from the held-out points; χ²₃ {r['chi2_d2']:.3g} covers {100 * r['nested_coverage_chi2']:.0f} %)"]
+    for v in b.get("validation", []):
+        out.append(f"  validation {v['path']}: RMSE {v['rmse_mm']:.3f} mm, inside the region {100 * v['coverage']:.0f} % "
+                   f"of {v['n_points']} points")
+    return out
 
 
 def _fold_rmse(sq_rows, folds):
     return [float(np.sqrt(np.mean(sq_rows[f])) * 1e3) for f in folds]
 
 
-def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), groups=None, sessions=None,
-                 k_folds: int = 5, rng=0, tol_rad: float = DEFAULT_TOL_RAD, tol_m: float = DEFAULT_TOL_M,
-                 spaces=SPACES, residual_model: str | None = None, gp_restarts: int = 1,
-                 max_iter: int = 60, per_session: str | None = None) -> ErrorBudget:
+def _gp_ratios(gps: dict, residual, folds) -> dict:
+    """{space: held-out MSE of the residual after the GP's own CV mean ÷ MSE of the residual}: how much of the
+    residual at held-out postures the GP predicts (hyperparameters fixed, conditioned per fold)."""
+    from estcal.discrepancy.residual import gp_held_out
+
+    r = np.asarray(residual, float)
+    base = float(np.mean(r ** 2)) or 1.0
+    return {sp: float(np.mean((r - gp_held_out(gp, folds)) ** 2) / base) for sp, gp in gps.items()}
+
+
+def _gp_choice(rule: str, ratios: dict) -> str | None:
+    """The space of the recommended GP (None: no GP) by the procedure's rule (:mod:`.prediction`)."""
+    if rule == "never" or not ratios:
+        return None
+    best = min(ratios, key=ratios.get)
+    return best if rule == "always" or ratios[best] <= GP_GAIN ** 2 else None
+
+
+def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
+    """One outer fold of the nested CV: the procedure's decisions on the training rows only (level, causes,
+    GP), every stage refitted there, scored at the held-out postures. ``cfg``: groups, folds options,
+    per_session, spaces, max_iter, rng, nested, the final decisions (used when not nested)."""
+    n = data.n
+    train = np.setdiff1d(np.arange(n), test)
+    dtr, dte = data.subset(train), data.subset(test)
+    meas = measured_points(dte)
+    per, mi = cfg["per_session"], cfg["max_iter"]
+    lv = cfg["level"]
+    if cfg["nested"] and proc.level == "auto":
+        lv = choose_level(robot, dtr, noise, cfg["groups"][train], proc.k_inner, cfg["rng"], per, max_iter=mi)[0]
+    fits = {"nominal": fit_stage_sessions(robot, dtr, noise, "nominal", per_session=per, max_iter=mi),
+            "geometric": fit_stage_sessions(robot, dtr, noise, "geometric", lv, per_session=per, max_iter=mi)}
+    eff = proc.effects_for(train, fits["geometric"].free) if cfg["nested"] else list(cfg["effects"])
+    fits["named"] = (fit_stage_sessions(robot, dtr, noise, "named", lv, eff, per, max_iter=mi) if eff
+                     else fits["geometric"])
+    out = {"held": {st: meas - fs.predict(dte) for st, fs in fits.items()}, "gp": {}, "level": lv,
+           "effects": [[e[0], list(e[1])] for e in eff]}
+    fs = fits["named"]
+    r_tr = fs.residual_common(dtr)
+    gps, sds = {}, {}
+    for sp in cfg["spaces"]:
+        gps[sp] = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, 0, cfg["rng"],
+                                     start=gps_all[sp])
+        corr, sds[sp] = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context, return_std=True)
+        out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
+    if cfg["nested"]:
+        inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
+        space = _gp_choice(proc.gp, _gp_ratios(gps, r_tr, inner) if proc.gp != "never" else {})
+    else:
+        space = cfg["gp_space"]
+    out["gp_space"] = space
+    out["rec"] = out["gp"][space] if space else out["held"]["named"]
+    S = point_covariance(fs, dte)
+    if space:
+        S = S + (sds[space].reshape(meas.shape) ** 2)[..., None] * np.eye(3)
+    out["S"] = S
+    lo, hi = dtr.readings.min(0), dtr.readings.max(0)
+    out["outside"] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
+    return out
+
+
+def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), procedure=None, groups=None,
+                 sessions=None, k_folds: int = 5, rng=0, tol_rad: float = DEFAULT_TOL_RAD,
+                 tol_m: float = DEFAULT_TOL_M, spaces=SPACES, residual_model: str | None = None,
+                 gp_restarts: int = 1, max_iter: int = 60, per_session: str | None = None,
+                 nested: bool = True) -> ErrorBudget:
     """The error budget of the module docstring on ``data`` (all sessions stacked).
 
     Parameters
@@ -283,107 +207,123 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), gr
     robot : nominal robot; data : Dataset (position, points or pose rows; a ``session`` column
         marks sessions, see :func:`estcal.sessions.stack_sessions`).
     noise : NoiseModel for the fits (default: unknown, 0.2 mm / 0.2 mrad starting scale).
-    level, effects : the geometric level and the named effects (``(name, joints, options)``).
+    level, effects : the geometric level (``"auto"``: :func:`~estcal.discrepancy.prediction.choose_level`)
+        and the named effects (``(name, joints, options)``) of the recommended model — the procedure's
+        decisions on all rows.
+    procedure : the :class:`~estcal.discrepancy.prediction.Procedure` that made them, replayed on every
+        outer fold (default: the level as given — ``auto`` is chosen again in every fold — the effects
+        fixed, the GP as ``residual_model`` says).
     groups : posture labels (default: :func:`estcal.validation.posture_groups` with ``tol_rad``, ``tol_m``).
     sessions : session labels (default: the ``session`` column, else one session).
     k_folds : posture-grouped folds (capped at the number of postures).
     spaces : residual GP spaces tried (``joints``, ``cartesian``).
-    residual_model : ``"gp"`` makes named + GP the recommended model (its CV RMSE is then the
-        prediction) and returns the GP fitted on all rows in ``residual_model``.
+    residual_model : ``"gp"`` makes named + GP the recommended model (``procedure.gp = "always"``) and
+        returns the GP fitted on all rows in ``residual_model``.
     per_session : ``"registration"`` / ``"registration+points"``: every stage with a rigid registration
         of each session (and a per-session change of the measured points), see :func:`fit_stage_sessions`.
+    nested : replay the procedure's decisions in every outer fold (the honest prediction); False: the
+        decisions on all rows are kept in every fold (the CV of the chosen model, optimistic by the
+        selection).
     """
     noise = noise or NoiseModel(position=2e-4, orientation=2e-4, known=False)
     n = data.n
     g = posture_groups(data.readings, robot.joint_types, tol_rad, tol_m) if groups is None else np.asarray(groups)
     if sessions is None:
         sessions = data.columns.get("session", np.zeros(n))
+    proc = procedure or Procedure(level=level, effects=tuple(tuple(e) for e in effects),
+                                  gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
+    levels_cv = None
+    if level == "auto":
+        level, levels_cv = choose_level(robot, data, noise, g, proc.k_inner, rng, per_session, max_iter=max_iter)
     folds = grouped_folds(g, k_folds, rng)
     meas = measured_points(data)
-    held = {s: np.zeros_like(meas) for s in STAGES}
-    held_gp = {sp: np.zeros_like(meas) for sp in spaces}
-    stages = STAGES if effects else STAGES[:2]
-    # the final model and its residual GPs on every row first: the folds' GP fits start from their
-    # hyperparameters (each fold still optimises on its own rows only)
-    final = fit_stage_sessions(robot, data, noise, stages[-1], level, effects, per_session, max_iter=max_iter)
+    stage = "named" if effects else "geometric"
+    final = fit_stage_sessions(robot, data, noise, stage, level, effects, per_session, max_iter=max_iter)
     r_all = final.residual_common(data)
     gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
                                       rng) for sp in spaces}
+    ratios = _gp_ratios(gps_all, r_all, grouped_folds(g, proc.k_inner, rng)) if proc.gp != "never" else {}
+    gp_space = _gp_choice(proc.gp, ratios)
+    cfg = {"groups": g, "per_session": per_session, "max_iter": max_iter, "rng": rng, "nested": nested,
+           "spaces": spaces, "level": level, "effects": effects, "gp_space": gp_space}
+    held = {st: np.zeros_like(meas) for st in STAGES}
+    held_gp = {sp: np.zeros_like(meas) for sp in spaces}
+    rec = np.zeros_like(meas)
+    S = np.zeros(meas.shape + (3,))
     outside = np.zeros(n, bool)  # held-out rows beyond their fold's training joint ranges (extrapolated)
+    decisions = []
     for test in folds:
-        train = np.setdiff1d(np.arange(n), test)
-        dtr, dte = data.subset(train), data.subset(test)
-        lo, hi = dtr.readings.min(0), dtr.readings.max(0)
-        outside[test] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
-        for st in stages:
-            fs = fit_stage_sessions(robot, dtr, noise, st, level, effects, per_session, max_iter=max_iter)
-            held[st][test] = meas[test] - fs.predict(dte)
-            if st == stages[-1]:
-                r_tr = fs.residual_common(dtr)
-                for sp in spaces:
-                    gp = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, 0, rng,
-                                            start=gps_all[sp])
-                    corr = residual_correction(gp, fs.robot, fs.theta, dte.readings, dte.context)
-                    held_gp[sp][test] = held[st][test] - fs.rotate_to_session(dte, corr)
-    if not effects:
-        held["named"] = held["geometric"]
+        o = _outer_fold(robot, data, noise, test, proc, cfg, gps_all)
+        for st in STAGES:
+            held[st][test] = o["held"][st]
+        for sp in spaces:
+            held_gp[sp][test] = o["gp"][sp]
+        rec[test], S[test], outside[test] = o["rec"], o["S"], o["outside"]
+        decisions.append({"level": o["level"], "effects": o["effects"], "gp": o["gp_space"]})
+    return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, final, gps_all, gp_space,
+                     ratios, level, effects, levels_cv, decisions, per_session, nested)
+
+
+def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, final, gps_all, gp_space, ratios,
+              level, effects, levels_cv, decisions, per_session, nested) -> ErrorBudget:
+    """The :class:`ErrorBudget` from the outer folds' held-out residuals (module docstring)."""
     sq = {k: np.sum(v ** 2, axis=-1) for k, v in held.items()}  # (N, k) squared norms
     rm = {k: rmse_mm(np.sqrt(v)) for k, v in sq.items()}
     sq_gp = {sp: np.sum(v ** 2, axis=-1) for sp, v in held_gp.items()}
     gp_mm = {sp: rmse_mm(np.sqrt(v)) for sp, v in sq_gp.items()}
     best = min(gp_mm, key=gp_mm.get) if gp_mm else None
     structured = max(rm["named"] - gp_mm[best], 0.0) if best else 0.0
-    unstructured = rm["named"] - structured
-    # relevance from the GP fitted on every row's residual of the final named model
-    rb, th = final.robot, final.theta
-    unnamed, final_gp = {}, None
+    unnamed = {}
     if best:
-        final_gp = gps_all[best]
-        names = final_gp.joint_names if best == "joints" else final_gp.input_names
-        unnamed = {"space": best, "relevance": final_gp.relevance,
-                   "length_scales": dict(zip(names, np.asarray(final_gp.length_scales).tolist()))}
-    use_gp = residual_model == "gp" and best is not None
-    pred_sq = sq_gp[best] if use_gp else sq["named"]
+        gp = gps_all[best]
+        names = gp.joint_names if best == "joints" else gp.input_names
+        unnamed = {"space": best, "relevance": gp.relevance,
+                   "length_scales": dict(zip(names, np.asarray(gp.length_scales).tolist()))}
+    pred_sq = np.sum(rec ** 2, axis=-1)
     per_fold = {k: _fold_rmse(v, folds) for k, v in sq.items()}
     if best:
         per_fold["gp"] = _fold_rmse(sq_gp[best], folds)
-    pf = np.array(per_fold["gp"] if use_gp else per_fold["named"])
+    per_fold["recommended"] = _fold_rmse(pred_sq, folds)
+    pf = np.array(per_fold["recommended"])
     se = float(pf.std(ddof=1) / np.sqrt(len(pf))) if len(pf) > 1 else float("nan")
     # the recommended model's CV error inside / outside the training joint ranges (extrapolation):
     # predicted_at() weights them by where the robot will be used
     in_out = {"cv_inside_mm": rmse_mm(np.sqrt(pred_sq[~outside])), "cv_outside_mm": rmse_mm(np.sqrt(pred_sq[outside])),
               "fraction_outside": float(outside.mean())}
-    rep = repeatability_floor(meas, g, sessions)
+    tau2 = region_tau2(rec, S)
+    d2 = region_scores(rec, S, tau2)
+    region = {"level": 0.95, "tau_mm": float(np.sqrt(tau2) * 1e3), "threshold_d2": conformal_threshold(d2, 0.95),
+              "chi2_d2": 7.814727903251178, "nested_coverage_chi2": float(np.mean(d2 <= 7.814727903251178)),
+              "n_points": int(d2.size)}
+    rep = repeatability_floor(measured_points(data), g, sessions)
     rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
-    label = ("named" if effects else "geometric") + (" + GP" if use_gp else "")
-    return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(unstructured), rep_mm,
-                       rmse_mm(np.sqrt(pred_sq)), se, label, unnamed, per_fold, gp_mm, rep, n_postures(g), n,
-                       len(folds), level, [tuple(e) for e in effects], final_gp if use_gp else None,
-                       {"fitted_robot": rb, "fitted_theta": th, "fitted": final, "per_session": per_session,
-                        "extrapolation": in_out})
+    label = ("named" if effects else "geometric") + (" + GP" if gp_space else "")
+    extra = {"fitted_robot": final.robot, "fitted_theta": final.theta, "fitted": final, "per_session": per_session,
+             "extrapolation": in_out, "region": region, "nested": bool(nested), "decisions": decisions,
+             "gp_space": gp_space, "gp_held_out_ratio": ratios}
+    if levels_cv:
+        extra["levels_cv"] = levels_cv
+    return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(rm["named"] - structured),
+                       rep_mm, rmse_mm(np.sqrt(pred_sq)), se, label, unnamed, per_fold, gp_mm, rep, n_postures(g),
+                       data.n, len(folds), level, [tuple(e) for e in effects],
+                       gps_all[gp_space] if gp_space else None, extra)
 
 
-def prediction_coverage(robot, theta, free, covariance, data, sigma_extra_m: float, level: float = 0.95) -> dict:
-    """Coverage of the ``level`` prediction ellipsoids of the measured points of ``data``.
-
-    Each point's prediction covariance is ``J C_θ Jᵀ + σ² I₃`` (θ covariance of the free
-    parameters propagated by the analytic Jacobian, plus ``sigma_extra_m`` per coordinate:
-    the unstructured residual, which includes the between-session repeatability); a point
-    is covered when ``eᵀ Σ⁻¹ e ≤ χ²₃(level)``. Returns ``{coverage, n_points, level}``.
-    """
-    from scipy import stats
-
-    problem = Problem(robot.with_values(theta), [(None, data, NoiseModel(position=1e-3, orientation=1e-3))])
-    rows = problem.evaluate(np.asarray(theta, float))
-    pos = rows.kind == 0
-    idx = problem.params.indices(list(free))
-    H = rows.H[pos][:, idx].reshape(-1, 3, len(idx))
-    e = rows.e[pos].reshape(-1, 3)
-    C = np.asarray(covariance, float)
-    S = np.einsum("nip,pq,njq->nij", H, C, H) + sigma_extra_m ** 2 * np.eye(3)
-    d2 = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
-    covered = d2 <= stats.chi2.ppf(level, 3)
-    return {"coverage": float(covered.mean()), "n_points": int(len(covered)), "level": level}
+def region_at(budget, data) -> dict:
+    """The budget's 95 % prediction region applied to ``data`` (rows not used by the fit, e.g. a validation
+    file): ``{"coverage": share of the points inside, "n_points"}`` with the recommended model's Σ (θ covariance
+    of the final fit + its GP's variance + τ²) and the conformal threshold."""
+    b = budget
+    fs = b.extra["fitted"]
+    e = measured_points(data) - fs.predict(data)
+    S = point_covariance(fs, data)
+    if b.residual_model is not None:
+        mean, sd = residual_correction(b.residual_model, fs.robot, fs.theta, data.readings, data.context,
+                                       return_std=True)
+        e = e - fs.rotate_to_session(data, mean)
+        S = S + (sd.reshape(e.shape) ** 2)[..., None] * np.eye(3)
+    return {"coverage": region_coverage(b.extra["region"], e, S), "n_points": int(np.prod(e.shape[:2])),
+            "rmse_mm": rmse_mm(np.linalg.norm(e, axis=-1))}
 
 
 def predicted_at(budget, train_readings, target_readings) -> float | None:

@@ -60,7 +60,9 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
 from .analysis import residual_analysis, residual_figures
-from .geometric import fit_geometric, gravity_ready, orthonormal_basis, weighted_system
+from .geometric import fit_geometric, geometric_candidates, gravity_ready, orthonormal_basis, weighted_system
+from .stability import (TIME_EFFECTS, LinearCandidates, cause_key, fold_selections, folds_naming,
+                        information_criterion, joint_votes, significance, stable_selection)
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates", "cross_validate"]
 
@@ -91,6 +93,12 @@ class Candidate:
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "joints": self.joints, "options": _plain(self.options)}
+
+
+def _n_sessions(data) -> int:
+    """Sessions stacked in ``data`` (its ``session`` column; 1 without one)."""
+    lab = data.columns.get("session")
+    return 1 if lab is None else len(np.unique(lab))
 
 
 def _is_family(entry) -> bool:
@@ -133,16 +141,19 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
         tau = robot.gravity_torques(data.readings, context=ctx)
         big = max(float(np.abs(tau).max()), 1e-300)
     out = []
+    # several sessions: time runs from each session's mean (_prepare_data), so a time effect is zero there
+    # and never shifts one session against another
+    t_zero = 0.0 if _n_sessions(data) > 1 else (float(np.min(ctx["t"])) if "t" in ctx else 0.0)
     for name in names:
         if name == "drift":
             if "t" not in ctx:
                 continue
-            opts = {"t0": float(np.min(ctx["t"]))}  # 0 with session time
+            opts = {"t0": t_zero}  # 0 with session time
         elif name == "thermal_expansion":
             if "temperature" in ctx:
                 opts = {"reference": float(np.mean(ctx["temperature"]))}
             elif "t" in ctx:
-                opts = {"t_reference": float(np.min(ctx["t"]))}
+                opts = {"t_reference": t_zero}
             else:
                 continue
             out.append(Candidate(name, None, opts))
@@ -203,6 +214,8 @@ class Cause:
     cv_rmse_mm_after: float
     options: dict = field(default_factory=dict)
     alternatives: list = field(default_factory=list)  # competing candidates within ΔBIC 10
+    folds_naming: int | None = None  # posture-grouped folds whose selection names it too (stability rule)
+    k_folds: int | None = None
 
     def to_dict(self) -> dict:
         return _plain({"alternatives": self.alternatives, "effect": self.effect, "joints": list(self.joints), "parameters": self.parameters,
@@ -210,13 +223,15 @@ class Cause:
                        "p_value": self.p_value, "explained_fraction": self.explained_fraction,
                        "explained_excess_fraction": self.explained_excess_fraction,
                        "cv_rmse_mm_before": self.cv_rmse_mm_before, "cv_rmse_mm_after": self.cv_rmse_mm_after,
-                       "options": self.options})
+                       "options": self.options, "folds_naming": self.folds_naming, "k_folds": self.k_folds})
 
     def describe(self) -> str:
         ps = ", ".join(f"{n} = {v['estimate']:.4g} ± {v['std']:.2g}" for n, v in self.parameters.items())
         j = ", ".join(self.joints) if self.joints else "whole arm"
         s = (f"{self.effect} on {j}: {ps}; ΔBIC {self.delta_bic:.1f}, {self.test} p = {self.p_value:.2g}, "
              f"explains {100 * self.explained_fraction:.0f}% of the geometric residual")
+        if self.k_folds:
+            s += f"; named in {self.folds_naming} of {self.k_folds} posture-grouped folds"
         if self.alternatives:
             s += "; hard to tell from " + ", ".join(f"{a['candidate']} (ΔBIC +{a['delta_bic_difference']:.1f})"
                                                   for a in self.alternatives)
@@ -253,6 +268,11 @@ class DiagnosisResult:
     # the error budget (estcal.discrepancy.budget, posture-grouped CV) when asked for, and its residual GP
     budget: dict | None = None
     residual_model: object = field(default=None, repr=False)
+    # the stability rule (causes named in most posture-grouped folds) and the REML noise per kind and axis
+    stability: dict | None = None
+    measurement_noise: dict | None = None
+    # the diagnosis's cause selection on any subset of its rows (linearised; the nested prediction replays it)
+    selector: object = field(default=None, repr=False)
     # what :meth:`figures` draws from: (geometric problem, θ, analysis, gravity torques, title, extended fit)
     figure_inputs: tuple = field(default=None, repr=False)
 
@@ -310,7 +330,8 @@ class DiagnosisResult:
                        "geometric_free": self.geometric_free, "geometric_dropped": self.geometric_dropped,
                        "lumped_masses": self.lumped_masses, "steps": self.steps, "analysis": self.analysis,
                        "model": self.model, "geometric_model": self.geometric_model, "located": self.located,
-                       "report_files": self.report_files, "budget": self.budget})
+                       "report_files": self.report_files, "budget": self.budget, "stability": self.stability,
+                       "measurement_noise": self.measurement_noise})
 
     def to_json(self, path) -> Path:
 
@@ -324,6 +345,9 @@ class DiagnosisResult:
         lines = [f"Diagnosis: {self.verdict}"]
         for c in self.causes:
             lines.append("  cause: " + c.describe())
+        for d in (self.stability or {}).get("not_kept", []):
+            lines.append(f"  not kept: {d['candidate']} — named on all rows but in only {d['folds_naming']} of "
+                         f"{self.stability['k_folds']} posture-grouped folds")
         for d in self.located:
             lines.append(f"  located, not named: {d['shape']} of {', '.join(d['joints'])} "
                          f"({100 * d['explained_fraction']:.0f}% of the geometric residual)")
@@ -341,6 +365,10 @@ class DiagnosisResult:
         if self.analysis.get("strongest"):
             s = ", ".join(f"{d['joint']}~{d['feature']} R²={d['r2']:.2f}" for d in self.analysis["strongest"][:4])
             lines.append(f"  strongest residual structures: {s}")
+        if self.measurement_noise:
+            from estcal.discrepancy.noise import noise_lines
+
+            lines += ["  " + ln for ln in noise_lines(self.measurement_noise)]
         if self.budget:
             from estcal.discrepancy.budget import budget_lines
 
@@ -374,23 +402,6 @@ def _scores(robot, theta, datasets):
         es.append(pos.reshape(-1))
     e = np.concatenate(es)
     return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
-
-
-def _ic(rss, M, p, known):
-    """BIC (up to a constant) of a Gaussian model: χ² + p ln M (known σ) or M ln(RSS/M) + p ln M."""
-    return (rss if known else M * math.log(rss / M)) + p * math.log(M)
-
-
-def _test(rss0, rss1, k, M, p1, known):
-    """Significance of adding k parameters: LR (known σ) or nested F."""
-    from scipy import stats
-
-    if known:
-        stat = max(rss0 - rss1, 0.0)
-        return "likelihood ratio", stat, float(stats.chi2.sf(stat, k))
-    d2 = max(M - p1, 1)
-    F = max(rss0 - rss1, 0.0) / k / (rss1 / d2)
-    return "nested F", F, float(stats.f.sf(F, k, d2))
 
 
 def _regrouping(A, names_a, E, names_e) -> dict:
@@ -452,7 +463,7 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
              cv_max_iter: int = 30, verbose: bool = False, geometric: str = "full",
              session_time: bool = True, approach_from_order: bool = False,
              families: bool = True, posture_tol=(1e-3, 1e-3), budget: bool = False,
-             residual_model: str | None = None) -> DiagnosisResult:
+             residual_model: str | None = None, stability: bool = True) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data``.
 
     Parameters
@@ -473,6 +484,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         ``predicted_validation_mm``, all by posture-grouped CV with ``k_folds``) into ``result.budget``.
     residual_model : ``"gp"``: the budget's residual Gaussian process becomes part of the recommended
         model (``result.residual_model``; docs/real-data.md).
+    stability : keep a named cause only when the selection on the training rows of more than half of the
+        posture-grouped folds names it too (:mod:`estcal.discrepancy.stability`; ``result.stability`` and
+        each cause's ``folds_naming``).
     noise : measurement noise, any form of :meth:`estcal.methods.NoiseModel.parse` — a float is the
         position std σ (m) with orientation σ / 0.1 m (rad) — taken as known (a NoiseModel keeps
         its own ``known``). None: unknown (relative weights, F tests).
@@ -509,8 +523,10 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     known = bool(nm.known)
 
     # 1. geometric model
-    folds = grouped_folds(posture_groups(data.readings, robot.joint_types, *posture_tol), k_folds, rng)
-    geometric, level_cv = _geometric_level(robot, data, nm, folds, geometric, ident_tol, cv_max_iter)
+    groups = posture_groups(data.readings, robot.joint_types, *posture_tol)
+    folds = grouped_folds(groups, k_folds, rng)
+    requested = geometric
+    geometric, level_cv = _geometric_level(robot, data, nm, groups, k_folds, rng, geometric)
     problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
     theta_g = gres.theta.copy()
     grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
@@ -529,29 +545,136 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     # 3.-4. forward selection of effects
     rules = _Rules(known, len(b), folds, alpha, min_explained, n_refit, regroup_tol, cv_max_iter)
     cands = _candidates(candidates, grobot, data, families)
-    causes, steps, final = _forward_selection(geo, cands, rules, max_effects, verbose)
+    causes, steps, final, first = _forward_selection(geo, cands, rules, max_effects, verbose)
+    lc = _linear_candidates(geo, first, rules, max_effects, data) if first else None
+    stab = None
+    if stability and causes and lc is not None:  # 4b. causes that survive a new split
+        causes, final, stab = _stability(geo, causes, final, lc, groups, rules, rng)
     causes, located = _locate_harmonic_series(causes)
 
     # 5. output
     result = _result(robot, robot_spec, data, validate, sessions, nm, geo, final, causes, located, steps, analysis,
-                     gdropped, lumped, geometric, approach_from_order, session_time)
+                     gdropped, lumped, geometric, approach_from_order, session_time, stab)
+    result.stability, result.measurement_noise = stab, _noise_components(final)
+    if stability and lc is not None:
+        result.selector = _selector(lc, groups, k_folds, rng)
     result.figure_inputs = (problem, theta_g, analysis, tau, robot.name,
                             (final.problem, final.theta) if causes else None)
     if budget or residual_model:
-        _error_budget(result, robot, data, nm, geometric, k_folds, rng, posture_tol, residual_model, causes)
+        _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, posture_tol, residual_model,
+                      causes)
     return result
 
 
-def _error_budget(result, robot, data, nm, geometric, k_folds, rng, posture_tol, residual_model, causes) -> None:
-    """The error budget of the diagnosis (:func:`estcal.discrepancy.budget.error_budget`, posture-grouped CV)
-    into ``result.budget``, and its residual Gaussian process into ``result.residual_model``."""
+def _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, posture_tol, residual_model,
+                  causes) -> None:
+    """The error budget of the diagnosis (:func:`estcal.discrepancy.budget.error_budget`) into ``result.budget``
+    and its residual Gaussian process into ``result.residual_model``. Its prediction is the nested CV of the
+    diagnosis itself: every outer fold chooses the level (when ``auto``) and the causes (the stability rule,
+    linearised) on its training rows only (:mod:`estcal.discrepancy.prediction`)."""
     from estcal.discrepancy.budget import error_budget
+    from estcal.discrepancy.prediction import Procedure
 
-    b = error_budget(robot, data, nm, level=geometric, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
-                     tol_m=posture_tol[1], residual_model=residual_model,
-                     effects=[(c.effect, list(c.joints), dict(c.options or {})) for c in causes])
+    effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in causes]
+    proc = Procedure(level="auto" if requested == "auto" else geometric, effects=tuple(effects),
+                     select_effects=result.selector, gp="always" if residual_model == "gp" else "never",
+                     k_inner=k_folds)
+    b = error_budget(robot, data, nm, level=geometric, effects=effects, procedure=proc, k_folds=k_folds, rng=rng,
+                     tol_rad=posture_tol[0], tol_m=posture_tol[1], residual_model=residual_model)
     result.budget = b.to_dict()
     result.residual_model = b.residual_model
+    if result.validation_data:  # the 95 % region at the validation rows, beside their RMSE
+        from estcal.discrepancy.budget import region_at
+
+        result.budget["validation"] = [dict(region_at(b, d), path=str(d.where)) for d in result.validation_data]
+
+
+def _linear_candidates(geo, table, rules, max_effects, data) -> LinearCandidates:
+    """The selection linearised at the all-rows geometric estimate (:mod:`.stability`): every geometric
+    column and the columns of every candidate the first screening could test."""
+    from .stability import drift_free_of_offsets
+
+    names = geometric_candidates(geo.problem.robot)
+    b, A, rows = weighted_system(geo.problem, geo.theta, names)
+    ok = [e for e in table if e["status"] == "ok"]
+    blocks = [e["_E"] for e in ok]
+    sess = data.columns.get("session")
+    if sess is not None and len(np.unique(sess)) > 1:  # a drift never explains an offset between sessions
+        rs = np.asarray(sess)[rows.pose]
+        blocks = [drift_free_of_offsets(E, rs, rows.kind, rows.sigma) if e["effect"] in TIME_EFFECTS else E
+                  for e, E in zip(ok, blocks)]
+    params = [list(e["_obj"][3]) for e in ok]
+    robot = geo.problem.robot
+    fam = {}
+    for i, e in enumerate(ok):
+        if _is_family(e):  # the joint of each column of a family (a family is reduced as it is named)
+            c = e["_obj"][0]
+            owner = {n: j for j in c.joints for n in Candidate(c.effect, [j], c.options).make_names(robot)}
+            fam[i] = [owner.get(n) for n in params[i]]
+    return LinearCandidates(b, A, list(names), rows.sigma, rows.pose, rows.kind == 0, [e["candidate"] for e in ok],
+                            [_is_family(e) for e in ok], blocks, params, rules.known, rules.alpha,
+                            rules.min_explained, max_effects, rules.n_refit, rules.regroup_tol,
+                            {e["candidate"]: (e["effect"], list(e["joints"] or []), dict(e["_obj"][0].options))
+                             for e in ok}, fam)
+
+
+def _stability(geo, causes, final, lc, groups, rules, rng):
+    """``(kept causes, final model, stability record)``: a cause is kept when the linearised selection on the
+    training rows of more than half of the posture-grouped folds names it too (:func:`.stability.folds_naming`);
+    the model is refitted without the others and kept only if its grouped CV is still lower than the
+    geometric model's."""
+    k = len(rules.folds)
+    sel = fold_selections(lc, groups, rules.folds, k, rng, free=geo.free)
+    for c in causes:
+        c.folds_naming, c.k_folds = folds_naming(c.effect, c.joints, sel), k
+    kept = [c for c in causes if c.folds_naming > k / 2]
+    if len(kept) < len(causes):
+        final = _refit_kept(geo, kept, rules) if kept else geo
+        if kept and not final.cv[0] < geo.cv[0]:
+            kept, final = [], geo
+    stab = {"rule": "named on all rows and in more than half of the posture-grouped folds (selection on each "
+                    "fold's training rows, linearised at the all-rows geometric estimate)",
+            "k_folds": k, "folds_naming": joint_votes(sel), "kept": [cause_key(c) for c in kept],
+            "not_kept": [{"candidate": cause_key(c), "folds_naming": c.folds_naming} for c in causes if c not in kept]}
+    return kept, final, stab
+
+
+def _refit_kept(geo, kept, rules) -> _Model:
+    """The geometric model plus the kept causes only, refitted jointly (and cross-validated)."""
+    rob = geo.problem.robot.with_values(geo.theta)
+    names = []
+    for c in kept:
+        eff = make_effect(c.effect, rob, joints=list(c.joints) or None, **dict(c.options or {}))
+        rob = rob.add_effect(eff)
+        names += list(eff.param_names)
+    prob = Problem(rob, [(t.method, t.data, t.noise) for t in geo.problem.terms])
+    res = _fit(prob, rob.params.values, geo.free + names)
+    for c in kept:
+        c.parameters = {n: {"estimate": float(res.parameter(n)[0]), "std": float(res.parameter(n)[1])}
+                        for n in c.parameters}
+    return _Model(prob, res.theta.copy(), geo.free + names, float(res.chi2), geo.p + len(names),
+                  cross_validate(prob, res.theta, geo.free + names, rules.folds, rules.cv_max_iter), res)
+
+
+def _selector(lc, groups, k, rng):
+    """The diagnosis's cause selection and stability rule on any subset of its rows (linearised): the
+    :class:`~estcal.discrepancy.prediction.Procedure` the nested prediction replays on its outer folds."""
+    g = np.asarray(groups)
+
+    def select(rows, free):
+        return stable_selection(lc, g[np.asarray(rows)], k, rng, rows=rows, free=free)
+
+    return select
+
+
+def _noise_components(model) -> dict:
+    """The REML noise std per measurement kind and axis of the measuring frame of the final model."""
+    from estcal.discrepancy.noise import measurement_noise
+
+    try:
+        return measurement_noise(model.problem, model.theta, model.free)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reporting only: say why instead of failing the diagnosis
+        return {"estimated": f"not estimated: {exc}"}
 
 
 def _prepare_data(robot, data, validate, robot_spec, approach_from_order, session_time):
@@ -580,7 +703,7 @@ def _prepare_data(robot, data, validate, robot_spec, approach_from_order, sessio
         for d in sessions:
             d = derive_approach(d) if approach_from_order else d.subset(slice(None))
             if session_time:
-                _session_time(d)
+                _session_time(d, centred=True)
             parts.append(d)
         data = stack_sessions(parts)
     if approach_from_order:
@@ -591,27 +714,31 @@ def _prepare_data(robot, data, validate, robot_spec, approach_from_order, sessio
     validate = [with_effect_context(robot, d) for d in validate]
     if session_time:
         for d in ([] if stacked else [data]) + validate:
-            _session_time(d)
+            _session_time(d, centred=stacked)
     return robot, robot_spec, data, validate, (sessions if stacked else None)
 
 
-def _session_time(d) -> None:
-    """``t`` measured from the dataset's first pose (the absolute time kept in ``columns["t_abs"]``)."""
+def _session_time(d, centred: bool = False) -> None:
+    """``t`` measured from the dataset's first pose (the absolute time kept in ``columns["t_abs"]``); with
+    ``centred`` (several sessions fitted together) from the session's mean time, so that a drift, linear in
+    ``t`` and zero at t = 0, has no mean within a session and cannot explain an offset between sessions —
+    that is the repeatability's part (docs/real-data.md)."""
     if "t" in d.context:
         d.columns["t_abs"] = d.context["t"].copy()
-        d.context["t"] = d.context["t"] - d.context["t"].min()
+        d.context["t"] = d.context["t"] - (d.context["t"].mean() if centred else d.context["t"].min())
 
 
-def _geometric_level(robot, data, noise, folds, geometric, ident_tol, cv_max_iter):
-    """``(level, {level: CV RMSE mm})``: ``geometric`` itself, or for ``"auto"`` the level of
-    ``joint_offset``, ``aic`` and ``full`` with the lowest cross-validated RMSE on these data."""
+def _geometric_level(robot, data, noise, groups, k_folds, rng, geometric):
+    """``(level, {level: CV RMSE mm})``: ``geometric`` itself, or for ``"auto"`` the level of ``joint_offset``,
+    ``aic`` and ``full`` that posture-grouped CV and the one-standard-error rule choose
+    (:func:`estcal.discrepancy.prediction.choose_level`: the simplest level within one standard error of
+    the lowest CV error)."""
     if geometric != "auto":
         return geometric, {}
-    level_cv = {}
-    for lv in ("joint_offset", "aic", "full"):
-        pb_l, res_l, free_l, _ = fit_geometric(robot, data, noise, tol=ident_tol, level=lv)
-        level_cv[lv] = cross_validate(pb_l, res_l.theta, free_l, folds, cv_max_iter)[0]
-    return min(level_cv, key=level_cv.get), level_cv
+    from estcal.discrepancy.prediction import choose_level
+
+    level, cv = choose_level(robot, data, noise, groups, k_folds, rng)
+    return level, {lv: v["cv_mm"] for lv, v in cv.items()}
 
 
 def _candidates(candidates, robot, data, families) -> list:
@@ -632,11 +759,13 @@ def _candidates(candidates, robot, data, families) -> list:
 def _forward_selection(geo: _Model, cands, rules: _Rules, max_effects: int, verbose: bool):
     """Add one effect per step while one passes every test (module docstring, steps 3-4).
 
-    Returns ``(causes, steps, final)``: the named causes with the estimates of the final joint fit,
-    the record of every step, and the final model."""
-    cur, causes, steps, used = geo, [], [], set()
+    Returns ``(causes, steps, final, first)``: the named causes with the estimates of the final joint fit,
+    the record of every step, the final model and the first step's screening table (every candidate's
+    columns at the geometric estimate, for the stability rule)."""
+    cur, causes, steps, used, first = geo, [], [], set(), None
     for step in range(max_effects):
         table = _screen(cur, cands, used, rules, step)
+        first = table if first is None else first
         ok = sorted((e for e in table if e["status"] == "ok"), key=lambda e: e["delta_bic_linear"])
         accepted, refits = _refit_and_test(cur, ok, rules)
         steps.append(_step_record(step, cur, cands, used, table, ok, accepted, rules))
@@ -650,7 +779,7 @@ def _forward_selection(geo: _Model, cands, rules: _Rules, max_effects: int, verb
     for c in causes:  # estimates of the final (jointly fitted) model, not those of the step that added each
         c.parameters = {n: {"estimate": float(cur.res.parameter(n)[0]), "std": float(cur.res.parameter(n)[1])}
                         for n in c.parameters}
-    return causes, steps, cur
+    return causes, steps, cur, first
 
 
 def _screen(cur: _Model, cands, used, rules: _Rules, step: int) -> list[dict]:
@@ -690,9 +819,9 @@ def _screen(cur: _Model, cands, used, rules: _Rules, step: int) -> list[dict]:
         r = b_perp - Ep @ x
         rss1 = float(r @ r)
         k = len(names)
-        entry.update(status="ok", k=k, rss_linear=rss1,
-                     delta_bic_linear=_ic(rss1, rules.M, cur.p + k, rules.known) - _ic(cur.rss, rules.M, cur.p,
-                                                                                      rules.known),
+        entry.update(status="ok", k=k, rss_linear=rss1, _E=E,
+                     delta_bic_linear=information_criterion(rss1, rules.M, cur.p + k, rules.known)
+                     - information_criterion(cur.rss, rules.M, cur.p, rules.known),
                      _obj=(c, rob, prob, names))
         table.append(entry)
     return table
@@ -745,8 +874,9 @@ def _refit(cur: _Model, e, rules: _Rules):
     res = _fit(prob, rob.params.values, cur.free + names)
     rss1 = float(res.chi2)
     k = len(names)
-    dbic = _ic(rss1, rules.M, cur.p + k, rules.known) - _ic(cur.rss, rules.M, cur.p, rules.known)
-    tname, stat, pval = _test(cur.rss, rss1, k, rules.M, cur.p + k, rules.known)
+    dbic = (information_criterion(rss1, rules.M, cur.p + k, rules.known)
+            - information_criterion(cur.rss, rules.M, cur.p, rules.known))
+    tname, stat, pval = significance(cur.rss, rss1, k, rules.M, cur.p + k, rules.known)
     e.update(rss=rss1, delta_bic=dbic, test=tname, statistic=stat, p_value=pval)
     return dbic, e, res
 
@@ -824,7 +954,7 @@ def _locate_harmonic_series(causes):
 
 
 def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final: _Model, causes, located, steps,
-            analysis, gdropped, lumped, geometric, approach_from_order, session_time) -> DiagnosisResult:
+            analysis, gdropped, lumped, geometric, approach_from_order, session_time, stability=None) -> DiagnosisResult:
     """The :class:`DiagnosisResult`: RMSE / max of both models on the training data, in cross-validation
     and on the validation data, the verdict, and the two models as plain data."""
     gr, xr = geo.problem.robot, final.problem.robot
@@ -840,13 +970,15 @@ def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final:
                                    "paths": [d.where for d in validate]}
     final_floor = residual_analysis(final.problem, final.theta, bool(nm.known), final.p)["noise_floor"]
     analysis["noise_floor_extended"] = final_floor
-    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, bool(nm.known), located)
+    verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, bool(nm.known), located,
+                       (stability or {}).get("not_kept", []), (stability or {}).get("k_folds"))
     model = {"robot": getattr(robot, "name", None), "robot_spec": robot_spec, "n_markers": int(robot.n_markers),
              "gravity": gr.gravity.tolist(), "lumped_masses": lumped,
              "effects": [e.to_dict() for e in xr.effects],
              "theta": dict(zip(xr.params.names, map(float, final.theta))),
              "free": final.free, "noise": nm.to_dict(), "geometric_level": geometric,
-             "approach_from_order": bool(approach_from_order), "session_time": bool(session_time),
+             "approach_from_order": bool(approach_from_order),
+             "session_time": ("centred" if sessions and len(sessions) > 1 else True) if session_time else False,
              "residual": {"rmse_mm": tr_x[0], "max_mm": tr_x[1], "chi2_per_dof": final_floor["chi2_per_dof"]}}
     gmodel = {"theta": dict(zip(gr.params.names, map(float, geo.theta))), "free": geo.free,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],
@@ -865,7 +997,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final:
     return result
 
 
-def _verdict(causes, floor_g, floor_x, steps, rmse, known, located=()) -> str:
+def _verdict(causes, floor_g, floor_x, steps, rmse, known, located=(), unstable=(), k_folds=None) -> str:
     def gain():
         g, x = rmse["geometric"], rmse["extended"]
         s = f"RMSE train {g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm"
@@ -879,8 +1011,13 @@ def _verdict(causes, floor_g, floor_x, steps, rmse, known, located=()) -> str:
             f"A {d['shape']} of {', '.join(d['joints'])} is located (explains "
             f"{100 * d['explained_fraction']:.0f}% of the geometric residual) but no library mechanism fits it: "
             f"that part of the residual is not explained by the modelled effects." for d in located)
+    if unstable:
+        loc += " Not kept: " + ", ".join(f"{d['candidate']} (named on all rows, in {d['folds_naming']} of {k_folds} "
+                                         f"posture-grouped folds)" for d in unstable) + " — a cause must survive a new split."
     if not causes and located:
         return f"No cause named. {gain()} with an empirical joint-angle correction.{loc}"
+    if not causes and unstable:
+        return f"No cause named.{loc}"
     if not causes:
         if known and floor_g.get("at_noise_floor"):
             return (f"No significant non-geometric effect: the geometric model fits at the noise floor "

@@ -190,7 +190,8 @@ def simulate_like(fit, data, robot=None, noise=None, seed: int | None = 0):
         data = derive_approach(data)
     data_c = with_effect_context(rob, data)
     if m.get("session_time") and "t" in data_c.context:
-        data_c.context["t"] = data_c.context["t"] - data_c.context["t"].min()
+        t = data_c.context["t"]
+        data_c.context["t"] = t - (t.mean() if m["session_time"] == "centred" else t.min())
     kin = rob.kinematics(data_c.readings, context=data_c.context, jacobian=False)
     rng = np.random.default_rng(seed)
     out = data.subset(slice(None))

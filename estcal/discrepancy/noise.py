@@ -12,7 +12,10 @@ maximum likelihood (Patterson & Thompson 1971), which accounts for the p fitted 
     −2ℓ_R(σ²) = Σ_i log σ²_{c(i)} + log|AᵀV⁻¹A| + rᵀ(V⁻¹ − V⁻¹A(AᵀV⁻¹A)⁻¹AᵀV⁻¹) r
 
 (the same restricted likelihood as the between-session variance components of
-:mod:`estcal.sessions.system`, here with a diagonal V). Minimised over log σ² (L-BFGS-B);
+:mod:`estcal.sessions.system`, here with a diagonal V). With per-row noise
+(``NoiseModel.row_sigma``, e.g. a marker std column) the class variance multiplies each row's
+own relative σ: V_ii = f²_{c(i)} s_i², s_i = σ_i / median of σ over the class, so that σ_c = f_c
+is the noise of a row at the class's median σ. Minimised over log σ² (L-BFGS-B);
 standard errors from the observed information (numerical Hessian of −ℓ_R in σ²).
 Residuals from unmodelled structure inflate the estimate: it is the noise *of this model*,
 which is what its weights need; the error budget says how much of it is structure.
@@ -21,13 +24,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["reml_variance_components", "measurement_noise"]
+__all__ = ["reml_variance_components", "measurement_noise", "noise_lines"]
 
 AXES = "xyz"
 
 
-def _neg2ll(logv, A, r, cls, C):
-    v = np.exp(logv)[cls]
+def _neg2ll(logv, A, r, cls, C, s2=1.0):
+    v = np.exp(logv)[cls] * s2
     w = 1.0 / v
     Aw = A * w[:, None]
     N = A.T @ Aw
@@ -41,13 +44,14 @@ def _neg2ll(logv, A, r, cls, C):
     return float(np.sum(np.log(v)) + 2 * np.sum(np.log(np.diag(L))) + quad)
 
 
-def reml_variance_components(A, r, classes, names=None) -> dict:
+def reml_variance_components(A, r, classes, names=None, scale=None) -> dict:
     """REML variances of the residual classes of the module docstring.
 
     Parameters
     ----------
     A : (M, p) Jacobian of the fitted parameters (any consistent scaling); r : (M,) residual.
     classes : (M,) integer class of each row; names : class names (default ``class<c>``).
+    scale : optional (M,) relative std of each row within its class (V_ii = σ²_c · scale_i²).
 
     Returns
     -------
@@ -64,13 +68,15 @@ def reml_variance_components(A, r, classes, names=None) -> dict:
     s = np.linalg.norm(A, axis=0)
     s[s == 0] = 1.0
     A = A / s
-    v0 = np.array([max(np.mean(r[cls == c] ** 2), 1e-300) for c in range(C)])
-    res = minimize(_neg2ll, np.log(v0), args=(A, r, cls, C), method="L-BFGS-B")
+    s2 = 1.0 if scale is None else np.asarray(scale, float) ** 2
+    v0 = np.array([max(np.mean((r ** 2 / s2)[cls == c] if scale is not None else r[cls == c] ** 2), 1e-300)
+                   for c in range(C)])
+    res = minimize(_neg2ll, np.log(v0), args=(A, r, cls, C, s2), method="L-BFGS-B")
     v = np.exp(res.x)
     # observed information in σ² (central differences of −ℓ_R = ½ · neg2ll)
     h = 1e-4
     H = np.zeros((C, C))
-    f = lambda lv: 0.5 * _neg2ll(lv, A, r, cls, C)  # noqa: E731
+    f = lambda lv: 0.5 * _neg2ll(lv, A, r, cls, C, s2)  # noqa: E731
     for a in range(C):
         for b in range(a, C):
             e_a, e_b = np.eye(C)[a] * h, np.eye(C)[b] * h
@@ -107,11 +113,27 @@ def measurement_noise(problem, theta, free, by_axis: bool = True) -> dict:
     labels = np.array([f"{('position', 'orientation', 'scalar')[min(k, 2)]}"
                        + (f"_{AXES[a]}" if by_axis and k in (0, 1) else "") for k, a in zip(kind, axis)])
     names, cls = np.unique(labels, return_inverse=True)
-    comps = reml_variance_components(A, r, cls, names)
+    sig = np.asarray(rows.sigma, float)
+    med = np.array([np.median(sig[cls == c]) for c in range(len(names))])
+    rel = sig / med[cls]
+    weighted = not np.allclose(rel, 1.0)
+    comps = reml_variance_components(A, r, cls, names, scale=rel if weighted else None)
     out = {}
     for n, c in comps.items():
         unit, f = ("mrad", 1e3) if n.startswith("orientation") else ("mm", 1e3)
         out[f"{n}_{unit}"] = {"std": c["std"] * f, "std_se": c["std_se"] * f, "n_rows": c["n_rows"]}
     out["estimated"] = (f"noise std per {'kind and axis of the measuring frame' if by_axis else 'kind'} by REML "
-                        f"from the residual of the {len(idx)}-parameter fit ({len(r)} rows)")
+                        f"from the residual of the {len(idx)}-parameter fit ({len(r)} rows)"
+                        + ("; rows weighted by their own σ (per-row noise column), std = a row at the class's "
+                           "median σ" if weighted else "")
+                        + "; it holds the model error left in the residual, not only the instrument")
     return out
+
+
+def noise_lines(d: dict) -> list[str]:
+    """Text lines of :func:`measurement_noise`'s result (the commands' output)."""
+    if not any(isinstance(v, dict) for v in d.values()):
+        return [f"measurement noise: {d.get('estimated', 'not estimated')}"]
+    parts = [f"{k.rsplit('_', 1)[0].replace('_', ' ')} {v['std']:.3g} ± {v['std_se']:.2g} {k.rsplit('_', 1)[1]}"
+             for k, v in d.items() if isinstance(v, dict)]
+    return [f"measurement noise (REML, per axis of the measuring frame): {', '.join(parts)}", f"  ({d['estimated']})"]

@@ -52,8 +52,9 @@ def prepare_data(robot, data, preparation: dict | None = None):
 
     ``preparation`` (default: the robot's ``calibration.data_preparation``, written for a
     diagnosed model): ``approach_from_order`` — approach columns from the posture order;
-    ``session_time`` — ``t`` measured from the first pose of the file (the absolute time
-    stays in ``columns["t_abs"]``). Effect columns (``approach_<joint>``) are moved into the
+    ``session_time`` — ``t`` measured from the first pose of the file, or from its mean time when
+    it is ``"centred"`` (a model fitted on several sessions; the absolute time stays in
+    ``columns["t_abs"]``). Effect columns (``approach_<joint>``) are moved into the
     context in every case.
     """
     if preparation is None:
@@ -62,5 +63,6 @@ def prepare_data(robot, data, preparation: dict | None = None):
     d = with_effect_context(robot, d)
     if preparation.get("session_time") and "t" in d.context:
         d.columns["t_abs"] = d.context["t"].copy()
-        d.context["t"] = d.context["t"] - d.context["t"].min()
+        t = d.context["t"]
+        d.context["t"] = t - (t.mean() if preparation["session_time"] == "centred" else t.min())
     return d

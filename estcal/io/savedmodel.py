@@ -238,7 +238,8 @@ def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
                          "delta_bic": c.delta_bic, "p_value": c.p_value} for c in result.causes],
              "verdict": result.verdict,
              "lumped_masses": bool(result.lumped_masses),
-             "data_preparation": {"session_time": bool(m.get("session_time")),
+             "data_preparation": {"session_time": (m.get("session_time") if m.get("session_time") == "centred"
+                                                   else bool(m.get("session_time"))),
                                   "approach_from_order": bool(m.get("approach_from_order"))}}
     if result.located:
         extra["located"] = [{"joints": d["joints"], "shape": d["shape"]} for d in result.located]

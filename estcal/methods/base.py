@@ -35,7 +35,8 @@ __all__ = ["Rows", "NoiseModel", "NOISE_LEVER_M", "Method", "PositionMethod", "P
 #: lever arm (m) turning a bare position std into the orientation std: σ_rot = σ_pos / 0.1 m
 #: (the ratio of the command line's defaults, 0.1 mm and 1 mrad; docs/conventions.md, "Noise")
 NOISE_LEVER_M = 0.1
-_NOISE_KEYS = ("position", "orientation", "scalar", "known", "joint", "resolution", "distribution")
+_NOISE_KEYS = ("position", "orientation", "scalar", "known", "joint", "resolution", "distribution", "row_sigma",
+               "row_sigma_unit_m")
 
 
 @dataclass
@@ -54,6 +55,11 @@ class NoiseModel:
         readings are multiples of it; default 0 = none).
     distribution : ``"gaussian"`` (the stds above are σ) or ``"uniform"`` (they are half-widths;
         simulation).
+    row_sigma : name of a dataset column holding each row's own position σ (e.g. TIAGo's
+        ``marker_std_mm``), in units of ``row_sigma_unit_m`` metres (1e-3 for a column in mm).
+        Position rows (and the points of a row) are then weighted by 1/σ_row instead of
+        1/``position`` — weighted least squares with per-row weights; orientation and scalar
+        rows keep their σ. With ``known=False`` the weights are relative (σ0 rescales them all).
 
     :meth:`parse` turns the forms users write (a number, a pair, a mapping) into a NoiseModel by one
     rule (docs/conventions.md, "Noise"); :meth:`none` is the noise-free model of the simulator.
@@ -66,6 +72,8 @@ class NoiseModel:
     joint: float = 0.0
     resolution: Any = 0.0
     distribution: str = "gaussian"
+    row_sigma: str | None = None
+    row_sigma_unit_m: float = 1.0
 
     def __post_init__(self):
         if self.distribution not in ("gaussian", "uniform"):
@@ -73,6 +81,29 @@ class NoiseModel:
         for k in ("position", "orientation", "scalar", "joint"):
             if not getattr(self, k) >= 0:
                 raise ValueError(f"noise {k} must be >= 0, got {getattr(self, k)}")
+        if self.row_sigma is not None and not (isinstance(self.row_sigma, str) and self.row_sigma_unit_m > 0):
+            raise ValueError(f"noise row_sigma must be a column name with row_sigma_unit_m > 0, got "
+                             f"{self.row_sigma!r}, {self.row_sigma_unit_m!r}")
+
+    def position_sigma(self, data) -> np.ndarray:
+        """(N,) position σ (m) of every row of ``data``: the ``row_sigma`` column × ``row_sigma_unit_m``,
+        or ``position`` for every row. A missing column or a value that is not a positive finite number
+        is an :class:`~estcal.base.errors.InputError` naming the file, the line and the column."""
+        if self.row_sigma is None:
+            return np.full(data.n, self.position)
+        cols = getattr(data, "columns", {}) or {}
+        where = getattr(data, "where", "data")
+        if self.row_sigma not in cols:
+            raise InputError(f"{where}: no column {self.row_sigma!r} for the per-row noise (--row-sigma-mm); the "
+                             f"file's extra columns are {sorted(cols) or 'none'}")
+        s = np.asarray(cols[self.row_sigma], float) * self.row_sigma_unit_m
+        bad = np.flatnonzero(~(np.isfinite(s) & (s > 0)))
+        if len(bad):
+            lines = getattr(data, "lines", None)
+            at = f"line {int(lines[bad[0]])}" if lines is not None and len(lines) == data.n else f"row {bad[0] + 1}"
+            raise InputError(f"{where}, {at}: column {self.row_sigma!r} = {float(cols[self.row_sigma][bad[0]])} is not a "
+                             f"positive noise std ({len(bad)} such row(s)); fix or drop those rows")
+        return s
 
     @classmethod
     def none(cls) -> "NoiseModel":
@@ -133,6 +164,8 @@ class NoiseModel:
         """``{position, orientation, scalar, known}`` (SI); with ``simulation`` also the joint noise,
         the resolution, the distribution and the units (a simulation's truth)."""
         d = {"position": self.position, "orientation": self.orientation, "scalar": self.scalar, "known": self.known}
+        if self.row_sigma is not None:
+            d.update(row_sigma=self.row_sigma, row_sigma_unit_m=self.row_sigma_unit_m)
         if simulation:
             d.update(joint=self.joint, resolution=np.asarray(self.resolution, float).tolist(),
                      distribution=self.distribution,
@@ -222,7 +255,7 @@ class PositionMethod(Method):
         e = (data.points[:, 0] - pred).reshape(-1)
         H = None if J is None else J.reshape(-1, J.shape[-1])
         N = data.n
-        return Rows(e, H, np.full(3 * N, noise.position), np.repeat(np.arange(N), 3), np.zeros(3 * N, int))
+        return Rows(e, H, np.repeat(noise.position_sigma(data), 3), np.repeat(np.arange(N), 3), np.zeros(3 * N, int))
 
     def residuals_many(self, robot, thetas, data):
         self.check(robot, data)
@@ -251,7 +284,7 @@ class PointsMethod(Method):
         e = (data.points - kin.points[:, :k]).reshape(-1)
         H = None if kin.J_points is None else kin.J_points[:, :k].reshape(-1, robot.n_params)
         N = data.n
-        return Rows(e, H, np.full(3 * k * N, noise.position), np.repeat(np.arange(N), 3 * k),
+        return Rows(e, H, np.repeat(noise.position_sigma(data), 3 * k), np.repeat(np.arange(N), 3 * k),
                     np.zeros(3 * k * N, int))
 
     def residuals_many(self, robot, thetas, data):
@@ -287,7 +320,9 @@ class PoseMethod(Method):
             H[:, 3:] = so3_right_jacobian_inv(err[:, 3:]) @ H[:, 3:]
             H = H.reshape(-1, robot.n_params)
         N = data.n
-        sig = np.tile(np.r_[np.full(3, noise.position), np.full(3, noise.orientation)], N)
+        sig = np.tile(np.r_[np.zeros(3), np.full(3, noise.orientation)], N).reshape(N, 6)
+        sig[:, :3] = noise.position_sigma(data)[:, None]
+        sig = sig.reshape(-1)
         return Rows(e, H, sig, np.repeat(np.arange(N), 6), np.tile(np.r_[0, 0, 0, 1, 1, 1], N))
 
     def residuals_many(self, robot, thetas, data):

@@ -207,7 +207,7 @@ class PointLink(Method):
 
     Every configuration j of a ``group`` reaches the same (unknown) point as the
     group's first configuration i: ``e = P_i − P_j``, ``H = J_j − J_i`` (position rows,
-    world frame). σ = √2·σ_position per row.
+    world frame). σ = √(σ_i² + σ_j²) per row (√2·σ_position without per-row noise).
     """
 
     name = "point-link"
@@ -218,7 +218,8 @@ class PointLink(Method):
         e = (kin.p[i] - kin.p[j]).reshape(-1)
         H = None if not jacobian else (kin.J[j, :3] - kin.J[i, :3]).reshape(-1, robot.n_params)
         m = j.size
-        return Rows(e, H, np.full(3 * m, np.sqrt(2.0) * noise.position), np.repeat(j, 3), np.zeros(3 * m, int))
+        ps = noise.position_sigma(data)  # σ of a difference of two rows: √(σ_i² + σ_j²) (√2·σ when equal)
+        return Rows(e, H, np.repeat(np.hypot(ps[i], ps[j]), 3), np.repeat(j, 3), np.zeros(3 * m, int))
 
 
 class FrameLink(Method):
@@ -242,7 +243,10 @@ class FrameLink(Method):
             Hr = so3_left_jacobian_inv(delta) @ (D @ kin.J[j, 3:] - kin.J[i, 3:])
             H = np.concatenate([Hp, Hr], 1).reshape(-1, robot.n_params)
         m = j.size
-        sig = np.sqrt(2.0) * np.tile(np.r_[np.full(3, noise.position), np.full(3, noise.orientation)], m)
+        ps = noise.position_sigma(data)
+        sig = np.sqrt(2.0) * np.tile(np.r_[np.zeros(3), np.full(3, noise.orientation)], m).reshape(m, 6)
+        sig[:, :3] = np.hypot(ps[i], ps[j])[:, None]
+        sig = sig.reshape(-1)
         return Rows(e, H, sig, np.repeat(j, 6), np.tile(np.r_[0, 0, 0, 1, 1, 1], m))
 
 

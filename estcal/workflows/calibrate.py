@@ -165,6 +165,7 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     res, sel, problem = _run(rob, ds, robot, estimator, measure, free, level, selection, vals, noise, options,
                              regularize, checks, allow_ill_conditioned)
     _seen_new(res, problem, ds, vals, tuple(posture_tol))
+    res.extra["measurement_noise"] = _noise_components(problem, res)
     out = Calibration(res, sel, problem, rob, vals, " + ".join(_label(s) for s in sessions),
                       [_label(v) for v in validate])
     res.extra.update(robot=robot if isinstance(robot, (str, Path)) else rob.name, data=out.data_label,
@@ -172,6 +173,21 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
                      noise=problem.terms[0].noise.to_dict(), points=n_markers)
     res.extra["robot"] = str(res.extra["robot"])
     return out
+
+
+def _noise_components(problem, res, max_rows: int = 20000) -> dict:
+    """The noise std per measurement kind and axis of the measuring frame by REML from the residual of the
+    fit (:func:`estcal.discrepancy.noise.measurement_noise`); above ``max_rows`` residual rows it is not
+    estimated (the dense REML would dominate the run) and the output says so."""
+    from estcal.discrepancy.noise import measurement_noise
+
+    M = sum(len(t.data.readings) for t in problem.terms) * 6
+    if M > 6 * max_rows:
+        return {"estimated": f"not estimated: more than {max_rows} residual rows (estcal diagnose estimates it)"}
+    try:
+        return measurement_noise(problem, res.theta, list(res.names))
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reporting only
+        return {"estimated": f"not estimated: {exc}"}
 
 
 def _seen_new(res, problem, ds, vals, posture_tol=(1e-3, 1e-3)) -> None:

@@ -25,6 +25,7 @@ from estcal.base.errors import InputError
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, estimator_option, free_option, json_option, known_noise_option,
                                 level_option, measure_option, method_option, noise_pos_option, noise_rot_option,
+                                row_sigma_option, with_row_sigma,
                                 points_option, posture_tol, posture_tol_mm_option, posture_tol_mrad_option,
                                 report_option, robot_option, root_option, save_model_option, tip_option,
                                 validate_option, map_option, drop_flagged_option)
@@ -70,6 +71,10 @@ def _print_report(console, cal) -> None:
         s = res.extra["selection"]
         console.print(f"selection: level {s['level']}, criterion {s['criterion']}: {s['source']} "
                       f"({len(s['identifiable'])} parameters, as identified at the design geometry)")
+    if res.extra.get("measurement_noise"):
+        from estcal.discrepancy.noise import noise_lines
+
+        console.print("\n".join(noise_lines(res.extra["measurement_noise"])))
     reg = res.extra.get("regularization")
     prior = res.extra.get("prior")
     if prior:
@@ -195,6 +200,7 @@ def calibrate(
     old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
     old_noise_rot: Optional[float] = deprecated_option("--noise-rot"),
     known_noise: bool = known_noise_option(),
+    row_sigma_mm: Optional[str] = row_sigma_option(),
     noise_leg_mm: Optional[float] = typer.Option(None, "--noise-leg-mm", help="Gough platforms: leg-length "
                                                                               "noise std (mm)."),
     old_noise_leg: Optional[float] = deprecated_option("--noise-leg"),
@@ -233,6 +239,9 @@ def calibrate(
     noise_pos = resolve(noise_pos_mm, MILLI, old_noise_pos, "--noise-pos", "--noise-pos-mm", "m", 1.0, 0.1)
     noise_rot = resolve(noise_rot_mrad, MILLI, old_noise_rot, "--noise-rot", "--noise-rot-mrad", "rad", 1.0, 1.0)
     if wf.is_gough(robot):
+        if row_sigma_mm:
+            raise typer.BadParameter("--row-sigma-mm weights serial-robot measurements; a Gough platform's noise is "
+                                     "--noise-pos-mm / --noise-rot-mrad / --noise-leg-mm")
         noise_leg = None if noise_leg_mm is None and old_noise_leg is None else \
             resolve(noise_leg_mm or 0.0, MILLI, old_noise_leg, "--noise-leg", "--noise-leg-mm", "m", 1.0, 0.0)
         gres = wf.calibrate_gough(robot, data, estimator=estimator, free=free, residual=residual, model=gough_model,
@@ -250,7 +259,8 @@ def calibrate(
 
         check_outputs({"--chain" if chain is not None else "--option chain": Path(str(options["chain"]))},
                       list(data) + list(validate) + ([Path(robot)] if Path(robot).is_file() else []))
-    noise = NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos, known=known_noise)
+    noise = with_row_sigma(NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos,
+                                      known=known_noise), row_sigma_mm)
     cal = wf.calibrate(robot, list(data), estimator=estimator, measure=measure, free=free, level=level,
                        selection=selection, validate=list(validate), noise=noise, regularize=_regularize(regularize),
                        robust=robust, options=options, points=points, root=root, tip=tip, checks=True,

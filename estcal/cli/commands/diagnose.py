@@ -24,8 +24,8 @@ import typer
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, json_option, known_noise_option, points_option,
                                 posture_tol, posture_tol_mm_option, posture_tol_mrad_option, report_option,
-                                robot_option, root_option, save_model_option, tip_option, validate_option,
-                                drop_flagged_option, map_option)
+                                robot_option, root_option, row_sigma_option, save_model_option, tip_option,
+                                validate_option, with_row_sigma, drop_flagged_option, map_option)
 
 __all__ = ["diagnose"]
 
@@ -86,6 +86,7 @@ def diagnose(
     known_noise: bool = known_noise_option("The noise is known (likelihood-ratio tests, noise-floor test); "
                                            "default unknown (F tests)."),
     old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
+    row_sigma_mm: Optional[str] = row_sigma_option(),
     k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
     alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
     max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
@@ -116,7 +117,7 @@ def diagnose(
     """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
     from estcal.workflows.diagnose import diagnose as run
 
-    noise = _noise(noise_pos_mm, noise_rot_mrad, known_noise, old_noise_pos)
+    noise = with_row_sigma(_noise(noise_pos_mm, noise_rot_mrad, known_noise, old_noise_pos), row_sigma_mm)
     res = run(robot, list(data), validate=list(validate), effects=effects, noise=noise, points=points, root=root,
               tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
               report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,

@@ -1,0 +1,140 @@
+"""An honest prediction at new postures: the whole procedure replayed in every outer fold.
+
+A cross-validation that *chooses* (the geometric level, the causes, the residual GP) and then
+*scores* what it chose is optimistic: the minimum of several noisy CV figures is biased low
+(selection bias; Varma & Simon 2006, Cawley & Talbot 2010). The expected error of the model a
+procedure recommends is the error of the *procedure*: nested cross-validation. Every outer fold
+(posture-grouped) runs the procedure on its training rows only — its own inner CV chooses — and
+scores the model it chose at the held-out postures. :class:`Procedure` says what is chosen;
+:func:`estcal.discrepancy.budget.error_budget` runs the outer folds.
+
+The decisions
+-------------
+* **Level** (``level="auto"``): ``joint_offset``, ``aic`` or ``full`` by posture-grouped CV with
+  the one-standard-error rule (Breiman et al. 1984; Hastie, Tibshirani & Friedman, *ESL* §7.10):
+  the simplest level whose CV mean squared error is within one standard error (over the folds)
+  of the lowest. On tens of postures the CV figures of the richer levels scatter by a factor of
+  two from split to split (docs/real-data.md); the rule does not follow that scatter.
+* **Causes**: the diagnosis's selection with its stability rule (``select_effects``: a callable
+  ``(training rows, geometric free set) → effects``; :mod:`estcal.discrepancy.stability`).
+* **Residual GP** (``gp``): ``"never"``; ``"always"`` (the user asked for it: the space whose GP
+  predicts the held-out residual best); ``"cv"`` — used only when it lowers the RMSE of the
+  residual at held-out postures by ≥ 5 %. The GP's inner CV holds its hyperparameters at the
+  fit on the fold's training rows and conditions it on each inner training part
+  (:func:`estcal.discrepancy.residual.condition_gp`): no refit per inner fold.
+
+The prediction region
+---------------------
+A 95 % region for the measured point at a new posture is ``eᵀ Σ⁻¹ e ≤ q̂`` with
+``Σ = J C_θ Jᵀ (+ GP variance) + τ² I₃``: the parameter covariance propagated by the analytic
+Jacobian, plus τ², the part of the nested held-out residual variance that the parameter
+covariance does not explain (the unstructured residual and the between-session part). The
+threshold q̂ is not χ²₃(0.95) = 7.81 but the conformal quantile of the same score over the
+nested held-out points — the ⌈0.95 (n + 1)⌉-th smallest (split-conformal / CV+, Barber, Candès,
+Ramdas & Tibshirani 2021, *Ann. Statist.* 49(1)) — so heavy tails (a few postures far off)
+widen the region instead of breaking its coverage. The scores come from models that never saw
+the scored postures, so the coverage holds at new postures like the training ones.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estcal.discrepancy.stages import fit_stage_sessions, measured_points
+from estcal.validation import grouped_folds
+
+__all__ = ["LEVELS", "Procedure", "choose_level", "region_scores", "conformal_threshold", "region_coverage", "region_tau2",
+           "GP_GAIN"]
+
+#: geometric levels, simplest first (the order of the one-standard-error rule)
+LEVELS = ("joint_offset", "aic", "full")
+#: the residual GP is used (``gp="cv"``) when it lowers the held-out RMSE by at least 5 %
+GP_GAIN = 0.95
+
+
+@dataclass
+class Procedure:
+    """What the tool decides from the data — replayed on every outer fold by the nested CV.
+
+    level : a geometric level, or ``"auto"`` (:func:`choose_level` on the rows, one-SE rule).
+    effects : the named effects ``(name, joints, options)`` when ``select_effects`` is None.
+    select_effects : ``f(train_rows, geometric_free) -> effects`` — the diagnosis's cause selection
+        (and stability rule) on those rows only; None: ``effects`` in every fold.
+    gp : ``"never"``, ``"always"`` or ``"cv"`` (module docstring).
+    k_inner : folds of the inner CV.
+    """
+
+    level: str = "full"
+    effects: tuple = ()
+    select_effects: object = None
+    gp: str = "never"
+    k_inner: int = 5
+
+    def __post_init__(self):
+        if self.level != "auto" and self.level not in LEVELS:
+            raise ValueError(f"unknown level {self.level!r}; choose auto or one of {LEVELS}")
+        if self.gp not in ("never", "always", "cv"):
+            raise ValueError(f"gp must be never, always or cv, got {self.gp!r}")
+
+    def effects_for(self, train_rows, free) -> list:
+        if self.select_effects is None:
+            return [tuple(e) for e in self.effects]
+        return [tuple(e) for e in self.select_effects(np.asarray(train_rows), list(free))]
+
+
+def choose_level(robot, data, noise, groups, k: int = 5, rng=0, per_session=None, levels=LEVELS,
+                 max_iter: int = 60) -> tuple[str, dict]:
+    """The geometric level of ``data`` by posture-grouped CV and the one-standard-error rule.
+
+    Returns ``(level, {level: {"cv_mm": pooled CV RMSE, "se_mm": its standard error}})``; the
+    standard error is that of the fold mean squared errors, carried to the RMSE (δ-method).
+    """
+    folds = grouped_folds(groups, k, rng)
+    meas = measured_points(data)
+    mse, se, out = {}, {}, {}
+    for lv in levels:
+        sq = np.zeros(meas.shape[:2])
+        for test in folds:
+            train = np.setdiff1d(np.arange(data.n), test)
+            fs = fit_stage_sessions(robot, data.subset(train), noise, "geometric", lv, per_session=per_session,
+                                    max_iter=max_iter)
+            sq[test] = np.sum((meas[test] - fs.predict(data.subset(test))) ** 2, axis=-1)
+        fold_mse = np.array([sq[f].mean() for f in folds])
+        mse[lv], se[lv] = float(sq.mean()), float(fold_mse.std(ddof=1) / np.sqrt(len(folds)))
+        rm = np.sqrt(mse[lv])
+        out[lv] = {"cv_mm": float(rm * 1e3), "se_mm": float(se[lv] / (2 * rm) * 1e3)}
+    best = min(mse, key=mse.get)
+    pick = next(lv for lv in levels if mse[lv] <= mse[best] + se[best])
+    return pick, out
+
+
+def region_scores(e, S, tau2: float) -> np.ndarray:
+    """``eᵀ (S + τ² I)⁻¹ e`` of every point: e (..., 3) errors, S (..., 3, 3) covariances (m², m)."""
+    e = np.asarray(e, float)
+    Sig = np.asarray(S, float) + tau2 * np.eye(3)
+    return np.einsum("...i,...i->...", e, np.linalg.solve(Sig, e[..., None])[..., 0])
+
+
+def conformal_threshold(scores, level: float = 0.95) -> float:
+    """The ⌈level·(n + 1)⌉-th smallest score (∞ when there are too few): the split-conformal /
+    CV+ threshold of a ``level`` region (Barber et al. 2021)."""
+    s = np.sort(np.asarray(scores, float).reshape(-1))
+    n = len(s)
+    r = int(np.ceil(level * (n + 1)))
+    return float(s[r - 1]) if 1 <= r <= n else float("inf")
+
+
+def region_tau2(e, S) -> float:
+    """τ² (m²): the held-out residual variance per coordinate that J C_θ Jᵀ (and the GP variance) does
+    not explain, at least 5 % of it (so a region never rests on the parameter covariance alone)."""
+    mse = float(np.mean(np.asarray(e, float) ** 2))
+    explained = float(np.mean(np.trace(np.asarray(S, float), axis1=-2, axis2=-1))) / 3.0
+    return max(mse - explained, 0.05 * mse)
+
+
+def region_coverage(region: dict, e, S) -> float:
+    """Share of the points (errors ``e`` (…, 3), covariances ``S`` (…, 3, 3) of the model that predicts
+    them) inside the region ``{"tau_mm", "threshold_d2"}`` of a budget."""
+    d2 = region_scores(e, S, (region["tau_mm"] * 1e-3) ** 2)
+    return float(np.mean(d2 <= region["threshold_d2"]))
