@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -149,10 +150,28 @@ def test_config_file_refuses_unknown_keys_naming_key_and_file(tmp_path):
 
 def test_help_imports_no_numerical_library():
     code = ("import sys\nimport estcal.cli.main\n"
-            "heavy = [m for m in ('numpy', 'scipy', 'matplotlib', 'gtsam', 'filterpy', 'emcee', 'dask', 'yaml') "
+            "heavy = [m for m in ('numpy', 'scipy', 'matplotlib', 'gtsam', 'filterpy', 'emcee', 'dask', 'yaml', "
+            "'sklearn', 'rosbags') "
             "if m in sys.modules]\nprint(heavy)")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert p.returncode == 0 and p.stdout.strip() == "[]", p.stdout + p.stderr
+
+
+def test_commands_run_blas_single_threaded_unless_the_user_chose():
+    from estcal.cli.main import single_threaded_blas_by_default
+
+    env = {}
+    single_threaded_blas_by_default(env)
+    assert env["OPENBLAS_NUM_THREADS"] == "1"
+    env = {"OMP_NUM_THREADS": "4"}
+    single_threaded_blas_by_default(env)
+    assert env == {"OMP_NUM_THREADS": "4"}
+    code = ("import os, sys\nfrom estcal.cli.main import main\nsys.argv = ['estcal', 'robots']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('BLAS', os.environ.get('OPENBLAS_NUM_THREADS'))")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                           "MKL_NUM_THREADS")}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert p.returncode == 0 and "BLAS 1" in p.stdout, p.stdout + p.stderr
 
 
 def test_every_number_rule_names_an_existing_option():

@@ -83,6 +83,17 @@ def test_transform_roundtrips():
     np.testing.assert_allclose(so3_exp(so3_log(Rpi[None]))[0], Rpi, atol=1e-7)
 
 
+def test_quat_to_matrix_is_scipys_rotation():
+    """The numpy closed form equals scipy's ``Rotation.from_quat`` (scalar first) on unnormalised
+    quaternions of any leading shape, both signs of w."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.random.default_rng(1).normal(size=(4, 5, 4)) * 3.0
+    ref = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(4, 5, 3, 3)
+    np.testing.assert_allclose(quat_to_matrix(q), ref, atol=1e-15)
+    np.testing.assert_allclose(quat_to_matrix(-q[0, 0]), ref[0, 0], atol=1e-15)
+
+
 def test_parameter_vector_names_and_errors():
     pv = puma560().params
     assert "alpha_3" in pv and "offset_2" in pv and "base_tz" in pv and "tool_rx" in pv and "gain_6" in pv

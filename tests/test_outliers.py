@@ -97,3 +97,17 @@ def test_robust_refused_with_a_message(data, estimator, words):
     r = runner.invoke(app, ["calibrate", str(data[0]), "--robot", "puma560", "--estimator", estimator,
                             "--robust", "cauchy"])
     assert r.exit_code == 2 and words in r.output
+
+
+def test_chi2_quantiles_are_scipy_stats():
+    """The χ² quantile, cdf and median the robust tests use (scipy.special, no scipy.stats import)
+    equal scipy.stats.chi2 over the degrees of freedom and levels in use (1–18 rows per group,
+    Bonferroni levels down to 1e-9)."""
+    from estcal.estimate.robust import chi2_cdf, chi2_median, chi2_ppf
+
+    d = np.array([1, 2, 3, 6, 12, 18, 2.5])
+    for p in (1e-9, 0.05, 0.5, 0.9, 1 - 1e-9):
+        np.testing.assert_allclose(chi2_ppf(p, d), stats.chi2.ppf(p, d), rtol=1e-12)
+    np.testing.assert_allclose(chi2_median(d), stats.chi2.median(d), rtol=1e-12)
+    x = np.linspace(0.01, 40, 9)
+    np.testing.assert_allclose(chi2_cdf(x[:, None], d), stats.chi2.cdf(x[:, None], d), rtol=1e-12)

@@ -54,31 +54,36 @@ def single_thread_blas(enabled: bool = True):
     The calibration matrices are tall and thin (M × p with p ≲ 100): OpenBLAS's
     threads give no speed-up on them and, on a busy machine, their spin-waiting
     made a 50-pose PUMA fit ~10× slower (measured in ``benchmarks/bench_calibration.py``).
-    Uses ``threadpoolctl`` when installed, otherwise the OpenBLAS setters of the
-    numpy/scipy wheels through ctypes; a no-op when neither is available.
+    Uses the OpenBLAS setters of the numpy/scipy wheels through ctypes (found once, ~1 µs a
+    call), else ``threadpoolctl`` when installed (it scans the loaded libraries at every call:
+    ~1.7 ms, more than a small fit's linear algebra); a no-op when neither is available or
+    BLAS already runs one thread (``estcal`` commands: :mod:`estcal.cli.main`).
     """
     if not enabled:
         yield
         return
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        threadpool_limits = None
-    if threadpool_limits is not None:
+    pairs = _blas_thread_setters()
+    if not pairs:
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:
+            yield
+            return
         with threadpool_limits(1, user_api="blas"):
             yield
         return
-    pairs = _blas_thread_setters()
     old = []
     for get, set_ in pairs:
         try:
-            old.append(int(get()))
-            set_(1)
+            n = int(get())
+            if n != 1:
+                set_(1)
+            old.append(n)
         except Exception:  # pragma: no cover - exotic BLAS builds
             old.append(None)
     try:
         yield
     finally:
         for (get, set_), n in zip(pairs, old):
-            if n is not None:
+            if n is not None and n != 1:
                 set_(n)

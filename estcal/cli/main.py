@@ -52,6 +52,23 @@ def _usage_error(exc) -> int:
     return exc.exit_code
 
 
+#: environment variables that choose the number of BLAS threads; when the user sets none of them
+#: the command runs BLAS single-threaded (see :func:`single_threaded_blas_by_default`)
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_blas_by_default(environ) -> None:
+    """One BLAS thread unless the user chose a number (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``
+    or ``MKL_NUM_THREADS`` set). A command's matrices are tall and thin (rows × ≲ 100 parameters,
+    GP kernels of a few hundred rows): OpenBLAS's threads bring no speed-up on them, and on a busy
+    machine their spin-waiting cost a 50-pose ``estcal calibrate`` up to 1.3 s of CPU on top of 0.9 s
+    (docs/benchmarks.md, "Everyday commands"). Set before numpy is first imported, so it holds for
+    the whole process and the worker processes it starts."""
+    if not any(environ.get(v) for v in BLAS_THREAD_VARIABLES):
+        environ["OPENBLAS_NUM_THREADS"] = "1"
+        environ["MKL_NUM_THREADS"] = "1"
+
+
 def main() -> None:  # pragma: no cover - thin entry point (tested through a subprocess)
     """Run the CLI; an unexpected exception becomes a one-line message and exit code 1
     (``ESTCAL_DEBUG=1`` shows the traceback). Expected problems exit with 2 or 3 before
@@ -59,6 +76,7 @@ def main() -> None:  # pragma: no cover - thin entry point (tested through a sub
     import os
     import sys
 
+    single_threaded_blas_by_default(os.environ)
     from typer._click import exceptions as click_exceptions
 
     try:

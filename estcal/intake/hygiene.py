@@ -52,6 +52,8 @@ from itertools import permutations
 
 import numpy as np
 
+from estcal.estimate.robust import chi2_median, chi2_ppf
+
 __all__ = ["Finding", "CheckReport", "check_data", "studentised_outliers", "DEFECTS", "KINDS"]
 
 KINDS = ("marker_swap", "non_rigid", "outlier", "out_of_limits", "repeated_pose", "duplicate_row", "unused_column")
@@ -272,7 +274,7 @@ def _matched_chi2(q, d_max: float):
     """``(d, c)`` with ``q ≈ c·χ²_d``: ``d`` from the ratio of the 90 % and 50 % quantiles of ``q``
     (a ratio that depends on ``d`` only, and that up to 10 % of outliers cannot move), ``c`` from
     the median."""
-    from scipy import optimize, stats
+    from scipy import optimize
 
     lo, hi = np.quantile(q, [QUANTILES[0], QUANTILES[1]])
     if not lo > 0:
@@ -280,7 +282,7 @@ def _matched_chi2(q, d_max: float):
     target = hi / lo
 
     def ratio(d):
-        return stats.chi2.ppf(QUANTILES[1], d) / stats.chi2.ppf(QUANTILES[0], d) - target
+        return chi2_ppf(QUANTILES[1], d) / chi2_ppf(QUANTILES[0], d) - target
 
     if ratio(d_max) >= 0:  # lighter tails than χ²_m: the nominal dof
         d = d_max
@@ -288,14 +290,12 @@ def _matched_chi2(q, d_max: float):
         d = D_MIN
     else:
         d = float(optimize.brentq(ratio, D_MIN, d_max))
-    return d, float(lo / stats.chi2.ppf(QUANTILES[0], d))
+    return d, float(lo / chi2_ppf(QUANTILES[0], d))
 
 
 def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALPHA, max_iter: int = 20):
     """``(flag, F, d)``: poses beyond the Bonferroni limit of the studentised residual test (module
     docstring), their statistics ``F = q/c`` (≈ χ²_d for clean poses) and the matched dof ``d``."""
-    from scipy import stats
-
     rows = problem.evaluate(theta)
     fi = problem.params.indices(list(names))
     J = rows.H[:, fi] / rows.sigma[:, None]
@@ -327,7 +327,7 @@ def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALP
             break
         d, scale = _matched_chi2(qk, float(dims.max()))
         F = q / scale
-        new = F > stats.chi2.ppf(1 - alpha / N, d)
+        new = F > chi2_ppf(1 - alpha / N, d)
         if np.array_equal(new, flag):
             break
         flag = new
@@ -335,14 +335,12 @@ def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALP
 
 
 def _outliers(robot, ds, skip, level, alpha) -> tuple[list, dict]:
-    from scipy import stats
-
     keep = np.setdiff1d(np.arange(ds.n), skip)
     sub = ds.subset(keep)
     res, prob, lev = _robust_fit(robot, sub, level)
     flag, F, d = studentised_outliers(prob, res.theta, res.names, sub.n, alpha)
-    med = stats.chi2.median(d)
-    limit = float(np.sqrt(stats.chi2.ppf(1 - alpha / sub.n, d) / med))
+    med = chi2_median(d)
+    limit = float(np.sqrt(chi2_ppf(1 - alpha / sub.n, d) / med))
     out = []
     for i in np.flatnonzero(flag):
         ratio = float(np.sqrt(F[i] / med))
