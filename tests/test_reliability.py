@@ -112,3 +112,57 @@ def test_implausible_move_is_named(files):
     assert line and "a_2 (" in line[0], r.output
     r = _cal(files["good"])
     assert "moved more than" not in r.output
+
+
+def test_few_distinct_postures_refused_before_any_qr_of_the_data(files, tmp_path, monkeypatch):
+    """5 distinct pose measurements (30 equations) repeated 400 times cannot identify the 30 parameters
+    generic poses identify at the full level: refused from the generic count, before the registration
+    and the selection's QR of the 2,000 rows; with --allow-ill-conditioned the later checks decide."""
+    import estcal.estimate.registration as registration
+    import estcal.workflows.calibrate as workflow
+
+    rb = get_builtin("puma560")
+    q = rb.random_readings(5, np.random.default_rng(6))
+    path = _write(tmp_path / "five.csv", np.tile(q, (400, 1)))
+
+    def untouched(*a, **k):
+        raise AssertionError("the data were registered or factored before the refusal")
+
+    monkeypatch.setattr(workflow, "select_free", untouched)
+    monkeypatch.setattr(registration, "kabsch", untouched)
+    r = _cal(path)
+    assert r.exit_code == 3, r.output
+    assert "only 5 distinct joint configuration(s) among 2000 poses" in r.output
+    assert "at most 30 independent equations" in r.output and "identifies 30 parameters" in r.output
+
+
+def test_generic_identifiable_set_is_computed_once_per_robot_structure(monkeypatch):
+    """The structural reference is cached by the content of the robot and the measurement: a second
+    dataset of the same robot (another registration, within the rounding) reuses it; a robot whose
+    geometry differs, or another level, does not."""
+    import estcal.estimate.checks as checks
+    from estcal.methods import NoiseModel, Problem
+
+    calls = []
+    real = checks.select_free
+    monkeypatch.setattr(checks, "select_free", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(checks, "_GENERIC_CACHE", {})
+    rb = get_builtin("puma560")
+
+    def problem(robot, seed):
+        ds = simulate(robot, n_poses=20, measure="pose", noise=NOISE, seed=seed).dataset
+        return Problem(robot, [(None, ds, NoiseModel(**NOISE))])
+
+    p1, p2 = problem(rb, 1), problem(rb, 2)
+    th2 = p2.params.values.copy()
+    th2[p2.params.index("base_tx")] += 2e-4  # a registration 0.2 mm away rounds to the same point
+    a = checks.generic_identifiable(p1, "full", p1.params.values)
+    b = checks.generic_identifiable(p2, "full", th2)
+    assert len(calls) == 1 and b is a and len(a.identifiable) == 30
+    checks.generic_identifiable(p1, "joint_offset", p1.params.values)
+    assert len(calls) == 2
+    th = rb.params.values.copy()
+    th[rb.params.index("d_4")] += 0.01
+    other = rb.with_values(th)
+    checks.generic_identifiable(problem(other, 1), "full", th)
+    assert len(calls) == 3

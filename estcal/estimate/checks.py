@@ -52,7 +52,8 @@ from estcal.methods.reduced import chi2_and_rows, reduce_system, use_chunks, wei
 from .levels import select_free
 
 __all__ = ["Assessment", "COND_MAX", "NOMINAL_SCALE", "SHIFT_MULTIPLE", "precheck",
-           "postcheck", "distinct_poses", "refuse_repeated_early", "generic_identifiable", "scaled_condition"]
+           "postcheck", "distinct_poses", "refuse_repeated_early", "generic_identifiable", "structure_key",
+           "scaled_condition"]
 
 #: refusal threshold on the condition number of the column-scaled weighted observation matrix
 COND_MAX = 1e4
@@ -95,11 +96,19 @@ def distinct_poses(readings, decimals: int = 12) -> tuple[int, np.ndarray]:
     return int(first.size), first[inv.reshape(-1)]
 
 
-def refuse_repeated_early(data) -> None:
-    """The cheap refusal made before any registration, selection or QR: data whose distinct joint
-    configurations cannot fix even the base frame (fewer than 3, or fewer rows than its 6
-    parameters). ``np.unique`` on the readings: ~1 s for 10⁶ rows, where the QR of the full
-    check would take minutes. Raises :class:`NumericalRefusal` naming the repeated lines."""
+def refuse_repeated_early(data, problem=None, level: str = "full") -> None:
+    """The cheap refusals made before any registration, selection or QR of the data.
+
+    * data whose distinct joint configurations cannot fix even the base frame (fewer than 3, or
+      fewer rows than its 6 parameters);
+    * with ``problem`` (the default free set of ``level``, refusals not turned into warnings): repeated
+      rows whose distinct configurations carry no more equations than the parameters the same
+      measurement identifies on generic poses (:func:`generic_identifiable`, cached per robot
+      structure) — the later checks would refuse them (no degrees of freedom, repeated poses or
+      rank loss), after a QR of every row.
+
+    ``np.unique`` on the readings: ~1 s for 10⁶ rows, where the QR of the full check would take
+    minutes. Raises :class:`NumericalRefusal` naming the repeated lines."""
     if data.kind == "none" or data.n == 0:
         return
     R = np.ascontiguousarray(data.readings, float) + 0.0  # + 0.0: -0.0 and 0.0 are one value
@@ -107,13 +116,23 @@ def refuse_repeated_early(data) -> None:
     _, first_idx, inv = np.unique(keys, return_index=True, return_inverse=True)  # bit-identical rows
     n_distinct, first = int(first_idx.size), first_idx[inv.reshape(-1)]
     per_pose = 6 if data.kind == "pose" else 3 * max(data.n_points, 1)
-    if n_distinct >= 3 and n_distinct * per_pose > 6:
-        return
     rep = np.flatnonzero(first != np.arange(data.n))
-    raise NumericalRefusal(
-        f"{data.where}: only {n_distinct} distinct joint configuration(s) among {data.n} poses (repeated lines "
-        f"{_lines(data, rep)}): a fit needs at least 3 distinct poses to place the base frame "
-        f"— refused before any estimation; measure distinct poses (estcal design proposes them)")
+    if n_distinct < 3 or n_distinct * per_pose <= 6:
+        raise NumericalRefusal(
+            f"{data.where}: only {n_distinct} distinct joint configuration(s) among {data.n} poses (repeated lines "
+            f"{_lines(data, rep)}): a fit needs at least 3 distinct poses to place the base frame "
+            f"— refused before any estimation; measure distinct poses (estcal design proposes them)")
+    if problem is None or not rep.size or data.kind not in ("position", "points", "pose"):
+        return  # without repeated rows there are at most a few poses here: the full checks are cheap
+    gen = generic_identifiable(problem, level, problem.params.values)
+    need = len(gen.identifiable) if gen is not None else 0
+    if n_distinct * per_pose <= need:
+        raise NumericalRefusal(
+            f"{data.where}: only {n_distinct} distinct joint configuration(s) among {data.n} poses (repeated lines "
+            f"{_lines(data, rep)}) carry at most {n_distinct * per_pose} independent equations, where the {level} "
+            f"level identifies {need} parameters on generic poses — refused before any estimation; measure at least "
+            f"{need // per_pose + 1} distinct poses (estcal design proposes them), or estimate fewer parameters "
+            f"(--level joint_offset, --free …)")
 
 
 def scaled_condition(A) -> float:
@@ -127,14 +146,19 @@ def scaled_condition(A) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-GENERIC_POSES_MAX = 5000
+#: generic poses: twice the equations the candidate parameters need, at least this many poses
+GENERIC_ROWS_PER_PARAMETER = 2
+GENERIC_POSES_MIN = 8
+#: registration values (base, markers, tool, method unknowns) are rounded to this before the generic
+#: check (m, rad): the structural rank is constant on open sets of them, and rounding lets every fold,
+#: session or dataset of one robot share one computation
+REGISTRATION_ROUNDING = 1e-3
+_GENERIC_CACHE: dict = {}
+_GENERIC_CACHE_MAX = 64
 
 
-def _generic_dataset(robot, data, theta, n_min: int, seed: int = 0):
-    """Same kind of data on uniform random poses, measured exactly at ``theta``."""
-    # as many poses as the data, capped: a few thousand uniform random poses identify whatever
-    # this kind of measurement can identify, and the reference must not cost memory on 10⁶-pose data
-    n = max(min(int(data.n), GENERIC_POSES_MAX), n_min)
+def _generic_dataset(robot, data, theta, n: int, seed: int = 0):
+    """Same kind of data on ``n`` uniform random poses, measured exactly at ``theta``."""
     rng = np.random.default_rng(seed)
     q = robot.random_readings(n, rng)
     ctx = {k: np.asarray(v)[np.arange(n) % data.n] for k, v in data.context.items()}
@@ -147,9 +171,52 @@ def _generic_dataset(robot, data, theta, n_min: int, seed: int = 0):
     return dataset_from_arrays(data.joint_names, q, points=pts, context=ctx)
 
 
+def _elements(elems) -> list:
+    return [(e.kind, e.axis, e.param) for e in elems]
+
+
+def structure_key(problem, theta, n: int, extra=()) -> str:
+    """sha256 of what decides the generic identifiable set of ``problem`` at ``theta``: the robot's
+    chain (links, constant frames, motions, joint types and limits, couplings, masses, effects),
+    its parameter names and kinds, the linearisation point, the measurement (method, kind, points,
+    joints, the context of the ``n`` generic poses) and ``extra`` (the selection's arguments)."""
+    import hashlib
+
+    robot, t = problem.robot, problem.terms[0]
+    h = hashlib.sha256()
+
+    def put(*xs):
+        for x in xs:
+            h.update(np.ascontiguousarray(x).tobytes() if isinstance(x, np.ndarray) else repr(x).encode())
+            h.update(b"|")
+
+    pv = problem.params
+    put(type(robot).__name__, tuple(pv.names), tuple(pv.kinds), np.asarray(theta, float), n, extra)
+    for attr in ("joint_types", "limits", "offset_idx", "gain_idx", "marker_idx", "gravity", "payload_mass",
+                 "payload_com", "coupling", "convention"):
+        v = getattr(robot, attr, None)
+        put(np.asarray(v) if isinstance(v, np.ndarray) else v)
+    for ln in getattr(robot, "links", ()):
+        put(ln.label, np.asarray(ln.const, float), _elements(ln.before), ln.joint, ln.joint_kind,
+            np.asarray(ln.joint_axis, float), ln.joint_param, _elements(ln.after), float(ln.mass),
+            np.asarray(ln.com, float))
+    for e in getattr(robot, "effects", ()):
+        put(type(e).__qualname__, sorted((k, v.tolist() if isinstance(v, np.ndarray) else v)
+                                         for k, v in vars(e).items() if not callable(v)))
+    put(getattr(t.method, "name", None), t.data.kind, t.data.n_points, tuple(t.data.joint_names))
+    for k in sorted(t.data.context):
+        put(k, np.asarray(t.data.context[k])[np.arange(n) % t.data.n])
+    return h.hexdigest()
+
+
 def generic_identifiable(problem, level, theta, exclude=(), groups=None):
     """The selection the same method makes on generic poses (see module docstring), or None when
-    the data are not direct measurements (links, planes: their analysis is ``estcal identifiable``)."""
+    the data are not direct measurements (links, planes: their analysis is ``estcal identifiable``).
+
+    Structural identifiability belongs to the robot and the measurement, not to the data: it is
+    computed once per content (:func:`structure_key`; an in-process cache) on as few uniform random
+    poses as give twice the equations the candidates need (at least :data:`GENERIC_POSES_MIN`), at
+    ``theta`` with its registration values rounded to :data:`REGISTRATION_ROUNDING`."""
     if len(problem.terms) != 1:
         return None
     t = problem.terms[0]
@@ -158,14 +225,25 @@ def generic_identifiable(problem, level, theta, exclude=(), groups=None):
     one = Problem.__new__(Problem)  # one pose tells the rows per pose (no pass over large data)
     one.robot, one.terms = problem.robot, [type(t)(t.method, t.data.subset([0]), t.noise)]
     rows_per_pose = max(1, len(one.evaluate(theta, jacobian=False).e))
-    n_min = max(60, int(np.ceil(3 * len(problem.params.names) / rows_per_pose)))
+    pv = problem.params
+    n = max(GENERIC_POSES_MIN, int(np.ceil(GENERIC_ROWS_PER_PARAMETER * len(pv.names) / rows_per_pose)))
+    th = np.asarray(theta, float).copy()
+    reg = np.array([k in _EXEMPT_KINDS or k == "tool" for k in pv.kinds])
+    th[reg] = np.round(th[reg] / REGISTRATION_ROUNDING) * REGISTRATION_ROUNDING
+    key = structure_key(problem, th, n, (level, None if groups is None else [list(g) for g in groups],
+                                         sorted(exclude)))
+    if key in _GENERIC_CACHE:
+        return _GENERIC_CACHE[key]
     try:
-        gen = Problem(problem.robot, [(t.method, _generic_dataset(problem.robot, t.data, theta, n_min), t.noise)],
-                      t.noise)
-        return select_free(gen, level, "structural", theta=theta, refine_registration=False, exclude=exclude,
-                           groups=groups)
+        gen = Problem(problem.robot, [(t.method, _generic_dataset(problem.robot, t.data, th, n), t.noise)], t.noise)
+        out = select_free(gen, level, "structural", theta=th, refine_registration=False, exclude=exclude,
+                          groups=groups)
     except (ValueError, np.linalg.LinAlgError, AttributeError, IndexError):
-        return None
+        out = None
+    if len(_GENERIC_CACHE) >= _GENERIC_CACHE_MAX:
+        _GENERIC_CACHE.pop(next(iter(_GENERIC_CACHE)))
+    _GENERIC_CACHE[key] = out
+    return out
 
 
 def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bool = False,

@@ -83,7 +83,7 @@ class Selection:
     def regroup_label(self, name: str) -> str:
         """``name`` followed by the dropped parameters it absorbs (readable regrouping)."""
         terms = [(d, b) for d, rel in self.regrouped.items() for k, b in rel.items() if k == name]
-        terms.sort(key=lambda t: -abs(t[1]))
+        terms.sort(key=lambda t: -float(f"{abs(t[1]):.9g}"))  # ties to 9 digits: the scan order, not round-off
         parts = [f"{b:+.3g}·{d}" for d, b in terms]
         if not parts:
             return name
@@ -153,9 +153,11 @@ def _scan(W, names, order, tol, zero_tol, accept) -> Selection:
     kept, norms = scan.kept, scan.norms
     regrouped = {}
     if kept and scan.dependent:
-        Ak = W[:, kept] / norms[kept]
-        for j in scan.dependent:
-            beta, *_ = np.linalg.lstsq(Ak, W[:, j] / norms[j], rcond=None)
+        dep = list(scan.dependent)
+        # every dependent column at once: one least-squares solve with as many right-hand sides
+        betas, *_ = np.linalg.lstsq(W[:, kept] / norms[kept], W[:, dep] / norms[dep], rcond=None)
+        for i, j in enumerate(dep):
+            beta = betas[:, i]
             coef = beta * norms[j] / norms[kept]  # unscaled: w_j = Σ coef_k w_k
             regrouped[names[j]] = {names[kept[m]]: float(c) for m, c in enumerate(coef) if abs(beta[m]) > 1e-6}
     cond = float("nan")

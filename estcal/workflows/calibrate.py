@@ -146,11 +146,10 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     rob, n_markers = robot_for_data(robot, sessions[0], points, root, tip, column_map)
     parts = load_datasets(sessions, rob, n_markers, column_map)
     if checks:
-        from estcal.estimate.checks import refuse_repeated_early
         from estcal.workflows.check import screen
 
-        for part in parts:  # the cheap refusal before the screening's robust fit
-            refuse_repeated_early(part)
+        for part in parts:  # the cheap refusals before the screening's robust fit
+            refuse_early(rob, part, measure, free, level, allow_ill_conditioned)
         parts = screen(parts, rob, drop_flagged)
     vals = load_datasets(validate, rob, n_markers, column_map)
     check_held_out(parts, [], "session")
@@ -324,9 +323,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
 
     noise = noise or NoiseModel()
     if checks:  # before the registration and the QR of the selection: cheap refusals first
-        from estcal.estimate.checks import refuse_repeated_early
-
-        refuse_repeated_early(data)
+        refuse_early(robot, data, measure, free, level, allow_ill_conditioned, noise)
     method = get_method(measure) if measure else None
     problem = Problem(robot, [(method, data, noise)], noise)
     pv = problem.params
@@ -394,6 +391,23 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
     res.inputs = tuple(p for p in [getattr(data, "path", None), *(getattr(v, "path", None) for v in validate),
                                    robot.meta.get("robot_file"), robot.meta.get("urdf")] if p)
     return res, sel, problem
+
+
+def refuse_early(robot, data, measure=None, free=None, level=None, allow_ill_conditioned=False, noise=None):
+    """The refusals made before any registration, screening or QR of ``data``
+    (:func:`estcal.estimate.checks.refuse_repeated_early`): identical rows always; too few distinct
+    postures for the parameters generic poses identify when the default free set is fitted and a
+    rank loss would be refused (not with ``free`` or ``allow_ill_conditioned``)."""
+    from estcal.estimate.checks import refuse_repeated_early
+    from estcal.methods import NoiseModel, Problem, get_method
+
+    problem = None
+    if not free and not allow_ill_conditioned:
+        noise = noise or NoiseModel()
+        problem = Problem(robot, [(get_method(measure) if measure else None, data, noise)], noise)
+        if problem.terms[0].method.name not in _DIRECT:
+            problem = None
+    refuse_repeated_early(data, problem, level or "full")
 
 
 def _prior(start, free, estimator, regularize, options) -> object:
