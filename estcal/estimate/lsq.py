@@ -42,26 +42,38 @@ __all__ = ["calibrate_lsq", "LSQ_METHODS", "calibrate_irls"]
 LSQ_METHODS = ("lm", "gauss-newton", "iterated-lls", "scipy-lm")
 
 
-def _solve(A, b, mu=0.0):
+def _factor(A, b):
+    """``(s, R, c)``: the column norms ``s`` of ``A`` and the QR factorisation ``A/s = QR``, ``c = Qᵀb``.
+
+    One factorisation per iteration serves the Gauss–Newton step, every damped step Marquardt's
+    rule tries (:func:`_solve`), the stopping test (``‖c‖²`` is the cost decrease the Gauss–Newton
+    step predicts) and the covariance at the solution."""
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    Q, R = np.linalg.qr(A / s)
+    return s, R, Q.T @ b
+
+
+def _solve(A, b, mu=0.0, fac=None):
     """Column-scaled (damped) least-squares step.
 
     Solves ``min ‖As x − b‖² + μ‖x‖²`` with ``As = A diag(1/s)``, ``s`` the column
-    norms, through a QR factorisation of the (augmented) scaled matrix — the same
-    solution as an SVD-based ``lstsq`` for a full-rank system (identifiability is
-    checked before the loop), at a fraction of the cost.
+    norms, through the QR factorisation ``As = QR`` (``fac`` from :func:`_factor`, computed when not
+    given): ``‖As x − b‖² = ‖R x − Qᵀb‖² + const``, so the damped step is the least-squares solution
+    of the small system ``[R; √μ I] x = [Qᵀb; 0]`` — the same solution as an SVD-based ``lstsq`` of
+    the (augmented) full system for a full-rank system (identifiability is checked before the loop),
+    at a fraction of the cost.
     """
-    s = np.linalg.norm(A, axis=0)
-    s[s == 0] = 1.0
-    As = A / s
+    s, R, c = _factor(A, b) if fac is None else fac
+    p = R.shape[1]
     if mu > 0:
-        As = np.vstack([As, np.sqrt(mu) * np.eye(A.shape[1])])
-        b = np.concatenate([b, np.zeros(A.shape[1])])
-    Q, R = np.linalg.qr(As)
+        Qm, R = np.linalg.qr(np.vstack([R, np.sqrt(mu) * np.eye(p)]))
+        c = Qm.T @ np.concatenate([c, np.zeros(p)])
     d = np.abs(np.diag(R))
     if d.min() <= 1e-13 * d.max():  # (numerically) rank deficient: fall back to the minimum-norm step
-        x, *_ = np.linalg.lstsq(As, b, rcond=None)
+        x, *_ = np.linalg.lstsq(R, c, rcond=None)
     else:
-        x = sla.solve_triangular(R, Q.T @ b, check_finite=False)
+        x = sla.solve_triangular(R, c, check_finite=False)
     return x / s
 
 
@@ -135,11 +147,10 @@ def prior_arrays(names, prior_std, prior_mean, start) -> tuple[np.ndarray, np.nd
     return 1.0 / tau, mu
 
 
-def _covariance(A) -> np.ndarray:
-    """Σ = (AᵀA)⁻¹ via the QR factor of the column-scaled A (stable for poorly scaled columns)."""
-    s = np.linalg.norm(A, axis=0)
-    s[s == 0] = 1.0
-    _, R = np.linalg.qr(A / s)
+def _covariance(A, fac=None) -> np.ndarray:
+    """Σ = (AᵀA)⁻¹ via the QR factor of the column-scaled A (stable for poorly scaled columns);
+    ``fac``: the factorisation of A by :func:`_factor` when the last iteration made it."""
+    s, R, _ = _factor(A, np.zeros(A.shape[0])) if fac is None else fac
     Rinv = sla.solve_triangular(R, np.eye(R.shape[0]))
     return (Rinv @ Rinv.T) / np.outer(s, s)
 
@@ -205,10 +216,11 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     if method == "scipy-lm":
         theta, it, converged = _scipy_lm(problem, sysp, theta, max_iter, tol)
         A, b, cost, n_data, rss = sysp.linear(theta)
+        fac = None
     else:
-        theta, it, converged, (A, b, n_data, rss) = _iterate(sysp, theta, (A, b, cost, n_data, rss), method,
-                                                             max_iter, tol, verbose)
-    res = _lsq_result(problem, sysp, method, names, nominal, theta, A, n_data, rss, it, converged, validation)
+        theta, it, converged, (A, b, n_data, rss), fac = _iterate(sysp, theta, (A, b, cost, n_data, rss), method,
+                                                                  max_iter, tol, verbose, noise_known(problem))
+    res = _lsq_result(problem, sysp, method, names, nominal, theta, A, n_data, rss, it, converged, validation, fac)
     res.extra["time_s"] = time.perf_counter() - t0
     if chunk is not None:
         res.extra["chunk_poses"] = int(chunk)
@@ -245,20 +257,37 @@ def _scipy_lm(problem, sysp: _Penalised, theta, max_iter, tol):
     return theta, int(sol.njev or sol.nfev), bool(sol.success)
 
 
-def _iterate(sysp: _Penalised, theta, linear, method, max_iter, tol, verbose):
-    """``(θ, iterations, converged, (A, b, data rows, data χ²))`` of LM, Gauss–Newton with a
-    backtracking line search, or iterated linear least squares (module docstring)."""
+#: stop when the Gauss–Newton step left at the current estimate is shorter than this fraction of a
+#: standard deviation (its Mahalanobis length under the covariance the fit reports): no figure the
+#: fit reports would change, and the test needs no further pass over the data
+STEP_LEFT_SIGMA = 1e-6
+
+
+def _iterate(sysp: _Penalised, theta, linear, method, max_iter, tol, verbose, known=True):
+    """``(θ, iterations, converged, (A, b, data rows, data χ²), factorisation of A or None)`` of LM,
+    Gauss–Newton with a backtracking line search, or iterated linear least squares (module docstring).
+
+    Stops when the step left at the current point, ``‖Qᵀb‖`` in standard deviations (σ0-scaled when
+    the noise is estimated), is below :data:`STEP_LEFT_SIGMA` — checked before a step, so the last
+    iteration is not spent confirming a negligible one — or, as before, when the relative step or
+    the relative change of the cost falls below ``tol``."""
     fidx = sysp.fidx
     A, b, cost, n_data, rss = linear
-    converged, it, mu = False, 0, 1e-2
+    converged, it, mu, fac = False, 0, 1e-2, None
     with progress(total=max_iter, desc=f"calibrate ({method}, {fidx.size} parameters)", unit="iter") as bar:
         for it in range(1, max_iter + 1):
+            fac = _factor(A, b)
+            s0 = 1.0 if known else rss / max(sysp.m - fidx.size, 1)
+            if float(fac[2] @ fac[2]) <= STEP_LEFT_SIGMA ** 2 * s0:
+                converged, it = True, it - 1
+                break
             if method == "lm":
-                trial, dx, mu = _lm_step(sysp, theta, A, b, cost, mu)
+                trial, dx, mu = _lm_step(sysp, theta, A, b, cost, mu, fac)
             else:
-                trial, dx = _gauss_newton_step(sysp, theta, A, b, cost, line_search=method == "gauss-newton")
+                trial, dx = _gauss_newton_step(sysp, theta, A, b, cost, method == "gauss-newton", fac)
             theta = trial
             A, b, new_cost, n_data, rss = sysp.linear(theta)
+            fac = None
             scale = np.maximum(np.abs(theta[fidx]), 1e-3)
             small_step = np.max(np.abs(dx) / scale) < np.sqrt(tol)
             small_cost = abs(cost - new_cost) <= tol * max(cost, 1e-300)
@@ -270,13 +299,15 @@ def _iterate(sysp: _Penalised, theta, linear, method, max_iter, tol, verbose):
             if small_step or small_cost:
                 converged = True
                 break
-    return theta, it, converged, (A, b, n_data, rss)
+    return theta, it, converged, (A, b, n_data, rss), fac
 
 
-def _lm_step(sysp: _Penalised, theta, A, b, cost, mu, nu: float = 10.0):
-    """Marquardt's rule: damping μ multiplied by ν until the cost falls, then divided by ν."""
+def _lm_step(sysp: _Penalised, theta, A, b, cost, mu, fac=None, nu: float = 10.0):
+    """Marquardt's rule: damping μ multiplied by ν until the cost falls, then divided by ν (every
+    damped step from the one factorisation ``fac`` of the iteration)."""
+    fac = _factor(A, b) if fac is None else fac
     while True:
-        dx = _solve(A, b, mu)
+        dx = _solve(A, b, mu, fac)
         trial = theta.copy()
         trial[sysp.fidx] += dx
         if sysp.cost(trial, jacobian=True) <= cost or mu > 1e12:
@@ -285,9 +316,9 @@ def _lm_step(sysp: _Penalised, theta, A, b, cost, mu, nu: float = 10.0):
     return trial, dx, max(mu / nu, 1e-12)
 
 
-def _gauss_newton_step(sysp: _Penalised, theta, A, b, cost, line_search: bool):
+def _gauss_newton_step(sysp: _Penalised, theta, A, b, cost, line_search: bool, fac=None):
     """The full Gauss–Newton step; with ``line_search`` halved until the cost falls (down to 1e-6)."""
-    dx = _solve(A, b)
+    dx = _solve(A, b, 0.0, fac)
     step = 1.0
     trial = theta.copy()
     trial[sysp.fidx] += dx
@@ -301,13 +332,13 @@ def _gauss_newton_step(sysp: _Penalised, theta, A, b, cost, line_search: bool):
 
 
 def _lsq_result(problem, sysp: _Penalised, method, names, nominal, theta, A, n_data, rss, it, converged,
-                validation) -> CalibrationResult:
+                validation, fac=None) -> CalibrationResult:
     """The result at the solution: ``Σ = (AᵀA)⁻¹``, scaled by σ0² when the noise is not known (with a
     prior, over the effective number of parameters ``tr(Σ HᵀWH)``)."""
     fidx, pk = sysp.fidx, sysp.pk
     chi2 = float(rss)  # the data part (the prior rows are not measurements)
     dof = int(sysp.m - fidx.size)
-    cov = _covariance(A)
+    cov = _covariance(A, fac)
     p_eff, dof_eff = float(fidx.size), dof
     if pk.size:  # effective number of parameters tr(Σ HᵀWH) of the regularised fit
         Ad = A[:n_data]

@@ -632,32 +632,35 @@ class SerialRobot:
         hit = cache[1].get(ck)
         if hit is not None and hit[0] is const and hit[1] is elems:
             return hit[2]
-        LR = np.eye(3) if const is None else const[:3, :3].copy()
-        Lp = np.zeros(3) if const is None else const[:3, 3].copy()
         if not elems:
-            out = (LR, Lp, None, None, None)
+            out = (np.eye(3) if const is None else const[:3, :3].copy(),
+                   np.zeros(3) if const is None else const[:3, 3].copy(), None, None, None)
         else:
-            m = len(elems)
-            A = np.empty((m, 3))
-            Oloc = np.empty((m, 3))
-            rot = np.empty(m, bool)
-            for i, e in enumerate(elems):
+            # Python floats, not 3-vectors: the same operations in the same order (bit-identical),
+            # without a numpy call per component (most of a small robot's kinematics on few poses)
+            c0 = np.eye(3) if const is None else const[:3, :3]
+            cols = [c0[:, 0].tolist(), c0[:, 1].tolist(), c0[:, 2].tolist()]
+            lp = [0.0, 0.0, 0.0] if const is None else const[:3, 3].tolist()
+            A, Oloc, rot = [], [], []
+            for e in elems:
                 ai = "xyz".index(e.axis)
-                A[i] = LR[:, ai]
-                Oloc[i] = Lp
-                rot[i] = e.kind == "R"
+                A.append(cols[ai])
+                Oloc.append(lp)
                 v = float(theta[e.param])
                 if e.kind == "R":
+                    rot.append(True)
                     # scalar rotation: right-multiplying by Rot(axis, v) mixes the two other columns
                     c, s_ = math.cos(v), math.sin(v)
                     i1, i2 = _OTHER[ai]
-                    a1, a2 = LR[:, i1].copy(), LR[:, i2]
-                    LR = LR.copy()
-                    LR[:, i1] = c * a1 + s_ * a2
-                    LR[:, i2] = c * a2 - s_ * a1
+                    a1, a2 = cols[i1], cols[i2]
+                    cols = list(cols)
+                    cols[i1] = [c * a1[k] + s_ * a2[k] for k in range(3)]
+                    cols[i2] = [c * a2[k] - s_ * a1[k] for k in range(3)]
                 else:
-                    Lp = Lp + LR[:, ai] * v
-            out = (LR, Lp, A, Oloc, rot)
+                    rot.append(False)
+                    a = cols[ai]
+                    lp = [lp[k] + a[k] * v for k in range(3)]
+            out = (np.array(cols).T.copy(), np.array(lp), np.array(A), np.array(Oloc), np.array(rot, bool))
         for a in out:
             if a is not None:
                 a.flags.writeable = False  # shared between calls
