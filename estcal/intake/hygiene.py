@@ -355,7 +355,8 @@ def _outliers(robot, ds, skip, level, alpha) -> tuple[list, dict]:
 
 # ----------------------------------------------------------------------------- columns
 def _unused(ds, robot) -> list:
-    from estcal.io.dataset import METHOD_COLUMNS, foreign_joint_columns
+    from estcal.io.columns import METHOD_COLUMNS
+    from estcal.io.dataset import foreign_joint_columns
 
     window = ("t_start_robot", "t_end_robot")
     read = {c for c in METHOD_COLUMNS if c not in window}  # read by the measurement methods

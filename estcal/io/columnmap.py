@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from estcal.base.errors import InputError
+from estcal.io.columns import CONTEXT_COLUMNS, NUMBERED, QUAT_COLUMNS, DatasetError, is_number
 
 __all__ = ["ColumnMap", "ColumnMapError", "load_column_map", "column_map_from_dict", "apply_column_map"]
 
 _TOP = ("joints", "points", "orientation", "units", "columns", "context")
 _LENGTH = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 _ANGLE = {"rad": 1.0, "deg": np.pi / 180.0}
-_CONTEXT = ("t", "temperature", "payload")
 
 
 class ColumnMapError(InputError):
@@ -176,7 +176,7 @@ def column_map_from_dict(d, path: str = "<column map>", lines: dict | None = Non
         raise ColumnMapError(f"{m.at('context')}: context maps t, temperature, payload, approach_<joint> to "
                              f"file columns, got {ctx!r}")
     for k in ctx:
-        if k not in _CONTEXT and not str(k).startswith("approach_"):
+        if k not in CONTEXT_COLUMNS and not str(k).startswith("approach_"):
             raise ColumnMapError(f"{m.at('context', k)}: unknown context {k!r} — use t (s), temperature (°C), "
                                  f"payload (kg) or approach_<joint>")
     m.context = {str(k): str(v) for k, v in ctx.items()}
@@ -187,8 +187,6 @@ def _floats(values, table, col: str, mapped: str, cmap: ColumnMap, key) -> np.nd
     """Column ``col`` of the file as numbers; a non-number is refused with the file line and the
     map line that uses the column."""
     out = np.empty(len(values))
-    from estcal.io.dataset import DatasetError
-
     for i, v in enumerate(values):
         v = v.strip()
         try:
@@ -206,15 +204,12 @@ def _floats(values, table, col: str, mapped: str, cmap: ColumnMap, key) -> np.nd
 def headerless(table, cmap: ColumnMap):
     """A :class:`~estcal.base.textinput.CsvTable` read with a header row, re-read as a file without one
     whose columns are named by ``columns:`` (the parsed header becomes the first data row)."""
-    from estcal.io.dataset import DatasetError
     from estcal.base.textinput import CsvTable
-
-    from estcal.io.dataset import _is_number
 
     first = [h.strip() for h in table.header]
     if first == cmap.columns:
         return table  # the file has the header columns: names (one map serves both kinds of file)
-    if not all(_is_number(h) for h in first if h):
+    if not all(is_number(h) for h in first if h):
         raise DatasetError(f"{table.where}, line {table.header_line}: the file has a header row "
                            f"({', '.join(first[:6])}{'…' if len(first) > 6 else ''}) that differs from columns: "
                            f"({cmap.at('columns')}) — remove columns: from the map or make it the file's header")
@@ -248,9 +243,7 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
         if col not in present:
             close = difflib.get_close_matches(col, [h for h in header if h], n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            from estcal.io.dataset import _is_number
-
-            if header and all(_is_number(h) for h in header if h):
+            if header and all(is_number(h) for h in header if h):
                 hint += (" — its first line holds numbers: the file has no header row; name its columns with "
                          "columns: [...] in the map")
                 raise ColumnMapError(f"{cmap.at(*key)}: column {col!r} is not in {where}{hint}")
@@ -306,22 +299,20 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
         from estcal.kinematics.transforms import matrix_to_quat, rpy_to_matrix
 
         q = matrix_to_quat(rpy_to_matrix(np.stack(rpy, axis=-1)))
-        for i, c in enumerate(("qw", "qx", "qy", "qz")):
+        for i, c in enumerate(QUAT_COLUMNS):
             out[c] = [repr(float(v)) for v in q[:, i]]
             renamed[c] = "/".join(cmap.rpy)
     elif cmap.quaternion is not None:
-        for c, fc in zip(("qw", "qx", "qy", "qz"), cmap.quaternion):
+        for c, fc in zip(QUAT_COLUMNS, cmap.quaternion):
             put(c, fc, 1.0, ("orientation", "quaternion"))
     for k, fc in cmap.context.items():
         put(k, fc, 1.0, ("context", k))
     used = set(cmap.file_columns()) | set(jmap.values())
-    from estcal.io.dataset import CONTEXT_COLUMNS, QUAT_COLUMNS, _NUMBERED
-
     measurement = {"x", "y", "z", *QUAT_COLUMNS}
     for h in header:
         if not h or h in used or h in out:
             continue
-        if (cmap.points or pose) and (h in measurement or _NUMBERED.match(h)):
+        if (cmap.points or pose) and (h in measurement or NUMBERED.match(h)):
             continue  # the map defines the measurement: a leftover x2,… would be read as another point
         if cmap.context and h in CONTEXT_COLUMNS:
             continue

@@ -29,24 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.base.errors import InputError
 from estcal.base.textinput import CsvTable, read_csv
+from estcal.io.columns import (CONTEXT_COLUMNS, METHOD_COLUMNS, NUMBERED, POSE_COLUMNS, QUAT_COLUMNS, DatasetError,
+                               is_number)
 
 __all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table",
            "shared_rows"]
 
-CONTEXT_COLUMNS = ("t", "temperature", "payload")
-QUAT_COLUMNS = ("qw", "qx", "qy", "qz")
-POSE_COLUMNS = ("x", "y", "z") + QUAT_COLUMNS
-# columns read by the measurement methods (docs/methods.md) and the TIAGo files' time window
-METHOD_COLUMNS = ("group", "pair", "distance", "plane_a", "plane_b", "plane_c", "t_start_robot", "t_end_robot")
-_NUMBERED = re.compile(r"^([xyz])(\d+)$")
 # allowance of the spread check for unknown marker offsets and calibration errors (m)
 SPREAD_SLACK_M = 0.2
-
-
-class DatasetError(InputError):
-    """A dataset problem; the message names the file, line and column."""
 
 
 @dataclass
@@ -374,18 +365,10 @@ def foreign_joint_columns(header, robot) -> list[str]:
             (h in urdf_joints or (re.search(r"\d", h) and re.sub(r"\d+", "#", h) in stems))]
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _known_columns(header: list[str], names: list[str]) -> set[str]:
     known = set(names) | set(POSE_COLUMNS) | set(CONTEXT_COLUMNS) | set(METHOD_COLUMNS)
     known |= {f"approach_{j}" for j in names}
-    known |= {h for h in header if _NUMBERED.match(h)}
+    known |= {h for h in header if NUMBERED.match(h)}
     return known
 
 
@@ -404,7 +387,7 @@ def _check_header(header: list[str], names: list[str], where: str, line: int) ->
         hint = _suggest_column(missing[0], header)
         if len(header) == 1 and (" " in header[0]):
             hint += " — the header has one column: separate the columns with ',', ';' or a tab"
-        elif header and all(_is_number(h) for h in header if h):
+        elif header and all(is_number(h) for h in header if h):
             hint += (" — the first line holds numbers, not column names: the file has no header row; name its "
                      "columns with a column map (columns: [...] in --map FILE.yaml, docs/dataset.md)")
         raise DatasetError(f"{where}: missing joint column(s) {missing}{hint}; the robot's joints are {names}; "
@@ -435,7 +418,7 @@ def _check_header(header: list[str], names: list[str], where: str, line: int) ->
         raise DatasetError(f"{at}: quaternion columns without x, y, z — a pose needs x,y,z,qw,qx,qy,qz")
     idx: dict[int, set] = {}
     for h in header:
-        m = _NUMBERED.match(h)
+        m = NUMBERED.match(h)
         if m:
             idx.setdefault(int(m.group(2)), set()).add(m.group(1))
     if idx:
