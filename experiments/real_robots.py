@@ -54,7 +54,6 @@ sys.path.insert(0, str(REPO))
 from estcal.discrepancy.budget import (error_budget, fit_stage_sessions, measured_points,  # noqa: E402
                                        predicted_points)
 from estcal.discrepancy.residual import fit_residual_model, residual_correction  # noqa: E402
-from estcal.discrepancy.stability import stable_causes  # noqa: E402
 from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
@@ -120,135 +119,117 @@ def _rmse(e):
     return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, -1))) * 1e3)
 
 
-def _coverage(fs, data, sigma_m, gp=None, level=0.95):
-    """95 % prediction-region coverage: Σ = J C_θ Jᵀ (+ GP variance) + σ² I per point."""
-    from scipy import stats
-
-    from estcal.kinematics.chunked import tool_poses  # noqa: F401  (same kinematics as the fit)
-
-    kin = fs.robot.kinematics(data.readings, fs.theta, data.context, jacobian=True)
-    names = list(fs.result.names)
-    idx = fs.robot.params.indices(names)
-    k = measured_points(data).shape[1]
-    J = kin.J_points[:, :k][..., idx] if fs.robot.n_markers >= k and k and data.points is not None \
-        else np.repeat(kin.J[:, None, :3][..., idx], k, axis=1)
-    C = np.asarray(fs.result.covariance, float)
-    e = measured_points(data) - fs.predict(data)
-    extra = np.full(e.shape, sigma_m ** 2)
-    if gp is not None:
-        mean, sd = residual_correction(gp, fs.robot, fs.theta, data.readings, data.context, return_std=True)
-        e = e - fs.rotate_to_session(data, mean)
-        extra = extra + sd.reshape(e.shape) ** 2
-    S = np.einsum("nkip,pq,nkjq->nkij", J, C, J) + extra[..., None] * np.eye(3)
-    d2 = np.einsum("nki,nki->nk", e, np.linalg.solve(S, e[..., None])[..., 0])
-    return float(np.mean(d2 <= stats.chi2.ppf(level, 3)))
+def _boot_se(err_norms, groups, n=400, seed=0):
+    """Bootstrap standard error (mm) of the RMSE of ``err_norms`` (rows × points, m), resampling postures."""
+    u = np.unique(groups)
+    rng = np.random.default_rng(seed)
+    sq = {p: np.sum(err_norms[groups == p] ** 2) for p in u}
+    cnt = {p: err_norms[groups == p].size for p in u}
+    vals = []
+    for _ in range(n):
+        pick = rng.choice(u, len(u))
+        vals.append(np.sqrt(sum(sq[p] for p in pick) / sum(cnt[p] for p in pick)) * 1e3)
+    return float(np.std(vals, ddof=1))
 
 
-def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=1, quick=False, label=""):
-    """Steps 3–6 of the protocol on one split; returns a JSON-ready dict."""
-    out, times = {"label": label, "n_train_rows": train.n, "n_valid_rows": valid.n}, {}
+def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, label="", plain=True, level=None):
+    """Steps 3–6 of the protocol on one split; returns a JSON-ready dict. ``level``: a fixed geometric level
+    instead of the one-standard-error choice (the exploration of a model class)."""
+    from estcal.discrepancy import diagnose
+    from estcal.discrepancy.budget import region_at
+    from estcal.discrepancy.prediction import Procedure, choose_level
+    from estcal.discrepancy.stability import cause_key
+
+    out, times = {"label": label, "n_train_rows": train.n, "n_valid_rows": valid.n, "per_session": per_session}, {}
+    g = posture_groups(train.readings, robot.joint_types)
     t0 = time.time()
-    # 3. geometric level by posture-grouped CV on training
-    levels = {}
-    for lv in LEVELS:
-        b = error_budget(robot, train, NOISE, level=lv, k_folds=k_folds, spaces=(), per_session=per_session)
-        levels[lv] = {"nominal_mm": b.nominal_mm, "cv_mm": b.geometric_mm}
-    level = min(levels, key=lambda lv: levels[lv]["cv_mm"])
+    # 3. geometric level: posture-grouped CV, one-standard-error rule
+    fixed = level
+    level, levels = choose_level(robot, train, NOISE, g, k_folds, 0, per_session)
+    level = fixed or level
     out["levels"], out["level"] = levels, level
     times["levels"] = time.time() - t0
-    # 4. causes that survive the folds
+    # 4. causes: the diagnosis of the training rows, with its stability rule
     t1 = time.time()
-    st = stable_causes(robot, train, level=level, k_folds=k_folds, families=False)
-    effects = st["effects"]
-    out["causes"] = {"named_on_training": st["all"], "folds_naming": st["counts"], "k_folds": st["k_folds"],
-                     "kept": st["kept"]}
+    diag = diagnose(robot, train, k_folds=k_folds, geometric=level, families=False)
+    effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in diag.causes]
+    st = diag.stability or {}
+    out["causes"] = {"kept": [cause_key(c) for c in diag.causes], "k_folds": k_folds,
+                     "folds_naming": {cause_key(c): c.folds_naming for c in diag.causes},
+                     "not_kept": st.get("not_kept", []), "votes": st.get("folds_naming", {})}
     times["causes"] = time.time() - t1
-    # 5. the budget (grouped CV) with the kept causes; causes dropped when they do not lower it
+    # 5. the budget: nested CV of the whole procedure (level, causes, GP chosen again in every outer fold)
     t2 = time.time()
-    budget = error_budget(robot, train, NOISE, level=level, effects=effects, k_folds=k_folds,
+    proc = Procedure(level=fixed or "auto", select_effects=diag.selector, gp="cv", k_inner=k_folds)
+    budget = error_budget(robot, train, NOISE, level=level, effects=effects, procedure=proc, k_folds=k_folds,
                           gp_restarts=gp_restarts, per_session=per_session)
-    if effects and budget.named_mm >= budget.geometric_mm:
-        out["causes"]["dropped_by_cv"] = st["kept"]
-        effects = []
-        budget = error_budget(robot, train, NOISE, level=level, k_folds=k_folds, gp_restarts=gp_restarts,
-                              per_session=per_session)
-    best_gp = min(budget.gp_mm, key=budget.gp_mm.get) if budget.gp_mm else None
-    use_gp = best_gp is not None and budget.gp_mm[best_gp] <= 0.95 * budget.named_mm
-    pred = budget.gp_mm[best_gp] if use_gp else budget.named_mm
     out["budget"] = budget.to_dict()
-    out["budget"]["predicted_validation_mm"] = pred
-    out["recommended"] = ("named" if effects else "geometric") + (f" + GP ({best_gp})" if use_gp else "")
+    if plain:  # the CV of the chosen model alone (decisions made on all training rows): selection-biased
+        pb = error_budget(robot, train, NOISE, level=level, effects=effects, k_folds=k_folds, spaces=(),
+                          per_session=per_session, nested=False)
+        out["cv_of_the_choice_mm"] = pb.named_mm
     times["budget"] = time.time() - t2
-    # 6. validation: every stage refitted on all training rows
+    # 6. validation, scored once: the recommended model (fitted on all training rows) at the validation rows
     t3 = time.time()
     seen = seen_postures(train.readings, valid.readings, robot.joint_types)
     lo, hi = train.readings.min(0), train.readings.max(0)
     inside = np.all((valid.readings >= lo) & (valid.readings <= hi), axis=1)
-    meas = measured_points(valid)
-    val = {}
-    fits = {"nominal": fit_stage_sessions(robot, train, NOISE, "nominal", per_session=per_session),
-            "geometric": fit_stage_sessions(robot, train, NOISE, "geometric", level, per_session=per_session)}
-    fits["named"] = (fit_stage_sessions(robot, train, NOISE, "named", level, effects, per_session=per_session)
-                     if effects else fits["geometric"])
-    for name, fs in fits.items():
-        e = np.linalg.norm(meas - fs.predict(valid), axis=-1)
-        val[name] = seen_new_scores(e, seen, inside)
-        val[name]["train_rmse_mm"] = _rmse(measured_points(train) - fs.predict(train))
-    gp = None
-    if best_gp:
-        fs = fits["named"]
-        gp = fit_residual_model(best_gp, fs.robot, fs.theta, train.readings, fs.residual_common(train),
-                                train.context, gp_restarts)
-        corr = fs.rotate_to_session(valid, residual_correction(gp, fs.robot, fs.theta, valid.readings, valid.context))
-        val["named+gp"] = seen_new_scores(np.linalg.norm(meas - fs.predict(valid) - corr, axis=-1), seen, inside)
-    rec = "named+gp" if use_gp else "named"
-    # 95 % regions of every stage: θ covariance + that stage's own posture-grouped CV residual
-    cv_mm = {"nominal": budget.nominal_mm, "geometric": budget.geometric_mm, "named": budget.named_mm}
-    for name, fs in fits.items():
-        val[name]["coverage95"] = _coverage(fs, valid, cv_mm[name] / np.sqrt(3) * 1e-3)
-    if gp is not None:
-        val["named+gp"]["coverage95"] = _coverage(fits["named"], valid, budget.gp_mm[best_gp] / np.sqrt(3) * 1e-3, gp)
-    val["recommended"] = rec
+    fs = budget.extra["fitted"]
+    e = measured_points(valid) - fs.predict(valid)
+    val = {"geometric_or_named": seen_new_scores(np.linalg.norm(e, axis=-1), seen, inside)}
+    if budget.residual_model is not None:
+        corr = residual_correction(budget.residual_model, fs.robot, fs.theta, valid.readings, valid.context)
+        e = e - fs.rotate_to_session(valid, corr)
+    norms = np.linalg.norm(e, axis=-1)
+    val["recommended"] = seen_new_scores(norms, seen, inside)
+    gv = posture_groups(valid.readings, robot.joint_types)
+    val["new_rmse_se_mm"] = _boot_se(norms[~seen], gv[~seen]) if (~seen).any() else None
+    val["coverage95_new"] = region_at(budget, valid.subset(~seen))["coverage"] if (~seen).any() else None
     out["validation"] = val
     times["validation"] = time.time() - t3
     out["timings_s"] = times
-    new = val[rec]["new"]["rmse_mm"]
-    # the same prediction weighted by where the validation postures are (their readings only: inside or
-    # outside the training joint ranges, no measurement)
-    from estcal.discrepancy.budget import predicted_at
-
-    at = predicted_at(dict(out["budget"], predicted_validation_mm=pred), train.readings, valid.readings)
-    out["summary"] = {"recommended": out["recommended"], "predicted_validation_mm": pred, "predicted_at_targets_mm": at,
-                      "validation_new_mm": new, "validation_all_mm": val[rec]["all"]["rmse_mm"],
+    new = val["recommended"]["new"]["rmse_mm"]
+    pred = budget.predicted_validation_mm
+    out["summary"] = {"recommended": budget.recommended, "level": level, "effects": out["causes"]["kept"],
+                      "gp": budget.extra.get("gp_space"), "predicted_validation_mm": pred,
+                      "predicted_se_mm": budget.predicted_validation_se_mm, "validation_new_mm": new,
+                      "validation_new_se_mm": val["new_rmse_se_mm"],
                       "ratio_predicted_to_validation": None if not new else pred / new,
-                      "coverage95": val[rec]["coverage95"]}
+                      "cv_of_the_choice_mm": out.get("cv_of_the_choice_mm"),
+                      "ratio_cv_of_the_choice": (None if not new or "cv_of_the_choice_mm" not in out
+                                                 else out["cv_of_the_choice_mm"] / new),
+                      "coverage95_new": val["coverage95_new"]}
     return out
 
 
 def _print(res):
     b, v, s = res["budget"], res["validation"], res["summary"]
     print(f"\n-- {res['label']}: {res['n_train_rows']} training rows, {res['n_valid_rows']} validation rows")
-    print("   levels (grouped CV mm): " + ", ".join(f"{k} {x['cv_mm']:.2f}" for k, x in res["levels"].items())
-          + f" -> {res['level']}")
+    print("   levels (grouped CV mm ± se): " + ", ".join(f"{k} {x['cv_mm']:.2f} ± {x['se_mm']:.2f}"
+                                                    for k, x in res["levels"].items()) + f" -> {res['level']}")
     c = res["causes"]
-    print(f"   causes named on training: {c['named_on_training'] or 'none'}; folds naming them "
-          f"(of {c['k_folds']}): {c['folds_naming'] or '{}'}; kept: {c['kept'] or 'none'}"
-          + (f"; dropped (no CV gain): {c['dropped_by_cv']}" if c.get("dropped_by_cv") else ""))
+    nk = ", ".join(f"{d['candidate']} ({d['folds_naming']}/{c['k_folds']})" for d in c["not_kept"]) or "none"
+    kept = ", ".join(f"{k_} ({n}/{c['k_folds']} folds)" for k_, n in c["folds_naming"].items()) or "none"
+    print(f"   causes kept: {kept}; named on training but not kept: {nk}")
     rep = "—" if b["repeatability_mm"] is None else f"{b['repeatability_mm']:.2f}"
-    print(f"   budget (grouped CV mm): nominal {b['nominal_mm']:.2f}  geometric {b['geometric_mm']:.2f}  named "
+    print(f"   budget (nested grouped CV mm): nominal {b['nominal_mm']:.2f}  geometric {b['geometric_mm']:.2f}  named "
           f"{b['named_mm']:.2f}  structured-unnamed {b['structured_unnamed_mm']:.2f} "
           f"({b['unnamed'].get('space', '-')}: {', '.join(list(b['unnamed'].get('relevance', {}))[:2])})  "
           f"unstructured {b['unstructured_mm']:.2f}  repeatability {rep}")
-    for name in ("nominal", "geometric", "named", "named+gp"):
-        if name in v:
-            x = v[name]
-            f = lambda p: "—" if x[p]["rmse_mm"] is None else f"{x[p]['rmse_mm']:.2f}"  # noqa: E731
-            cov = f"  coverage95 {x['coverage95']:.2f}" if "coverage95" in x else ""
-            print(f"   {name:<10} validation all {f('all')}  seen {f('seen')}  new {f('new')} (inside ranges "
-                  f"{f('new_inside')}, outside {f('new_outside')}){cov}")
+    print(f"   outer folds chose: {[(d['level'], [e[0] + '(' + ','.join(e[1]) + ')' for e in d['effects']], d['gp']) for d in b['decisions']]}")
+    for name in ("geometric_or_named", "recommended"):
+        x = v[name]
+        f = lambda p: "—" if x[p]["rmse_mm"] is None else f"{x[p]['rmse_mm']:.2f}"  # noqa: E731
+        print(f"   {name:<19} validation all {f('all')}  seen {f('seen')}  new {f('new')} (inside ranges "
+              f"{f('new_inside')}, outside {f('new_outside')})")
     r = s["ratio_predicted_to_validation"]
-    print(f"   recommended {s['recommended']}: predicted {s['predicted_validation_mm']:.2f} mm, at new postures "
-          f"{s['validation_new_mm']:.2f} mm (ratio {r:.2f}), coverage {s['coverage95']:.2f}")
+    cv = s.get("cv_of_the_choice_mm")
+    print(f"   recommended {s['recommended']}: predicted {s['predicted_validation_mm']:.2f} ± {s['predicted_se_mm']:.2f} mm,"
+          f" at new postures {s['validation_new_mm']:.2f} ± {s['validation_new_se_mm']:.2f} mm (ratio {r:.2f}; CV of "
+          f"the choice alone {cv:.2f}, ratio {s['ratio_cv_of_the_choice']:.2f}), coverage of the 95 % region "
+          f"{s['coverage95_new']:.2f}" if cv is not None else
+          f"   recommended {s['recommended']}: predicted {s['predicted_validation_mm']:.2f} mm, at new postures "
+          f"{s['validation_new_mm']:.2f} mm (ratio {r:.2f}), coverage {s['coverage95_new']:.2f}")
 
 
 def _halves(groups, seed):
@@ -387,6 +368,73 @@ def run_talos_session(seeds, k, restarts, session: int = 1):
     return out
 
 
+def run_extrapolation(seeds=(0, 1, 2), n_halvings=300, k=5):
+    """Do the posture-grouped folds extrapolate as much as a new half of the postures does? Readings only:
+    for each posture, the distance to the nearest training posture (joint readings scaled by their spread)
+    and whether it lies outside the training joint ranges — for the validation half against training, and
+    for the CV held-out postures against their fold's training postures; the three splits, and the mean
+    (sd) over ``n_halvings`` random halvings."""
+    from scipy.spatial import cKDTree
+
+    from estcal.validation import grouped_folds
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    u, first = np.unique(g, return_index=True)
+    Q = data.readings[first]
+    s = Q.std(0)
+
+    def stats(A, B):
+        return cKDTree(A / s).query(B / s)[0], np.any((B < A.min(0)) | (B > A.max(0)), axis=1)
+
+    def split(seed):
+        a = np.isin(np.arange(len(u)), np.random.default_rng(seed).permutation(len(u))[: len(u) // 2])
+        dv, ov = stats(Q[a], Q[~a])
+        QA = Q[a]
+        dc, oc = [], []
+        for f in grouped_folds(np.arange(len(QA)), k, 0):
+            m = np.isin(np.arange(len(QA)), f)
+            d_, o_ = stats(QA[~m], QA[m])
+            dc.append(d_)
+            oc.append(o_)
+        dc, oc = np.concatenate(dc), np.concatenate(oc)
+        return [float(dv.mean()), float(dc.mean()), float(ov.mean()), float(oc.mean())]
+
+    keys = ["validation_nn", "cv_nn", "validation_outside", "cv_outside"]
+    out = {"seeds": {int(sd): dict(zip(keys, split(sd))) for sd in seeds}}
+    many = np.array([split(sd) for sd in range(n_halvings)])
+    out["halvings"] = {"n": n_halvings, "mean": dict(zip(keys, many.mean(0).tolist())),
+                       "sd": dict(zip(keys, many.std(0).tolist()))}
+    print(f"\n== Extrapolation of the folds vs a new half (TIAGo; distance to the nearest training posture in units "
+          f"of each joint's spread; share outside the training ranges)")
+    for sd, r in out["seeds"].items():
+        print(f"   seed {sd}: validation {r['validation_nn']:.2f} ({r['validation_outside']:.2f} outside), CV folds "
+              f"{r['cv_nn']:.2f} ({r['cv_outside']:.2f})")
+    m, sdv = out["halvings"]["mean"], out["halvings"]["sd"]
+    print(f"   {n_halvings} halvings: validation {m['validation_nn']:.2f} ± {sdv['validation_nn']:.2f} "
+          f"({m['validation_outside']:.2f} outside), CV folds {m['cv_nn']:.2f} ± {sdv['cv_nn']:.2f} "
+          f"({m['cv_outside']:.2f})")
+    return out
+
+
+def run_best(seeds=(0, 1, 2), k=5):
+    """The best model class of the exploration (aic geometry, the arm_6 effects, per-session registration, a
+    residual GP) with everything chosen on the training half: the level fixed to aic, the causes by the
+    diagnosis and its stability rule, the GP by the CV rule, per-session registration."""
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    out = {"splits": []}
+    for seed in seeds:
+        tr = _halves(g, seed)
+        res = study(robot, data.subset(tr), data.subset(~tr), k_folds=k, per_session="registration", level="aic",
+                    label=f"TIAGo seed {seed}, aic level, per-session registration, causes and GP chosen on half A",
+                    plain=False)
+        res["seed"] = seed
+        _print(res)
+        out["splits"].append(res)
+    return out
+
+
 ARM6 = [("joint_compliance", ["arm_6_joint"], {}), ("backlash", ["arm_6_joint"], {})]
 
 
@@ -432,8 +480,9 @@ def run_explore(seeds=(0, 1, 2)):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="TIAGo seed 0 and UR10, 3-fold CV, no GP restarts")
-    ap.add_argument("--robots", default="tiago,ur10,talos,talos_session,design,explore",
-                    help="comma-separated subset of tiago, ur10, talos, talos_session, design, explore")
+    ap.add_argument("--robots", default="extrapolation,tiago,ur10,talos_session,talos,best,design,explore",
+                    help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, design, "
+                         "explore")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if not (shared_dir() / "data" / "tiago").is_dir():
@@ -445,6 +494,8 @@ def main(argv=None) -> dict:
     robots = args.robots.split(",")
     out = {"protocol": __doc__, "quick": args.quick}
     t0 = time.time()
+    if "extrapolation" in robots:
+        out["extrapolation"] = run_extrapolation(seeds, 50 if args.quick else 300, k)
     if "tiago" in robots:
         out["tiago"] = run_tiago(seeds, k, restarts, args.quick)
     if "ur10" in robots:
@@ -453,6 +504,8 @@ def main(argv=None) -> dict:
         out["talos"] = run_talos(seeds, k, restarts)
     if "talos_session" in robots:
         out["talos_session"] = run_talos_session(seeds, k, restarts)
+    if "best" in robots and not args.quick:
+        out["best"] = run_best(seeds, k)
     if "explore" in robots:
         out["explore"] = run_explore(seeds)
     if "design" in robots:

@@ -134,22 +134,48 @@ def _fold_rmse(sq_rows, folds):
     return [float(np.sqrt(np.mean(sq_rows[f])) * 1e3) for f in folds]
 
 
-def _gp_ratios(gps: dict, residual, folds) -> dict:
-    """{space: held-out MSE of the residual after the GP's own CV mean ÷ MSE of the residual}: how much of the
-    residual at held-out postures the GP predicts (hyperparameters fixed, conditioned per fold)."""
-    from estcal.discrepancy.residual import gp_held_out
+def _inner_gp_gains(robot, data, noise, level, effects, folds, spaces, cfg) -> dict:
+    """{space: (held-out MSE after the GP ÷ without it, its one-standard-error margin)} over the posture-grouped
+    ``folds`` of ``data``: the named model and the GP refitted on each fold's training rows (the GP from its
+    default start: hyperparameters fitted on rows that include the held-out ones would leak them) — the GP
+    decision of the procedure, made on these rows only."""
+    meas = measured_points(data)
+    base, after = [], {sp: [] for sp in spaces}
+    for test in folds:
+        train = np.setdiff1d(np.arange(data.n), test)
+        dtr, dte = data.subset(train), data.subset(test)
+        stage = "named" if effects else "geometric"
+        fs = fit_stage_sessions(robot, dtr, noise, stage, level, effects, cfg["per_session"], max_iter=cfg["max_iter"])
+        held = meas[test] - fs.predict(dte)
+        base.append(float(np.sum(held ** 2)))
+        r_tr = fs.residual_common(dtr)
+        for sp in spaces:
+            gp = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, 0, cfg["rng"])
+            corr = residual_correction(gp, fs.robot, fs.theta, dte.readings, dte.context)
+            after[sp].append(float(np.sum((held - fs.rotate_to_session(dte, corr)) ** 2)))
+    return _gains(np.array(base), {sp: np.array(v) for sp, v in after.items()})
 
-    r = np.asarray(residual, float)
-    base = float(np.mean(r ** 2)) or 1.0
-    return {sp: float(np.mean((r - gp_held_out(gp, folds)) ** 2) / base) for sp, gp in gps.items()}
+
+def _gains(base, after: dict) -> dict:
+    """{space: (Σ after / Σ base, one standard error of the per-fold gain relative to Σ base)}."""
+    tot = max(float(base.sum()), 1e-300)
+    out = {}
+    for sp, a in after.items():
+        d = base - a
+        se = float(d.std(ddof=1) * np.sqrt(len(d)) / tot) if len(d) > 1 else float("inf")
+        out[sp] = (float(a.sum() / tot), se)
+    return out
 
 
-def _gp_choice(rule: str, ratios: dict) -> str | None:
-    """The space of the recommended GP (None: no GP) by the procedure's rule (:mod:`.prediction`)."""
-    if rule == "never" or not ratios:
+def _gp_choice(rule: str, gains: dict) -> str | None:
+    """The space of the recommended GP (None: no GP) by the procedure's rule (:mod:`.prediction`): ``always``
+    the best space; ``cv`` the best space only when it lowers the held-out RMSE by ≥ 5 % and its gain
+    exceeds one standard error over the folds (the one-standard-error rule of the levels)."""
+    if rule == "never" or not gains:
         return None
-    best = min(ratios, key=ratios.get)
-    return best if rule == "always" or ratios[best] <= GP_GAIN ** 2 else None
+    best = min(gains, key=lambda sp: gains[sp][0])
+    ratio, se = gains[best]
+    return best if rule == "always" or (ratio <= GP_GAIN ** 2 and 1.0 - ratio > se) else None
 
 
 def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
@@ -179,11 +205,11 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
                                      start=gps_all[sp])
         corr, sds[sp] = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context, return_std=True)
         out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
-    if cfg["nested"]:
+    if cfg["nested"] and proc.gp != "never":
         inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
-        space = _gp_choice(proc.gp, _gp_ratios(gps, r_tr, inner) if proc.gp != "never" else {})
+        space = _gp_choice(proc.gp, _inner_gp_gains(robot, dtr, noise, lv, eff, inner, cfg["spaces"], cfg))
     else:
-        space = cfg["gp_space"]
+        space = cfg["gp_space"] if not cfg["nested"] else None
     out["gp_space"] = space
     out["rec"] = out["gp"][space] if space else out["held"]["named"]
     S = point_covariance(fs, dte)
@@ -242,10 +268,11 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     r_all = final.residual_common(data)
     gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
                                       rng) for sp in spaces}
-    ratios = _gp_ratios(gps_all, r_all, grouped_folds(g, proc.k_inner, rng)) if proc.gp != "never" else {}
-    gp_space = _gp_choice(proc.gp, ratios)
     cfg = {"groups": g, "per_session": per_session, "max_iter": max_iter, "rng": rng, "nested": nested,
-           "spaces": spaces, "level": level, "effects": effects, "gp_space": gp_space}
+           "spaces": spaces, "level": level, "effects": effects, "gp_space": None}
+    if not nested and proc.gp != "never":  # the decision on all rows first: the folds keep it
+        cfg["gp_space"] = _gp_choice(proc.gp, _inner_gp_gains(robot, data, noise, level, effects,
+                                                              grouped_folds(g, proc.k_inner, rng), spaces, cfg))
     held = {st: np.zeros_like(meas) for st in STAGES}
     held_gp = {sp: np.zeros_like(meas) for sp in spaces}
     rec = np.zeros_like(meas)
@@ -260,6 +287,10 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
             held_gp[sp][test] = o["gp"][sp]
         rec[test], S[test], outside[test] = o["rec"], o["S"], o["outside"]
         decisions.append({"level": o["level"], "effects": o["effects"], "gp": o["gp_space"]})
+    # the GP decision on all rows: the outer folds' held-out residuals with and without each space's GP
+    fsq = lambda h: np.array([np.sum(h[f] ** 2) for f in folds])  # noqa: E731
+    ratios = _gains(fsq(held["named"]), {sp: fsq(held_gp[sp]) for sp in spaces})
+    gp_space = cfg["gp_space"] if not nested else _gp_choice(proc.gp, ratios if proc.gp != "never" else {})
     return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, final, gps_all, gp_space,
                      ratios, level, effects, levels_cv, decisions, per_session, nested)
 
@@ -300,7 +331,7 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
     label = ("named" if effects else "geometric") + (" + GP" if gp_space else "")
     extra = {"fitted_robot": final.robot, "fitted_theta": final.theta, "fitted": final, "per_session": per_session,
              "extrapolation": in_out, "region": region, "nested": bool(nested), "decisions": decisions,
-             "gp_space": gp_space, "gp_held_out_ratio": ratios}
+             "gp_space": gp_space, "gp_held_out_ratio": {sp: {"mse_ratio": r, "se": e} for sp, (r, e) in ratios.items()}}
     if levels_cv:
         extra["levels_cv"] = levels_cv
     return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(rm["named"] - structured),

@@ -713,9 +713,26 @@ def _prepare_data(robot, data, validate, robot_spec, approach_from_order, sessio
     data = with_effect_context(robot, data)
     validate = [with_effect_context(robot, d) for d in validate]
     if session_time:
-        for d in ([] if stacked else [data]) + validate:
-            _session_time(d, centred=stacked)
+        for d in validate:
+            _session_time(d, centred=stacked or _n_sessions(data) > 1)
+        if not stacked and _n_sessions(data) > 1:  # stacked by the caller (a ``session`` column)
+            _session_time_each(data)
+        elif not stacked:
+            _session_time(data)
     return robot, robot_spec, data, validate, (sessions if stacked else None)
+
+
+def _session_time_each(data) -> None:
+    """:func:`_session_time` (centred) within each session of a dataset stacked with a ``session`` column."""
+    if "t" not in data.context:
+        return
+    lab = np.asarray(data.columns["session"])
+    t = data.context["t"].copy()
+    data.columns["t_abs"] = t.copy()
+    for sv in np.unique(lab):
+        m = lab == sv
+        t[m] = t[m] - t[m].mean()
+    data.context["t"] = t
 
 
 def _session_time(d, centred: bool = False) -> None:
@@ -978,7 +995,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final:
              "theta": dict(zip(xr.params.names, map(float, final.theta))),
              "free": final.free, "noise": nm.to_dict(), "geometric_level": geometric,
              "approach_from_order": bool(approach_from_order),
-             "session_time": ("centred" if sessions and len(sessions) > 1 else True) if session_time else False,
+             "session_time": ("centred" if _n_sessions(data) > 1 else True) if session_time else False,
              "residual": {"rmse_mm": tr_x[0], "max_mm": tr_x[1], "chi2_per_dof": final_floor["chi2_per_dof"]}}
     gmodel = {"theta": dict(zip(gr.params.names, map(float, geo.theta))), "free": geo.free,
               "residual": {"rmse_mm": tr_g[0], "max_mm": tr_g[1],

@@ -43,8 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["ResidualGP", "JointGP", "fit_residual_gp", "fit_joint_gp", "joint_gp_design", "gp_inputs", "SPACES",
-           "residual_model_from_dict", "fit_residual_model", "residual_correction", "compensate_with_residual",
-           "condition_gp", "gp_held_out"]
+           "residual_model_from_dict", "fit_residual_model", "residual_correction", "compensate_with_residual"]
 
 SPACES = ("joints", "cartesian")
 #: bounds of the standardised length scales: below 0.05 a GP memorises single postures
@@ -532,38 +531,3 @@ def compensate_with_residual(robot, model, targets, q_start, context=None, itera
     _, sd = residual_correction(model, robot, robot.params.values, q, context, return_std=True)
     return res, np.sqrt(np.mean(sd[:, :3] ** 2, axis=1)) * 1e3
 
-
-def condition_gp(model, rows):
-    """The same GP (hyperparameters unchanged) conditioned on the training rows ``rows`` of its own
-    training set only: the inner folds of a nested cross-validation, without a refit per fold."""
-    import dataclasses
-
-    rows = np.asarray(rows)
-    if isinstance(model, JointGP):
-        return dataclasses.replace(model, Q=model.Q[rows], H=model.H[rows], Y=model.Y[rows])
-    from scipy.linalg import cho_solve
-
-    K = model._k(model.X) + model.noise2 * np.eye(len(model.X))
-    Y = K @ model.alpha  # the standardised training outputs (alpha = K⁻¹ Y)
-    Xs, Ys = model.X[rows], Y[rows]
-    L = np.linalg.cholesky(model.amplitude2 * np.exp(-0.5 * np.sum(((Xs[:, None] - Xs[None]) / model.length_scales)
-                                                                   ** 2, -1)) + model.noise2 * np.eye(len(rows)))
-    return dataclasses.replace(model, X=Xs, L=L, alpha=cho_solve((L, True), Ys))
-
-
-def gp_held_out(model, folds) -> np.ndarray:
-    """(n, k, 3) mean of ``model`` at each of its training rows, conditioned on the other folds' rows
-    (``folds``: row-index arrays over its training rows): the GP's own cross-validated prediction."""
-    if isinstance(model, JointGP):
-        n = len(model.Q)
-        out = np.zeros((n, model.n_points, 3))
-        for test in folds:
-            sub = condition_gp(model, np.setdiff1d(np.arange(n), test))
-            out[test] = sub.predict(model.Q[test], model.H[test] * model.col_scale)
-        return out
-    n = len(model.X)
-    out = np.zeros((n, model.n_points, 3))
-    raw = model.X * model.x_scale + model.x_mean
-    for test in folds:
-        out[test] = condition_gp(model, np.setdiff1d(np.arange(n), test)).predict(raw[test])
-    return out
