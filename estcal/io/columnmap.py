@@ -65,6 +65,24 @@ class ColumnMap:
                 return f"{self.path}, line {self.lines[key[:i]]}"
         return self.path
 
+    def to_dict(self) -> dict:
+        """The map as its YAML says it (only the keys it sets): ``column_map_from_dict(m.to_dict())``
+        reads the same map. An online checkpoint keeps it, so that a resumed run reads its input alike."""
+        d: dict = {}
+        if self.joints:
+            d["joints"] = dict(self.joints)
+        if self.points:
+            d["points"] = [list(p) for p in self.points]
+        if self.rpy is not None or self.quaternion is not None:
+            d["orientation"] = {"rpy": list(self.rpy)} if self.rpy is not None else {"quaternion": list(self.quaternion)}
+        if (self.length, self.angle) != ("m", "rad"):
+            d["units"] = {"length": self.length, "angle": self.angle}
+        if self.columns is not None:
+            d["columns"] = list(self.columns)
+        if self.context:
+            d["context"] = dict(self.context)
+        return d
+
     def file_columns(self) -> list[str]:
         """Every file column the map names (the map's own use of the file)."""
         out = list(self.joints.values()) + [c for p in self.points for c in p]

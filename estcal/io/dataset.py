@@ -34,7 +34,7 @@ from estcal.io.columns import (CONTEXT_COLUMNS, METHOD_COLUMNS, NUMBERED, POSE_C
                                is_number)
 
 __all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_from_arrays", "dataset_from_table",
-           "shared_rows"]
+           "dataset_from_mapped_table", "shared_rows"]
 
 # allowance of the spread check for unknown marker offsets and calibration errors (m)
 SPREAD_SLACK_M = 0.2
@@ -250,12 +250,23 @@ def load_dataset(path, robot=None, joint_names=None, points: int | None = None,
 
 def _load_mapped(path, column_map, robot, joint_names, points, check_units) -> Dataset:
     """:func:`load_dataset` through a column map; the loader's messages name the file's columns."""
-    from estcal.io.columnmap import ColumnMap, ColumnMapError, apply_column_map, load_column_map, rename_message
+    from estcal.io.columnmap import ColumnMap, load_column_map
 
     cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+    table = read_csv(path, "dataset", DatasetError)
+    return dataset_from_mapped_table(table, cmap, robot, joint_names, points, check_units)
+
+
+def dataset_from_mapped_table(table: CsvTable, cmap, robot=None, joint_names=None, points: int | None = None,
+                              check_units: bool = True) -> Dataset:
+    """:func:`dataset_from_table` of a table in its publisher's columns, read through the column map
+    ``cmap`` (:class:`~estcal.io.columnmap.ColumnMap`): the whole file (``load_dataset(...,
+    column_map=)``) or the chunks ``estcal online --map`` streams, with the same checks and messages
+    naming the file's columns."""
+    from estcal.io.columnmap import ColumnMapError, apply_column_map, rename_message
+
     names = list(robot.joint_names if robot is not None else (joint_names or []))
     types = list(robot.joint_types) if robot is not None else None
-    table = read_csv(path, "dataset", DatasetError)
     try:
         mapped, renamed = apply_column_map(table, cmap, names, types)
     except ColumnMapError as exc:

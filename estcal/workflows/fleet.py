@@ -21,10 +21,11 @@ the summary row travels back.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from estcal.base.errors import InputError, MissingExtraError
+from estcal.io.columnmap import ColumnMap, load_column_map
 
 __all__ = ["FleetJob", "FleetOptions", "FleetSummary", "FleetError", "discover_fleet", "process_robot",
            "run_fleet", "check_scheduler", "fleet_inputs"]
@@ -77,6 +78,10 @@ class FleetOptions:
     known_noise: bool = False
     save_models: str | None = None
     seed: int = 0
+    #: the column map of every robot's data files (docs/dataset.md): its YAML path or a parsed
+    #: :class:`estcal.io.columnmap.ColumnMap`; :func:`run_fleet` parses it once, so that workers on other
+    #: machines need not read the map file
+    column_map: object = field(default=None, compare=False)
 
 
 def _robot_file(folder: Path) -> Path | None:
@@ -130,11 +135,11 @@ def fleet_inputs(root) -> list[Path]:
         return []
 
 
-def _load(job: FleetJob):
+def _load(job: FleetJob, column_map=None):
     from estcal.workflows.inputs import load_datasets, robot_for_data
 
-    rob, n_markers = robot_for_data(job.robot, job.data)
-    ds, *vals = load_datasets([job.data, *job.validate], rob, n_markers)
+    rob, n_markers = robot_for_data(job.robot, job.data, column_map=column_map)
+    ds, *vals = load_datasets([job.data, *job.validate], rob, n_markers, column_map)
     warnings = [f"{Path(d.where).name}: {w}" if d.where else w for d in [ds] + vals for w in d.warnings]
     return rob, ds, vals, warnings
 
@@ -201,7 +206,7 @@ def process_robot(job: FleetJob, opts: FleetOptions) -> dict:
     """
     if job.problem:
         raise FleetError(f"{job.folder}: {job.problem}")
-    rob, ds, vals, warnings = _load(job)
+    rob, ds, vals, warnings = _load(job, opts.column_map)
     row = (_diagnose if opts.diagnose else _calibrate)(job, opts, rob, ds, vals, warnings)
     return {"robot": job.name, **row, "warnings": warnings}
 
@@ -238,6 +243,9 @@ def run_fleet(root, opts: FleetOptions = FleetOptions(), scheduler="serial", n_w
     import functools
 
     check_scheduler(scheduler)
+    cmap = opts.column_map
+    if cmap is not None and not isinstance(cmap, ColumnMap):
+        opts = replace(opts, column_map=load_column_map(cmap))
     jobs = discover_fleet(root)
     if opts.save_models:
         Path(opts.save_models).mkdir(parents=True, exist_ok=True)
@@ -245,8 +253,9 @@ def run_fleet(root, opts: FleetOptions = FleetOptions(), scheduler="serial", n_w
     rows = [r for r in rr.results if r is not None]
     fails = [{"robot": jobs[f.index].name, "folder": jobs[f.index].folder, "inputs": f.inputs, "error": f.error}
              for f in rr.failures]
-    return FleetSummary(rows, fails, rr.scheduler, rr.n_workers, rr.wall_s,
-                        {k: getattr(opts, k) for k in opts.__dataclass_fields__})
+    options = {k: getattr(opts, k) for k in opts.__dataclass_fields__}
+    options["column_map"] = opts.column_map.path if opts.column_map is not None else None
+    return FleetSummary(rows, fails, rr.scheduler, rr.n_workers, rr.wall_s, options)
 
 
 def _run(fn, jobs, scheduler, n_workers, progress):

@@ -38,15 +38,15 @@ def _plane(text: str | None):
 def identifiable(robot, measure: str | None = None, data=None, n_poses: int = 60, seed: int = 0,
                  priority=None, free=None, rules: str = "gecaro", pivoting: bool = False, plane: str | None = None,
                  points: int | None = None, root: str | None = None, tip: str | None = None,
-                 tau_floor: float = 1e-10):
+                 tau_floor: float = 1e-10, column_map=None):
     """Identifiable, no-effect and regrouped parameters of ``robot`` for ``measure`` — the job of
     ``estcal identifiable``. Returns an :class:`~estcal.identify.IdentifiabilityResult` (or, for a
-    Gough platform, its dict)."""
+    Gough platform, its dict). ``column_map``: the column map of ``data`` (docs/dataset.md)."""
     try:
         with input_errors():
             try:
                 return _identifiable(robot, measure, data, n_poses, seed, priority, free, rules, pivoting, plane,
-                                     points, root, tip, tau_floor)
+                                     points, root, tip, tau_floor, column_map)
             except RuntimeError as exc:  # e.g. no admissible configuration of a link measurement
                 raise InputError(str(exc)) from exc
     except InputError as exc:
@@ -57,7 +57,7 @@ def identifiable(robot, measure: str | None = None, data=None, n_poses: int = 60
 
 
 def _identifiable(robot, method, data, n_poses, seed, priority, free, rules, pivoting, plane, points, root, tip,
-                  tau_floor):
+                  tau_floor, column_map=None):
     from estcal.identify import identify, load_priorities
     from estcal.io.dataset import load_dataset
     from estcal.io.robotfile import load_robot
@@ -75,7 +75,7 @@ def _identifiable(robot, method, data, n_poses, seed, priority, free, rules, piv
         method = "pose"
     if data is not None:
         check_input_files([data])
-        ds = load_dataset(data, rb)
+        ds = load_dataset(data, rb, column_map=column_map)
         k = points if points is not None else (ds.n_points if ds.kind == "points" else None)
         if k and k > 1 and rb.n_markers != k:
             rb = load_robot(robot, root=root, tip=tip, n_markers=k)

@@ -30,6 +30,7 @@ history) is appended to its journal; the file is locked against a second writer.
 from __future__ import annotations
 
 import csv
+import itertools
 import re
 import sys
 import time
@@ -47,6 +48,7 @@ from estcal.estimate.checkpoint import (CheckpointError, Journal, PrefixHasher, 
 from estcal.estimate.innovation import InnovationTests
 from estcal.estimate.kalman import (BLOCK_GROUPS, BlockStep, ParameterFilter, concat_steps, default_burn_in,
                                     process_noise, run_steps, segment_of)
+from estcal.io.columnmap import ColumnMap, column_map_from_dict, load_column_map
 from estcal.io.dataset import Dataset, DatasetError
 from estcal.methods.base import NoiseModel, get_method, method_for_dataset
 from estcal.methods.problem import Problem, Term
@@ -71,6 +73,16 @@ def _noise_model(noise) -> NoiseModel:
     return NoiseModel(float(p), float(r), known=True)
 
 
+def _column_map(column_map) -> ColumnMap | None:
+    """The column map of the input (``--map``, docs/dataset.md): a path of its YAML file, a
+    :class:`~estcal.io.columnmap.ColumnMap`, or the dict a checkpoint keeps (``ColumnMap.to_dict``)."""
+    if column_map is None or isinstance(column_map, ColumnMap):
+        return column_map
+    if isinstance(column_map, dict):
+        return column_map_from_dict(column_map, "<the checkpoint's column map>")
+    return load_column_map(column_map)
+
+
 def _names(free) -> list[str] | None:
     if free is None:
         return None
@@ -80,10 +92,11 @@ def _names(free) -> list[str] | None:
 
 
 def run_options(robot, root=None, tip=None, free=None, q=0.0, filter="ekf", measure=None, noise=None,
-                prior_std=0.1, relinearize="auto") -> dict:
+                prior_std=0.1, relinearize="auto", column_map=None) -> dict:
     """The options that change the estimates, as a checkpoint stores them (SI): a resumed run must
     use the same. ``q`` as a ``{pattern: std}`` with one std is kept as the command line's
-    ``q`` + ``--q-params``."""
+    ``q`` + ``--q-params``; a column map by its content (``"--map"``, present only when given, so
+    checkpoints of runs without one keep resuming)."""
     nz = _noise_model(noise)
     q_params = None
     if isinstance(q, dict):
@@ -101,10 +114,14 @@ def run_options(robot, root=None, tip=None, free=None, q=0.0, filter="ekf", meas
     ps = {k: float(v) for k, v in ps.items()} if isinstance(ps, dict) else (
         np.asarray(ps, float).tolist() if np.ndim(ps) else float(ps))
     spec = str(robot) if isinstance(robot, (str, Path)) else getattr(robot, "name", None)
-    return {"--robot": spec, "--root": root, "--tip": tip, "--free": ",".join(names) if names else None,
-            "q (SI)": q, "--q-params": q_params, "--filter": filter, "--method": measure,
-            "noise-pos (m)": nz.position, "noise-rot (rad)": nz.orientation, "prior-std (SI)": ps,
-            "relinearize": relinearize}
+    out = {"--robot": spec, "--root": root, "--tip": tip, "--free": ",".join(names) if names else None,
+           "q (SI)": q, "--q-params": q_params, "--filter": filter, "--method": measure,
+           "noise-pos (m)": nz.position, "noise-rot (rad)": nz.orientation, "prior-std (SI)": ps,
+           "relinearize": relinearize}
+    cmap = _column_map(column_map)
+    if cmap is not None:
+        out["--map"] = cmap.to_dict()
+    return out
 
 
 @dataclass
@@ -214,10 +231,13 @@ class OnlineCalibrator:
     relinearize : ``"auto"`` (segments, see the module docstring) or G rows per linearisation
         (1 = the classical row-by-row EKF).
     history_every : a status entry (row, NIS, running NIS per row, trace P, estimate, std) every N rows.
+    column_map : the column map of the files given to :meth:`update` (a YAML path or a
+        :class:`~estcal.io.columnmap.ColumnMap`; ``estcal online --map``, docs/dataset.md): files read as
+        published. Datasets and arrays are taken as they are.
     """
 
     def __init__(self, robot, *, free=None, measure=None, noise=None, q=0.0, prior_std=0.1, filter: str = "ekf",
-                 relinearize="auto", history_every: int = 10, root=None, tip=None):
+                 relinearize="auto", history_every: int = 10, root=None, tip=None, column_map=None):
         from estcal.io.robotfile import load_robot
 
         if relinearize != "auto" and not (isinstance(relinearize, (int, np.integer)) and relinearize >= 1):
@@ -225,7 +245,9 @@ class OnlineCalibrator:
                              f"got {relinearize!r}")
         if int(history_every) < 1:
             raise InputError(f"history_every must be an integer ≥ 1, got {history_every!r}")
-        self.options = run_options(robot, root, tip, free, q, filter, measure, noise, prior_std, relinearize)
+        self.column_map = _column_map(column_map)
+        self.options = run_options(robot, root, tip, free, q, filter, measure, noise, prior_std, relinearize,
+                                   self.column_map)
         rb = load_robot(robot, root=root, tip=tip)
         names = _names(free)
         if names is not None:
@@ -311,7 +333,7 @@ class OnlineCalibrator:
         if isinstance(data, (str, Path)):
             from estcal.io.dataset import load_dataset
 
-            ds = load_dataset(data, self.robot)
+            ds = load_dataset(data, self.robot, column_map=self.column_map)
         elif isinstance(data, Dataset):
             ds = data
         else:
@@ -548,7 +570,8 @@ def _kwargs_of(so: dict) -> dict:
         q = {s.strip(): q for s in so["--q-params"].split(",") if s.strip()}
     return {"root": so.get("--root"), "tip": so.get("--tip"), "q": q, "filter": so.get("--filter", "ekf"),
             "measure": so.get("--method"), "noise": (so["noise-pos (m)"], so["noise-rot (rad)"]),
-            "prior_std": so.get("prior-std (SI)", 0.1), "relinearize": so.get("relinearize", 1)}
+            "prior_std": so.get("prior-std (SI)", 0.1), "relinearize": so.get("relinearize", 1),
+            "column_map": so.get("--map")}
 
 
 def _comparable(opts: dict) -> dict:
@@ -562,15 +585,15 @@ def _comparable(opts: dict) -> dict:
 
 
 # ---------------------------------------------------------------- files and streams
-def check_file(path, robot) -> Dataset:
+def check_file(path, robot, column_map=None) -> Dataset:
     """The whole-file checks ``estcal online FILE`` makes before streaming it: the loader's
     (units, ranges, spread), identical rows refused (:class:`~estcal.base.errors.NumericalRefusal`)
     and the loader's warnings (``EstcalWarning``) — so that a stream never runs on data the batch
-    commands refuse. Returns the Dataset."""
+    commands refuse. ``column_map``: the file's (docs/dataset.md). Returns the Dataset."""
     from estcal.io.dataset import load_dataset
     from estcal.workflows.inputs import check_distinct_poses, warn_datasets
 
-    ds = load_dataset(path, robot)
+    ds = load_dataset(path, robot, column_map=_column_map(column_map))
     check_distinct_poses(ds)
     warn_datasets([ds])
     return ds
@@ -666,8 +689,10 @@ class CsvStream:
     last chunk returned."""
 
     def __init__(self, source: str, robot, *, cut=lambda n: n % 1024 == 0, measure=None, skip: int = 0,
-                 expect=None, checked: bool = False, throttle: float = 0.0):
+                 expect=None, checked: bool = False, throttle: float = 0.0, column_map=None):
         self.source, self.robot, self.cut = source, robot, cut
+        self.cmap = _column_map(column_map)
+        self._pending = []  # the first line of a file without a header row: a data row
         self.where = "<stdin>" if source == "-" else source
         self.allow_none = measure is not None
         self.skip, self.expect, self.checked, self.throttle = int(skip), expect, checked, float(throttle)
@@ -675,8 +700,10 @@ class CsvStream:
         self.input_sha256 = None if source == "-" else file_sha256(source)
         self.rows = 0  # data rows read (skipped ones included)
         self._it = self._numbered()
+        self._at = None
         self._header()
-        self._at = self._mark()
+        if self._at is None:
+            self._at = self._mark()
 
     def position(self) -> dict:
         """Where the stream stood after the last chunk returned, as a checkpoint records it."""
@@ -710,31 +737,59 @@ class CsvStream:
     def _header(self) -> None:
         from estcal.base.textinput import sniff_delimiter
 
-        for self.header_line, first in self._it:
-            if first.strip():
+        while True:
+            before = self.hasher.h.copy(), self.hasher.n
+            try:
+                self.header_line, text = next(self._it)
+            except StopIteration:
+                raise DatasetError(f"{self.where}: empty input (expected a header row)") from None
+            if text.strip():
                 break
-        else:
-            raise DatasetError(f"{self.where}: empty input (expected a header row)")
-        first = first.lstrip("\ufeff")
+        first = text.lstrip("\ufeff")
         self.delimiter = sniff_delimiter(first)
         self.header = [h.strip() for h in next(csv.reader([first], delimiter=self.delimiter))]
         self._header_checked = False
+        cols = self.cmap.columns if self.cmap is not None else None
+        if cols is not None and self.header != cols:  # a file without a header row (the map's columns:)
+            from estcal.io.columns import is_number
+
+            if not all(is_number(h) for h in self.header if h):
+                raise DatasetError(f"{self.where}, line {self.header_line}: the input has a header row "
+                                   f"({', '.join(self.header[:6])}{'…' if len(self.header) > 6 else ''}) that "
+                                   f"differs from columns: ({self.cmap.at('columns')}) — remove columns: from the "
+                                   f"map or make it the input's header")
+            self._pending = [(self.header_line, text)]
+            self.header, self.header_line = list(cols), 0
+            self._at = (before[0], before[1], 0)  # the first data line is not consumed yet
 
     def _check_header(self) -> None:
-        """The loader's header checks, once (after the first data line was read and found to be text)."""
+        """The loader's header checks, once (after the first data line was read and found to be text);
+        through the column map, its checks of the header (columns it names, joints it leaves unmapped)."""
         from estcal.base.textinput import CsvTable
         from estcal.io.dataset import dataset_from_table
 
         self._header_checked = True
-        empty = CsvTable(self.header, None, [], self.header_line, self.delimiter, self.where,
-                         numeric=np.zeros((0, len(self.header))))
+        header = self.header
+        if self.cmap is not None:
+            from estcal.io.columnmap import ColumnMapError, apply_column_map
+
+            rb = self.robot
+            try:
+                header = apply_column_map(CsvTable(header, [], [], self.header_line, self.delimiter, self.where),
+                                          self.cmap, rb.joint_names, rb.joint_types)[0].header
+            except ColumnMapError as exc:
+                raise DatasetError(str(exc)) from None
+        empty = CsvTable(header, None, [], self.header_line, self.delimiter, self.where,
+                         numeric=np.zeros((0, len(header))))
         ds = dataset_from_table(empty, self.robot, check_units=False)
         if ds.kind == "none" and not self.allow_none:
             raise DatasetError(f"{self.where}, line {self.header_line}: no measurement columns (x,y,z / x1..zk / "
                                f"x,y,z,qw,qx,qy,qz)")
 
     def _check_prefix(self) -> None:
-        if self.expect is not None and (self.hasher.n, self.hasher.hexdigest()) != tuple(self.expect):
+        """The input read so far (up to :meth:`position`) is the checkpointed run's."""
+        h, n, _ = self._at
+        if self.expect is not None and (n, h.hexdigest()) != tuple(self.expect):
             raise CheckpointError(f"{self.where} differs from the checkpointed input (SHA-256 of the rows already "
                                   f"processed does not match)")
 
@@ -742,7 +797,7 @@ class CsvStream:
         if self.skip == 0:
             self._check_prefix()
         texts, lines, raw = [], [], []
-        for ln, text in self._it:
+        for ln, text in itertools.chain(self._pending, self._it):
             raw.append(text)
             if not text.strip():
                 continue
@@ -752,8 +807,8 @@ class CsvStream:
             if self.rows <= self.skip:  # already in the checkpoint: hashed, not processed again
                 raw = []
                 if self.rows == self.skip:
-                    self._check_prefix()
                     self._at = self._mark(ln)
+                    self._check_prefix()
                 continue
             texts.append(text)
             lines.append(ln)
@@ -771,8 +826,8 @@ class CsvStream:
                                   f"processed")
 
     def _parse(self, texts, lines):
-        from estcal.io.dataset import dataset_from_table
         from estcal.base.textinput import CsvTable
+        from estcal.io.dataset import dataset_from_mapped_table, dataset_from_table
 
         try:
             records = list(csv.reader(texts, delimiter=self.delimiter))
@@ -780,8 +835,11 @@ class CsvStream:
             raise DatasetError(f"{self.where}, line {lines[0]}: not a valid CSV line ({exc})") from None
         if len(records) != len(texts):
             raise DatasetError(f"{self.where}, line {lines[0]}: a quoted field spans lines — one row per line")
-        ds = dataset_from_table(CsvTable(self.header, records, lines, self.header_line, self.delimiter, self.where),
-                                self.robot, check_units=not self.checked)
+        table = CsvTable(self.header, records, lines, self.header_line, self.delimiter, self.where)
+        if self.cmap is not None:
+            ds = dataset_from_mapped_table(table, self.cmap, self.robot, check_units=not self.checked)
+        else:
+            ds = dataset_from_table(table, self.robot, check_units=not self.checked)
         if ds.kind == "none" and not self.allow_none:
             raise DatasetError(f"{self.where}: no measurement columns (x,y,z / x1..zk / x,y,z,qw,qx,qy,qz)")
         return ds

@@ -30,7 +30,7 @@ import typer
 
 from estcal.cli.app import command
 from estcal.cli.options import (deprecated_option, estimator_option, json_option, known_noise_option, level_option,
-                                noise_pos_option, noise_rot_option)
+                                map_option, noise_pos_option, noise_rot_option)
 
 __all__ = ["fleet"]
 
@@ -81,6 +81,7 @@ def fleet(
                                                "(<robot>.yaml robot files with a calibration: block)."),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 1 when any robot failed."),
     seed: int = typer.Option(0, "--seed", help="Seed of diagnose's cross-validation folds."),
+    column_map: Optional[Path] = map_option(),
     json_path: Optional[Path] = json_option("Write the summary as JSON."),
 ) -> None:
     """Calibrate or diagnose every robot of a fleet folder, serially or on a Dask cluster."""
@@ -103,7 +104,8 @@ def fleet(
         raise InputError(f"unknown --estimator {estimator!r}; choose one of {', '.join(estimator_names())}")
     opts = FleetOptions(level=level, estimator=estimator, diagnose=diagnose, noise_pos=noise_pos,
                         noise_rot=noise_rot, known_noise=known_noise,
-                        save_models=str(save_models) if save_models else None, seed=seed)
+                        save_models=str(save_models) if save_models else None, seed=seed,
+                        column_map=column_map)
     check_outputs({"--json": json_path}, fleet_inputs(folder))  # outputs never land on a robot's inputs
     try:
         summary = run_fleet(folder, opts, scheduler=scheduler, n_workers=workers)

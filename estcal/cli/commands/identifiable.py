@@ -19,7 +19,8 @@ from typing import Optional
 import typer
 
 from estcal.cli.app import command
-from estcal.cli.options import json_option, measure_option, method_option, points_option, root_option, tip_option
+from estcal.cli.options import (json_option, map_option, measure_option, method_option, points_option, root_option,
+                                tip_option)
 
 __all__ = ["identifiable"]
 
@@ -84,6 +85,7 @@ def identifiable(
     method: Optional[str] = method_option(),
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset CSV: analyse its configurations and "
                                                              "check its excitation."),
+    column_map: Optional[Path] = map_option(),
     n_poses: int = typer.Option(60, "--n-poses", help="Random admissible configurations (raised when too few)."),
     seed: int = typer.Option(0, "--seed"),
     priority: Optional[Path] = typer.Option(None, "--priority", help="YAML {name or pattern: priority} or "
@@ -113,7 +115,8 @@ def identifiable(
 
     measure = estimator_and_measure(method, None, measure, means="measure")[1]
     console = Console()
-    res = run(robot, measure, data, n_poses, seed, priority, free, rules, pivoting, plane, points, root, tip, tau_floor)
+    res = run(robot, measure, data, n_poses, seed, priority, free, rules, pivoting, plane, points, root, tip, tau_floor,
+              column_map=column_map)
     if data is not None and not isinstance(res, dict) and res.n_rows < res.n_parameters:
         warn(f"{data}: {res.n_rows} equations ({res.meta.get('n_poses')} poses) for {res.n_parameters} "
              f"parameters — at most {res.n_rows} can be identifiable from these data, whatever the robot; "

@@ -12,9 +12,9 @@ from typing import Optional
 import typer
 
 from estcal.cli.app import command
-from estcal.cli.options import (deprecated_option, free_option, json_option, measure_option, method_option,
-                                noise_pos_option, noise_rot_option, report_option, robot_option, root_option,
-                                tip_option)
+from estcal.cli.options import (deprecated_option, free_option, json_option, map_option, measure_option,
+                                method_option, noise_pos_option, noise_rot_option, report_option, robot_option,
+                                root_option, tip_option)
 
 __all__ = ["online"]
 
@@ -52,6 +52,7 @@ def online(
     show: int = typer.Option(4, "--show", help="Parameters shown on each status line."),
     root: Optional[str] = root_option(),
     tip: Optional[str] = tip_option(),
+    column_map: Optional[Path] = map_option(),
     json_path: Optional[Path] = json_option("Write the final estimate, stds, innovation tests and the printed "
                                             "history as JSON (SI)."),
     report: Optional[Path] = report_option("Folder for a report: estimate ± σ after every row, NIS per row with "
@@ -86,7 +87,7 @@ def online(
     rel = _relinearize(relinearize)
     options = {"free": free, "q": {p.strip(): q for p in q_params.split(",") if p.strip()} if q_params else q,
                "filter": filter_kind, "measure": measure, "noise": (sigma_p, sigma_r), "prior_std": prior_std,
-               "relinearize": rel, "root": root, "tip": tip}
+               "relinearize": rel, "root": root, "tip": tip, "column_map": column_map}
     with _errors():
         run = _Run(data, robot, options, every, state_path, resume, report)
         run.stream(checkpoint_every, throttle, live, show)
@@ -210,7 +211,7 @@ class _Run:
         from estcal.workflows.online import check_file
 
         self.rb = load_robot(robot, root=options["root"], tip=options["tip"])
-        ds = check_file(self.data, self.rb)
+        ds = check_file(self.data, self.rb, column_map=options["column_map"])
         from estcal.workflows.check import screen
 
         screen([ds], self.rb)  # the data screening's findings, as calibrate prints them (docs/dataset.md)
@@ -272,7 +273,8 @@ class _Run:
         expect = (saved["input_bytes"], saved["input_sha256_prefix"]) if saved else None
         try:
             src = CsvStream(self.data, cal.robot, cut=cut, measure=cal.method and cal.method.name, skip=skip,
-                            expect=expect, checked=self.ds_all is not None, throttle=throttle)
+                            expect=expect, checked=self.ds_all is not None, throttle=throttle,
+                            column_map=cal.column_map)
         except (ValueError, OSError) as exc:
             self._fail(exc)
         self.src, self.shown = src, list(range(min(show, len(cal.names))))
