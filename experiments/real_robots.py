@@ -136,7 +136,7 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     """Steps 3–6 of the protocol on one split; returns a JSON-ready dict. ``level``: a fixed geometric level
     instead of the one-standard-error choice (the exploration of a model class)."""
     from estcal.discrepancy import diagnose
-    from estcal.discrepancy.budget import region_at
+    from estcal.discrepancy.budget import predicted_at, region_at
     from estcal.discrepancy.prediction import Procedure, choose_level
     from estcal.discrepancy.stability import cause_key
 
@@ -185,6 +185,8 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     gv = posture_groups(valid.readings, robot.joint_types)
     val["new_rmse_se_mm"] = _boot_se(norms[~seen], gv[~seen]) if (~seen).any() else None
     val["coverage95_new"] = region_at(budget, valid.subset(~seen))["coverage"] if (~seen).any() else None
+    # the prediction at the validation postures from their joint readings only (never their measurements)
+    val["predicted_at_new_mm"] = predicted_at(budget, valid.subset(~seen)) if (~seen).any() else None
     out["validation"] = val
     times["validation"] = time.time() - t3
     out["timings_s"] = times
@@ -195,6 +197,8 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
                       "predicted_se_mm": budget.predicted_validation_se_mm, "validation_new_mm": new,
                       "validation_new_se_mm": val["new_rmse_se_mm"],
                       "ratio_predicted_to_validation": None if not new else pred / new,
+                      "predicted_at_new_mm": val["predicted_at_new_mm"],
+                      "ratio_at_new": None if not new else val["predicted_at_new_mm"] / new,
                       "cv_of_the_choice_mm": out.get("cv_of_the_choice_mm"),
                       "ratio_cv_of_the_choice": (None if not new or "cv_of_the_choice_mm" not in out
                                                  else out["cv_of_the_choice_mm"] / new),
@@ -222,14 +226,12 @@ def _print(res):
         f = lambda p: "—" if x[p]["rmse_mm"] is None else f"{x[p]['rmse_mm']:.2f}"  # noqa: E731
         print(f"   {name:<19} validation all {f('all')}  seen {f('seen')}  new {f('new')} (inside ranges "
               f"{f('new_inside')}, outside {f('new_outside')})")
-    r = s["ratio_predicted_to_validation"]
-    cv = s.get("cv_of_the_choice_mm")
-    print(f"   recommended {s['recommended']}: predicted {s['predicted_validation_mm']:.2f} ± {s['predicted_se_mm']:.2f} mm,"
-          f" at new postures {s['validation_new_mm']:.2f} ± {s['validation_new_se_mm']:.2f} mm (ratio {r:.2f}; CV of "
-          f"the choice alone {cv:.2f}, ratio {s['ratio_cv_of_the_choice']:.2f}), coverage of the 95 % region "
-          f"{s['coverage95_new']:.2f}" if cv is not None else
-          f"   recommended {s['recommended']}: predicted {s['predicted_validation_mm']:.2f} mm, at new postures "
-          f"{s['validation_new_mm']:.2f} mm (ratio {r:.2f}), coverage {s['coverage95_new']:.2f}")
+    r, cv = s["ratio_predicted_to_validation"], s.get("cv_of_the_choice_mm")
+    print(f"   recommended {s['recommended']}: at new postures {s['validation_new_mm']:.2f} ± "
+          f"{s['validation_new_se_mm']:.2f} mm; predicted there (from their readings) {s['predicted_at_new_mm']:.2f} mm "
+          f"(ratio {s['ratio_at_new']:.2f}); nested CV {s['predicted_validation_mm']:.2f} ± {s['predicted_se_mm']:.2f} "
+          f"(ratio {r:.2f})" + (f"; CV of the choice alone {cv:.2f} (ratio {s['ratio_cv_of_the_choice']:.2f})"
+                                if cv is not None else "") + f"; coverage of the 95 % region {s['coverage95_new']:.2f}")
 
 
 def _halves(groups, seed):

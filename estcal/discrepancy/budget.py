@@ -29,9 +29,12 @@ the named effects, the residual GP).
 With a :class:`~estcal.discrepancy.prediction.Procedure` the stages are those of the procedure
 replayed in each fold (``geometric_mm``: the level each fold chose; ``named_mm``: the causes each
 fold named), so every figure is the error of what the tool would do, not of one choice made on
-all rows. ``region`` is the 95 % prediction region of a new posture (θ covariance + τ² + GP
-variance, conformal threshold from the nested held-out points); :func:`region_at` applies it to
-validation rows.
+all rows. ``region`` is the 95 % prediction region of a new posture (b × θ covariance + τ², the
+conformal threshold from the nested held-out points) and ``region.variance_model``
+the line ``E|e|² = a + b·tr Σ_θ`` of the nested held-out errors; :func:`region_at` applies the
+region to validation rows and :func:`predicted_at` predicts the RMSE at target postures from their
+joint readings alone — larger than ``predicted_validation_mm`` where they lie farther from the
+training postures than the CV's held-out ones (:mod:`estcal.discrepancy.prediction`).
 
 The reduction is a plain difference of RMSEs (not a quadrature split): the budget reads
 "the GP would take the error from 2.6 to 2.4 mm". Folds are few on real data (tens of
@@ -44,8 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.discrepancy.prediction import (GP_GAIN, Procedure, choose_level, conformal_threshold, region_coverage,
-                                           region_scores, region_tau2)
+from estcal.discrepancy.prediction import (GP_GAIN, Procedure, choose_level, conformal_threshold, predicted_rmse_at,
+                                           region_coverage, region_scores, region_sigma, variance_model)
 from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
@@ -122,11 +125,13 @@ def _region_lines(b: dict) -> list[str]:
     r = b.get("region")
     if not r:
         return []
-    out = [f"  95 % region at a new posture: J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, d² ≤ {r['threshold_d2']:.3g} "
-           f"(conformal from the held-out points; χ²₃ {r['chi2_d2']:.3g} covers {100 * r['nested_coverage_chi2']:.0f} %)"]
+    out = [f"  95 % region at a new posture: {r.get('scale', 1.0):.2f}·J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, "
+           f"d² ≤ {r['threshold_d2']:.3g} (conformal from the held-out points; χ²₃ {r['chi2_d2']:.3g} covers "
+           f"{100 * r['nested_coverage_chi2']:.0f} %)"]
     for v in b.get("validation", []):
-        out.append(f"  validation {v['path']}: RMSE {v['rmse_mm']:.3f} mm, inside the region {100 * v['coverage']:.0f} % "
-                   f"of {v['n_points']} points")
+        pred = f" (predicted at its postures {v['predicted_mm']:.3f})" if v.get("predicted_mm") is not None else ""
+        out.append(f"  validation {v['path']}: RMSE {v['rmse_mm']:.3f} mm{pred}, inside the region "
+                   f"{100 * v['coverage']:.0f} % of {v['n_points']} points")
     return out
 
 
@@ -199,11 +204,11 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
            "effects": [[e[0], list(e[1])] for e in eff]}
     fs = fits["named"]
     r_tr = fs.residual_common(dtr)
-    gps, sds = {}, {}
+    gps = {}
     for sp in cfg["spaces"]:
         gps[sp] = fit_residual_model(sp, fs.robot, fs.theta, dtr.readings, r_tr, dtr.context, 0, cfg["rng"],
                                      start=gps_all[sp])
-        corr, sds[sp] = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context, return_std=True)
+        corr = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context)
         out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
     if cfg["nested"] and proc.gp != "never":
         inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
@@ -212,10 +217,9 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
         space = cfg["gp_space"] if not cfg["nested"] else None
     out["gp_space"] = space
     out["rec"] = out["gp"][space] if space else out["held"]["named"]
-    S = point_covariance(fs, dte)
-    if space:
-        S = S + (sds[space].reshape(meas.shape) ** 2)[..., None] * np.eye(3)
-    out["S"] = S
+    # the parameter covariance only: a GP's variance is the same everywhere far from its data, and a fold
+    # may choose a GP where the final model does not (the variance model's a holds what the GP leaves)
+    out["S"] = point_covariance(fs, dte)
     lo, hi = dtr.readings.min(0), dtr.readings.max(0)
     out["outside"] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
     return out
@@ -317,15 +321,10 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
     per_fold["recommended"] = _fold_rmse(pred_sq, folds)
     pf = np.array(per_fold["recommended"])
     se = float(pf.std(ddof=1) / np.sqrt(len(pf))) if len(pf) > 1 else float("nan")
-    # the recommended model's CV error inside / outside the training joint ranges (extrapolation):
-    # predicted_at() weights them by where the robot will be used
+    # the recommended model's CV error inside / outside the fold's training joint ranges (extrapolation)
     in_out = {"cv_inside_mm": rmse_mm(np.sqrt(pred_sq[~outside])), "cv_outside_mm": rmse_mm(np.sqrt(pred_sq[outside])),
               "fraction_outside": float(outside.mean())}
-    tau2 = region_tau2(rec, S)
-    d2 = region_scores(rec, S, tau2)
-    region = {"level": 0.95, "tau_mm": float(np.sqrt(tau2) * 1e3), "threshold_d2": conformal_threshold(d2, 0.95),
-              "chi2_d2": 7.814727903251178, "nested_coverage_chi2": float(np.mean(d2 <= 7.814727903251178)),
-              "n_points": int(d2.size)}
+    region = _region(rec, S)
     rep = repeatability_floor(measured_points(data), g, sessions)
     rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
     label = ("named" if effects else "geometric") + (" + GP" if gp_space else "")
@@ -340,37 +339,57 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
                        gps_all[gp_space] if gp_space else None, extra)
 
 
+def _region(e, S) -> dict:
+    """The 95 % region of a new posture from the nested held-out errors ``e`` and their model covariances ``S``:
+    Σ = b·S + τ² I₃ with ``E|e|² = a + b·tr S`` (:func:`~estcal.discrepancy.prediction.variance_model`), τ² = a/3
+    (at least 5 % of the held-out variance per coordinate), the conformal threshold of the scores."""
+    a, b = variance_model(e, S)
+    tau2 = max(a / 3.0, 0.05 * float(np.mean(np.asarray(e) ** 2)))
+    region = {"level": 0.95, "tau_mm": float(np.sqrt(tau2) * 1e3), "scale": float(b),
+              "variance_model": {"a_mm2": float(a * 1e6), "b": float(b)}}
+    d2 = region_scores(e, region_sigma(region, S), 0.0)
+    region.update({"threshold_d2": conformal_threshold(d2, 0.95), "chi2_d2": 7.814727903251178,
+                   "nested_coverage_chi2": float(np.mean(d2 <= 7.814727903251178)), "n_points": int(d2.size)})
+    return region
+
+
+def _model_at(budget, data, errors: bool = True):
+    """Errors (…, 3; None without ``errors``) of the budget's recommended model (the final fit + its GP's mean)
+    at the rows of ``data`` and their parameter covariances J C_θ Jᵀ (…, 3, 3). Without ``errors`` only the
+    joint readings, the context and the number of points of ``data`` are used — never its measurements."""
+    fs = budget.extra["fitted"]
+    S = point_covariance(fs, data)
+    if not errors:
+        return None, S
+    e = measured_points(data) - fs.predict(data)
+    if budget.residual_model is not None:
+        mean = residual_correction(budget.residual_model, fs.robot, fs.theta, data.readings, data.context)
+        e = e - fs.rotate_to_session(data, mean)
+    return e, S
+
+
 def region_at(budget, data) -> dict:
     """The budget's 95 % prediction region applied to ``data`` (rows not used by the fit, e.g. a validation
-    file): ``{"coverage": share of the points inside, "n_points"}`` with the recommended model's Σ (θ covariance
-    of the final fit + its GP's variance + τ²) and the conformal threshold."""
-    b = budget
-    fs = b.extra["fitted"]
-    e = measured_points(data) - fs.predict(data)
-    S = point_covariance(fs, data)
-    if b.residual_model is not None:
-        mean, sd = residual_correction(b.residual_model, fs.robot, fs.theta, data.readings, data.context,
-                                       return_std=True)
-        e = e - fs.rotate_to_session(data, mean)
-        S = S + (sd.reshape(e.shape) ** 2)[..., None] * np.eye(3)
-    return {"coverage": region_coverage(b.extra["region"], e, S), "n_points": int(np.prod(e.shape[:2])),
-            "rmse_mm": rmse_mm(np.linalg.norm(e, axis=-1))}
+    file): ``{"coverage": share of the points inside, "n_points", "rmse_mm", "predicted_mm"}`` with the
+    recommended model's Σ (θ covariance of the final fit, scaled, + τ²; :func:`_region`)
+    and the conformal threshold; ``predicted_mm`` is :func:`predicted_at` of its postures."""
+    e, S = _model_at(budget, data)
+    return {"coverage": region_coverage(budget.extra["region"], e, S), "n_points": int(np.prod(e.shape[:2])),
+            "rmse_mm": rmse_mm(np.linalg.norm(e, axis=-1)), "predicted_mm": _predicted(budget, S)}
 
 
-def predicted_at(budget, train_readings, target_readings) -> float | None:
-    """Expected RMSE (mm) at the postures where the robot will be used (readings only, no measurement):
-    the budget's CV error inside and outside the training joint ranges (``extrapolation``), weighted by
-    the fraction of target rows outside them: √(f_in · CV_in² + f_out · CV_out²). Falls back to
-    ``predicted_validation_mm`` when the CV had no row of the needed kind."""
-    b = budget.to_dict() if hasattr(budget, "to_dict") else budget
-    ex = b.get("extrapolation") or {}
-    A, T = np.asarray(train_readings, float), np.asarray(target_readings, float)
-    out = np.any((T < A.min(0)) | (T > A.max(0)), axis=1)
-    f_out = float(out.mean()) if len(T) else 0.0
-    cin, cout = ex.get("cv_inside_mm"), ex.get("cv_outside_mm")
-    if (cin is None and f_out < 1) or (cout is None and f_out > 0):
-        return b["predicted_validation_mm"]
-    return float(np.sqrt((1 - f_out) * (cin or 0.0) ** 2 + f_out * (cout or 0.0) ** 2))
+def predicted_at(budget, targets) -> float:
+    """Expected RMSE (mm) of the recommended model at the target postures ``targets`` (a Dataset: its joint
+    readings, context and number of points are used, never its measurements): √mean(a + b·tr Σ_θ) with the
+    variance model of the nested CV (:func:`~estcal.discrepancy.prediction.variance_model`) — larger than
+    ``predicted_validation_mm`` where the targets lie farther from the training postures than the CV's
+    held-out postures did."""
+    return _predicted(budget, _model_at(budget, targets, errors=False)[1])
+
+
+def _predicted(budget, S) -> float:
+    vm = budget.extra["region"]["variance_model"]
+    return predicted_rmse_at(vm["a_mm2"] * 1e-6, vm["b"], S) * 1e3
 
 
 def diagnosis_budget(robot, diagnosis, **kw) -> ErrorBudget:

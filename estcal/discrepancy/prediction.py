@@ -27,14 +27,34 @@ The decisions
 The prediction region
 ---------------------
 A 95 % region for the measured point at a new posture is ``eᵀ Σ⁻¹ e ≤ q̂`` with
-``Σ = J C_θ Jᵀ (+ GP variance) + τ² I₃``: the parameter covariance propagated by the analytic
-Jacobian, plus τ², the part of the nested held-out residual variance that the parameter
-covariance does not explain (the unstructured residual and the between-session part). The
+``Σ = b·J C_θ Jᵀ + τ² I₃``: the parameter covariance propagated by the analytic Jacobian (scaled
+by b ≥ 1, below), plus τ², the part of the nested held-out residual variance that the parameter
+covariance does not explain (the unstructured residual, the between-session part, what a residual
+GP leaves). The
 threshold q̂ is not χ²₃(0.95) = 7.81 but the conformal quantile of the same score over the
 nested held-out points — the ⌈0.95 (n + 1)⌉-th smallest (split-conformal / CV+, Barber, Candès,
 Ramdas & Tibshirani 2021, *Ann. Statist.* 49(1)) — so heavy tails (a few postures far off)
 widen the region instead of breaking its coverage. The scores come from models that never saw
 the scored postures, so the coverage holds at new postures like the training ones.
+
+At the postures where the robot will be used
+--------------------------------------------
+Postures *unlike* the training ones — beyond the training joint ranges, where the fit is an
+extrapolation — have larger errors than the CV's held-out postures, and a CV average does not
+see them. Their distance from the training postures in the metric that matters is the
+prediction variance of the fitted model, ``v = tr(J C_θ Jᵀ)`` (the leverage of the posture in
+the identification Jacobian, scaled by the residual variance; Cook & Weisberg 1982). Inside the
+nested CV every held-out point has its ``v`` from the fold's own fit, and the squared error is
+modelled as ``E|e|² = a + b·v`` (:func:`variance_model`: least squares with ``a, b ≥ 0``): ``a``
+the error a model has anywhere (unstructured residual, session offsets), ``b`` how fast the
+error grows as the posture leaves the span of the training postures (``b = 1`` for a correct
+model with Gaussian noise; more when model error is amplified by extrapolation). Given target
+postures (their joint readings only, never their measurements) the expected RMSE there is
+``√mean(a + b·v_t)`` with ``v_t`` from the final fit (:func:`predicted_rmse_at`). The region
+becomes ``Σ = b·J C_θ Jᵀ + (a/3) I₃`` (a GP's variance is in ``a``: far from its data it is its
+prior amplitude wherever the posture is), so it widens with the distance,
+and its conformal threshold is taken over the same nested scores — a normalised conformal
+region (Lei, G'Sell, Rinaldo, Tibshirani & Wasserman 2018, *JASA* 113, §5.2).
 """
 from __future__ import annotations
 
@@ -45,8 +65,8 @@ import numpy as np
 from estcal.discrepancy.stages import fit_stage_sessions, measured_points
 from estcal.validation import grouped_folds
 
-__all__ = ["LEVELS", "Procedure", "choose_level", "region_scores", "conformal_threshold", "region_coverage", "region_tau2",
-           "GP_GAIN"]
+__all__ = ["LEVELS", "Procedure", "choose_level", "region_scores", "conformal_threshold", "region_coverage",
+           "GP_GAIN", "variance_model", "predicted_rmse_at", "region_sigma"]
 
 #: geometric levels, simplest first (the order of the one-standard-error rule)
 LEVELS = ("joint_offset", "aic", "full")
@@ -126,16 +146,53 @@ def conformal_threshold(scores, level: float = 0.95) -> float:
     return float(s[r - 1]) if 1 <= r <= n else float("inf")
 
 
-def region_tau2(e, S) -> float:
-    """τ² (m²): the held-out residual variance per coordinate that J C_θ Jᵀ (and the GP variance) does
-    not explain, at least 5 % of it (so a region never rests on the parameter covariance alone)."""
-    mse = float(np.mean(np.asarray(e, float) ** 2))
-    explained = float(np.mean(np.trace(np.asarray(S, float), axis1=-2, axis2=-1))) / 3.0
-    return max(mse - explained, 0.05 * mse)
-
-
 def region_coverage(region: dict, e, S) -> float:
     """Share of the points (errors ``e`` (…, 3), covariances ``S`` (…, 3, 3) of the model that predicts
-    them) inside the region ``{"tau_mm", "threshold_d2"}`` of a budget."""
-    d2 = region_scores(e, S, (region["tau_mm"] * 1e-3) ** 2)
+    them) inside the region ``{"tau_mm", "threshold_d2"[, "scale"]}`` of a budget (:func:`region_sigma`)."""
+    d2 = region_scores(e, region_sigma(region, S), 0.0)
     return float(np.mean(d2 <= region["threshold_d2"]))
+
+
+def region_sigma(region: dict, S) -> np.ndarray:
+    """Σ = scale · S + τ² I₃ of a region (``scale`` = b of :func:`variance_model`, 1 when absent)."""
+    return region.get("scale", 1.0) * np.asarray(S, float) + (region["tau_mm"] * 1e-3) ** 2 * np.eye(3)
+
+
+def variance_model(e, S, b_min: float = 1.0) -> tuple[float, float]:
+    """``(a, b)``, a ≥ 0 (m²) and b ≥ ``b_min``, of ``E|e|² = a + b·tr S`` fitted by least squares over the
+    points: ``e`` (…, 3) held-out errors, ``S`` (…, 3, 3) the covariance the model that predicted them gives
+    them (module docstring). ``b_min = 1``: the parameter covariance counts at least once (a correct model
+    has b = 1; tens of postures estimate b loosely and a lower value would shrink the region where the
+    parameters are least known). Non-negative least squares of two columns on ``|e|² − b_min·tr S``: the
+    unconstrained solution when both are feasible, else the better of the two one-column fits."""
+    y = np.sum(np.asarray(e, float) ** 2, axis=-1).reshape(-1)
+    v = np.trace(np.asarray(S, float), axis1=-2, axis2=-1).reshape(-1)
+    if y.size == 0:
+        return 0.0, b_min
+    a, b = _nnls_line(y - b_min * v, v)
+    return a, b + b_min
+
+
+def _nnls_line(y, v) -> tuple[float, float]:
+    """min Σ (y − a − b v)² subject to a, b ≥ 0 (two columns: the interior or an edge solution)."""
+    vc = v - v.mean()
+    den = float(vc @ vc)
+    if den > 0:
+        b = float(vc @ (y - y.mean())) / den
+        a = float(y.mean() - b * v.mean())
+        if a >= 0 and b >= 0:
+            return a, b
+    only_a = (max(float(y.mean()), 0.0), 0.0)
+    vv = float(v @ v)
+    if vv <= 0:
+        return only_a
+    only_b = (0.0, max(float(v @ y) / vv, 0.0))
+    sse = lambda ab: float(np.sum((y - ab[0] - ab[1] * v) ** 2))  # noqa: E731
+    return min((only_a, only_b), key=sse)
+
+
+def predicted_rmse_at(a: float, b: float, S) -> float:
+    """Expected RMSE (m) of the point-error norms at points whose model covariance is ``S`` (…, 3, 3):
+    √mean(a + b·tr S) (:func:`variance_model`)."""
+    v = np.trace(np.asarray(S, float), axis1=-2, axis2=-1)
+    return float(np.sqrt(np.mean(a + b * v))) if v.size else float("nan")
