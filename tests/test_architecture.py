@@ -237,6 +237,49 @@ def long_functions(root: Path = REPO, package: str = "estcal", limit: int = MAX_
     return out
 
 
+def _is_command_decorator(d) -> bool:
+    """``@command(...)``, ``@app.command(...)``, ``@x.command`` …: a decorator that registers a CLI command."""
+    f = d.func if isinstance(d, ast.Call) else d
+    return (isinstance(f, ast.Name) and f.id == "command") or (isinstance(f, ast.Attribute) and f.attr == "command")
+
+
+def closure_commands(root: Path = REPO, package: str = "estcal", folder: str = "cli", decorator: str = "app.py"):
+    """CLI commands not defined at module level: ``{"path:name": why}`` for every function named
+    ``register`` (the old route: commands defined inside ``register(app)``), every command decorator on
+    a function nested in another, and every ``app.command(...)(f)`` call inside a function; and every
+    module of ``cli/commands`` that defines no module-level command. ``decorator``: the module whose
+    ``command`` decorator itself registers the function (the one place an ``app.command`` call belongs)."""
+    out = {}
+    for p in sorted((root / package / folder).rglob("*.py")):
+        rel = p.relative_to(root).as_posix()
+        tree = ast.parse(p.read_text(), str(p))
+        top = 0
+
+        def visit(node, depth):
+            nonlocal top
+            for child in ast.iter_child_nodes(node):
+                if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    if child.name == "register":
+                        out[f"{rel}:{child.name}"] = f"line {child.lineno}: a register() route"
+                    if any(_is_command_decorator(d) for d in child.decorator_list):
+                        if depth:
+                            out[f"{rel}:{child.name}"] = f"line {child.lineno}: a command defined inside a function"
+                        else:
+                            top += 1
+                    visit(child, depth + 1)
+                elif (depth and p.name != decorator and isinstance(child, ast.Call)
+                      and isinstance(child.func, ast.Call) and _is_command_decorator(child.func)):
+                    out[f"{rel}:line {child.lineno}"] = "a command registered inside a function"
+                    visit(child, depth)
+                else:
+                    visit(child, depth)
+
+        visit(tree, 0)
+        if p.parent.name == "commands" and p.name != "__init__.py" and not top:
+            out[f"{rel}"] = "defines no module-level command"
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # the rules on estcal
 
@@ -289,6 +332,13 @@ def test_no_folder_cycle_within_a_layer(graph):
     assert not cycles, "folders of one layer importing each other:\n" + "\n".join(
         f"  {sorted(c)}: " + "; ".join(a for (fa, fb), v in arrows.items() if fa in c and fb in c for a in v)
         for c in cycles)
+
+
+def test_cli_commands_are_defined_at_module_level():
+    """docs/architecture.md, "cli": every command is a module-level function under ``@command``
+    (readers and tools see it); the ``register(app)`` closures are gone for good."""
+    found = closure_commands()
+    assert not found, "CLI commands not at module level:\n" + "\n".join(f"  {k}: {v}" for k, v in found.items())
 
 
 def test_no_long_function():
@@ -344,6 +394,17 @@ def test_checker_finds_a_long_function(tmp_path):
     found = long_functions(root, "pkg")
     assert found == {"pkg/mid/long.py:A.long": MAX_FUNCTION_LINES + 1}
     assert long_functions(root, "pkg", skip=["pkg/mid/"]) == {}
+
+
+def test_checker_finds_a_command_inside_a_function(tmp_path):
+    root = _fake_package(tmp_path, {
+        "pkg/cli/__init__.py": "", "pkg/cli/commands/__init__.py": "",
+        "pkg/cli/commands/good.py": "@command('good')\ndef good():\n    pass\n",
+        "pkg/cli/commands/old.py": "def register(app):\n    @app.command('old')\n    def old():\n        pass\n",
+        "pkg/cli/commands/call.py": "@command('x')\ndef x():\n    pass\n\ndef mount(app, f):\n    app.command('y')(f)\n"})
+    found = closure_commands(root, "pkg")
+    assert set(found) == {"pkg/cli/commands/old.py:register", "pkg/cli/commands/old.py:old",
+                          "pkg/cli/commands/old.py", "pkg/cli/commands/call.py:line 6"}
 
 
 def test_checker_counts_the_real_graph(graph):

@@ -97,17 +97,15 @@ def test_online_stream_matches_estcal_online(stream_csv, tmp_path):
     from estcal.cli.main import app
 
     path, free = stream_csv
-    common = ["--sigma-p", "1e-4", "--sigma-r", "1e-4", "--free", ",".join(free), "--q", "2e-5", "--q-params",
-              "theta_2"]
+    common = ["--noise-pos-mm", "0.1", "--noise-rot-mrad", "0.1", "--free", ",".join(free), "--q-mm", "0.02",
+              "--q-params", "theta_2"]
     r = _script(["puma560", "-", *common, "--show", "theta_2", "--json", str(tmp_path / "script.json")],
                 stdin_path=path)
     assert r.returncode == 0, r.stderr
     rows = [ln for ln in r.stdout.splitlines() if ln.startswith("row ")]
     assert len(rows) == 40 and "theta_2 = " in rows[-1] and " ± " in rows[-1]
-    # the same noise in the CLI's units (docs/conventions.md, "Units on the command line")
-    cli = ["--noise-pos-mm", "0.1", "--noise-rot-mrad", "0.1", "--free", ",".join(free), "--q-mm", "0.02",
-           "--q-params", "theta_2"]
-    res = CliRunner().invoke(app, ["online", str(path), "--robot", "puma560", *cli, "--json",
+    # the same options as estcal online's (docs/conventions.md, "Units on the command line")
+    res = CliRunner().invoke(app, ["online", str(path), "--robot", "puma560", *common, "--json",
                                    str(tmp_path / "cli.json")])
     assert res.exit_code == 0, res.output
     a = json.loads((tmp_path / "script.json").read_text())["parameters"]
@@ -143,7 +141,7 @@ def test_online_stream_malformed_rows(stream_csv, tmp_path, capsys, monkeypatch)
     lines = path.read_text().splitlines()
     bad = lines[:3] + [lines[3].replace(lines[3].split(",")[7], "abc", 1), "1,2,3"] + lines[4:8]
     (tmp_path / "bad.csv").write_text("\n".join(bad) + "\n")
-    args = ["puma560", str(tmp_path / "bad.csv"), "--free", "theta_*", "--sigma-r", "1e-4"]
+    args = ["puma560", str(tmp_path / "bad.csv"), "--free", "theta_*", "--noise-rot-mrad", "0.1"]
     code, out, err = _main(args, capsys, monkeypatch)
     assert code == 0, err
     assert "line 4, column 'y': value is 'abc', not a finite number" in err  # the dataset loader's messages

@@ -138,7 +138,16 @@ def test_result_protocol_next_pose_and_saved_model(data, tmp_path):
         assert k in d
     assert d["input"] == str(data) and d["robot"] == "puma560"
     assert json.loads(res.to_json(tmp_path / "r.json").read_text())["n_rows"] == N
-    assert "offset_2" in res.table() and "innovations:" in res.table()
+    # the one result protocol (estcal.base.result.Result) and its parameter table (display units)
+    from estcal.base.result import Result
+    from estcal.base.tables import Table
+
+    t = res.table()
+    assert isinstance(res, Result) and isinstance(t, Table) and [r[0] for r in t.rows] == cal.names
+    assert t.rows[cal.names.index("a_2")][t.columns.index("estimate")] == pytest.approx(res.parameter("a_2")[0] * 1e3)
+    assert "innovations:" in t.note and repr(res) == str(res) and str(res).startswith("OnlineResult(")
+    with pytest.raises(estcal.base.errors.InputError, match="is an input"):  # the input is never written over
+        res.to_json(data)
     i = cal.names.index("a_2")
     assert res.parameter("a_2") == (pytest.approx(cal.estimate[i]), pytest.approx(cal.std[i]))
     model = res.save_model(tmp_path / "m.yaml")

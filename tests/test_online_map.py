@@ -159,7 +159,7 @@ def test_every_command_that_reads_measured_data_takes_map():
     import inspect
     import re
 
-    from estcal.cli.app import app as cli
+    from estcal.cli.main import app as cli
 
     takes = {c.name for c in cli.registered_commands if "column_map" in inspect.signature(c.callback).parameters}
     assert takes | set(NO_MEASURED_DATA) == {c.name for c in cli.registered_commands}

@@ -21,17 +21,19 @@ import os
 import tempfile
 from pathlib import Path
 
+from .errors import InputError
+
 __all__ = ["refuse_input", "atomic_path", "atomic_write", "atomic_write_text", "atomic_write_bytes", "atomic_savefig"]
 
 
 def refuse_input(path, inputs) -> None:
-    """Raise ``ValueError`` when ``path`` is one of ``inputs`` (files a result was computed from:
+    """Raise :class:`~estcal.base.errors.InputError` (a ValueError) when ``path`` is one of ``inputs`` (files a result was computed from:
     its dataset, validation files, robot file): inputs are never overwritten, in Python as on the
     command line (:func:`estcal.cli.checks.check_outputs`)."""
     real = os.path.realpath(path)
     for src in inputs:
         if src and Path(str(src)).is_file() and os.path.realpath(src) == real:
-            raise ValueError(f"{path}: is an input of this result ({src}) — write it to another file "
+            raise InputError(f"{path}: is an input of this result ({src}) — write it to another file "
                              f"(inputs are never overwritten)")
 
 

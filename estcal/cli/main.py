@@ -19,18 +19,9 @@ __all__ = ["app", "main"]
 
 
 def _mount() -> None:
-    from estcal.cli.run import guarded
-
-    registered = len(app.registered_commands)
+    """Import every command module: each registers its module-level commands with ``@command``."""
     for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda m: m.name):
-        module = importlib.import_module(f"{_commands.__name__}.{info.name}")
-        register = getattr(module, "register", None)  # a module not yet converted to module-level commands
-        if register is not None:
-            register(app)
-            for cmd in app.registered_commands[registered:]:
-                name = cmd.name or cmd.callback.__name__.replace("_", "-")
-                cmd.callback = guarded(name, cmd.callback)
-        registered = len(app.registered_commands)
+        importlib.import_module(f"{_commands.__name__}.{info.name}")
 
 
 _mount()

@@ -14,7 +14,7 @@ def rich_table(table, digits: int = 5):
 
     t = RichTable(title=table.title, title_justify="left")
     for i, c in enumerate(table.columns):
-        t.add_column(str(c), justify="left" if i == 0 else "right")
+        t.add_column(str(c), justify="left" if i == 0 or c == "unit" else "right")
     for i, r in enumerate(table.rows):
         t.add_row(*[table.cell(i, j, v, digits) for j, v in enumerate(r)])
     return t

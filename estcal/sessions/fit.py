@@ -256,16 +256,21 @@ def fit_sessions(robot, datasets, free, vary=(), *, noise=None, q=None, formulat
 
 
 def _check_rank(A_list, c, free, max_cond: float = 1e10):
-    """Refuse a free set that the sessions' data cannot determine (naming the dependent parameters)."""
-    N = sum((A / c).T @ (A / c) for A in A_list)
-    w, V = np.linalg.eigh(N)
-    if w[0] <= w[-1] / max_cond:
-        v = V[:, 0]
-        worst = [free[i] for i in np.argsort(-np.abs(v))[:4] if abs(v[i]) > 0.1]
-        raise ValueError(f"the free parameters are not identifiable from these sessions (condition number "
-                         f"{np.sqrt(w[-1] / max(w[0], 1e-300)):.3g}); dependent combination of {worst}: fix some "
-                         f"of them or choose the free set with estcal.estimate.levels.select_free on the "
-                         f"stacked sessions")
+    """Refuse a free set that the sessions' data cannot determine, naming the parameters: the one
+    identifiable-set entry (:func:`estcal.identify.select.select_identifiable`, structural tolerance) on the
+    stacked, column-scaled Jacobians of all sessions — a parameter without effect or dependent on the
+    others — and, as before, a set whose normal matrix has a condition number above ``max_cond``
+    (independent but not determined by noisy data)."""
+    from estcal.identify.select import select_identifiable
+
+    W = np.vstack([A / c for A in A_list])
+    sel = select_identifiable(W, names=list(free))
+    bad = list(sel.no_effect) + list(sel.regrouped)
+    if bad or sel.condition_number ** 2 > max_cond:
+        why = (f"{bad} have no effect or depend on the others" if bad else
+               f"condition number {sel.condition_number ** 2:.3g} of the normal matrix")
+        raise ValueError(f"the free parameters are not identifiable from these sessions ({why}): fix some of them "
+                         f"or choose the free set with estcal.estimate.levels.select_free on the stacked sessions")
 
 
 def _scale_only(blocks, S, q, s2):

@@ -41,6 +41,8 @@ import numpy as np
 
 from estcal.base.blas import single_thread_blas
 from estcal.base.errors import InputError
+from estcal.base.result import Result
+from estcal.base.tables import Table, parameter_table, si_unit
 from estcal.estimate._common import prior_std_vector
 from estcal.methods.reduced import PER_POSE_METHODS
 from estcal.estimate.checkpoint import (CheckpointError, Journal, PrefixHasher, file_sha256, filter_checkpoint,
@@ -144,9 +146,11 @@ class OnlineUpdate:
         return int(self.nis.size)
 
 
-@dataclass
-class OnlineResult:
-    """The state of an online calibration (SI units): ``to_dict()`` is the JSON of ``estcal online --json``."""
+@dataclass(repr=False)
+class OnlineResult(Result):
+    """The state of an online calibration (SI units), following the result protocol
+    (:class:`estcal.base.result.Result`): ``to_dict()`` is the JSON of ``estcal online --json``,
+    ``table()`` the parameter table (display units), ``save_model`` the robot at the estimate."""
 
     robot: str
     input: str | None
@@ -178,23 +182,26 @@ class OnlineResult:
                 "covariance": np.asarray(self.covariance).tolist(), "innovation": self.innovation,
                 "history": self.history}
 
-    def to_json(self, path) -> Path:
-        from estcal.base.jsonio import write_json
+    @property
+    def inputs(self) -> tuple:
+        """The file the rows came from (never written over by :meth:`to_json`)."""
+        return (self.input,) if self.input and self.input != "<stdin>" else ()
 
-        return write_json(path, self.to_dict())
+    def table(self) -> Table:
+        """Nominal, estimate and std of every free parameter in display units (mm, mrad; SI when the
+        robot is not known), the innovation tests' verdict as its note (:func:`estcal.base.tables.parameter_table`)."""
+        from estcal.base.units import display_unit
 
-    def table(self) -> str:
-        """Estimate ± std of every free parameter (SI) and the innovation tests' verdict."""
-        w = max([len(n) for n in self.names] + [9])
-        rows = [f"{'parameter':<{w}}  {'nominal':>13}  {'estimate':>13}  {'std':>11}"]
-        rows += [f"{n:<{w}}  {v:>13.6g}  {e:>13.6g}  {s:>11.3g}"
-                 for n, v, e, s in zip(self.names, self.nominal, self.estimate, self.std)]
+        rb = self.robot_model
+        t = parameter_table(self, (lambda n: display_unit(n, rb)) if rb is not None else si_unit,
+                            title=f"estimate after {self.n_rows} rows")
         inn = self.innovation
-        rows.append(str(InnovationTests(**inn)) if "error" not in inn else f"innovation tests: {inn['error']}")
-        return "\n".join(rows)
+        t.note = str(InnovationTests(**inn)) if "error" not in inn else f"innovation tests: {inn['error']}"
+        t.fmt = lambda i, j, v, digits: f"{v:.3g}" if j == 3 else f"{v:.{digits}g}"  # σ to 3 digits
+        return t
 
-    def __str__(self) -> str:
-        return f"OnlineResult({self.robot!r}, {self.n_rows} rows, filter {self.filter})\n" + self.table()
+    def summary(self) -> str:
+        return f"OnlineResult({self.robot!r}, {self.n_rows} rows, filter {self.filter})"
 
     def save_model(self, path, provenance: dict | None = None) -> Path:
         """The robot at the estimate as a saved model (docs/robot-file.md, "Saved models"), the

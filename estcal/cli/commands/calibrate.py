@@ -42,22 +42,21 @@ def _fmt(v, nd=3):
 def _print_report(console, cal) -> None:
     from rich.table import Table
 
+    from estcal.base.tables import parameter_table
     from estcal.base.units import display_unit as _unit  # printed unit and factor from SI of a parameter
+    from estcal.report.tables import rich_table
 
     res, sel, robot = cal.result, cal.selection, cal.robot
     title = (f"estcal calibrate — {robot.name}, {cal.measure}, estimator {cal.estimator}: "
              f"{len(res.names)} parameters, {res.n_iterations} iterations, "
              f"{'converged' if res.converged else 'NOT converged'}, σ0 = {res.sigma0:.3g} "
              f"(covariance {res.covariance_source})")
-    t = Table(title=title, title_justify="left")
-    for c, j in (("parameter", "left"), ("initial", "right"), ("estimate", "right"), ("± std", "right"),
-                 ("unit", "left")):
-        t.add_column(c, justify=j)
-    for n, v, e, s in zip(res.names, res.nominal, res.estimate, res.std):
-        u, f = _unit(n, robot)
-        label = sel.regroup_label(n) if sel is not None else n
-        t.add_row(label, f"{v * f:.5g}", f"{e * f:.5g}", f"{s * f:.3g}", u)
-    console.print(t)
+    t = parameter_table(res, lambda n: _unit(n, robot), title=title)
+    if sel is not None:  # the regrouping in the name's cell: `a_2 [+β·d_3]`
+        for row in t.rows:
+            row[0] = sel.regroup_label(row[0])
+    t.fmt = lambda i, j, v, digits: f"{v:.3g}" if j == 3 else f"{v:.5g}"  # σ to 3 digits
+    console.print(rich_table(t))
     if sel is not None:
         msg = f"selection: level {sel.level}, criterion {sel.criterion}, condition number {sel.condition_number:.3g}"
         if sel.no_effect:

@@ -367,13 +367,12 @@ class _Run:
 
     def _start_live(self, live):
         from rich.live import Live
-        from rich.table import Table
 
         from estcal.base.units import display_unit
 
         self.units = [display_unit(n, self.cal.robot) for n in self.cal.names]
         if live:
-            self.live_ctx = Live(Table(title="waiting for rows"), console=self.console, refresh_per_second=4)
+            self.live_ctx = Live("waiting for rows", console=self.console, refresh_per_second=4)
             self.live_ctx.start()
 
     def _status(self, up):
@@ -396,38 +395,29 @@ class _Run:
 
     def _live_table(self):
         import numpy as np
-        from rich.table import Table
+
+        from estcal.base.tables import Table
+        from estcal.report.tables import rich_table
 
         cal = self.cal
         pv = cal.robot.params
-        run = cal.running_nis
-        tb = Table(title=f"{cal.robot.name}: {cal.n_rows} rows, NIS/row {run:.3f}, trace P "
-                         f"{np.trace(cal.flt.f.P):.3g}")
-        for c in ("parameter", "estimate", "std", "Δ from nominal", "unit"):
-            tb.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
         x, sd = cal.estimate, cal.std
-        for i, n in enumerate(cal.names):
-            u, f = self.units[i]
-            tb.add_row(n, f"{x[i] * f:.6g}", f"{sd[i] * f:.3g}", f"{(x[i] - pv.values[cal.fidx[i]]) * f:.3g}", u)
-        return tb
+        rows = [[n, float(x[i] * f), float(sd[i] * f), float((x[i] - pv.values[cal.fidx[i]]) * f), u]
+                for i, (n, (u, f)) in enumerate(zip(cal.names, self.units))]
+        tb = Table("live", f"{cal.robot.name}: {cal.n_rows} rows, NIS/row {cal.running_nis:.3f}, trace P "
+                           f"{np.trace(cal.flt.f.P):.3g}", ["parameter", "estimate", "std", "Δ from nominal", "unit"],
+                   rows, fmt=lambda i, j, v, digits: f"{v:.{digits}g}" if j == 1 else f"{v:.3g}")
+        return rich_table(tb, digits=6)
 
     def finish(self, json_path, report):
-        from rich.table import Table
-
-        from estcal.estimate.innovation import InnovationTests
+        from estcal.report.tables import rich_table
 
         res = self.cal.result()
         res.input = self.where
-        table = Table(title=f"estimate after {res.n_rows} rows")
-        for c in ("parameter", "nominal", "estimate", "std", "unit"):
-            table.add_column(c, justify="right" if c not in ("parameter", "unit") else "left")
-        for i, n in enumerate(res.names):
-            u, f = self.units[i]
-            table.add_row(n, f"{res.nominal[i] * f:.6g}", f"{res.estimate[i] * f:.6g}", f"{res.std[i] * f:.3g}", u)
-        self.console.print(table)
+        table = res.table()  # the parameter table of the result (estcal.base.tables), its note the innovation tests
+        self.console.print(rich_table(table, digits=6))
+        self.console.print(table.note)
         tests = res.innovation
-        self.console.print(str(InnovationTests(**tests)) if "error" not in tests
-                           else f"innovation tests: {tests['error']}")
         out = res.to_dict()
         if json_path is not None:
             from estcal.base.jsonio import write_json
