@@ -112,7 +112,7 @@ def test_header_read_and_streamed_lines_match_the_whole_file_readers(tmp_path, p
     """``read_csv_header`` (used to count point columns) gives the header ``read_csv`` gives, and
     the streamed lines of ``estcal online`` are ``splitlines(keepends=True)`` of the whole text,
     even with a block size that cuts lines and ``\\r\\n`` pairs."""
-    from estcal.workflows.online import _lines
+    from estcal.io.stream import _lines
     from estcal.base.textinput import read_csv, read_csv_header, read_text
 
     body = newline.join(["", "", "j1;j2; x ;y;z", *[f"{k};{k / 3};1;2;{k}" for k in range(40)], ""])

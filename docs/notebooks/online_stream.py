@@ -7,7 +7,7 @@ publisher's own columns and units through ``--map FILE.yaml``) updates
 :class:`estcal.OnlineCalibrator` — a Kalman filter over the free parameters,
 random-walk model x_k = x_{k−1} + w_k, Cov(w) = Q (textbook §4.5, eqs 4.104–4.112) —
 as soon as it arrives, and the estimate ± σ of the shown parameters is printed.
-Rows are read and checked by :class:`estcal.workflows.online.CsvStream` (the
+Rows are read and checked by :class:`estcal.io.stream.CsvStream` (the
 dataset loader's checks); a malformed row is reported on stderr with its line
 and column and skipped (``--strict``: stop with exit code 2). At the end: the
 final table, the innovation tests (docs/probabilistic.md) and, with ``--json``,
@@ -35,7 +35,7 @@ import argparse
 import sys
 
 import estcal  # top-level API: OnlineCalibrator (docs/api.md)
-from estcal.workflows.online import CsvStream
+from estcal.io.stream import CsvStream
 
 
 def die(msg: str) -> None:

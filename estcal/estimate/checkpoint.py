@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estcal.base.errors import InputError
+from estcal.io.integrity import CheckpointError, PrefixHasher, file_sha256  # where the input is read too
 
 __all__ = ["FORMAT", "CheckpointError", "PrefixHasher", "Journal", "journal_path", "filter_checkpoint",
            "save_checkpoint", "load_checkpoint", "restore_filter", "option_differences", "file_sha256"]
@@ -50,33 +50,6 @@ FORMAT = "estcal-online-checkpoint"
 VERSION = 3  # 2: the innovation record and history moved to the journal; 3: linearisation segment, source
 READABLE = (2, 3)
 _INNOVATION, _HISTORY = 0.0, 1.0
-
-
-class CheckpointError(InputError):
-    """A checkpoint that cannot be used (wrong file, other input, other options)."""
-
-
-def file_sha256(path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for b in iter(lambda: fh.read(chunk), b""):
-            h.update(b)
-    return h.hexdigest()
-
-
-class PrefixHasher:
-    """SHA-256 and byte count of the input consumed so far (updated line by line)."""
-
-    def __init__(self):
-        self.h = hashlib.sha256()
-        self.n = 0
-
-    def update(self, raw: bytes) -> None:
-        self.h.update(raw)
-        self.n += len(raw)
-
-    def hexdigest(self) -> str:
-        return self.h.hexdigest()
 
 
 def journal_path(state_path) -> Path:

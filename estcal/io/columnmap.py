@@ -31,7 +31,8 @@ import numpy as np
 from estcal.base.errors import InputError
 from estcal.io.columns import CONTEXT_COLUMNS, NUMBERED, QUAT_COLUMNS, DatasetError, is_number
 
-__all__ = ["ColumnMap", "ColumnMapError", "load_column_map", "column_map_from_dict", "apply_column_map"]
+__all__ = ["ColumnMap", "ColumnMapError", "load_column_map", "column_map_from_dict", "apply_column_map",
+           "as_column_map"]
 
 _TOP = ("joints", "points", "orientation", "units", "columns", "context")
 _LENGTH = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
@@ -116,6 +117,16 @@ def _compose(text: str, where: str):
     if node is not None:
         walk(node, ())
     return yaml.safe_load(text), lines
+
+
+def as_column_map(column_map) -> ColumnMap | None:
+    """A column map from what the user gave: a path of its YAML file, a :class:`ColumnMap`, or the dict
+    an online checkpoint keeps (:meth:`ColumnMap.to_dict`); None stays None."""
+    if column_map is None or isinstance(column_map, ColumnMap):
+        return column_map
+    if isinstance(column_map, dict):
+        return column_map_from_dict(column_map, "<the checkpoint's column map>")
+    return load_column_map(column_map)
 
 
 def load_column_map(path) -> ColumnMap:

@@ -8,6 +8,10 @@ A file written by estcal carries the SHA-256 of its own content:
   hand no longer matches. Deleting the line accepts a deliberate hand edit;
 * JSON state (online checkpoints): a key ``content_sha256`` over the canonical JSON of the other
   keys (sorted keys, compact separators; floats round-trip exactly in Python's JSON).
+
+And of what estcal reads as a stream: :class:`PrefixHasher` follows the SHA-256 of the input consumed
+so far, so that a resumed online run checks it reads the input of the checkpointed one
+(:class:`CheckpointError` otherwise; :mod:`estcal.io.stream`, :mod:`estcal.estimate.checkpoint`).
 """
 from __future__ import annotations
 
@@ -15,7 +19,10 @@ import hashlib
 import json
 import re
 
-__all__ = ["CHECKSUM_PREFIX", "stamp_text", "verify_text", "stamp_json", "verify_json"]
+from estcal.base.errors import InputError
+
+__all__ = ["CHECKSUM_PREFIX", "stamp_text", "verify_text", "stamp_json", "verify_json", "CheckpointError",
+           "file_sha256", "PrefixHasher"]
 
 CHECKSUM_PREFIX = "# content-sha256: "
 _LINE = re.compile(r"^# content-sha256: ([0-9a-f]{64})[ \t]*\r?\n", re.MULTILINE)
@@ -66,3 +73,30 @@ def verify_json(d: dict, where: str, error=ValueError, what: str = "file") -> bo
         raise error(f"{where}: the content differs from the checksum estcal wrote (content_sha256) — the {what} was "
                     f"changed after it was written; restore it, or start again without it")
     return True
+
+
+class CheckpointError(InputError):
+    """A checkpoint that cannot be used (wrong file, other input, other options)."""
+
+
+def file_sha256(path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for b in iter(lambda: fh.read(chunk), b""):
+            h.update(b)
+    return h.hexdigest()
+
+
+class PrefixHasher:
+    """SHA-256 and byte count of the input consumed so far (updated line by line)."""
+
+    def __init__(self):
+        self.h = hashlib.sha256()
+        self.n = 0
+
+    def update(self, raw: bytes) -> None:
+        self.h.update(raw)
+        self.n += len(raw)
+
+    def hexdigest(self) -> str:
+        return self.h.hexdigest()

@@ -1,7 +1,7 @@
 """``estcal online``: recursive (Kalman) calibration of a stream of CSV rows.
 
 A thin user of :class:`estcal.workflows.online.OnlineCalibrator`: the rows are read in chunks
-(:class:`~estcal.workflows.online.CsvStream`), given to ``update``, and the status lines, the
+(:class:`~estcal.io.stream.CsvStream`), given to ``update``, and the status lines, the
 final table, the innovation tests, the JSON and the report are printed from what it returns.
 """
 from __future__ import annotations
