@@ -351,14 +351,6 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
     return CsvTable(new_header, rows, list(table.lines), table.header_line, table.delimiter, where), renamed
 
 
-def unused_file_columns(table_header, cmap: ColumnMap | None, used_names) -> list[str]:
-    """File columns that neither the map nor the loader uses (for ``estcal check``)."""
-    used = set(used_names)
-    if cmap is not None:
-        used |= set(cmap.file_columns()) | set(cmap.joints.values())
-    return [h for h in table_header if h and h not in used]
-
-
 def rename_message(msg: str, renamed: dict, cmap: ColumnMap) -> str:
     """A loader message about estcal's column ``c`` rewritten to name the file's column."""
     import re
