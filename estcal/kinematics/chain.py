@@ -632,6 +632,11 @@ class SerialRobot:
         hit = cache[1].get(ck)
         if hit is not None and hit[0] is const and hit[1] is elems:
             return hit[2]
+        if not cache[1]:  # a new θ: every segment of the chain at once (the common case)
+            self._all_segments_local(theta, cache[1])
+            hit = cache[1].get(ck)
+            if hit is not None and hit[0] is const and hit[1] is elems:
+                return hit[2]
         if not elems:
             out = (np.eye(3) if const is None else const[:3, :3].copy(),
                    np.zeros(3) if const is None else const[:3, 3].copy(), None, None, None)
@@ -666,6 +671,52 @@ class SerialRobot:
                 a.flags.writeable = False  # shared between calls
         cache[1][ck] = (const, elems, out)
         return out
+
+    def _all_segments_local(self, theta, store: dict) -> None:
+        """:meth:`_segment_local` of every segment of the chain for one θ, into ``store``: the segments
+        with the same sequence of motions (URDF chains: tx ty tz rx ry rz after every joint) composed
+        together, one array operation per motion for the whole group instead of Python floats per
+        segment — the same operations in the same order on each entry (cosines and sines by
+        :mod:`math`, as there), so bit-identical."""
+        groups: dict = {}
+        for link in self.links:
+            for const, elems in ((link.const, link.before), (None, link.after)):
+                if elems:
+                    key = (const is None,) + tuple((e.kind, e.axis) for e in elems)
+                    groups.setdefault(key, []).append((const, elems))
+        for key, segs in groups.items():
+            G = len(segs)
+            LR = np.empty((G, 3, 3))
+            Lp = np.zeros((G, 3))
+            for g, (const, _) in enumerate(segs):
+                if const is None:
+                    LR[g] = np.eye(3)
+                else:
+                    LR[g] = const[:3, :3]
+                    Lp[g] = const[:3, 3]
+            kinds = key[1:]
+            m = len(kinds)
+            A, Oloc = np.empty((G, m, 3)), np.empty((G, m, 3))
+            vals = theta[np.array([[e.param for e in elems] for _, elems in segs])]  # (G, m)
+            for i, (kind, axis) in enumerate(kinds):
+                ai = "xyz".index(axis)
+                A[:, i] = LR[:, :, ai]
+                Oloc[:, i] = Lp
+                v = vals[:, i].tolist()
+                if kind == "R":
+                    c = np.array([math.cos(x) for x in v])[:, None]
+                    s_ = np.array([math.sin(x) for x in v])[:, None]
+                    i1, i2 = _OTHER[ai]
+                    a1, a2 = LR[:, :, i1].copy(), LR[:, :, i2].copy()
+                    LR[:, :, i1] = c * a1 + s_ * a2
+                    LR[:, :, i2] = c * a2 - s_ * a1
+                else:
+                    Lp = Lp + LR[:, :, ai] * np.array(v)[:, None]
+            rot = np.array([kind == "R" for kind, _ in kinds], bool)
+            for arr in (LR, Lp, A, Oloc, rot):
+                arr.flags.writeable = False  # shared between calls
+            for g, (const, elems) in enumerate(segs):
+                store[(id(const), id(elems), len(elems))] = (const, elems, (LR[g], Lp[g], A[g], Oloc[g], rot))
 
     # ------------------------------------------------------------- helpers
     def fk(self, readings, theta=None, context=None):
