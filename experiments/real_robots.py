@@ -202,7 +202,7 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
                       "cv_of_the_choice_mm": out.get("cv_of_the_choice_mm"),
                       "ratio_cv_of_the_choice": (None if not new or "cv_of_the_choice_mm" not in out
                                                  else out["cv_of_the_choice_mm"] / new),
-                      "coverage95_new": val["coverage95_new"]}
+                      "coverage95_new": val["coverage95_new"], "variance_model": budget.extra["region"]["variance_model"]}
     return out
 
 
@@ -486,12 +486,14 @@ def main(argv=None) -> dict:
                     help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, design, "
                          "explore")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--k", type=int, default=None, help="posture-grouped folds (default 5; 3 with --quick)")
     args = ap.parse_args(argv)
     if not (shared_dir() / "data" / "tiago").is_dir():
         print(f"shared data not found at {shared_dir() / 'data'}")
         return {"skipped": True}
     warnings.filterwarnings("ignore")
     k, restarts = (3, 0) if args.quick else (5, 0)
+    k = args.k or k
     seeds = (0,) if args.quick else (0, 1, 2)
     robots = args.robots.split(",")
     out = {"protocol": __doc__, "quick": args.quick}

@@ -26,7 +26,7 @@ def test_variance_model_is_the_bounded_least_squares_line(a_true, b_true):
     v = np.trace(S, axis1=1, axis2=2)
     # errors whose squared norm has mean a + b tr S (isotropic Gaussian with that variance)
     e = rng.standard_normal((400, 3)) * np.sqrt((a_true + b_true * v) / 3)[:, None]
-    a, b = variance_model(e, S)
+    a, b = variance_model(e, S, b_min=1.0)
     y = np.sum(e ** 2, -1)
 
     def bounded(y):  # in units of the data's scale, so that the solver's tolerances mean something

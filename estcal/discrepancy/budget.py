@@ -125,7 +125,7 @@ def _region_lines(b: dict) -> list[str]:
     r = b.get("region")
     if not r:
         return []
-    out = [f"  95 % region at a new posture: {r.get('scale', 1.0):.2f}·J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, "
+    out = [f"  95 % region at a new posture: {r.get('scale', 1.0):.3g}·N·J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, "
            f"d² ≤ {r['threshold_d2']:.3g} (conformal from the held-out points; χ²₃ {r['chi2_d2']:.3g} covers "
            f"{100 * r['nested_coverage_chi2']:.0f} %)"]
     for v in b.get("validation", []):
@@ -219,7 +219,9 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
     out["rec"] = out["gp"][space] if space else out["held"]["named"]
     # the parameter covariance only: a GP's variance is the same everywhere far from its data, and a fold
     # may choose a GP where the final model does not (the variance model's a holds what the GP leaves)
-    out["S"] = point_covariance(fs, dte)
+    # × the number of training rows: the leverage in units of one training row (the metric of the identification
+    # Jacobian, the same whatever the number of rows of the fit; prediction.py)
+    out["S"] = point_covariance(fs, dte) * len(train)
     lo, hi = dtr.readings.min(0), dtr.readings.max(0)
     out["outside"] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
     return out
@@ -341,7 +343,7 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
 
 def _region(e, S) -> dict:
     """The 95 % region of a new posture from the nested held-out errors ``e`` and their model covariances ``S``:
-    Σ = b·S + τ² I₃ with ``E|e|² = a + b·tr S`` (:func:`~estcal.discrepancy.prediction.variance_model`), τ² = a/3
+    Σ = b·S + τ² I₃ with ``E|e|² = a + b·tr S`` (S: N·J C_θ Jᵀ) (:func:`~estcal.discrepancy.prediction.variance_model`), τ² = a/3
     (at least 5 % of the held-out variance per coordinate), the conformal threshold of the scores."""
     a, b = variance_model(e, S)
     tau2 = max(a / 3.0, 0.05 * float(np.mean(np.asarray(e) ** 2)))
@@ -355,10 +357,10 @@ def _region(e, S) -> dict:
 
 def _model_at(budget, data, errors: bool = True):
     """Errors (…, 3; None without ``errors``) of the budget's recommended model (the final fit + its GP's mean)
-    at the rows of ``data`` and their parameter covariances J C_θ Jᵀ (…, 3, 3). Without ``errors`` only the
+    at the rows of ``data`` and their parameter covariances J C_θ Jᵀ × N (…, 3, 3; N training rows). Without ``errors`` only the
     joint readings, the context and the number of points of ``data`` are used — never its measurements."""
     fs = budget.extra["fitted"]
-    S = point_covariance(fs, data)
+    S = point_covariance(fs, data) * budget.n_rows
     if not errors:
         return None, S
     e = measured_points(data) - fs.predict(data)

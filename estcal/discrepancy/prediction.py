@@ -27,8 +27,8 @@ The decisions
 The prediction region
 ---------------------
 A 95 % region for the measured point at a new posture is ``eᵀ Σ⁻¹ e ≤ q̂`` with
-``Σ = b·J C_θ Jᵀ + τ² I₃``: the parameter covariance propagated by the analytic Jacobian (scaled
-by b ≥ 1, below), plus τ², the part of the nested held-out residual variance that the parameter
+``Σ = b·N·J C_θ Jᵀ + τ² I₃``: the parameter covariance propagated by the analytic Jacobian (scaled
+as below), plus τ², the part of the nested held-out residual variance that the parameter
 covariance does not explain (the unstructured residual, the between-session part, what a residual
 GP leaves). The
 threshold q̂ is not χ²₃(0.95) = 7.81 but the conformal quantile of the same score over the
@@ -41,20 +41,22 @@ At the postures where the robot will be used
 --------------------------------------------
 Postures *unlike* the training ones — beyond the training joint ranges, where the fit is an
 extrapolation — have larger errors than the CV's held-out postures, and a CV average does not
-see them. Their distance from the training postures in the metric that matters is the
-prediction variance of the fitted model, ``v = tr(J C_θ Jᵀ)`` (the leverage of the posture in
-the identification Jacobian, scaled by the residual variance; Cook & Weisberg 1982). Inside the
-nested CV every held-out point has its ``v`` from the fold's own fit, and the squared error is
-modelled as ``E|e|² = a + b·v`` (:func:`variance_model`: least squares with ``a, b ≥ 0``): ``a``
-the error a model has anywhere (unstructured residual, session offsets), ``b`` how fast the
-error grows as the posture leaves the span of the training postures (``b = 1`` for a correct
-model with Gaussian noise; more when model error is amplified by extrapolation). Given target
-postures (their joint readings only, never their measurements) the expected RMSE there is
-``√mean(a + b·v_t)`` with ``v_t`` from the final fit (:func:`predicted_rmse_at`). The region
-becomes ``Σ = b·J C_θ Jᵀ + (a/3) I₃`` (a GP's variance is in ``a``: far from its data it is its
-prior amplitude wherever the posture is), so it widens with the distance,
-and its conformal threshold is taken over the same nested scores — a normalised conformal
-region (Lei, G'Sell, Rinaldo, Tibshirani & Wasserman 2018, *JASA* 113, §5.2).
+see them. Their distance from the training postures, in the metric of the identification
+Jacobian, is the leverage of the posture (Cook & Weisberg 1982): ``v = N · tr(J C_θ Jᵀ)`` with
+C_θ the fit's parameter covariance and N its number of training rows — the prediction variance in
+units of one training row's share, so that a fold's fit (fewer rows) and the final fit measure
+distance alike. Inside the nested CV every held-out point has its ``v`` from the fold's own fit,
+and its squared error is modelled as ``E|e|² = a + b·v`` (:func:`variance_model`: least squares
+with ``a, b ≥ 0``): ``a`` the error a model makes anywhere (unstructured residual, session
+offsets, what a GP leaves), ``b`` how fast it grows as the posture leaves the span of the
+training postures — on real robots mostly model error amplified by extrapolation, which more
+rows of the same postures do not remove (hence the scaling by N). Given target postures (their
+joint readings only, never their measurements) the expected RMSE there is ``√mean(a + b·v_t)``
+with ``v_t`` from the final fit (:func:`predicted_rmse_at`); at targets like the CV's held-out
+postures it is the nested CV figure. The region becomes ``Σ = b·N·J C_θ Jᵀ + (a/3) I₃`` (a GP's
+variance is in ``a``: far from its data it is its prior amplitude wherever the posture is), so it
+widens with the distance, and its conformal threshold is taken over the same nested scores — a
+normalised conformal region (Lei, G'Sell, Rinaldo, Tibshirani & Wasserman 2018, *JASA* 113, §5.2).
 """
 from __future__ import annotations
 
@@ -158,13 +160,11 @@ def region_sigma(region: dict, S) -> np.ndarray:
     return region.get("scale", 1.0) * np.asarray(S, float) + (region["tau_mm"] * 1e-3) ** 2 * np.eye(3)
 
 
-def variance_model(e, S, b_min: float = 1.0) -> tuple[float, float]:
+def variance_model(e, S, b_min: float = 0.0) -> tuple[float, float]:
     """``(a, b)``, a ≥ 0 (m²) and b ≥ ``b_min``, of ``E|e|² = a + b·tr S`` fitted by least squares over the
-    points: ``e`` (…, 3) held-out errors, ``S`` (…, 3, 3) the covariance the model that predicted them gives
-    them (module docstring). ``b_min = 1``: the parameter covariance counts at least once (a correct model
-    has b = 1; tens of postures estimate b loosely and a lower value would shrink the region where the
-    parameters are least known). Non-negative least squares of two columns on ``|e|² − b_min·tr S``: the
-    unconstrained solution when both are feasible, else the better of the two one-column fits."""
+    points: ``e`` (…, 3) held-out errors, ``S`` (…, 3, 3) the (scaled) covariance the model that predicted
+    them gives them (module docstring). Non-negative least squares of two columns on ``|e|² − b_min·tr S``:
+    the unconstrained solution when both are feasible, else the better of the two one-column fits."""
     y = np.sum(np.asarray(e, float) ** 2, axis=-1).reshape(-1)
     v = np.trace(np.asarray(S, float), axis1=-2, axis2=-1).reshape(-1)
     if y.size == 0:
