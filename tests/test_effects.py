@@ -296,8 +296,8 @@ def test_effect_columns_random_robots(case):
     robot, q, theta, ctx, eidx = case
     k = robot.kinematics(q, theta, ctx)
     Jp, Jm = fd_columns(robot, q, theta, ctx, eidx, eps=1e-7)
-    np.testing.assert_allclose(k.J[..., eidx], Jp, rtol=0, atol=1e-6 * max(1.0, np.abs(Jp).max()))
-    np.testing.assert_allclose(k.J_points[..., eidx], Jm, rtol=0, atol=1e-6 * max(1.0, np.abs(Jm).max()))
+    np.testing.assert_allclose(k.J[..., eidx], Jp, rtol=0, atol=1e-6 * max(1.0, np.abs(Jp).max(initial=0.0)))
+    np.testing.assert_allclose(k.J_points[..., eidx], Jm, rtol=0, atol=1e-6 * max(1.0, np.abs(Jm).max(initial=0.0)))
 
 
 def test_thermal_combined_with_joint_effects():
