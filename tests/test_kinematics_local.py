@@ -22,3 +22,33 @@ def test_batched_segments_are_bit_identical(make, monkeypatch):
     one_by_one = robot.kinematics(q, theta)
     for f in ("R", "p", "points", "J", "J_points"):
         assert np.array_equal(getattr(batched, f), getattr(one_by_one, f)), f
+
+
+@pytest.mark.parametrize("n", [1, 37, 256, 300])
+def test_rotation_of_a_vector_is_the_sum_of_three_products(n):
+    """``_rot_vec`` (one matmul up to 256 poses, array temporaries beyond) is R[:, 0] v0 + R[:, 1] v1 + R[:, 2] v2
+    to rounding (a BLAS may fuse the products)."""
+    from estcal.kinematics.chain import _rot_vec
+
+    rng = np.random.default_rng(n)
+    R, v = rng.normal(size=(3, 3, n)), rng.normal(size=3)
+    np.testing.assert_allclose(_rot_vec(R, v), R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2], rtol=0, atol=1e-14)
+
+
+def test_segment_plan_follows_a_chain_that_grows():
+    """The grouping of the segments is kept across θ and redone when a motion is appended in place (a robot
+    being built)."""
+    robot = tiago(n_markers=1)
+    robot.kinematics(np.zeros((3, robot.n_joints)))
+    plan = robot._segment_plan()
+    assert robot._segment_plan() is plan
+    link = next(lk for lk in robot.links if lk.before)
+    link.before.append(link.before[-1])
+    try:
+        grown = robot._segment_plan()
+        assert grown is not plan
+        assert sum(len(keys) for _, keys, *_ in grown) == sum(len(keys) for _, keys, *_ in plan)
+        assert max(len(kinds) for *_, kinds, _ in grown) == 7
+    finally:
+        link.before.pop()
+    assert robot._segment_plan() is not grown

@@ -183,8 +183,10 @@ def _rot_mat(R, C):
 def _rot_vec(R, v):
     """R (3, 3, N) @ v (3,) -> (3, N); or v (3, W), one per walker (poses walker-major)."""
     if v.ndim == 1:
-        if R.shape[2] <= 16:
-            # a few poses (a stream of single poses): one matmul call, not five array temporaries
+        if R.shape[2] <= 256:
+            # up to a few hundred poses (a stream of single poses, a real data set of tens of postures):
+            # one matmul call, not five array temporaries (the same three products, to rounding); beyond,
+            # the strided stack makes the temporaries faster
             return (R.transpose(2, 0, 1) @ v).T
         return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
     R4 = R.reshape(3, 3, v.shape[1], -1)
@@ -483,14 +485,16 @@ class SerialRobot:
         val = q[:, j] + (np.repeat(jv, N // len(jv)) if many and link.joint_param >= 0 else jv)
         ax = link.joint_axis
         jo[:, j] = p
-        ja[:, j] = _rot_vec(R, ax)
+        z_axis = ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0
+        ja[:, j] = R[:, 2] if z_axis else _rot_vec(R, ax)  # R (0, 0, 1) is R's third column
         if link.joint_kind != "R":
             return R, p + ja[:, j] * val
-        if ax[0] == 0.0 and ax[1] == 0.0 and ax[2] == 1.0:
+        if z_axis:
             c, s_ = np.cos(val), np.sin(val)
-            x0, y0 = R[:, 0].copy(), R[:, 1].copy()
-            R[:, 0] = c * x0 + s_ * y0
+            x0, y0 = R[:, 0], R[:, 1]
+            x1 = c * x0 + s_ * y0  # both new columns from the old ones before either is written
             R[:, 1] = c * y0 - s_ * x0
+            R[:, 0] = x1
             return R, p
         return np.einsum("ikn,nkj->ijn", R, rot_axis(ax, val)), p  # rot_axis: (N, 3, 3)
 
@@ -677,46 +681,68 @@ class SerialRobot:
         with the same sequence of motions (URDF chains: tx ty tz rx ry rz after every joint) composed
         together, one array operation per motion for the whole group instead of Python floats per
         segment — the same operations in the same order on each entry (cosines and sines by
-        :mod:`math`, as there), so bit-identical."""
-        groups: dict = {}
-        for link in self.links:
-            for const, elems in ((link.const, link.before), (None, link.after)):
-                if elems:
-                    key = (const is None,) + tuple((e.kind, e.axis) for e in elems)
-                    groups.setdefault(key, []).append((const, elems))
-        for key, segs in groups.items():
-            G = len(segs)
-            LR = np.empty((G, 3, 3))
-            Lp = np.zeros((G, 3))
-            for g, (const, _) in enumerate(segs):
-                if const is None:
-                    LR[g] = np.eye(3)
-                else:
-                    LR[g] = const[:3, :3]
-                    Lp[g] = const[:3, 3]
-            kinds = key[1:]
+        :mod:`math`, as there), so bit-identical. The grouping depends on the chain's structure only
+        (:meth:`_segment_plan`, kept across θ)."""
+        for segs, keys, LR0, Lp0, pidx, kinds, rot in self._segment_plan():
+            LR, Lp = LR0.copy(), Lp0
             m = len(kinds)
-            A, Oloc = np.empty((G, m, 3)), np.empty((G, m, 3))
-            vals = theta[np.array([[e.param for e in elems] for _, elems in segs])]  # (G, m)
-            for i, (kind, axis) in enumerate(kinds):
-                ai = "xyz".index(axis)
+            A, Oloc = np.empty((len(segs), m, 3)), np.empty((len(segs), m, 3))
+            vals = theta[pidx]  # (G, m)
+            for i, (kind, ai, i1, i2) in enumerate(kinds):
                 A[:, i] = LR[:, :, ai]
                 Oloc[:, i] = Lp
                 v = vals[:, i].tolist()
                 if kind == "R":
                     c = np.array([math.cos(x) for x in v])[:, None]
                     s_ = np.array([math.sin(x) for x in v])[:, None]
-                    i1, i2 = _OTHER[ai]
                     a1, a2 = LR[:, :, i1].copy(), LR[:, :, i2].copy()
                     LR[:, :, i1] = c * a1 + s_ * a2
                     LR[:, :, i2] = c * a2 - s_ * a1
                 else:
                     Lp = Lp + LR[:, :, ai] * np.array(v)[:, None]
-            rot = np.array([kind == "R" for kind, _ in kinds], bool)
-            for arr in (LR, Lp, A, Oloc, rot):
+            if Lp is Lp0:
+                Lp = Lp0.copy()
+            for arr in (LR, Lp, A, Oloc):
                 arr.flags.writeable = False  # shared between calls
-            for g, (const, elems) in enumerate(segs):
-                store[(id(const), id(elems), len(elems))] = (const, elems, (LR[g], Lp[g], A[g], Oloc[g], rot))
+            for g, (key, (const, elems)) in enumerate(zip(keys, segs)):
+                store[key] = (const, elems, (LR[g], Lp[g], A[g], Oloc[g], rot))
+
+    def _segment_plan(self) -> list:
+        """The segments of the chain grouped by their sequence of motions, with what does not depend on
+        θ: ``(segments, cache keys, constant rotations (G, 3, 3), translations (G, 3), parameter indices
+        (G, m), motions (kind, axis index, the two columns a rotation mixes), is-rotation (m,))``. Kept
+        until the chain's structure changes (a robot being built appends motions in place)."""
+        sig = tuple((id(link.const), id(link.before), len(link.before or ()), id(link.after), len(link.after or ()))
+                    for link in self.links)
+        cached = self.__dict__.get("_segment_plan_cache")
+        if cached is not None and cached[0] is self.links and cached[1] == sig:
+            return cached[2]
+        groups: dict = {}
+        for link in self.links:
+            for const, elems in ((link.const, link.before), (None, link.after)):
+                if elems:
+                    key = (const is None,) + tuple((e.kind, e.axis) for e in elems)
+                    groups.setdefault(key, []).append((const, elems))
+        plan = []
+        for key, segs in groups.items():
+            G = len(segs)
+            LR0 = np.empty((G, 3, 3))
+            Lp0 = np.zeros((G, 3))
+            for g, (const, _) in enumerate(segs):
+                if const is None:
+                    LR0[g] = np.eye(3)
+                else:
+                    LR0[g] = const[:3, :3]
+                    Lp0[g] = const[:3, 3]
+            kinds = tuple((kind, "xyz".index(axis)) + _OTHER["xyz".index(axis)] for kind, axis in key[1:])
+            pidx = np.array([[e.param for e in elems] for _, elems in segs], dtype=np.intp)
+            rot = np.array([kind == "R" for kind, *_ in kinds], bool)
+            for arr in (LR0, Lp0, pidx, rot):
+                arr.flags.writeable = False
+            keys = [(id(const), id(elems), len(elems)) for const, elems in segs]
+            plan.append((segs, keys, LR0, Lp0, pidx, kinds, rot))
+        self.__dict__["_segment_plan_cache"] = (self.links, sig, plan)
+        return plan
 
     # ------------------------------------------------------------- helpers
     def fk(self, readings, theta=None, context=None):
