@@ -26,8 +26,7 @@ def test_batched_segments_are_bit_identical(make, monkeypatch):
 
 @pytest.mark.parametrize("n", [1, 37, 256, 300])
 def test_rotation_of_a_vector_is_the_sum_of_three_products(n):
-    """``_rot_vec`` (one matmul up to 256 poses, array temporaries beyond) is R[:, 0] v0 + R[:, 1] v1 + R[:, 2] v2
-    to rounding (a BLAS may fuse the products)."""
+    """``_rot_vec`` (a matmul up to 16 poses, an einsum beyond) is R[:, 0] v0 + R[:, 1] v1 + R[:, 2] v2 to rounding."""
     from estcal.kinematics.chain import _rot_vec
 
     rng = np.random.default_rng(n)

@@ -189,3 +189,31 @@ def test_summarized_urdf_names_recover_every_name():
     names = [f"base_{c}" for c in ("tx", "ty", "rz")] + [f"{k}_{j}" for j in joints for k in ("tx", "rz")] \
         + [f"offset_{j}" for j in joints] + ["compliance_2"]
     assert sorted(_expand_summary(summarize_names(names))) == sorted(names)
+
+
+def test_gravity_torques_are_the_moments_of_every_moved_link_and_the_payload():
+    """τ_j = a_jᵀ Σ_{i ⪰ j} (c_i − o_j) × m_i g (+ the payload), summed link by link here, on TIAGo (a prismatic
+    torso: a_jᵀ Σ m_i g) with a per-pose payload."""
+    from estcal.kinematics import tiago
+
+    robot = tiago(n_markers=1)
+    rng = np.random.default_rng(4)
+    q = robot.random_readings(9, rng)
+    ctx = {"payload": rng.uniform(0, 2, 9)}
+    tau = robot.gravity_torques(q, context=ctx)
+    kin = robot.kinematics(q, jacobian=False)
+    g = np.asarray(robot.gravity, float)
+    pay_c = kin.p + kin.R @ robot.payload_com
+    for n in range(9):
+        for j in range(robot.n_joints):
+            li = robot._joint_link[j]
+            a, o = kin.joint_axis[n, j], kin.joint_origin[n, j]
+            total = np.zeros(3)
+            for i in range(li, len(robot.links)):
+                lk = robot.links[i]
+                c = kin.link_p[n, i] + kin.link_R[n, i] @ lk.com
+                total += lk.mass * g if robot.joint_types[j] == "prismatic" else np.cross(c - o, lk.mass * g)
+            total += (ctx["payload"][n] * g if robot.joint_types[j] == "prismatic"
+                      else np.cross(pay_c[n] - o, ctx["payload"][n] * g))
+            assert abs(tau[n, j] - a @ total) <= 1e-12 * max(1.0, abs(a @ total)), (n, j)
+    assert robot.joint_types[0] == "prismatic" and np.ptp(tau[:, 0]) > 0
