@@ -391,53 +391,55 @@ def joint_gp_objective(Q, Hs, Y, joint_of, active, m: int):
     depend on x. So ``K`` is assembled posture block by posture block as one batched product
     ``Σ_j a_j² k_j[a, b] G_j[a, b]`` and each gradient term ``tr(W ∂K/∂θ)`` is an N × N sum of the
     block sums ``S_j[a, b] = Σ (W ⊙ G_j)[a, b]`` (one batched product as well): the exponentials are
-    taken on N², not M² entries, and the M² work is two batched matrix products per evaluation."""
+    taken on N², not M² entries, and the M² work is two batched matrix products per evaluation. Both factors
+    are symmetric, so only the blocks with a ≥ b are formed and summed (the Cholesky factorisation reads
+    K's lower triangle, LAPACK's ``dpotri`` returns K⁻¹ in the same triangle): half the block work."""
     from scipy.linalg.lapack import dpotrf, dpotri, dpotrs
 
     M = Y.size
     N = M // m
     na = len(active)
     Hb = Hs.reshape(N, m, -1)
-    # G[a, b, j, :] = the m × m block (a, b) of G_j, flattened: K blocks = coefficients @ G
-    G = np.stack([np.einsum("aic,bkc->abik", Hb[:, :, joint_of == j], Hb[:, :, joint_of == j]).reshape(N, N, m * m)
-                  for j in active], axis=2)
-    d2 = np.stack([(Q[:, j][:, None] - Q[:, j][None, :]) ** 2 for j in active])  # (na, N, N)
+    Hj = [Hb[:, :, joint_of == j] for j in active]  # G_j = H̃_j H̃_jᵀ
+    ia, ib = np.tril_indices(N)  # the T = N(N+1)/2 blocks (a, b) with a ≥ b
+    G = np.stack([np.einsum("tic,tkc->tik", h[ia], h[ib]).reshape(len(ia), m * m) for h in Hj],
+                 axis=1)  # (T, na, m·m): G[t, j] = block (ia[t], ib[t]) of G_j, flattened
+    # the same blocks transposed, (k, i) order: LAPACK's K⁻¹ is column-major, its transpose a C-ordered view
+    GT = np.ascontiguousarray(G.reshape(-1, na, m, m).transpose(0, 1, 3, 2)).reshape(G.shape)
+    d2 = np.stack([(Q[ia, j] - Q[ib, j]) ** 2 for j in active])  # (na, T)
+    diag_G = np.stack([np.einsum("aic,aic->ai", h, h).reshape(M) for h in Hj])  # (na, M)
+    off = ia != ib
+    w = np.where(off, 2.0, 1.0)  # an off-diagonal pair stands for (a, b) and (b, a) in the full N × N sums
 
     def unpack(x):
         return np.exp(x[:na]), np.exp(x[na:2 * na]), float(np.exp(x[-1]))
 
-    def blocks_to_matrix(B):  # (N, N, m, m) → (M, M)
-        return B.transpose(0, 2, 1, 3).reshape(M, M)
-
-    Hj = [Hb[:, :, joint_of == j] for j in active]  # G_j = H̃_j H̃_jᵀ
-    diag_G = np.stack([np.einsum("aic,aic->ai", h, h).reshape(M) for h in Hj])  # (na, M)
-
     def nll(x):
         amp, ls, s = unpack(x)
-        C = amp[:, None, None] ** 2 * np.exp(-0.5 * d2 / ls[:, None, None] ** 2)  # (na, N, N)
-        K = blocks_to_matrix((C.transpose(1, 2, 0)[:, :, None, :] @ G).reshape(N, N, m, m))
+        C = amp[:, None] ** 2 * np.exp(-0.5 * d2 / ls[:, None] ** 2)  # (na, T)
+        K4 = np.zeros((N, m, N, m))
+        K4[ia, :, ib, :] = (C.T[:, None, :] @ G).reshape(-1, m, m)
+        K = K4.reshape(M, M)
         K[np.diag_indices(M)] += s * s
-        L, info = dpotrf(K, lower=1, clean=1)
+        L, info = dpotrf(K, lower=1, clean=1, overwrite_a=1)
         if info != 0:
             return 1e25, np.zeros_like(x)
         alpha = dpotrs(L, Y, lower=1)[0]
-        Ki = dpotri(L, lower=1)[0]  # K⁻¹ in the lower triangle; the upper one stays zero (clean L)
         val = 0.5 * Y @ alpha + np.sum(np.log(np.diag(L)))
-        # S_j[a, b] = Σ over block (a, b) of (ααᵀ − K⁻¹) ⊙ G_j, the gradient's N × N sums:
-        # the ααᵀ part is u_j u_jᵀ with u_j = H̃_jᵀα per posture; the K⁻¹ part from its lower triangle
-        # (both factors are symmetric: block (a, b) is block (b, a) transposed), its diagonal once
-        dK = np.diag(Ki)
-        Kb = Ki.reshape(N, m, N, m).transpose(0, 2, 1, 3).reshape(N, N, m * m, 1)
-        Sl = (G @ Kb)[..., 0].transpose(2, 0, 1)       # (na, N, N), lower blocks + lower halves
-        Sd = (diag_G * dK).reshape(na, N, m).sum(-1)   # the diagonal, counted in both halves
-        Sk = Sl + Sl.transpose(0, 2, 1)
-        Sk[:, np.arange(N), np.arange(N)] -= Sd
+        Ki = dpotri(L, lower=1, overwrite_c=1)[0]  # K⁻¹ in the lower triangle (over L); the upper one stays zero
+        dK = np.diag(Ki).copy()
+        Kb = Ki.T.reshape(N, m, N, m)[ib, :, ia, :].reshape(-1, m * m, 1)  # block (a, b) of K⁻¹, transposed
+        Sl = (GT @ Kb)[..., 0].T  # (na, T): Σ over block (a, b) of K⁻¹'s lower triangle ⊙ G_j
+        # a diagonal block holds its lower half (diagonal included) only: its sum over the whole block is
+        # twice that minus the diagonal
+        Sl[:, ~off] = 2 * Sl[:, ~off] - (diag_G * dK).reshape(na, N, m).sum(-1)
         ab = alpha.reshape(N, m)
-        S = np.stack([u @ u.T for u in (np.einsum("aic,ai->ac", h, ab) for h in Hj)]) - Sk
-        CS = C * S
+        U = [np.einsum("aic,ai->ac", h, ab) for h in Hj]
+        S = np.stack([np.sum(u[ia] * u[ib], axis=1) for u in U]) - Sl  # (na, T)
+        CS = C * S * w
         g = np.zeros_like(x)
-        g[:na] = -np.sum(CS, axis=(1, 2))               # −½ tr(W ∂K/∂log a_j), W = ααᵀ − K⁻¹
-        g[na:2 * na] = -0.5 * np.sum(CS * d2, axis=(1, 2)) / ls ** 2
+        g[:na] = -np.sum(CS, axis=1)
+        g[na:2 * na] = -0.5 * np.sum(CS * d2, axis=1) / ls ** 2
         g[-1] = -(alpha @ alpha - np.sum(dK)) * s * s
         return val, g
 
