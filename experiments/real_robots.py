@@ -437,6 +437,43 @@ def run_best(seeds=(0, 1, 2), k=5):
     return out
 
 
+def run_joint(seeds=(0, 1, 2), k=5):
+    """Level and causes chosen jointly on half A: each level's own diagnosis (with its stability rule), the
+    grouped CV of the level with its causes, the pair by the one-standard-error rule; scored on half B."""
+    from estcal.discrepancy import diagnose
+    from estcal.validation import grouped_folds
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    out = {"splits": []}
+    print("\n== TIAGo: level and causes chosen jointly on half A (grouped CV of each level with its own causes)")
+    for seed in seeds:
+        tr = _halves(g, seed)
+        T, V = data.subset(tr), data.subset(~tr)
+        folds = grouped_folds(posture_groups(T.readings, robot.joint_types), k, 0)
+        meas = measured_points(T)
+        res = {}
+        for lv in LEVELS:
+            d = diagnose(robot, T, k_folds=k, geometric=lv, families=False)
+            eff = [(c.effect, list(c.joints), dict(c.options or {})) for c in d.causes]
+            stage = "named" if eff else "geometric"
+            sq = np.zeros(meas.shape[:2])
+            for test in folds:
+                fs = fit_stage_sessions(robot, T.subset(np.setdiff1d(np.arange(T.n), test)), NOISE, stage, lv, eff)
+                sq[test] = np.sum((meas[test] - fs.predict(T.subset(test))) ** 2, -1)
+            fm = np.array([sq[f].mean() for f in folds])
+            fs = fit_stage_sessions(robot, T, NOISE, stage, lv, eff)
+            res[lv] = {"mse": float(sq.mean()), "se": float(fm.std(ddof=1) / np.sqrt(len(folds))),
+                       "causes": [[e[0], e[1]] for e in eff], "new_mm": _rmse(measured_points(V) - fs.predict(V))}
+        best = min(res, key=lambda lv: res[lv]["mse"])
+        pick = next(lv for lv in LEVELS if res[lv]["mse"] <= res[best]["mse"] + res[best]["se"])
+        out["splits"].append({"seed": seed, "levels": res, "chosen": pick, "new_mm": res[pick]["new_mm"]})
+        print(f"   seed {seed}: " + "; ".join(f"{lv} {res[lv]['causes'] or 'no cause'} CV "
+                                              f"{np.sqrt(res[lv]['mse']) * 1e3:.2f}" for lv in LEVELS)
+              + f" -> {pick}: at new postures {res[pick]['new_mm']:.2f} mm")
+    return out
+
+
 ARM6 = [("joint_compliance", ["arm_6_joint"], {}), ("backlash", ["arm_6_joint"], {})]
 
 
@@ -482,9 +519,9 @@ def run_explore(seeds=(0, 1, 2)):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="TIAGo seed 0 and UR10, 3-fold CV, no GP restarts")
-    ap.add_argument("--robots", default="extrapolation,tiago,ur10,talos_session,talos,best,design,explore",
-                    help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, design, "
-                         "explore")
+    ap.add_argument("--robots", default="extrapolation,tiago,ur10,talos_session,talos,best,joint,design,explore",
+                    help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, joint, "
+                         "design, explore")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--k", type=int, default=None, help="posture-grouped folds (default 5; 3 with --quick)")
     args = ap.parse_args(argv)
@@ -510,6 +547,8 @@ def main(argv=None) -> dict:
         out["talos_session"] = run_talos_session(seeds, k, restarts)
     if "best" in robots and not args.quick:
         out["best"] = run_best(seeds, k)
+    if "joint" in robots and not args.quick:
+        out["joint"] = run_joint(seeds, k)
     if "explore" in robots:
         out["explore"] = run_explore(seeds)
     if "design" in robots:
