@@ -115,3 +115,17 @@ def test_diagnose_reports_the_budget_in_json_text_and_report(tmp_path):
     assert b["effects"] == [{"effect": "joint_compliance", "joints": ["j3"]}]
     assert "predicted at new postures" in str(res)
     assert (tmp_path / "budget.png").stat().st_size > 1000 and "budget.png" in res.report_files
+
+
+def test_diagnose_predicts_the_validation_error_at_its_postures_before_scoring_it():
+    # a --validate file: its RMSE, the prediction at its postures (from its readings) and the coverage of
+    # the 95 % region, in the budget and in the text
+    sim, _ = simulate_hidden(load_robot("puma560_masses"), [("joint_compliance", ["j3"], 10)], SIGMA, n_poses=40,
+                             measure="points", seed=2)
+    train, valid = sim.dataset.subset(np.arange(30)), sim.dataset.subset(np.arange(30, 40))
+    res = diagnose(sim.nominal_robot, train, validate=[valid], noise=SIGMA, k_folds=3, max_effects=1,
+                   families=False, budget=True)
+    v = res.to_dict()["budget"]["validation"][0]
+    assert v["n_points"] == valid.n * valid.points.shape[1] and 0.7 <= v["coverage"] <= 1
+    assert 0.5 * v["rmse_mm"] <= v["predicted_mm"] <= 2 * v["rmse_mm"], v
+    assert "predicted at its postures" in str(res)
