@@ -224,17 +224,40 @@ def _pose_factor(block, g, xkey, vec, layout, pkeys, x_template, noise):
     return gtsam.CustomFactor(noise, keys, error)
 
 
-def _stationary(graph, values, rtol: float = 1e-9) -> bool:
-    """The convergence test reported as ``converged`` by the nonlinear graphs: a Gauss–Newton step
-    from ``values`` (the graph linearised there, robust kernels included) lowers the graph's
-    error by less than ``rtol`` of it — the optimiser's relative-decrease test, taken after it
-    stopped (an optimiser can also stop on its iteration limit or on its damping bound)."""
+#: The convergence test of the factor-graph estimators: the Gauss–Newton step at the returned
+#: estimate, in units of the estimate's own marginal standard deviations, is at most this. A
+#: converged estimate is then within this many σ of the (local) minimum of its graph.
+CONVERGED_STEP_SIGMA = 1e-3
+
+
+def _step_sigma(linear_graph) -> float:
+    """``max_j |δ_j| / σ_j`` of the Gauss–Newton step δ of a Gaussian factor graph, σ its marginal
+    standard deviations (tangent coordinates for Pose3 variables), over all its variables;
+    ``inf`` for an indeterminate system (not a converged minimum)."""
+    gtsam = _gtsam()
     try:
-        delta = graph.linearize(values).optimize()
-        e0, e1 = float(graph.error(values)), float(graph.error(values.retract(delta)))
-    except RuntimeError:  # an indeterminate linear system: not a converged minimum
-        return False
-    return e0 - e1 <= rtol * max(e0, 1e-300)
+        delta = linear_graph.optimize()
+        marg = gtsam.Marginals(linear_graph, delta)
+        worst = 0.0
+        for key in linear_graph.keyVector():
+            sd = np.sqrt(np.maximum(np.diag(np.asarray(marg.marginalCovariance(key))), 1e-300))
+            worst = max(worst, float(np.max(np.abs(np.asarray(delta.at(key))) / sd)))
+    except RuntimeError:
+        return float("inf")
+    return worst
+
+
+def _stationary_step(graph, values) -> float:
+    """The Gauss–Newton step (:func:`_step_sigma`) of the nonlinear ``graph`` linearised at ``values``
+    (robust kernels included, as their iteratively reweighted linearisation) — the convergence
+    test behind ``converged`` (``≤`` :data:`CONVERGED_STEP_SIGMA`), taken after the optimiser
+    stopped (an optimiser can also stop on its iteration limit, its damping bound, or — iSAM2 —
+    simply because the stream ended)."""
+    try:
+        linear = graph.linearize(values)
+    except RuntimeError:
+        return float("inf")
+    return _step_sigma(linear)
 
 
 def _fit_statistics(problem, theta, fidx, x):
@@ -368,7 +391,9 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
     if not noise_known(problem) and dof > 0 and robust is None:
         cov = cov * (chi2 / dof)
         src = "gtsam marginals scaled by sigma0^2"
+    step = _stationary_step(g.graph, result)
     extra = {"optimizer": optimizer, "robust": robust or "none", "graph_error": float(g.graph.error(result)),
+             "final_step_sigma": step,
              "pose3_frames": [f for f, on in (("base", base_pose3), ("tool", tool_pose3)) if on],
              "n_factors": int(g.graph.size()), "solve_time_s": solve_s, "marginals_time_s": marg_s,
              "python_factor_time_s": g.timer.t, "python_factor_calls": g.timer.calls,
@@ -378,7 +403,7 @@ def calibrate_gtsam(problem, free=None, validation=(), *, optimizer: str = "lm",
         extra["latent_readings_correction"] = np.array([np.asarray(result.atVector(k)) - r0 for k, r0 in g.qkeys])
         extra["encoder_std"] = g.encoder_std
     return finish_result(problem, "gtsam", names, fidx, x, cov, theta_full, nominal, n_iterations=n_iter,
-                         converged=n_iter < max_iter and _stationary(g.graph, result), covariance_source=src,
+                         converged=n_iter < max_iter and step <= CONVERGED_STEP_SIGMA, covariance_source=src,
                          theta_before=theta, validation=validation, t0=t0, extra=extra)
 
 
@@ -639,7 +664,7 @@ def _levenberg_marquardt_linear(problem, fidx, theta, x0, max_iter, prior=None, 
 def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0=None, batch_size: int = 1,
                     relinearize_threshold: float = 1e-9, robust: str | None = None, robust_k: float | None = None,
                     history: bool = False, linear: bool | None = None, relinearize_sigma: float = 1.0,
-                    final_sigma: float = 1e-6, **_ignored):
+                    final_sigma: float = 1e-6, final_updates: int = 50, **_ignored):
     """Incremental calibration with gtsam's iSAM2: measurement groups added as they arrive.
 
     A Gaussian prior (default :func:`default_prior_std`, wide) makes the problem
@@ -654,13 +679,25 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
         ``gtsam.LinearContainerFactor(HessianFactor)`` that each update replaces — the cost of
         an update does not grow with the number of poses. When the estimate has moved more
         than ``relinearize_sigma`` marginal standard deviations from the reference point, the
-        groups so far are re-linearised in one vectorised evaluation; at the end of the stream
+        groups so far are re-linearised in one vectorised evaluation (Levenberg–Marquardt from
+        the reference point when that step did not lower the cost); at the end of the stream
         this is repeated until the move is below ``final_sigma`` σ, so the result is the batch
         minimum of prior + least squares. With the default 1 σ the intermediate estimates of a
         PUMA 560 full-pose stream stay within 1e-4 σ of the batch minimum of the poses so far
         (0.1 σ: 2e-8 σ, at about ten times the relinearisation work). ``linear=False`` (and any robust kernel) adds one
         nonlinear ``CustomFactor`` per group, relinearised by iSAM2 itself
-        (``relinearize_threshold``, gtsam's per-variable delta threshold).
+        (``relinearize_threshold``, gtsam's per-variable delta threshold) with Powell's dogleg
+        step (``gtsam.ISAM2DoglegParams``).
+    final_sigma : end of the stream (linear containers): relinearise until the reference point
+        moves less than this many σ.
+    final_updates : at most this many end-of-stream relinearisations (containers) or empty
+        ``ISAM2.update`` calls with forced relinearisation (CustomFactor graph).
+
+    ``converged`` is the test at the returned estimate (:func:`_step_sigma`): the prior and every
+    measurement linearised there, the Gauss–Newton step is at most :data:`CONVERGED_STEP_SIGMA`
+    of its marginal σ; ``extra["final_step_sigma"]`` is that step. The end of the stream is not
+    convergence: a stream that could not finish (e.g. ``relinearize_threshold`` too high, or
+    ``final_sigma`` too loose) reports ``converged=False``.
     """
     gtsam = _gtsam()
     t0 = time.perf_counter()
@@ -675,7 +712,7 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
             raise ValueError("linear=True cannot take a robust kernel: use linear=False (CustomFactor graph)")
         s = _prior_std(problem, names, prior_std)
         x, cov, times, hist, info = _isam2_linear(gp, theta, fidx, nominal, s, batch_size, relinearize_sigma,
-                                                  final_sigma, history)
+                                                  final_sigma, history, final_updates)
         theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
         src = "iSAM2 marginal (linear containers)"
         if not noise_known(problem) and dof > 0:
@@ -695,6 +732,11 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(relinearize_threshold)
     params.relinearizeSkip = 1
+    # Powell's dogleg instead of a plain Gauss–Newton step per update (gtsam's ISAM2DoglegParams:
+    # the incremental trust region of Rosen, Kaess & Leonard, RISE, IEEE T-RO 2014): while few
+    # poses have arrived the linearisation is poor far from it, and undamped steps wander by
+    # whole turns of the angles (TALOS: to 2π-equivalent minima hundreds of σ from LM's)
+    params.setOptimizationParams(gtsam.ISAM2DoglegParams())
     isam = gtsam.ISAM2(params)
     s = _prior_std(problem, names, prior_std)
     first = gtsam.NonlinearFactorGraph()
@@ -717,8 +759,8 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
             est = isam.calculateEstimate()
             hist_x.append(np.asarray(est.atVector(X)))
             hist_s.append(np.sqrt(np.diag(isam.marginalCovariance(X))))
-    est = isam.calculateEstimate()
-    converged = _stationary(isam.getFactorsUnsafe(), est)
+    est, step, n_final = _finish_isam2(isam, final_updates)
+    converged = step <= CONVERGED_STEP_SIGMA
     x = np.asarray(est.atVector(X), float)
     cov = np.asarray(isam.marginalCovariance(X))
     theta_full, chi2, dof = _fit_statistics(problem, theta, fidx, x)
@@ -728,7 +770,7 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
         src = "iSAM2 marginal scaled by sigma0^2"
     extra = {"n_updates": len(times), "update_time_s": np.array(times), "mean_update_time_s": float(np.mean(times)),
              "python_factor_time_s": timer.t, "kinematics_evaluations": timer.evals, "prior_std": s,
-             "update_cpu_s": np.array(cpu)}
+             "update_cpu_s": np.array(cpu), "final_step_sigma": step, "final_updates": n_final}
     if history:
         extra["history"] = {"estimate": np.array(hist_x), "std": np.array(hist_s)}
     return finish_result(problem, "isam2", names, fidx, x, cov, theta_full, nominal, n_iterations=len(times),
@@ -736,7 +778,26 @@ def calibrate_isam2(problem, free=None, validation=(), *, prior_std=None, theta0
                          extra=extra)
 
 
-def _isam2_linear(gp: GroupedProblem, theta, fidx, nominal, prior_s, batch_size, relin_sigma, final_sigma, history):
+def _finish_isam2(isam, max_updates: int):
+    """End of the stream: iSAM2 takes one step per update, so the last estimate is not yet the
+    minimum of the whole graph; empty updates with forced relinearisation (Kaess et al., iSAM2,
+    IJRR 31(2), 2012, Alg. 6: relinearise the variables whose δ exceeds the threshold,
+    re-eliminate, solve) continue, at most ``max_updates``, until the convergence test passes at
+    the estimate. Returns ``(estimate, Gauss–Newton step in σ, updates taken)``."""
+    gtsam = _gtsam()
+    est = isam.calculateEstimate()
+    step = _stationary_step(isam.getFactorsUnsafe(), est)
+    n = 0
+    while step > CONVERGED_STEP_SIGMA and n < max_updates:
+        isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+        est = isam.calculateEstimate()
+        step = _stationary_step(isam.getFactorsUnsafe(), est)
+        n += 1
+    return est, step, n
+
+
+def _isam2_linear(gp: GroupedProblem, theta, fidx, nominal, prior_s, batch_size, relin_sigma, final_sigma, history,
+                  final_updates=50):
     """iSAM2 over linear factors: the streaming counterpart of :func:`_levenberg_marquardt_linear`.
 
     The free parameters are one variable ``x`` that every measurement touches, so the Bayes
@@ -771,7 +832,7 @@ def _isam2_linear(gp: GroupedProblem, theta, fidx, nominal, prior_s, batch_size,
     isam.update(first, init)
     th = theta.copy()
     st = {"x_ref": nominal.copy(), "G": np.zeros((p, p)), "g": np.zeros(p), "f": 0.0, "idx": None,
-          "n_relin": 0, "relin_groups": 0, "relin_s": 0.0}
+          "n_relin": 0, "relin_groups": 0, "relin_s": 0.0, "n_damped": 0}
 
     def information(sub, x):
         th[fidx] = x
@@ -791,10 +852,24 @@ def _isam2_linear(gp: GroupedProblem, theta, fidx, nominal, prior_s, batch_size,
         x = np.asarray(isam.calculateEstimate().atVector(X), float)
         return x, np.asarray(isam.marginalCovariance(X))
 
+    def prior_cost(x):
+        return float(np.sum(((x - nominal) / prior_s) ** 2))
+
     def relinearise(k, x):
         t = time.perf_counter()
+        sub = gp.subproblem(list(range(k)))
+        G, g, f = information(sub, x)
+        # step acceptance (the trust-region safeguard of iSAM2 in Kaess et al. 2012, §5, and of
+        # gtsam's ISAM2DoglegParams): the step from the reference point to x was predicted by the
+        # model linearised at the reference point; when the true cost (prior + groups so far) did
+        # not decrease, that model was not to be trusted so far out — Levenberg–Marquardt from the
+        # reference point (gtsam Gaussian factor graphs, damped, monotone) takes its place
+        if st["idx"] is not None and f + prior_cost(x) > st["f"] + prior_cost(st["x_ref"]):
+            x = _levenberg_marquardt_linear(sub, fidx, theta, st["x_ref"], 100, (nominal, prior_s), False)[0]
+            G, g, f = information(sub, x)
+            st["n_damped"] += 1
         st["x_ref"] = x.copy()
-        st["G"], st["g"], st["f"] = information(gp.subproblem(list(range(k))), x)
+        st["G"], st["g"], st["f"] = G, g, f
         st["n_relin"] += 1
         st["relin_groups"] += k
         out = replace()
@@ -818,14 +893,22 @@ def _isam2_linear(gp: GroupedProblem, theta, fidx, nominal, prior_s, batch_size,
         if history:
             hx.append(x)
             hs.append(np.sqrt(np.diag(cov)))
-    # end of the stream: Gauss–Newton on the whole model until the reference point is the minimum
-    converged = False
-    for _ in range(50):
+    # end of the stream: Gauss–Newton on the whole model (steps accepted as above) until the
+    # reference point is the minimum
+    for _ in range(final_updates):
         if cov is not None and moved(x, cov) <= final_sigma:
-            converged = True
             break
         x, cov = relinearise(len(gp), x)
-    info = {"converged": converged, "n_relinearisations": st["n_relin"],
+    # the convergence test, at the returned estimate itself: every group and the prior linearised
+    # at x, the Gauss–Newton step of that graph in its marginal σ (the loop above tests the move of
+    # the reference point, which the step acceptance and the iteration limit can cut short)
+    Gx, gx, fx = information(gp.problem, x)
+    fg = gtsam.GaussianFactorGraph()
+    fg.add(gtsam.HessianFactor(X, Gx, gx, fx))
+    fg.add(gtsam.JacobianFactor(X, np.diag(1.0 / prior_s), (nominal - x) / prior_s, gtsam.noiseModel.Unit.Create(p)))
+    step = _step_sigma(fg)
+    info = {"converged": step <= CONVERGED_STEP_SIGMA, "final_step_sigma": step, "n_damped_relinearisations": st["n_damped"],
+            "n_relinearisations": st["n_relin"],
             "relinearised_groups": st["relin_groups"], "relinearise_time_s": st["relin_s"],
             "relinearize_sigma": relin_sigma, "update_cpu_s": np.array(cpu)}
     return x, cov, times, (hx, hs), info
@@ -902,13 +985,14 @@ def calibrate_timevarying(problem, free=None, validation=(), *, q=0.0, batch_siz
         if const.size:
             tstd[b, const] = np.sqrt(np.clip(np.diag(cov)[const], 0, None))
     x = traj[-1]
+    step = _stationary_step(graph, result)
     theta_full = theta.copy()
     theta_full[fidx] = x
     extra = {"trajectory": {"estimate": traj, "std": tstd, "batch_size": batch_size,
                             "batch_first_group": [b[0] for b in batches]},
-             "q": qs, "varying": [names[i] for i in var], "python_factor_time_s": timer.t}
+             "q": qs, "varying": [names[i] for i in var], "python_factor_time_s": timer.t, "final_step_sigma": step}
     return finish_result(problem, "gtsam-timevarying", names, fidx, x, cov, theta_full, nominal,
                          n_iterations=int(opt.iterations()),
-                         converged=int(opt.iterations()) < max_iter and _stationary(graph, result),
+                         converged=int(opt.iterations()) < max_iter and step <= CONVERGED_STEP_SIGMA,
                          covariance_source="gtsam marginals (last state)", theta_before=theta,
                          validation=validation, t0=t0, extra=extra)

@@ -94,7 +94,7 @@ def estimator_options(name: str) -> dict:
 OPTION_RANGES = [
     ({"batch_size", "check_every", "lags", "max_iter", "max_steps", "min_steps", "n_walkers", "passes",
       "poses_per_factor", "chunk"}, (lambda v: v >= 1 and float(v).is_integer(), "an integer ≥ 1")),
-    ({"burn_in", "seed"}, (lambda v: v >= 0 and float(v).is_integer(), "an integer ≥ 0")),
+    ({"burn_in", "final_updates", "seed"}, (lambda v: v >= 0 and float(v).is_integer(), "an integer ≥ 0")),
     ({"final_sigma", "init_scale", "proposal_scale", "relinearize_sigma", "relinearize_threshold", "robust_k",
       "target_ess", "tau_factor", "tol", "ukf_alpha", "noise_scale", "encoder_std", "prior_std"},
      (lambda v: math.isfinite(v) and v > 0, "a finite number > 0")),
