@@ -300,3 +300,30 @@ def test_family_candidates():
     # without families the weak single-joint terms are marginal: at most a part, and none that most
     # posture-grouped folds name (the stability rule)
     assert named[True] == set(js) and len(named[False]) < 3
+
+
+def test_validation_split_into_seen_and_new_postures(puma):
+    """diagnose --validate reports the rows at postures it was fitted on apart from the new ones
+    (docs/real-data.md): the rows are built so that which is which is known independently."""
+    import warnings
+
+    from estcal.base.errors import EstcalWarning
+    from estcal.estimate.result import pose_errors
+
+    sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=80, measure="points", seed=7)
+    train, valid = sim.dataset.subset(np.arange(50)), sim.dataset.subset(np.arange(30, 80))
+    res = diagnose(sim.nominal_robot, train, validate=[valid], noise=SIGMA, budget=False)
+    vp = res.rmse_mm["validation_postures"]
+    assert (vp["seen"]["n_rows"], vp["new"]["n_rows"], vp["only_seen"]) == (20, 30, False)
+    for part, rows in (("seen", np.arange(20)), ("new", np.arange(20, 50))):
+        for label, robot in (("geometric", res.geometric_robot), ("extended", res.robot)):
+            pos, _ = pose_errors(robot, robot.params.values, valid.subset(rows))
+            assert vp[part][label] == pytest.approx(np.sqrt(np.mean(pos ** 2)) * 1e3, rel=1e-9)
+    assert "valid at new postures (30 rows)" in str(res)
+    json.dumps(res.to_dict())
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        res = diagnose(sim.nominal_robot, train, validate=[train.subset(np.arange(10, 30))], noise=SIGMA,
+                       budget=False)
+    assert res.rmse_mm["validation_postures"]["only_seen"]
+    assert any(issubclass(x.category, EstcalWarning) and "memory" in str(x.message) for x in w)

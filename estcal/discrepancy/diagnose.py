@@ -356,6 +356,12 @@ class DiagnosisResult:
             r, m = self.rmse_mm[k], self.max_mm[k]
             lines.append(f"  {k:<12}{f(r['train']):>8}{f(r['cv']):>8}{f(r['validation']):>8}   "
                          f"{f(m['train'])} / {f(m['validation'])}")
+        vp = self.rmse_mm.get("validation_postures") or {}
+        for part in ("seen", "new") if vp else ():
+            d = vp[part]
+            lines.append(f"  valid at {part} postures ({d['n_rows']} rows): geometric {f(d['geometric']).strip()}, "
+                         f"extended {f(d['extended']).strip()} mm"
+                         + (" — memory, not accuracy at new postures" if part == "seen" and d["n_rows"] else ""))
         nf = self.analysis.get("noise_floor", {})
         if nf:
             s = f"  geometric fit: χ²/dof = {nf['chi2_per_dof']:.3g}"
@@ -402,6 +408,32 @@ def _scores(robot, theta, datasets):
         es.append(pos.reshape(-1))
     e = np.concatenate(es)
     return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
+
+
+def _seen_new(data, validate, geometric, extended) -> dict:
+    """The validation RMSE of both models split by posture (:func:`estcal.validation.validation_split`):
+    rows at postures of the training data (``seen``: memory) and at new postures (``new``: accuracy
+    where the model was not fitted), ``{"seen" | "new": {"n_rows", "geometric", "extended"},
+    "only_seen"}``; a validation made only of seen postures is warned about (docs/real-data.md)."""
+    import warnings
+
+    from estcal.base.errors import EstcalWarning
+    from estcal.validation import validation_split
+
+    errs = {}
+    for label, (robot, theta) in (("geometric", geometric), ("extended", extended)):
+        errs[label] = [pose_errors(robot, theta, d)[0] for d in validate]
+    if any(e is None for es in errs.values() for e in es):
+        return {}
+    R = np.vstack([d.readings for d in validate])
+    splits = {k: validation_split(data.readings, R, np.vstack([e.reshape(len(e), -1) for e in es]),
+                                  geometric[0].joint_types) for k, es in errs.items()}
+    out = {part: {"n_rows": splits["geometric"][part]["n_rows"],
+                  **{k: splits[k][part]["rmse_mm"] for k in splits}} for part in ("seen", "new")}
+    out["only_seen"] = splits["geometric"]["only_seen"]
+    if splits["geometric"]["warning"]:
+        warnings.warn(f"validation: {splits['geometric']['warning']}", EstcalWarning, stacklevel=4)
+    return out
 
 
 def _regrouping(A, names_a, E, names_e) -> dict:
@@ -985,6 +1017,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final:
         rmse["validation_each"] = {"geometric": [_scores(gr, geo.theta, [d])[0] for d in validate],
                                    "extended": [_scores(xr, final.theta, [d])[0] for d in validate],
                                    "paths": [d.where for d in validate]}
+        rmse["validation_postures"] = _seen_new(data, validate, (gr, geo.theta), (xr, final.theta))
     final_floor = residual_analysis(final.problem, final.theta, bool(nm.known), final.p)["noise_floor"]
     analysis["noise_floor_extended"] = final_floor
     verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, bool(nm.known), located,
