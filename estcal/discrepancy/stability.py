@@ -110,15 +110,52 @@ def _orth(X):
     return U[:, S > 1e-9 * max(S.max(), 1e-300)]
 
 
+def _fold_predictions(X, b, tests):
+    """Held-out predictions ``X[te] @ δ_te`` of the least-squares fits ``δ_te = argmin ‖X[~te] δ − b[~te]‖`` of
+    every fold (``tests``: boolean masks of the held-out rows), from one QR factorisation of all rows.
+
+    With ``X = Q R`` (R invertible) the training fit is ``y = R δ`` minimising ``‖Q[~te] y − b[~te]‖``, and the
+    held-out prediction ``X[te] δ = Q[te] y`` needs no inverse of R. Removing rows downdates the normal
+    equations of the orthonormal Q (Golub & Van Loan, *Matrix Computations*, 4th ed., §6.5: down-dating):
+    ``(I − Q[te]ᵀQ[te]) y = Qᵀb − Q[te]ᵀ b[te]``, whose condition number is 1 / (1 − ‖Q[te]‖²) — that of
+    the fold's own problem relative to all rows', not the square of X's. A rank-deficient X, or a fold whose
+    training rows lose a direction (condition above 10⁶), is solved by ``numpy.linalg.lstsq`` as before
+    (its minimum-norm solution)."""
+    from scipy.linalg import cho_factor, cho_solve
+
+    out = [None] * len(tests)
+    Q, R = np.linalg.qr(X)
+    r = np.abs(np.diag(R))
+    full = X.shape[1] == 0 or (len(X) >= X.shape[1] and r.min() > 1e-10 * max(r.max(), 1e-300))
+    if full and X.shape[1]:
+        Qb = Q.T @ b
+        eye = np.eye(X.shape[1])
+        for f, te in enumerate(tests):
+            Qt = Q[te]
+            G = eye - Qt.T @ Qt
+            w = np.linalg.eigvalsh(G)
+            if w[0] <= 1e-6 * w[-1]:
+                continue
+            y = cho_solve(cho_factor(G, lower=True, check_finite=False), Qb - Qt.T @ b[te], check_finite=False)
+            out[f] = Qt @ y
+    for f, te in enumerate(tests):
+        if out[f] is None:
+            delta, *_ = np.linalg.lstsq(X[~te], b[~te], rcond=None)
+            out[f] = X[te] @ delta
+    return out
+
+
 def _cv_rmse_mm(lc: LinearCandidates, X, m, folds) -> float:
     """Posture-grouped CV RMSE (mm, point-error norms) of the linear model X on the rows ``m``: refit on each
-    fold's training rows, predict its held-out rows (``folds``: dataset-row arrays)."""
+    fold's training rows, predict its held-out rows (``folds``: dataset-row arrays; the fits share one
+    factorisation, :func:`_fold_predictions`)."""
     sq, npts = 0.0, 0
-    for test in folds:
+    rows = lc.row[m]
+    tests = [np.isin(rows, test) for test in folds]
+    preds = _fold_predictions(X[m], lc.b[m], tests)
+    for test, pred in zip(folds, preds):
         te = m & np.isin(lc.row, test)
-        tr = m & ~te
-        delta, *_ = np.linalg.lstsq(X[tr], lc.b[tr], rcond=None)
-        e = (lc.b[te] - X[te] @ delta) * lc.sigma[te]
+        e = (lc.b[te] - pred) * lc.sigma[te]
         p = lc.position[te]
         sq += float(e[p] @ e[p])
         npts += int(p.sum()) // 3
@@ -162,11 +199,13 @@ def _screen(lc: LinearCandidates, m, X, have):
         if np.any(En == 0):
             continue
         Ep = E - Q @ (Q.T @ E)
-        sv = np.linalg.svd(Ep / En, compute_uv=False)
+        U, sv, _ = np.linalg.svd(Ep / En, full_matrices=False)
         if (np.linalg.norm(Ep, axis=0) / En).min() < lc.regroup_tol or sv.min() < lc.regroup_tol * sv.max():
             continue
-        x, *_ = np.linalg.lstsq(Ep, bp, rcond=None)
-        rss1 = float(np.sum((bp - Ep @ x) ** 2))
+        # Ep has full column rank here (its singular values pass the regroup test): the least-squares residual
+        # is bp minus its projection on Ep's range, U Uᵀ bp — the SVD above, reused instead of a second solve
+        U = U[:, sv > np.finfo(float).eps * max(Ep.shape) * sv.max()]  # lstsq's rank rule (rcond=None)
+        rss1 = float(np.sum((bp - U @ (U.T @ bp)) ** 2))
         k = E.shape[1]
         out.append((information_criterion(rss1, M, p + k, lc.known) - information_criterion(rss, M, p, lc.known),
                     i, k, rss1, blk[0], blk[1]))
