@@ -399,35 +399,37 @@ def cross_validate(problem, theta, free, folds, max_iter: int = 30):
     return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
 
 
-def _scores(robot, theta, datasets):
-    if not datasets:
+def _errors(robot, theta, datasets) -> list:
+    """Point-error norms (m) of every dataset, one (M, k) array each (:func:`pose_errors`)."""
+    return [pose_errors(robot, theta, d)[0] for d in datasets]
+
+
+def _rmse_max(errors):
+    """(RMSE, max) in mm of the point-error norms of :func:`_errors`; ``(None, None)`` for none."""
+    if not errors:
         return None, None
-    es = []
-    for d in datasets:
-        pos, _ = pose_errors(robot, theta, d)
-        es.append(pos.reshape(-1))
-    e = np.concatenate(es)
+    e = np.concatenate([x.reshape(-1) for x in errors])
     return float(np.sqrt(np.mean(e ** 2)) * 1e3), float(e.max() * 1e3)
 
 
-def _seen_new(data, validate, geometric, extended) -> dict:
+def _scores(robot, theta, datasets):
+    return _rmse_max(_errors(robot, theta, datasets))
+
+
+def _seen_new(data, validate, errors: dict, joint_types) -> dict:
     """The validation RMSE of both models split by posture (:func:`estcal.validation.validation_split`):
     rows at postures of the training data (``seen``: memory) and at new postures (``new``: accuracy
     where the model was not fitted), ``{"seen" | "new": {"n_rows", "geometric", "extended"},
-    "only_seen"}``; a validation made only of seen postures is warned about (docs/real-data.md)."""
+    "only_seen"}``; a validation made only of seen postures is warned about (docs/real-data.md).
+    ``errors``: ``{"geometric" | "extended": _errors(model, validate)}``, computed once by the caller."""
     import warnings
 
     from estcal.base.errors import EstcalWarning
     from estcal.validation import validation_split
 
-    errs = {}
-    for label, (robot, theta) in (("geometric", geometric), ("extended", extended)):
-        errs[label] = [pose_errors(robot, theta, d)[0] for d in validate]
-    if any(e is None for es in errs.values() for e in es):
-        return {}
     R = np.vstack([d.readings for d in validate])
-    splits = {k: validation_split(data.readings, R, np.vstack([e.reshape(len(e), -1) for e in es]),
-                                  geometric[0].joint_types) for k, es in errs.items()}
+    splits = {k: validation_split(data.readings, R, np.vstack([e.reshape(len(e), -1) for e in es]), joint_types)
+              for k, es in errors.items()}
     out = {part: {"n_rows": splits["geometric"][part]["n_rows"],
                   **{k: splits[k][part]["rmse_mm"] for k in splits}} for part in ("seen", "new")}
     out["only_seen"] = splits["geometric"]["only_seen"]
@@ -1008,16 +1010,19 @@ def _result(robot, robot_spec, data, validate, sessions, nm, geo: _Model, final:
     and on the validation data, the verdict, and the two models as plain data."""
     gr, xr = geo.problem.robot, final.problem.robot
     tr_g, tr_x = _scores(gr, geo.theta, [data]), _scores(xr, final.theta, [data])
-    va_g, va_x = _scores(gr, geo.theta, validate), _scores(xr, final.theta, validate)
+    # the validation errors once per model: the pooled scores, each file's and the seen / new split
+    err_g, err_x = _errors(gr, geo.theta, validate), _errors(xr, final.theta, validate)
+    va_g, va_x = _rmse_max(err_g), _rmse_max(err_x)
     rmse = {"geometric": {"train": tr_g[0], "cv": geo.cv[0], "validation": va_g[0]},
             "extended": {"train": tr_x[0], "cv": final.cv[0], "validation": va_x[0]}}
     mx = {"geometric": {"train": tr_g[1], "cv": geo.cv[1], "validation": va_g[1]},
           "extended": {"train": tr_x[1], "cv": final.cv[1], "validation": va_x[1]}}
     if validate:
-        rmse["validation_each"] = {"geometric": [_scores(gr, geo.theta, [d])[0] for d in validate],
-                                   "extended": [_scores(xr, final.theta, [d])[0] for d in validate],
+        rmse["validation_each"] = {"geometric": [_rmse_max([e])[0] for e in err_g],
+                                   "extended": [_rmse_max([e])[0] for e in err_x],
                                    "paths": [d.where for d in validate]}
-        rmse["validation_postures"] = _seen_new(data, validate, (gr, geo.theta), (xr, final.theta))
+        rmse["validation_postures"] = _seen_new(data, validate, {"geometric": err_g, "extended": err_x},
+                                                gr.joint_types)
     final_floor = residual_analysis(final.problem, final.theta, bool(nm.known), final.p)["noise_floor"]
     analysis["noise_floor_extended"] = final_floor
     verdict = _verdict(causes, analysis["noise_floor"], final_floor, steps, rmse, bool(nm.known), located,
