@@ -32,14 +32,11 @@ import numpy as np
 
 from estcal.io.robotfile import RobotFileError
 from estcal.kinematics.transforms import invert_transform, so3_log
+from estcal.kinematics.urdf import fixed_subtree
 
 from .registration import register_base_pose, register_points, register_pose
 
 __all__ = ["find_frames", "chain_candidates", "data_joints"]
-
-
-def _origin(j) -> np.ndarray:
-    return np.eye(4) if j.origin is None else np.asarray(j.origin, float)
 
 
 def chain_candidates(urdf, joints, path="URDF"):
@@ -91,17 +88,7 @@ def chain_candidates(urdf, joints, path="URDF"):
         ups.append((link, None))
     top = ups[-1][0]
     roots = [name for name, _ in ups[::-1]]
-    children: dict[str, list] = {}
-    for j in urdf.robot.joints:
-        children.setdefault(j.parent, []).append(j)
-    tips, stack = [], [(last, np.eye(4))]
-    while stack:
-        name, C = stack.pop()
-        tips.append((name, C))
-        for j in sorted(children.get(name, []), key=lambda j: j.child, reverse=True):
-            if j.type == "fixed":
-                stack.append((j.child, C @ _origin(j)))
-    return roots, top, last, tips
+    return roots, top, last, fixed_subtree(urdf.robot.joints, last)
 
 
 def data_joints(urdf, header, column_map=None) -> list[str]:

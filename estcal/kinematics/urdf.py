@@ -25,7 +25,7 @@ from estcal.base.textinput import read_text
 from .builder import MAX_LENGTH_M, MAX_LIMIT_RAD, build_robot
 from .chain import SerialRobot
 
-__all__ = ["robot_from_urdf", "load_urdf", "root_links"]
+__all__ = ["robot_from_urdf", "load_urdf", "root_links", "joint_origin", "fixed_subtree"]
 
 
 def load_urdf(path):
@@ -144,8 +144,25 @@ def _chain(urdf, root: str, tip: str, path=""):
     return joints[::-1]
 
 
-def _origin(j) -> np.ndarray:
+def joint_origin(j) -> np.ndarray:
+    """A URDF joint's origin, parent link → joint frame (4×4; identity when the file gives none)."""
     return np.eye(4) if j.origin is None else np.asarray(j.origin, float)
+
+
+def fixed_subtree(joints, link: str) -> list[tuple[str, np.ndarray]]:
+    """``[(link name, T_link_name)]`` of ``link`` and every link hanging from it through fixed joints
+    only, depth first with children in name order (``link`` first, with the identity)."""
+    children: dict[str, list] = {}
+    for j in joints:
+        children.setdefault(j.parent, []).append(j)
+    out, stack = [], [(link, np.eye(4))]
+    while stack:
+        name, T = stack.pop()
+        out.append((name, T))
+        for j in sorted(children.get(name, []), key=lambda j: j.child, reverse=True):
+            if j.type == "fixed":
+                stack.append((j.child, T @ joint_origin(j)))
+    return out
 
 
 def _subtree_mass(urdf, link_name: str, exclude: set) -> tuple[float, np.ndarray]:
@@ -168,7 +185,7 @@ def _subtree_mass(urdf, link_name: str, exclude: set) -> tuple[float, np.ndarray
         for j in children.get(name, []):
             if j.name in exclude:
                 continue
-            stack.append((j.child, T @ _origin(j)))
+            stack.append((j.child, T @ joint_origin(j)))
     com = moment / total_m if total_m > 0 else np.zeros(3)
     return total_m, com
 
@@ -214,7 +231,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
     frames, pending = [], np.eye(4)
     for j in chain:
         if j.type == "fixed":
-            pending = pending @ _origin(j)
+            pending = pending @ joint_origin(j)
             continue
         if j.type not in ("revolute", "continuous", "prismatic"):
             raise RobotFileError(f"{path}: joint {j.name!r} has unsupported type {j.type!r}")
@@ -239,7 +256,7 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
         mass, com = _subtree_mass(urdf, j.child, actuated)
         frames.append({"name": j.name, "label": j.name, "convention": "urdf",
                        "type": "prismatic" if j.type == "prismatic" else "revolute",
-                       "origin": pending @ _origin(j), "axis": axis,
+                       "origin": pending @ joint_origin(j), "axis": axis,
                        "limits": [float(lo), float(hi)], "mass": mass, "com": com})
         pending = np.eye(4)
     if not frames:

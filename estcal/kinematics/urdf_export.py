@@ -48,7 +48,7 @@ from estcal.base.atomic import atomic_write_bytes
 
 from .chain import SerialRobot
 from .transforms import make_transform, rot_axis
-from .urdf import load_urdf
+from .urdf import fixed_subtree, joint_origin, load_urdf
 
 __all__ = ["export_urdf", "UrdfExport", "link_transform_parts"]
 
@@ -268,10 +268,6 @@ def _path_joints(urdf_robot, root: str, tip: str):
     return out[::-1]
 
 
-def _origin(j) -> np.ndarray:
-    return np.eye(4) if j.origin is None else np.asarray(j.origin, float)
-
-
 def _guess_chain(urdf_robot, robot: SerialRobot, root, tip):
     """Root and tip of the model's chain in the original URDF (the loader merged the
     fixed joints around them, so the tip is the fixed descendant matching ``tool_origin``)."""
@@ -287,17 +283,8 @@ def _guess_chain(urdf_robot, robot: SerialRobot, root, tip):
     if tip is None:
         last = jmap[robot.joint_names[-1]]
         want = np.asarray(robot.links[-1].const, float)
-        kids: dict = {}
-        for j in urdf_robot.joints:
-            kids.setdefault(j.parent, []).append(j)
-        found, stack = [], [(last.child, np.eye(4))]
-        while stack:
-            name, T = stack.pop()
-            if np.allclose(T, want, atol=_TOL, rtol=0):
-                found.append(name)
-            for j in kids.get(name, []):
-                if j.type == "fixed":
-                    stack.append((j.child, T @ _origin(j)))
+        found = [name for name, T in fixed_subtree(urdf_robot.joints, last.child)
+                 if np.allclose(T, want, atol=_TOL, rtol=0)]
         if len(found) != 1:
             raise ValueError(f"cannot tell the tip link of the model in the original URDF "
                              f"(candidates {found or 'none'}); give --tip LINK")
@@ -321,7 +308,7 @@ def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
     changed, fixed_before = [], np.eye(4)
     for j in chain:
         if j.type == "fixed":
-            fixed_before = fixed_before @ _origin(j)
+            fixed_before = fixed_before @ joint_origin(j)
             continue
         k = robot.joint_names.index(j.name)
         link = robot.links[li_of[k]]
@@ -329,12 +316,12 @@ def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
         if not np.allclose(ax / np.linalg.norm(ax), link.joint_axis, atol=_TOL):
             raise ValueError(f"joint {j.name!r}: axis {ax.tolist()} in {original}, {link.joint_axis.tolist()} "
                              f"in the model")
-        if not np.allclose(fixed_before @ _origin(j), link.const, atol=_TOL, rtol=0):
+        if not np.allclose(fixed_before @ joint_origin(j), link.const, atol=_TOL, rtol=0):
             raise ValueError(f"joint {j.name!r}: the model's nominal origin differs from {original}'s "
                              f"(was the model loaded from this URDF with --root {root} --tip {tip}?)")
         head, _ = link_transform_parts(robot, li_of[k], theta)
         new = np.linalg.solve(fixed_before, head)
-        if not np.allclose(new, _origin(j), atol=1e-12, rtol=0):  # else keep the original, bit for bit
+        if not np.allclose(new, joint_origin(j), atol=1e-12, rtol=0):  # else keep the original, bit for bit
             j.origin = new
             changed.append(j.name)
         fixed_before = np.eye(4)
