@@ -30,7 +30,6 @@ from the posture order — is recorded in ``data_preparation`` and re-applied by
 from __future__ import annotations
 
 import functools
-import hashlib
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import numpy as np
 
 from estcal.base.version import __version__
 
+from .integrity import file_sha256
 from .robotfile import _plain, load_robot, save_robot
 
 __all__ = ["write_saved_model", "robot_covariance", "design_values", "file_sha256", "data_entry", "calibration_block",
@@ -93,15 +93,6 @@ def _design(spec, root, tip, mtime):
     values = np.array(values, float)
     values.flags.writeable = False  # shared by the cache
     return tuple(nominal.params.names), values
-
-
-def file_sha256(path) -> str:
-    """SHA-256 of a file's bytes (hex), read in chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def data_entry(data, role: str) -> dict:
