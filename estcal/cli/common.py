@@ -12,8 +12,7 @@ import typer
 from estcal.base.errors import InputError, NumericalRefusal
 from estcal.cli.run import EXIT_INPUT, EXIT_REFUSED, on_exit, run_exit_hooks
 
-__all__ = ["fail", "refuse", "message", "warn", "on_exit", "run_exit_hooks", "EXIT_INPUT", "EXIT_REFUSED",
-           "check_distinct_poses", "warn_datasets"]
+__all__ = ["fail", "refuse", "message", "warn", "on_exit", "run_exit_hooks", "EXIT_INPUT", "EXIT_REFUSED"]
 
 def fail(msg, code: int = EXIT_INPUT):
     """Stop the command with ``error: msg`` and exit code ``code`` (2: an ``InputError``, 3: a
@@ -37,16 +36,3 @@ def warn(msg) -> None:
     """``warning: msg`` to stderr (results stay alone on stdout)."""
     typer.echo(f"warning: {msg}", err=True)
 
-
-def check_distinct_poses(ds, minimum: int = 2) -> None:
-    """:func:`estcal.workflows.inputs.check_distinct_poses` (for the commands that call it here)."""
-    from estcal.workflows.inputs import check_distinct_poses as check
-
-    check(ds, minimum)
-
-
-def warn_datasets(datasets) -> None:
-    """:func:`estcal.workflows.inputs.warn_datasets` (for the commands that call it here)."""
-    from estcal.workflows.inputs import warn_datasets as warn_all
-
-    warn_all(datasets)
