@@ -20,7 +20,7 @@ from estcal.cli.main import app
 from estcal.io.robotfile import load_robot, save_robot
 from estcal.kinematics.builder import build_robot
 from estcal.kinematics.transforms import rpy_to_matrix
-from estcal.kinematics.urdf import load_urdf, robot_from_urdf
+from estcal.kinematics.urdf import load_urdf, load_urdf_document, robot_from_urdf
 from estcal.kinematics.urdf_export import export_urdf
 
 runner = CliRunner()
@@ -235,7 +235,7 @@ def test_tiago_from_urdf_changes_only_the_calibrated_origins(tmp_path, tiago_dir
     b = _fk_csv(tmp_path, data, [str(out), "--root", "world", "--tip", "tool"], "urdf")
     _same_pose(a, b)
 
-    u0, u1 = load_urdf(original).robot, load_urdf(out).robot
+    u0, u1 = load_urdf_document(original).robot, load_urdf_document(out).robot  # the whole documents
     added = {"world", "tool"}  # the calibrated base / tool frames
     l0, l1 = {lk.name: lk for lk in u0.links}, {lk.name: lk for lk in u1.links}
     assert set(l1) == set(l0) | added

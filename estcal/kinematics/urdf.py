@@ -1,4 +1,4 @@
-"""URDF chains (parsed with yourdfpy) between a root link and a tip link.
+"""URDF chains between a root link and a tip link.
 
 Fixed joints are merged: those before the first actuated joint into its
 origin, those after the last one into the constant part of the tool link, so
@@ -9,12 +9,28 @@ actuated joint gets a 6-D placement error (``tx_J … rz_J``, FIGAROH's
 Link inertials give the masses used for gravity torques: each actuated
 joint's link carries the mass of every link rigidly attached to it (fixed
 joints, and off-chain branches evaluated at their zero position).
+
+Reading: the kinematic part of a URDF (links and their inertials; joints with type, parent, child,
+origin, axis, limit and mimic — the ROS URDF specification, wiki.ros.org/urdf/XML/joint) is read
+here with the standard library's ElementTree, the parser that already checks the file
+(:func:`_check_xml`). yourdfpy, the library that models the whole URDF, is kept for what needs the
+whole document — writing a calibrated URDF (:mod:`.urdf_export`, :func:`load_urdf_document`) — and
+as the independent reader the kinematic reader is tested against (``tests/test_urdf_reader.py``:
+every URDF of the shared data and the test suite, read both ways, equal to the bit). Why not
+yourdfpy for reading as well: it imports trimesh (and with it networkx, scipy.spatial and
+scipy.ndimage) at module level and uses trimesh names in its annotations, ~0.3 s of CPU at every
+command that reads a URDF (``estcal diagnose`` of a TIAGo session: docs/benchmarks.md, "Everyday
+commands"), for meshes and scene graphs a kinematic chain never uses. The origin matrix is composed
+as yourdfpy composes it (``trimesh.transformations.compose_matrix``: translation, then the static
+``sxyz`` Euler rotation of ``rpy``), so both readers give the same bits.
 """
 from __future__ import annotations
 
 import contextlib
 import difflib
 import io
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,17 +41,180 @@ from estcal.base.textinput import read_text
 from .builder import MAX_LENGTH_M, MAX_LIMIT_RAD, build_robot
 from .chain import SerialRobot
 
-__all__ = ["robot_from_urdf", "load_urdf", "root_links", "joint_origin", "fixed_subtree"]
+__all__ = ["robot_from_urdf", "robot_from_tree", "load_urdf", "load_urdf_document", "root_links", "joint_origin", "fixed_subtree",
+           "UrdfTree", "UrdfRobot", "UrdfJoint", "UrdfLink"]
 
 
-def load_urdf(path):
-    """Parse a URDF file with yourdfpy (no meshes); the file is read and checked by
-    :func:`estcal.base.textinput.read_text` first (folder, binary, encoding)."""
+# ------------------------------------------------------------------ the kinematic part of a URDF
+@dataclass
+class UrdfLimit:
+    """``<limit>``: lower / upper (rad or m), effort, velocity; None where the file gives none."""
+
+    lower: float | None = None
+    upper: float | None = None
+    effort: float | None = None
+    velocity: float | None = None
+
+
+@dataclass
+class UrdfMimic:
+    """``<mimic joint multiplier offset>``: q = multiplier · q_joint + offset."""
+
+    joint: str | None
+    multiplier: float = 1.0
+    offset: float = 0.0
+
+
+@dataclass
+class UrdfInertial:
+    """``<inertial>``: mass (kg; None without ``<mass>``) and origin (4×4; None without ``<origin>``)."""
+
+    mass: float | None = None
+    origin: np.ndarray | None = None
+
+
+@dataclass
+class UrdfLink:
+    name: str
+    inertial: UrdfInertial | None = None
+
+
+@dataclass
+class UrdfJoint:
+    """``<joint>``: origin (4×4 parent link → joint frame; None without ``<origin>``), axis (3,) (default
+    ``1 0 0``, as the specification), limit and mimic (None when absent)."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    origin: np.ndarray | None = None
+    axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    limit: UrdfLimit | None = None
+    mimic: UrdfMimic | None = None
+
+
+@dataclass
+class UrdfRobot:
+    name: str
+    links: list
+    joints: list
+
+
+@dataclass
+class UrdfTree:
+    """A URDF's kinematic part; ``.robot`` has the shape of yourdfpy's ``URDF.robot`` (links, joints)."""
+
+    robot: UrdfRobot
+
+
+def _numbers(text, n, path, where, what) -> list:
+    """``n`` finite numbers from an attribute (``None``: not given)."""
+    parts = str(text).split()
+    try:
+        vals = [float(x) for x in parts]
+    except ValueError:
+        vals = None
+    if vals is None or (n is not None and len(vals) != n):
+        count = f"{n} numbers" if n is not None else "numbers"
+        raise RobotFileError(f"{path}: {where}: {what} needs {count}, got {text!r}")
+    if not all(math.isfinite(v) for v in vals):
+        raise RobotFileError(f"{path}: {where}: {what} holds a non-finite number ({text!r})")
+    return vals
+
+
+def _number(el, attr, path, where, default=None):
+    value = el.get(attr)
+    if value is None:
+        return default
+    return _numbers(value, 1, path, where, f"<{el.tag} {attr}>")[0]
+
+
+def _euler_sxyz(ai: float, aj: float, ak: float) -> np.ndarray:
+    """Rotation of static-frame x-y-z Euler angles (URDF ``rpy``), homogeneous 4×4: the operations and
+    their order of ``trimesh.transformations.euler_matrix(ai, aj, ak, "sxyz")`` (Gohlke's
+    transformations.py), so that the origin matrices are the same bits as yourdfpy's."""
+    ai, aj, ak = np.float64(ai), np.float64(aj), np.float64(ak)  # numpy's sin / cos, as there
+    si, sj, sk = np.sin(ai), np.sin(aj), np.sin(ak)
+    ci, cj, ck = np.cos(ai), np.cos(aj), np.cos(ak)
+    cc, cs = ci * ck, ci * sk
+    sc, ss = si * ck, si * sk
+    M = np.eye(4)
+    M[0, 0] = cj * ck
+    M[0, 1] = sj * sc - cs
+    M[0, 2] = sj * cc + ss
+    M[1, 0] = cj * sk
+    M[1, 1] = sj * ss + cc
+    M[1, 2] = sj * cs - sc
+    M[2, 0] = -sj
+    M[2, 1] = cj * si
+    M[2, 2] = cj * ci
+    return M
+
+
+def _origin(el, path, where):
+    """``<origin xyz rpy>`` as 4×4 (``compose_matrix(translate=xyz, angles=rpy)``: T · R, then / M[3, 3])."""
+    if el is None:
+        return None
+    xyz = _numbers(el.get("xyz", "0 0 0"), 3, path, where, "<origin xyz>")
+    rpy = _numbers(el.get("rpy", "0 0 0"), 3, path, where, "<origin rpy>")
+    T = np.identity(4)
+    T[:3, 3] = xyz
+    M = np.dot(np.dot(np.identity(4), T), _euler_sxyz(*rpy))
+    M /= M[3, 3]
+    return M
+
+
+def _read_tree(root, path) -> UrdfTree:
+    """The links and joints of a checked ``<robot>`` element (:func:`_check_xml`)."""
+    links = []
+    for lk in root.findall("link"):
+        name = lk.get("name")
+        inertial = None
+        el = lk.find("inertial")
+        if el is not None:
+            where = f"link {name!r}"
+            mass = el.find("mass")
+            inertial = UrdfInertial(None if mass is None else _number(mass, "value", path, where, 0.0),
+                                    _origin(el.find("origin"), path, where))
+        links.append(UrdfLink(name, inertial))
+    joints = []
+    for j in root.findall("joint"):
+        name = j.get("name")
+        where = f"joint {name!r}"
+        ax = j.find("axis")
+        axis = np.array(_numbers(ax.get("xyz", "1 0 0"), None, path, where, "<axis xyz>") if ax is not None
+                        else [1.0, 0, 0])
+        lim = j.find("limit")
+        limit = None if lim is None else UrdfLimit(*(_number(lim, a, path, where)
+                                                     for a in ("lower", "upper", "effort", "velocity")))
+        mim = j.find("mimic")
+        mimic = None if mim is None else UrdfMimic(mim.get("joint"), _number(mim, "multiplier", path, where, 1.0),
+                                                   _number(mim, "offset", path, where, 0.0))
+        joints.append(UrdfJoint(name, j.get("type"), j.find("parent").get("link"), j.find("child").get("link"),
+                                _origin(j.find("origin"), path, where), axis, limit, mimic))
+    return UrdfTree(UrdfRobot(root.get("name", ""), links, joints))
+
+
+def load_urdf(path) -> UrdfTree:
+    """The kinematic part of a URDF file (module docstring), checked: XML, the elements a chain needs,
+    numbers, a tree over declared links. The file is read by :func:`estcal.base.textinput.read_text`
+    first (folder, binary, encoding)."""
+    path = Path(path)
+    text = read_text(path, "URDF", RobotFileError)
+    tree = _read_tree(_check_xml(text, path), path)
+    _check_tree(tree, path)
+    return tree
+
+
+def load_urdf_document(path):
+    """The whole URDF as yourdfpy's object model (no meshes), for writing a changed copy
+    (:mod:`.urdf_export`); checked as :func:`load_urdf`."""
     import yourdfpy
 
     path = Path(path)
     text = read_text(path, "URDF", RobotFileError)
-    _check_xml(text, path)
+    _check_tree(_read_tree(_check_xml(text, path), path), path)
     try:
         # yourdfpy prints its parser's complaints and retries; the checks above already
         # named the problems users make, so its chatter is kept off the terminal
@@ -46,14 +225,13 @@ def load_urdf(path):
     except Exception as exc:  # yourdfpy / lxml raise many error types on bad XML  # noqa: BLE001
         msg = " ".join(str(exc).split()) or type(exc).__name__
         raise RobotFileError(f"{path}: cannot parse URDF ({msg})") from None
-    _check_tree(urdf, path)
     return urdf
 
 
-def _check_xml(text: str, path) -> None:
+def _check_xml(text: str, path):
     """Strict XML parse with the position of the first error, and the elements a
     kinematic chain needs (a <robot> with named links; joints with name, type,
-    parent and child)."""
+    parent and child); returns the ``<robot>`` element."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -78,6 +256,7 @@ def _check_xml(text: str, path) -> None:
             el = j.find(tag)
             if el is None or not el.get("link"):
                 raise RobotFileError(f"{path}: {where} has no <{tag} link=\"…\"/>")
+    return root
 
 
 def _check_tree(urdf, path) -> None:
@@ -201,7 +380,13 @@ def robot_from_urdf(path, root: str | None = None, tip: str | None = None, marke
     tip : tip link (required unless the tree is a single chain).
     markers : (k, 3) points in the tip frame (metres), optional.
     """
-    urdf = load_urdf(path)
+    return robot_from_tree(load_urdf(path), path, root, tip, markers, name)
+
+
+def robot_from_tree(urdf, path, root: str | None = None, tip: str | None = None, markers=None,
+                    name: str | None = None) -> SerialRobot:
+    """:func:`robot_from_urdf` of an already read URDF (``urdf.robot`` with links and joints: a
+    :class:`UrdfTree`, or yourdfpy's ``URDF`` — the reader test builds the chain from both)."""
     if root is None:
         # yourdfpy's base_link is only set when it builds a scene graph (not done here)
         roots = root_links(urdf)

@@ -48,7 +48,7 @@ from estcal.base.atomic import atomic_write_bytes
 
 from .chain import SerialRobot
 from .transforms import make_transform, rot_axis
-from .urdf import fixed_subtree, joint_origin, load_urdf
+from .urdf import fixed_subtree, joint_origin, load_urdf_document
 
 __all__ = ["export_urdf", "UrdfExport", "link_transform_parts"]
 
@@ -296,7 +296,7 @@ def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
     if not all(f"tx_{lk.label}" in robot.params.names for lk in robot.links[1:-1]):
         raise ValueError("--from-urdf needs a model whose every frame is a URDF joint (convention urdf); "
                          "export Khalil/DH models without --from-urdf")
-    urdf = load_urdf(original)
+    urdf = load_urdf_document(original)
     ur = urdf.robot
     root, tip = _guess_chain(ur, robot, root, tip)
     chain = _path_joints(ur, root, tip)
