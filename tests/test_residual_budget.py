@@ -67,6 +67,36 @@ def test_numpy_evaluation_equals_scikit_learn_and_round_trips():
     assert list(gp.relevance)[0] == "a"
 
 
+@pytest.mark.parametrize("d,restarts,start", [(3, 2, None), (3, 0, (2.0, (0.3, 5.0, 0.07), 0.01)), (1, 1, None),
+                                               (2, 3, None)])
+def test_ard_fit_is_scikit_learns_to_the_bit(d, restarts, start):
+    """_fit_ard_gp computes what scikit-learn's GaussianProcessRegressor fit computes (kernel, likelihood,
+    L-BFGS-B runs, random restarts, the best run's factor and weights): the same bits."""
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    from estcal.discrepancy.residual import AMPLITUDE_BOUNDS, LENGTH_BOUNDS, NOISE_BOUNDS, _fit_ard_gp
+
+    rng = np.random.default_rng(d + restarts)
+    X = rng.uniform(-2, 2, (35, d))
+    Y = np.sin(2 * X[:, [0]]) * np.array([[1.0, -0.5, 0.2]]) + 0.2 * rng.standard_normal((35, 3))
+    a2, ls0, s2 = (0.5, np.ones(d), 0.5) if start is None else (start[0], np.array(start[1][:d]), start[2])
+    ours = _fit_ard_gp(X, Y, a2, ls0, s2, restarts, np.random.RandomState(7))
+    k = (ConstantKernel(a2, AMPLITUDE_BOUNDS) * RBF(ls0, [LENGTH_BOUNDS] * d) + WhiteKernel(s2, NOISE_BOUNDS))
+    sk = GaussianProcessRegressor(k, n_restarts_optimizer=restarts, random_state=np.random.RandomState(7))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        sk.fit(X, Y)
+    kern = sk.kernel_
+    theirs = (float(kern.k1.k1.constant_value), np.atleast_1d(kern.k1.k2.length_scale), float(kern.k2.noise_level),
+              sk.L_, sk.alpha_, float(sk.log_marginal_likelihood_value_))
+    for name, a, b in zip(("a2", "length scales", "s2", "L", "alpha", "lml"), ours, theirs):
+        assert np.array_equal(np.asarray(a), np.asarray(b)), name
+
+
 def test_joint_gp_gradient_round_trip_and_recovery_at_new_postures():
     from scipy.optimize import approx_fprime
 

@@ -25,16 +25,17 @@ and §5.1 for ARD)::
 All coordinates of all points share one kernel (one set of hyperparameters fitted on
 the summed log marginal likelihood), which is scikit-learn's multi-output treatment.
 
-**Why scikit-learn's GaussianProcessRegressor** and not GPyTorch: the data are small
-(tens to a few thousand measured rows), where an exact GP with a Cholesky factor is
-fast and deterministic on a CPU; scikit-learn is numpy-native, a light dependency, and
-its L-BFGS-B fit of the ARD kernel with restarts is what is needed. GPyTorch's strengths
-(GPU, scalable approximations for 10⁵+ points) buy nothing here and would bring torch.
+**Why scikit-learn's GaussianProcessRegressor** (its model, its fit) and not GPyTorch: the data are
+small (tens to a few thousand measured rows), where an exact GP with a Cholesky factor is fast and
+deterministic on a CPU; GPyTorch's strengths (GPU, scalable approximations for 10⁵+ points) buy
+nothing here and would bring torch. The fit is scikit-learn's operation for operation
+(:func:`_fit_ard_gp`, the same bits, tested against it) without importing it — its import, with the
+scipy.stats and pandas it pulls in, cost more CPU than the fit (docs/benchmarks.md, "Everyday commands").
 
 The fitted model is kept as plain data (:class:`ResidualGP`: training inputs, the
 weights α, the Cholesky factor, the hyperparameters), and :meth:`ResidualGP.predict`
 evaluates mean and variance with numpy alone — a saved model carries it and ``fk`` /
-``compensate`` use it without scikit-learn; only :func:`fit_residual_gp` needs it.
+``compensate`` use it.
 """
 from __future__ import annotations
 
@@ -135,7 +136,7 @@ def gp_inputs(space: str, readings, predicted_points, joint_names):
 
 
 def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rng=0, start=None) -> ResidualGP:
-    """Fit the ARD GP of the module docstring to residuals (scikit-learn), return it as plain data.
+    """Fit the ARD GP of the module docstring to residuals, return it as plain data.
 
     Parameters
     ----------
@@ -145,16 +146,11 @@ def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rn
         ``n_restarts_optimizer``); rng : seed.
     start : a fitted :class:`ResidualGP` whose hyperparameters start the fit (cross-validation folds
         start from the fit on all rows; each fold still optimises on its own rows).
+
+    The fit is scikit-learn's ``GaussianProcessRegressor(ConstantKernel · RBF + WhiteKernel,
+    n_restarts_optimizer=restarts)`` computed by :func:`_fit_ard_gp` (see there for why it is not
+    called) — the same hyperparameters, weights and factor to the bit (``tests/test_residual_budget.py``).
     """
-    try:
-        from sklearn.gaussian_process import GaussianProcessRegressor
-        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
-    except ImportError as exc:  # pragma: no cover - a declared dependency
-        raise ImportError("the residual model needs scikit-learn: pip install scikit-learn") from exc
-    import warnings
-
-    from sklearn.exceptions import ConvergenceWarning
-
     X = np.asarray(X, float)
     R = np.asarray(residuals, float)
     n = len(X)
@@ -170,21 +166,101 @@ def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rn
     a2, ls0, s2 = (0.5, np.ones(d), 0.5) if start is None else (
         float(np.clip(start.amplitude2, 1e-4, 10)), np.clip(start.length_scales, *LENGTH_BOUNDS),
         float(np.clip(start.noise2, 1e-4, 10)))
-    kernel = (ConstantKernel(a2, (1e-4, 10.0)) * RBF(ls0, [LENGTH_BOUNDS] * d) + WhiteKernel(s2, (1e-4, 10.0)))
-    gp = GaussianProcessRegressor(kernel, normalize_y=False, n_restarts_optimizer=restarts,
-                                  random_state=np.random.RandomState(int(np.random.default_rng(rng).integers(2**31))))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        gp.fit(Xs, Y / y_scale)
-    kern = gp.kernel_
-    a2 = float(kern.k1.k1.constant_value)
-    ls = np.atleast_1d(np.asarray(kern.k1.k2.length_scale, float))
-    if ls.size == 1 and d > 1:
-        ls = np.full(d, float(ls[0]))
-    s2 = float(kern.k2.noise_level)
-    alpha = np.asarray(gp.alpha_, float).reshape(n, -1)
-    return ResidualGP(space, list(input_names), x_mean, x_scale, Xs, alpha, np.asarray(gp.L_, float), a2, s2, ls,
-                      y_scale, k, {"log_marginal_likelihood": float(gp.log_marginal_likelihood_value_)})
+    seed = int(np.random.default_rng(rng).integers(2**31))
+    a2, ls, s2, L, alpha, lml = _fit_ard_gp(Xs, Y / y_scale, a2, ls0, s2, restarts, np.random.RandomState(seed))
+    return ResidualGP(space, list(input_names), x_mean, x_scale, Xs, alpha.reshape(n, -1), L, a2, s2, ls,
+                      y_scale, k, {"log_marginal_likelihood": lml})
+
+
+#: bounds of the amplitude a² and the white noise s² of :func:`fit_residual_gp` (standardised units)
+AMPLITUDE_BOUNDS = NOISE_BOUNDS = (1e-4, 10.0)
+#: jitter added to the kernel's diagonal before factorising (scikit-learn's ``alpha`` default)
+_JITTER = 1e-10
+
+
+def _ard_kernel(X, theta, gradient: bool):
+    """``a² exp(−½ Σ_j (x_j − x'_j)²/ℓ_j²) + s² I`` at ``theta = [log a², log ℓ (d), log s²]`` and, with
+    ``gradient``, its derivatives with respect to theta, (n, n, d + 2) — scikit-learn's
+    ``ConstantKernel * RBF + WhiteKernel`` evaluated with the same operations in the same order."""
+    from scipy.spatial.distance import pdist, squareform
+
+    n, d = X.shape
+    c = np.exp(theta[0])
+    ls = np.squeeze(np.exp(theta[1:1 + d]) if d > 1 else np.exp(theta[1])).astype(float)
+    noise = np.exp(theta[1 + d])
+    dists = pdist(X / ls, metric="sqeuclidean")
+    Kr = squareform(np.exp(-0.5 * dists))
+    np.fill_diagonal(Kr, 1)
+    Kc = np.full((n, n), c, dtype=np.array(c).dtype)
+    if not gradient:
+        return Kc * Kr + noise * np.eye(n)
+    if d > 1:  # one length scale per input (ARD)
+        Gr = (X[:, np.newaxis, :] - X[np.newaxis, :, :]) ** 2 / (ls ** 2)
+        Gr *= Kr[..., np.newaxis]
+    else:
+        Gr = (Kr * squareform(dists))[:, :, np.newaxis]
+    G = np.dstack((np.full((n, n, 1), c, dtype=np.array(c).dtype) * Kr[:, :, np.newaxis], Gr * Kc[:, :, np.newaxis]))
+    return Kc * Kr + noise * np.eye(n), np.dstack((G, noise * np.eye(n)[:, :, np.newaxis]))
+
+
+def _ard_lml(X, Y, theta):
+    """Log marginal likelihood of :func:`_ard_kernel` summed over the columns of ``Y`` and its gradient
+    (Rasmussen & Williams 2006, eq. 2.30 and 5.9), in scikit-learn's operations and order."""
+    from scipy.linalg import cho_solve, cholesky
+
+    K, dK = _ard_kernel(X, theta, True)
+    K[np.diag_indices_from(K)] += _JITTER
+    try:
+        L = cholesky(K, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return -np.inf, np.zeros_like(theta)
+    alpha = cho_solve((L, True), Y, check_finite=False)
+    lml = -0.5 * np.einsum("ik,ik->k", Y, alpha)
+    lml -= np.log(np.diag(L)).sum()
+    lml -= K.shape[0] / 2 * np.log(2 * np.pi)
+    inner = np.einsum("ik,jk->ijk", alpha, alpha)
+    inner -= cho_solve((L, True), np.eye(K.shape[0]), check_finite=False)[..., np.newaxis]
+    return lml.sum(axis=-1), (0.5 * np.einsum("ijl,jik->kl", inner, dK)).sum(axis=-1)
+
+
+def _fit_ard_gp(X, Y, a2, ls0, s2, restarts, rs):
+    """``(a², ℓ, s², L, α, log marginal likelihood)`` of the ARD GP on standardised ``X`` (n, d), ``Y`` (n, m):
+    L-BFGS-B on the log hyperparameters from ``(a2, ls0, s2)``, then ``restarts`` runs from uniform draws of
+    ``rs`` (a ``RandomState``) in the log box; the best run's factor ``L`` of K + jitter·I and weights α.
+
+    This is what ``GaussianProcessRegressor(ConstantKernel(a2, AMPLITUDE_BOUNDS) * RBF(ls0, LENGTH_BOUNDS) +
+    WhiteKernel(s2, NOISE_BOUNDS), n_restarts_optimizer=restarts, random_state=rs).fit(X, Y)`` computes,
+    operation for operation (its kernel, likelihood, optimiser call, draws and choice of the best run), so
+    the results are the same bits; ``tests/test_residual_budget.py`` fits both and compares them. It is not
+    called because importing scikit-learn costs ~0.35 s of CPU and brings scipy.stats and pandas (another
+    ~0.3 s) — a fifth of ``estcal diagnose`` on a TIAGo session (docs/benchmarks.md, "Everyday commands")
+    — for an exact GP of a few dozen rows whose joint-space sibling (:class:`JointGP`) is numpy already.
+    """
+    from scipy.linalg import cho_solve, cholesky
+    from scipy.optimize import minimize
+
+    d = X.shape[1]
+    theta0 = np.log(np.hstack([a2, np.asarray(ls0, float), s2]))
+    bounds = np.log(np.vstack([np.atleast_2d(AMPLITUDE_BOUNDS), np.repeat(np.atleast_2d(LENGTH_BOUNDS), d, 0)
+                               if d > 1 else np.atleast_2d(LENGTH_BOUNDS), np.atleast_2d(NOISE_BOUNDS)]))
+
+    def obj(theta):
+        lml, grad = _ard_lml(X, Y, theta)
+        return -lml, -grad
+
+    optima = []
+    for r in range(1 + max(int(restarts), 0)):
+        x0 = theta0 if r == 0 else rs.uniform(bounds[:, 0], bounds[:, 1])
+        res = minimize(obj, x0, method="L-BFGS-B", jac=True, bounds=bounds)
+        optima.append((res.x, res.fun))
+    values = [f for _, f in optima]
+    theta = optima[int(np.argmin(values))][0]
+    K = _ard_kernel(X, theta, False)
+    K[np.diag_indices_from(K)] += _JITTER
+    L = cholesky(K, lower=True, check_finite=False)
+    alpha = cho_solve((L, True), Y, check_finite=False)
+    ls = np.atleast_1d(np.exp(theta[1:1 + d]) if d > 1 else np.full(1, np.exp(theta[1])))
+    return float(np.exp(theta[0])), ls, float(np.exp(theta[-1])), L, alpha, float(-np.min(values))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -47,15 +47,17 @@ def information_criterion(rss, M, p, known):
 
 
 def significance(rss0, rss1, k, M, p1, known):
-    """``(test name, statistic, p-value)`` of adding k parameters: likelihood ratio (known σ) or nested F."""
-    from scipy import stats
+    """``(test name, statistic, p-value)`` of adding k parameters: likelihood ratio (known σ) or nested F.
+    The tails are scipy.special's ``chdtrc`` / ``fdtrc``, what ``scipy.stats.chi2.sf`` / ``f.sf`` evaluate,
+    without importing scipy.stats (~0.3 s of CPU)."""
+    from scipy.special import chdtrc, fdtrc
 
     if known:
         stat = max(rss0 - rss1, 0.0)
-        return "likelihood ratio", stat, float(stats.chi2.sf(stat, k))
+        return "likelihood ratio", stat, float(chdtrc(k, stat))
     d2 = max(M - p1, 1)
     F = max(rss0 - rss1, 0.0) / k / (max(rss1, 1e-300) / d2)
-    return "nested F", F, float(stats.f.sf(F, k, d2))
+    return "nested F", F, float(fdtrc(k, d2, F))
 
 
 def cause_key(cause) -> str:
