@@ -41,7 +41,8 @@ import numpy as np
 from ._common import resolve_free
 from estcal.methods.reduced import weighted
 
-__all__ = ["loo_curve", "choose_prior_std", "RegularizationChoice", "DEFAULT_GRID"]
+__all__ = ["loo_curve", "choose_prior_std", "RegularizationChoice", "DEFAULT_GRID", "prior_groups", "GroupPrior",
+           "fit_group_prior", "log_evidence", "evidence_widths"]
 
 #: candidate prior widths τ (SI), 0.1 mm / 0.1 mrad … 100 mm / 100 mrad, 31 log-spaced values
 DEFAULT_GRID = np.geomspace(1e-4, 1e-1, 31)
@@ -132,26 +133,43 @@ def loo_curve(problem, free, penalised, taus, theta=None, posture_tol=(1e-3, 1e-
     rows = problem.evaluate(theta)
     A, b = weighted(rows, fidx)
     pen = np.isin(names, list(penalised))
+    press = _press_of(problem, rows, A, b, posture_tol)
+    return np.asarray([press.rmse(np.where(pen, 0.0 if not np.isfinite(tau) else tau ** -2.0, 0.0))
+                       for tau in np.atleast_1d(np.asarray(taus, float))])
+
+
+def _press_of(problem, rows, A, b, posture_tol) -> "_Press":
+    """:class:`_Press` of the weighted system ``(A, b)`` of ``rows``, blocks by posture, scored on position rows."""
     blocks, mask = _posture_blocks(problem, rows, posture_tol)
-    Ab = np.where(mask[..., None], A[blocks], 0.0)  # (G, m, p); padding rows are zero
-    bb = np.where(mask, b[blocks], 0.0)
     pos = mask & (rows.kind[blocks] == 0)  # position rows
-    sig = rows.sigma[blocks]
-    n_points = pos.sum() / 3.0
-    AtA, Atb = A.T @ A, A.T @ b
-    out = []
-    for tau in np.atleast_1d(np.asarray(taus, float)):
-        G = AtA + np.diag(np.where(pen, 0.0 if not np.isfinite(tau) else tau ** -2.0, 0.0))
-        L = np.linalg.cholesky(G)
-        x = np.linalg.solve(L.T, np.linalg.solve(L, Atb))
-        r = bb - Ab @ x
-        Y = np.linalg.solve(L, Ab.reshape(-1, A.shape[1]).T).T.reshape(Ab.shape)  # A_i L⁻ᵀ
+    return _Press(A, b, blocks, mask, pos, rows.sigma[blocks], pos.sum() / 3.0)
+
+
+class _Press:
+    """Block PRESS of the linearised ridge system ``A x ≈ b`` (module docstring): the held-out residual of
+    every posture block without refitting, for any diagonal prior precision ``λ`` (one Cholesky factor of
+    ``AᵀA + diag(λ)`` each)."""
+
+    def __init__(self, A, b, blocks, mask, pos, sig, n_points):
+        self.Ab = np.where(mask[..., None], A[blocks], 0.0)  # (G, m, p); padding rows are zero
+        self.bb = np.where(mask, b[blocks], 0.0)
+        self.pos, self.sig, self.n_points = pos, sig, n_points
+        self.AtA, self.Atb = A.T @ A, A.T @ b
+
+    def residuals(self, lam):
+        """(G, m) held-out weighted residuals of every posture block; raises LinAlgError when singular."""
+        Ab = self.Ab
+        L = np.linalg.cholesky(self.AtA + np.diag(lam))
+        x = np.linalg.solve(L.T, np.linalg.solve(L, self.Atb))
+        r = self.bb - Ab @ x
+        Y = np.linalg.solve(L, Ab.reshape(-1, Ab.shape[2]).T).T.reshape(Ab.shape)  # A_i L⁻ᵀ
         Hii = np.einsum("nrp,nsp->nrs", Y, Y)
-        eye = np.eye(Hii.shape[1])
-        r_loo = np.linalg.solve(eye - Hii, r[..., None])[..., 0]
-        e_m = np.where(pos, r_loo * sig, 0.0)
-        out.append(float(np.sqrt(np.sum(e_m ** 2) / n_points)))
-    return np.asarray(out)
+        return np.linalg.solve(np.eye(Hii.shape[1]) - Hii, r[..., None])[..., 0]
+
+    def rmse(self, lam) -> float:
+        """RMS over the held-out postures of the measured points' error norms (m)."""
+        e_m = np.where(self.pos, self.residuals(lam) * self.sig, 0.0)
+        return float(np.sqrt(np.sum(e_m ** 2) / self.n_points))
 
 
 def choose_prior_std(problem, free, penalised, theta=None, grid=None, posture_tol=(1e-3, 1e-3)
@@ -170,3 +188,215 @@ def choose_prior_std(problem, free, penalised, theta=None, grid=None, posture_to
     i = int(np.argmin(curve))
     tau = float(grid[i]) if curve[i] < plain else float("inf")
     return RegularizationChoice(tau, penalised, grid, curve * 1e3, plain * 1e3)
+
+
+# ---------------------------------------------------------------------------------------------------
+# A prior per parameter group (MAP with group widths chosen by the evidence)
+# ---------------------------------------------------------------------------------------------------
+
+#: name prefixes of the geometric parameters that are lengths (m); the other geometric ones are angles (rad)
+LENGTH_PREFIXES = ("tx", "ty", "tz", "d_", "a_", "r_", "tool_tx", "tool_ty", "tool_tz")
+
+
+def prior_groups(robot, names) -> dict:
+    """The prior group of every parameter of ``names`` (``{name: group}``), by unit and meaning.
+
+    ``length`` (m) and ``angle`` (rad) for the geometric and tool parameters (translations and rotations
+    of the links' placements; Khalil–Kleinfinger d, r vs α, θ, β), ``offset`` for revolute joint offsets
+    (rad) and ``offset_length`` for prismatic ones (m), ``gain`` for encoder gains, and one group per
+    kind of effect parameter (``compliance``, ``backlash``, ``harmonic1`` … — the prefix of its name),
+    so that a width never mixes metres with radians or one physical cause with another: the scaling of
+    the calibration literature, where each parameter is judged against its own manufacturing tolerance
+    (Mooring, Roth & Driels 1991, §4.6 on parameter scaling; GECARO's scaled columns). Base, marker and
+    registration parameters get a group too (``base``, ``marker``); the caller leaves them free.
+    """
+    pv = robot.params
+    kinds = dict(zip(pv.names, pv.kinds))
+    prismatic = {pv.names[i] for i, t in zip(robot.offset_idx, robot.joint_types) if t == "prismatic"}
+    out = {}
+    for n in names:
+        k = kinds[n]
+        if k in ("geometric", "tool"):
+            out[n] = "length" if n.startswith(LENGTH_PREFIXES) else "angle"
+        elif k == "offset":
+            out[n] = "offset_length" if n in prismatic else "offset"
+        elif k == "effect":
+            out[n] = n.split("_")[0]
+        else:
+            out[n] = k
+    return out
+
+
+@dataclass
+class GroupPrior:
+    """Result of :func:`fit_group_prior`: the MAP estimate under a Gaussian prior ``θ_j ~ N(μ_j, τ_g²)``
+    centred on the nominal values, one width ``τ_g`` per parameter group.
+
+    widths : ``{group: τ_g}`` (SI: m, rad, rad/N·m … — the unit of the group's parameters)
+    groups : ``{parameter: group}`` of the penalised parameters; the other free ones are not penalised
+    sigma0 : the fitted scale of the weighted residual (1 = the noise model's σ)
+    log_evidence : log marginal likelihood of the linearised model at the chosen widths
+    result : the :class:`~estcal.estimate.result.CalibrationResult` of the MAP fit (posterior covariance)
+    criterion : ``"evidence"`` or ``"evidence+cv"`` (a common multiplier ``scale`` of the evidence widths by
+        leave-one-posture-out CV; ``cv_curve``: the multipliers and their RMSE, mm)
+    """
+
+    widths: dict
+    groups: dict
+    sigma0: float
+    log_evidence: float
+    result: object
+    criterion: str = "evidence"
+    scale: float = 1.0
+    cv_curve: dict = field(default_factory=dict)
+    rounds: int = 0
+
+    @property
+    def prior_std(self) -> dict:
+        """``prior_std`` argument of :func:`estcal.estimate.calibrate_lsq` for the problem's noise model (one
+        entry per penalised parameter): ``scale·τ_g/σ0``, because the weighted rows are in units of the noise
+        model's σ and the fitted noise is σ0 times it (the MAP of ``‖b − Ax‖²/σ0² + Σ (x_j/τ_j)²``)."""
+        return {n: self.scale * self.widths[g] / self.sigma0 for n, g in self.groups.items()}
+
+    def to_dict(self) -> dict:
+        return {"widths": {g: float(self.scale * t) for g, t in self.widths.items()},
+                "evidence_widths": {g: float(t) for g, t in self.widths.items()}, "scale": float(self.scale),
+                "sigma0": float(self.sigma0), "log_evidence": float(self.log_evidence), "criterion": self.criterion,
+                "n_penalised": len(self.groups), "cv_curve": self.cv_curve, "rounds": self.rounds}
+
+    def __str__(self) -> str:
+        w = ", ".join(f"{g} {self.scale * t:.3g}" for g, t in self.widths.items())
+        return f"group prior ({self.criterion}): widths {w} (SI); σ0 = {self.sigma0:.3g}"
+
+
+def log_evidence(A, y, group_of, log_tau, log_s2) -> float:
+    """Log marginal likelihood of ``y = A x + ε``, ``ε ~ N(0, s² I)``, ``x_j ~ N(0, τ_g(j)²)`` for the
+    penalised columns (``group_of[j] ≥ 0``) and a flat prior on the others (``group_of[j] = -1``; the
+    restricted likelihood of those, up to a constant). Bishop 2006 eq. 3.86 in the parameter space with
+    the determinant lemma::
+
+        −2 log p(y) = M log 2πs² + Σ_pen log τ_j² + log|G| + (yᵀy − cᵀG⁻¹c)/s²,
+        G = AᵀA/s² + diag(1/τ_j², 0 for free),   c = Aᵀy
+
+    evaluated on the columns scaled by τ_j (penalised) or their norm (free), so that widths from
+    micro-radians to metres stay well conditioned.
+    """
+    s2 = np.exp(log_s2)
+    pen = group_of >= 0
+    d = np.where(pen, np.exp(np.asarray(log_tau)[np.maximum(group_of, 0)]), 0.0)
+    nrm = np.linalg.norm(A, axis=0)
+    d[~pen] = 1.0 / np.where(nrm[~pen] > 0, nrm[~pen], 1.0)
+    As = A * d
+    G = As.T @ As / s2 + np.diag(pen.astype(float))
+    try:
+        L = np.linalg.cholesky(G)
+    except np.linalg.LinAlgError:
+        return -np.inf
+    c = As.T @ y / s2
+    z = np.linalg.solve(L, c)
+    # log|G| of the unscaled system = log|G_s| − 2 Σ log d; the Σ_pen log τ_j² term cancels the penalised part
+    logdet = 2.0 * np.sum(np.log(np.diag(L))) - 2.0 * np.sum(np.log(d[~pen]))
+    M = len(y)
+    return float(-0.5 * (M * np.log(2 * np.pi * s2) + logdet + y @ y / s2 - z @ z))
+
+
+def evidence_widths(A, y, group_of, n_groups, start=None, bounds=(1e-8, 10.0)):
+    """``(log τ (n_groups,), log s², log evidence)`` maximising :func:`log_evidence` (type-II maximum
+    likelihood, MacKay 1992; L-BFGS-B over the logs, bounded to ``bounds`` in SI)."""
+    from scipy.optimize import minimize
+
+    r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+    s2_0 = max(float(r @ r) / max(len(y) - A.shape[1], 1), 1e-12 * max(float(y @ y), 1e-300))
+    x0 = np.concatenate([np.log(np.full(n_groups, 1e-3) if start is None else np.asarray(start, float)),
+                         [np.log(s2_0)]])
+    lo, hi = np.log(bounds[0]), np.log(bounds[1])
+    f = lambda x: -log_evidence(A, y, group_of, x[:-1], x[-1])  # noqa: E731
+    box = [(lo, hi)] * n_groups + [(np.log(s2_0) - 12.0, np.log(s2_0) + 12.0)]
+    best = minimize(f, x0, method="L-BFGS-B", bounds=box)
+    # a second start from the opposite side of the box: the evidence of a group can be flat (a group the data
+    # cannot see) or bimodal; keep the better optimum
+    x1 = x0.copy()
+    x1[:-1] = np.log(1e-5)
+    other = minimize(f, x1, method="L-BFGS-B", bounds=box)
+    if other.fun < best.fun:
+        best = other
+    return best.x[:-1], float(best.x[-1]), float(-best.fun)
+
+
+def fit_group_prior(problem, free, penalised, groups=None, *, criterion: str = "evidence", rounds: int = 3,
+                    cv_grid=None, posture_tol=(1e-3, 1e-3), max_iter: int = 60) -> GroupPrior:
+    """MAP calibration with a nominal-centred Gaussian prior per parameter group, the widths chosen on
+    the problem's own rows.
+
+    The widths maximise the evidence of the model linearised at the current estimate (type-II maximum
+    likelihood, :func:`evidence_widths`); the MAP fit (:func:`estcal.estimate.calibrate_lsq` with
+    ``prior_std``) moves the estimate, and the two alternate ``rounds`` times (the linearised evidence is
+    re-evaluated at the new estimate, as in MacKay's iterative re-estimation). With ``criterion =
+    "evidence+cv"`` a common multiplier of the evidence widths is then chosen by leave-one-posture-out CV
+    (block PRESS, linearised at the MAP estimate; ``cv_grid`` of multipliers, default ¼ … 8 — 1 is on the
+    grid): the evidence sets the ratios between groups, CV the overall strength — the guard against a
+    residual made of model error, which the evidence reads as noise.
+
+    Parameters
+    ----------
+    problem : :class:`estcal.methods.Problem`; free : every parameter to estimate
+    penalised : the subset under the prior (the others — base, markers, unknown tool — stay free)
+    groups : ``{parameter: group}`` (default :func:`prior_groups` of the problem's robot)
+    """
+    from .lsq import calibrate_lsq
+
+    problem, fidx, names = resolve_free(problem, free)
+    pen_names = [n for n in names if n in set(penalised)]
+    if not pen_names:
+        raise ValueError("no parameter to penalise: give the geometric / offset / effect parameters in `penalised`")
+    groups = prior_groups(problem.robot, pen_names) if groups is None else {n: groups[n] for n in pen_names}
+    glist = list(dict.fromkeys(groups.values()))
+    group_of = np.array([glist.index(groups[n]) if n in groups else -1 for n in names])
+    mu = problem.params.values[fidx].copy()
+    theta = problem.params.values.copy()
+    log_tau, res, lev, log_s2 = None, None, -np.inf, 0.0
+    for it in range(max(rounds, 1)):
+        rows = problem.evaluate(theta)
+        A, b = weighted(rows, fidx)
+        # the prior mean in the coordinates of the step from θ: μ − θ (0 for the free columns)
+        m = np.where(group_of >= 0, mu - theta[fidx], 0.0)
+        log_tau, log_s2, lev = evidence_widths(A, b - A @ m, group_of, len(glist), None if log_tau is None
+                                               else np.exp(log_tau))
+        std = {n: float(np.exp(log_tau[glist.index(g)] - 0.5 * log_s2)) for n, g in groups.items()}  # τ/σ0
+        res = calibrate_lsq(problem, "lm", free=names, check=False, prior_std=std, prior_mean=dict(zip(names, mu)),
+                            theta0=theta, max_iter=max_iter)
+        moved = np.max(np.abs(res.theta[fidx] - theta[fidx]) / np.maximum(res.std, 1e-300))
+        theta = res.theta
+        if moved < 0.1:  # the linearisation point moved by less than a tenth of a standard deviation
+            break
+    gp = GroupPrior(dict(zip(glist, np.exp(log_tau).tolist())), groups, float(np.exp(0.5 * log_s2)), lev, res,
+                    rounds=it + 1)
+    if criterion == "evidence+cv":
+        _cv_scale(problem, gp, names, fidx, group_of, mu, theta, cv_grid, posture_tol, max_iter)
+    elif criterion != "evidence":
+        raise ValueError(f"criterion must be 'evidence' or 'evidence+cv', got {criterion!r}")
+    return gp
+
+
+def _cv_scale(problem, gp, names, fidx, group_of, mu, theta, grid, posture_tol, max_iter) -> None:
+    """The common multiplier of the evidence widths with the lowest leave-one-posture-out RMSE (in place)."""
+    from .lsq import calibrate_lsq
+
+    grid = np.geomspace(0.25, 8.0, 6) if grid is None else np.asarray(grid, float)
+    rows = problem.evaluate(theta)
+    A, b = weighted(rows, fidx)
+    m = np.where(group_of >= 0, mu - theta[fidx], 0.0)
+    press = _press_of(problem, rows, A, b - A @ m, posture_tol)
+    tau = np.array([gp.widths[gp.groups[n]] / gp.sigma0 if n in gp.groups else np.inf for n in names])
+    curve = []
+    for k in grid:
+        try:
+            curve.append(press.rmse(np.where(np.isfinite(tau), (k * tau) ** -2.0, 0.0)))
+        except np.linalg.LinAlgError:
+            curve.append(np.inf)
+    gp.scale = float(grid[int(np.argmin(curve))])
+    gp.criterion = "evidence+cv"
+    gp.cv_curve = {"scale": grid.tolist(), "loo_rmse_mm": (np.asarray(curve) * 1e3).tolist()}
+    if gp.scale != 1.0:
+        gp.result = calibrate_lsq(problem, "lm", free=names, check=False, prior_std=gp.prior_std,
+                                  prior_mean=dict(zip(names, mu)), theta0=theta, max_iter=max_iter)

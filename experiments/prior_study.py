@@ -1,0 +1,286 @@
+"""A prior instead of a level: MAP calibration with one nominal-centred prior width per parameter group.
+
+The recommended procedure of ``experiments/real_robots.py`` chooses a discrete geometric level
+(joint_offset / aic / full) and names effects one by one; on half the TIAGo postures both choices are
+unstable (docs/real-data.md). Here nothing is chosen discretely: the model is the ``full`` structurally
+identifiable geometric set **plus** the candidate effects the diagnosis screens (joint compliance and
+backlash of every joint where the data can excite them), every parameter with a Gaussian prior
+centred on its nominal value, one width per group (lengths, angles, joint offsets, each kind of
+effect; :func:`estcal.estimate.regularize.prior_groups`). The widths maximise the evidence of the
+training rows (type-II maximum likelihood, :func:`estcal.estimate.regularize.fit_group_prior`);
+``--criterion evidence+cv`` adds a common multiplier chosen by leave-one-posture-out CV.
+
+Protocol per split — every decision on the training rows only, the validation rows scored once:
+
+1. registration (base frame, markers / unknown tool) by Kabsch and least squares;
+2. the penalised set: the structurally identifiable geometric candidates and the effect candidates;
+3. widths by the evidence, MAP fit (alternating, :func:`fit_group_prior`); with
+   ``per_session``, a rigid registration of every further session by alternation (Kabsch);
+4. nested prediction: 5 posture-grouped outer folds of the training rows, each running 1–3 on its own
+   training part and predicting its held-out postures — ``predicted_validation_mm``; the line
+   ``E|e|² = a + b·v`` of the held-out errors against their leverage and the conformal 95 % region
+   (:mod:`estcal.discrepancy.prediction`), applied at the validation postures from their readings;
+5. the validation rows at new postures: RMSE of the point-error norms (inside / outside the
+   training joint ranges) and the coverage of the 95 % region.
+
+Splits: TIAGo (both sessions, postures halved with seeds 0, 1, 2 — the halves of
+``experiments/real_robots.py``; one frame and per-session registration), UR10 (first 16 / last 7),
+TALOS session 02-10 alone (halves, seeds 0, 1, 2). Baselines on the same splits, no selection:
+``joint_offset`` and ``full`` least squares, and the same model class without a prior (free).
+
+``python experiments/prior_study.py [--robots tiago,ur10,talos_session] [--seeds 0,1,2] [--json out.json]``
+(a few minutes on 2 busy cores; ``--robots sim`` runs the simulated check of the width choice).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
+
+from estcal.base.jsonio import write_json  # noqa: E402
+from estcal.discrepancy.stages import FittedStage, fit_stage, measured_points, point_covariance  # noqa: E402
+from estcal.estimate.regularize import fit_group_prior  # noqa: E402
+from estcal.kinematics.robots import shared_dir  # noqa: E402
+from estcal.validation import grouped_folds, posture_groups  # noqa: E402
+
+#: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds)
+EFFECTS = ("joint_compliance", "backlash")
+
+
+def _rmse(e) -> float:
+    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, -1))) * 1e3) if np.size(e) else float("nan")
+
+
+def prior_model(robot, data, noise, effects=EFFECTS):
+    """``(problem, free, penalised)`` at the registration fit: the robot with the candidate effects added,
+    the registration parameters free, the structurally identifiable geometric candidates and the effect
+    parameters penalised."""
+    from estcal.discrepancy.diagnose import default_candidates
+    from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
+    from estcal.identify.select import select_identifiable
+    from estcal.methods import Problem
+
+    rb0, theta, reg, _ = fit_stage(robot, data, noise, "nominal")
+    rb, _ = gravity_ready(rb0, theta, robot.params.values)
+    for c in default_candidates(rb, data, effects=list(effects), families=False) if effects else []:
+        rb = rb.add_effect(c.make(rb))
+    problem = Problem(rb, [(None, data, noise)])
+    cands = geometric_candidates(rb)
+    _, A, _ = weighted_system(problem, rb.params.values, cands)
+    geo = select_identifiable(A, names=cands).identifiable
+    eff = [n for n, k in zip(rb.params.names, rb.params.kinds) if k == "effect"]
+    free = list(dict.fromkeys(list(reg) + geo + eff))
+    penalised = [n for n in free if n not in set(reg)]
+    return problem, free, penalised
+
+
+def fit_prior(robot, data, noise, criterion="evidence", per_session=None, effects=EFFECTS, n_alt=3):
+    """The MAP model of the module docstring on ``data`` → ``(FittedStage, GroupPrior)``; with ``per_session =
+    "registration"``, every session after the first gets a rigid transform onto the first (alternation)."""
+    from estcal.estimate.registration import kabsch
+    from estcal.methods import Problem
+
+    lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
+    svals = list(dict.fromkeys(lab.tolist()))
+    sess = {}
+    meas = measured_points(data)
+    for _ in range(n_alt if per_session and len(svals) > 1 else 1):
+        adj = data.subset(slice(None))
+        if sess:
+            P = meas.copy()
+            for sv, (R, t, dm) in sess.items():
+                P[lab == sv] = (P[lab == sv] - t) @ R
+            adj.points = P
+        problem, free, pen = prior_model(robot, adj, noise, effects)
+        gp = fit_group_prior(problem, free, pen, criterion=criterion)
+        fs = FittedStage(problem.robot, gp.result.theta, free, gp.result)
+        if not (per_session and len(svals) > 1):
+            break
+        pred = fs.predict_common(data)
+        for sv in svals[1:]:
+            m = lab == sv
+            R, t = kabsch(pred[m].reshape(-1, 3), meas[m].reshape(-1, 3))
+            sess[sv] = (R, t, np.zeros((meas.shape[1], 3)))
+        fs.sessions = dict(sess)
+    return fs, gp
+
+
+def _plain(robot, data, noise, level, per_session=None):
+    from estcal.discrepancy.stages import fit_stage_sessions
+
+    return fit_stage_sessions(robot, data, noise, "geometric", level, per_session=per_session)
+
+
+def _region(e, S):
+    """The 95 % region of :mod:`estcal.discrepancy.prediction` from nested held-out errors and leverages."""
+    from estcal.discrepancy.prediction import conformal_threshold, region_scores, region_sigma, variance_model
+
+    a, b = variance_model(e, S)
+    tau2 = max(a / 3.0, 0.05 * float(np.mean(np.asarray(e) ** 2)))
+    region = {"tau_mm": float(np.sqrt(tau2) * 1e3), "scale": float(b), "a_mm2": float(a * 1e6), "b": float(b)}
+    region["threshold_d2"] = conformal_threshold(region_scores(e, region_sigma(region, S), 0.0), 0.95)
+    return region
+
+
+def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS):
+    """Steps 1–5 of the module docstring on one split; a JSON-ready dict."""
+    from estcal.discrepancy.prediction import predicted_rmse_at, region_coverage
+    from estcal.validation import seen_postures
+
+    t0 = time.time()
+    fs, gp = fit_prior(robot, train, noise, criterion, per_session, effects)
+    t_fit = time.time() - t0
+    g = posture_groups(train.readings, robot.joint_types)
+    meas = measured_points(train)
+    held, S = np.zeros_like(meas), np.zeros(meas.shape + (3,))
+    fold_widths = []
+    for test in grouped_folds(g, k, 0):
+        tr = np.setdiff1d(np.arange(train.n), test)
+        dtr, dte = train.subset(tr), train.subset(test)
+        f_fs, f_gp = fit_prior(robot, dtr, noise, criterion, per_session, effects)
+        held[test] = meas[test] - f_fs.predict(dte)
+        S[test] = point_covariance(f_fs, dte) * len(tr)
+        fold_widths.append(f_gp.to_dict()["widths"])
+    region = _region(held, S)
+    seen = seen_postures(train.readings, valid.readings, robot.joint_types)
+    new = valid.subset(~seen)
+    lo, hi = train.readings.min(0), train.readings.max(0)
+    inside = np.all((new.readings >= lo) & (new.readings <= hi), axis=1)
+    e = measured_points(new) - fs.predict(new)
+    Sv = point_covariance(fs, new) * train.n
+    out = {"label": label, "per_session": per_session, "criterion": criterion, "n_train_rows": train.n,
+           "n_new_rows": int(new.n), "prior": gp.to_dict(), "fold_widths": fold_widths,
+           "n_parameters": len(gp.result.names), "effective_parameters": gp.result.extra["prior"]["effective_parameters"],
+           "new_mm": _rmse(e), "new_inside_mm": _rmse(e[inside]), "new_outside_mm": _rmse(e[~inside]),
+           "fraction_outside": float(1 - inside.mean()), "predicted_validation_mm": _rmse(held),
+           "predicted_at_new_mm": predicted_rmse_at(region["a_mm2"] * 1e-6, region["b"], Sv) * 1e3,
+           "coverage95_new": region_coverage(region, e, Sv), "region": region, "fit_s": t_fit}
+    out["ratio_nested"] = out["predicted_validation_mm"] / out["new_mm"]
+    out["ratio_at"] = out["predicted_at_new_mm"] / out["new_mm"]
+    # baselines on the same split, no selection
+    for level in ("joint_offset", "full"):
+        b = _plain(robot, train, noise, level, per_session)
+        out[f"{level}_new_mm"] = _rmse(measured_points(new) - b.predict(new))
+    geo_fs, _ = fit_prior(robot, train, noise, criterion, per_session, effects=())
+    out["prior_geometric_only_new_mm"] = _rmse(measured_points(new) - geo_fs.predict(new))
+    free_fs, _ = _free_fit(robot, train, noise, effects)
+    out["free_new_mm"] = _rmse(measured_points(new) - free_fs.predict(new)) if free_fs is not None else None
+    out["time_s"] = time.time() - t0
+    return out
+
+
+def _free_fit(robot, data, noise, effects):
+    """The prior model's parameter set fitted without a prior, one frame (None when the data cannot determine it)."""
+    from estcal.estimate import calibrate_lsq
+
+    problem, free, pen = prior_model(robot, data, noise, effects)
+    try:
+        res = calibrate_lsq(problem, "lm", free=free, check=True, max_iter=60)
+    except Exception:  # unidentifiable without the prior: that is the point of the prior
+        return None, None
+    return FittedStage(problem.robot, res.theta, free, res), res
+
+
+def _print(r):
+    w = ", ".join(f"{g} {v * 1e3:.3g}" for g, v in r["prior"]["widths"].items())
+    free = "—" if r["free_new_mm"] is None else f"{r['free_new_mm']:.2f}"
+    print(f"-- {r['label']}: widths (mm, mrad, mrad/N·m…) {w}; σ0 {r['prior']['sigma0']:.2f}; "
+          f"{r['n_parameters']} parameters, {r['effective_parameters']:.1f} effective")
+    print(f"   MAP at new postures {r['new_mm']:.2f} mm (inside {r['new_inside_mm']:.2f}, outside "
+          f"{r['new_outside_mm']:.2f}, {r['fraction_outside']:.0%} outside); nested CV {r['predicted_validation_mm']:.2f} "
+          f"(ratio {r['ratio_nested']:.2f}); at the new postures {r['predicted_at_new_mm']:.2f} (ratio "
+          f"{r['ratio_at']:.2f}); coverage {r['coverage95_new']:.2f}")
+    print(f"   baselines at new postures: joint_offset {r['joint_offset_new_mm']:.2f}, full {r['full_new_mm']:.2f}, "
+          f"the prior on the geometry only {r['prior_geometric_only_new_mm']:.2f}, the same model without prior {free}"
+          f"  ({r['time_s']:.0f} s)")
+
+
+def run_tiago(seeds, **kw):
+    from real_robots import NOISE, _halves, load_tiago
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    out = []
+    for seed in seeds:
+        tr = _halves(g, seed)
+        for per in (None, "registration"):
+            r = study(robot, data.subset(tr), data.subset(~tr), NOISE, per_session=per, **kw,
+                      label=f"TIAGo seed {seed}" + (", per-session registration" if per else ", one frame"))
+            r["seed"] = seed
+            _print(r)
+            out.append(r)
+    return out
+
+
+def run_ur10(**kw):
+    from real_robots import NOISE, load_ur10
+
+    robot, data = load_ur10()
+    n = np.arange(data.n)
+    r = study(robot, data.subset(n < 16), data.subset(n >= 16), NOISE, **kw,
+              label="UR10 first 16 / last 7")
+    _print(r)
+    return [r]
+
+
+def run_talos_session(seeds, session=1, **kw):
+    from real_robots import NOISE, _halves, gross_errors, load_talos
+
+    from estcal.sessions.data import split_sessions
+
+    robot, data = load_talos()
+    part = split_sessions(data.subset(~gross_errors(robot, data)))[session]
+    g = posture_groups(part.readings, robot.joint_types)
+    out = []
+    for seed in seeds:
+        tr = _halves(g, seed)
+        r = study(robot, part.subset(tr), part.subset(~tr), NOISE, **kw,
+                  label=f"TALOS session {session} seed {seed}")
+        r["seed"] = seed
+        _print(r)
+        out.append(r)
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--robots", default="tiago,ur10,talos_session")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--criterion", default="evidence", choices=("evidence", "evidence+cv"))
+    ap.add_argument("--k", type=int, default=5)
+    ap.add_argument("--effects", default=",".join(EFFECTS),
+                    help="effect kinds of the prior model (comma-separated registry names; empty: geometry only)")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    if not (shared_dir() / "data" / "tiago").is_dir():
+        print(f"shared data not found at {shared_dir() / 'data'}")
+        return {"skipped": True}
+    seeds = [int(s) for s in args.seeds.split(",")]
+    robots = args.robots.split(",")
+    kw = {"criterion": args.criterion, "k": args.k, "effects": tuple(e for e in args.effects.split(",") if e)}
+    out = {"protocol": __doc__, "criterion": args.criterion, "effects": list(kw["effects"])}
+    t0 = time.time()
+    if "tiago" in robots:
+        out["tiago"] = run_tiago(seeds, **kw)
+    if "ur10" in robots:
+        out["ur10"] = run_ur10(**kw)
+    if "talos_session" in robots:
+        out["talos_session"] = run_talos_session(seeds, **kw)
+    out["time_s"] = time.time() - t0
+    print(f"\n({out['time_s']:.0f} s)")
+    if args.json:
+        write_json(args.json, out, announce=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
