@@ -238,3 +238,43 @@ def test_saved_model_carries_the_residual_layer_to_compensate_and_export(tmp_pat
     assert np.max(np.linalg.norm(reached - tgt.points[:, 0], axis=1)) < 1e-5
     ex = export(path, tmp_path / "m.urdf")
     assert any("residual Gaussian-process layer" in w for w in ex.result.warnings)
+
+
+@pytest.mark.parametrize("markers,per_session", [
+    ([(0, 0, 0), (0.03, 0.02, -0.01), (-0.02, 0.04, 0.02)], "registration+points"),
+    ([(0, 0, 0)] * 3, "registration")])
+def test_budget_repeatability_removes_what_the_model_treats_per_session(markers, per_session):
+    # 20 postures measured in three sessions, each session rigidly moved, with its own tool point (3–5 cm
+    # apart) or the same one; σ = 0.1 mm per coordinate, so the floor is √3 σ. A model with a per-session
+    # point: the repeatability is what remains after each session's registration *and* point (within
+    # 20 %), not the distance between the points; with one point for all: today's rigid figure.
+    from estcal.sessions.data import stack_sessions
+    from estcal.validation import posture_groups, repeatability_floor
+
+    sigma = 1e-4
+    from estcal.kinematics.chunked import tool_poses
+
+    sim = _sim(n=20, seed=4)
+    R_tool = tool_poses(sim.true_robot, sim.dataset.readings, fields=("R",)).R
+    rng = np.random.default_rng(9)
+    parts = []
+    for sv, d in enumerate(markers):
+        w = rng.standard_normal(3) * 2e-3 if sv else np.zeros(3)
+        K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        R = np.eye(3) + K + K @ K / 2
+        pts = sim.true_points + np.einsum("nij,j->ni", R_tool, np.asarray(d, float))[:, None, :]
+        part = sim.dataset.subset(slice(None))
+        part.points = pts @ R.T + (rng.standard_normal(3) * 2e-3 if sv else 0.0) + sigma * rng.standard_normal(pts.shape)
+        parts.append(part)
+    data = stack_sessions(parts)
+    b = error_budget(sim.nominal_robot, data, NoiseModel(position=sigma, known=False), level="full", k_folds=3,
+                     spaces=(), per_session=per_session, nested=False)
+    floor = np.sqrt(3) * sigma * 1e3
+    rigid = repeatability_floor(measured_points(data), posture_groups(data.readings), data.columns["session"])
+    if per_session == "registration+points":
+        assert rigid["registered_mm"] > 10 * floor  # the distance between the points, not a floor
+        assert b.repeatability_mm == pytest.approx(floor, rel=0.2)
+    else:
+        assert b.repeatability_mm == rigid["registered_mm"]
+        assert b.repeatability_mm == pytest.approx(floor, rel=0.2)
+    assert "repeatability_reason" not in b.to_dict()

@@ -101,6 +101,58 @@ def test_repeatability_floor_raw_and_after_rigid_registration():
     assert repeatability_floor(P0[:40], g0[:40], s0[:40]) is None
 
 
+def _marker_sessions(sigma, markers, n_post=25, seed=0):
+    """Points of one tool point per session: p_g + R_g (m + d_s), each session rigidly moved, noise σ per
+    coordinate; returns points, posture and session labels and the tool rotations."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    Rg = Rotation.random(n_post, random_state=seed).as_matrix()
+    pg = rng.uniform(-0.5, 0.5, (n_post, 3))
+    m = np.array([0.04, -0.02, 0.12])
+    P, g, s, R = [], [], [], []
+    for sv, d in enumerate(markers):
+        Rs = Rotation.from_rotvec(rng.standard_normal(3) * 3e-3).as_matrix() if sv else np.eye(3)
+        ts = rng.standard_normal(3) * 2e-3 if sv else np.zeros(3)
+        pts = (pg + np.einsum("nij,j->ni", Rg, m + np.asarray(d)))[:, None, :]
+        P.append(pts @ Rs.T + ts + sigma * rng.standard_normal(pts.shape))
+        g.append(np.arange(n_post))
+        s.append(np.full(n_post, sv))
+        R.append(Rg)
+    return np.concatenate(P), np.concatenate(g), np.concatenate(s), np.concatenate(R)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_repeatability_with_a_different_tool_point_per_session(seed):
+    # three sessions, each measuring its own point of the tool (3–5 cm apart, like a marker glued anew):
+    # after a rigid registration the spread is the distance between the points, not repeatability; removing
+    # each session's point too recovers the floor √3 σ
+    sigma = 2e-4
+    P, g, s, R = _marker_sessions(sigma, [(0, 0, 0), (0.03, 0.02, -0.01), (-0.02, 0.04, 0.02)], seed=seed)
+    r = repeatability_floor(P, g, s, tool_rotations=R)
+    assert r["registered_mm"] > 10 * np.sqrt(3) * sigma * 1e3
+    assert r["registered_points_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.2)
+    assert r["registered_points_reason"] is None
+    assert r["registered_mm"] == repeatability_floor(P, g, s)["registered_mm"]  # the rigid figure is unchanged
+    # the same point in every session: both figures are the floor
+    P1, g1, s1, R1 = _marker_sessions(sigma, [(0, 0, 0)] * 3, seed=seed)
+    r1 = repeatability_floor(P1, g1, s1, tool_rotations=R1)
+    assert r1["registered_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.2)
+    assert r1["registered_points_mm"] == pytest.approx(r1["registered_mm"], rel=0.1)
+
+
+def test_repeatability_per_session_point_refused_when_the_tool_never_turns():
+    # the tool keeps one orientation at every repeated posture: its point cannot be told from the frame
+    P, g, s, R = _marker_sessions(2e-4, [(0, 0, 0), (0.03, 0.02, -0.01)])
+    R[:] = np.eye(3)
+    r = repeatability_floor(P, g, s, tool_rotations=R)
+    assert r["registered_points_mm"] is None and "orientation" in r["registered_points_reason"]
+    one = repeatability_floor(P[:25], g[:25], s[:25] * 0, tool_rotations=R[:25])
+    assert one is None  # one session, nothing repeats
+    few = repeatability_floor(P[[0, 1, 25, 26]], g[[0, 1, 25, 26]], s[[0, 1, 25, 26]], tool_rotations=R[[0, 1, 25, 26]])
+    assert few["registered_points_mm"] is None and few["registered_points_reason"]
+
+
 def test_validation_split_flags_a_validation_of_seen_postures_only():
     from estcal.validation import validation_split
 

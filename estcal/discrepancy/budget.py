@@ -15,10 +15,13 @@ the named effects, the residual GP).
                            residual still achieves (:mod:`estcal.discrepancy.residual`,
                            the better of the joint and Cartesian spaces); 0 when none
 ``unstructured_mm``        what is left after it: ``named_mm − structured_unnamed_mm``
-``repeatability_mm``       the floor from repeated postures after per-session rigid
-                           registration (raw when one session;
-                           :func:`estcal.validation.repeatability_floor`); ``None``
-                           when no posture repeats
+``repeatability_mm``       the floor from repeated postures after removing what the model
+                           treats as per-session: a rigid registration of each session
+                           (raw when one session), and with a per-session measured point
+                           (``per_session="registration+points"``) that point too
+                           (:func:`estcal.validation.repeatability_floor`); ``None`` with
+                           ``repeatability_reason`` when no posture repeats or the
+                           per-session point cannot be told from the frame
 ``predicted_validation_mm`` the expected RMSE at new postures of the recommended model
                            (named, or named + GP): the **nested** CV of the procedure that
                            recommends it — every outer fold chooses the level, the causes
@@ -47,11 +50,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.discrepancy.prediction import (GP_GAIN, Procedure, choose_level, conformal_threshold, predicted_rmse_at,
-                                           region_coverage, region_scores, region_sigma, variance_model)
+from estcal.discrepancy.prediction import (GP_GAIN, Procedure, beyond_leverage, choose_level, conformal_threshold,
+                                           predicted_rmse_at, region_coverage, region_scores, region_sigma,
+                                           slope_upper, variance_model)
 from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
+from estcal.kinematics.chunked import tool_poses
 from estcal.methods import NoiseModel
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
@@ -107,6 +112,7 @@ class ErrorBudget:
 def budget_lines(b: dict) -> list[str]:
     """Text lines of a budget dict (:meth:`ErrorBudget.to_dict`)."""
     rep = "—" if b["repeatability_mm"] is None else f"{b['repeatability_mm']:.3f}"
+    why = f"   ({b['repeatability_reason']})" if b.get("repeatability_reason") else ""
     top = ", ".join(f"{k} {v:.2f}" for k, v in list(b["unnamed"].get("relevance", {}).items())[:3])
     return [f"error budget (posture-grouped {b['k_folds']}-fold CV, {b['n_postures']} postures, {b['n_rows']} rows; mm):",
             f"  nominal (registration)   {b['nominal_mm']:8.3f}",
@@ -115,7 +121,7 @@ def budget_lines(b: dict) -> list[str]:
             f"  structured, unnamed      {b['structured_unnamed_mm']:8.3f}   "
             f"(GP over {b['unnamed'].get('space', '-')}: {top or '-'})",
             f"  unstructured             {b['unstructured_mm']:8.3f}",
-            f"  repeatability floor      {rep:>8}",
+            f"  repeatability floor      {rep:>8}{why}",
             f"  predicted at new postures {b['predicted_validation_mm']:7.3f} ± {b['predicted_validation_se_mm']:.3f}"
             f"  ({b['recommended']}; {'nested CV: every fold makes its own choices' if b.get('nested') else 'CV'})"
             ] + _region_lines(b)
@@ -125,11 +131,14 @@ def _region_lines(b: dict) -> list[str]:
     r = b.get("region")
     if not r:
         return []
-    out = [f"  95 % region at a new posture: {r.get('scale', 1.0):.3g}·N·J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, "
+    far = f" ({r['scale_far']:.3g} beyond the farthest held-out leverage)" if r.get("scale_far") is not None else ""
+    out = [f"  95 % region at a new posture: {r.get('scale', 1.0):.3g}{far}·N·J C_θ Jᵀ + ({r['tau_mm']:.2f} mm)² I, "
            f"d² ≤ {r['threshold_d2']:.3g} (conformal from the held-out points; χ²₃ {r['chi2_d2']:.3g} covers "
            f"{100 * r['nested_coverage_chi2']:.0f} %)"]
     for v in b.get("validation", []):
         pred = f" (predicted at its postures {v['predicted_mm']:.3f})" if v.get("predicted_mm") is not None else ""
+        if v.get("beyond_cv_leverage"):
+            pred += f" — {100 * v['beyond_cv_leverage']:.0f} % of them beyond the CV's farthest leverage"
         out.append(f"  validation {v['path']}: RMSE {v['rmse_mm']:.3f} mm{pred}, inside the region "
                    f"{100 * v['coverage']:.0f} % of {v['n_points']} points")
     return out
@@ -327,27 +336,53 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
     in_out = {"cv_inside_mm": rmse_mm(np.sqrt(pred_sq[~outside])), "cv_outside_mm": rmse_mm(np.sqrt(pred_sq[outside])),
               "fraction_outside": float(outside.mean())}
     region = _region(rec, S)
-    rep = repeatability_floor(measured_points(data), g, sessions)
-    rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
+    rep_mm, rep_reason, rep = _repeatability(data, g, sessions, final, per_session)
     label = ("named" if effects else "geometric") + (" + GP" if gp_space else "")
     extra = {"fitted_robot": final.robot, "fitted_theta": final.theta, "fitted": final, "per_session": per_session,
              "extrapolation": in_out, "region": region, "nested": bool(nested), "decisions": decisions,
              "gp_space": gp_space, "gp_held_out_ratio": {sp: {"mse_ratio": r, "se": e} for sp, (r, e) in ratios.items()}}
     if levels_cv:
         extra["levels_cv"] = levels_cv
+    if rep_reason:
+        extra["repeatability_reason"] = rep_reason
     return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(rm["named"] - structured),
                        rep_mm, rmse_mm(np.sqrt(pred_sq)), se, label, unnamed, per_fold, gp_mm, rep, n_postures(g),
                        data.n, len(folds), level, [tuple(e) for e in effects],
                        gps_all[gp_space] if gp_space else None, extra)
 
 
+def _repeatability(data, g, sessions, final, per_session):
+    """``(repeatability_mm, reason it is None or None, the floor's dict)``: the spread of repeated postures
+    after removing exactly what the model treats as per-session (:func:`estcal.validation.repeatability_floor`)
+    — a rigid registration of every session (also with one frame for all, the floor's usual reading); with
+    ``per_session="registration+points"`` also each session's own measured point on the tool, for a model whose
+    sessions measure different points differs at the same posture by far more than its repeatability."""
+    lab = np.asarray(sessions)
+    points = per_session == "registration+points" and len(np.unique(lab)) > 1
+    R_tool = None
+    if points:
+        R_tool = tool_poses(final.robot, data.readings, final.theta, data.context, fields=("R",)).R
+    rep = repeatability_floor(measured_points(data), g, lab, tool_rotations=R_tool)
+    if rep is None:
+        return None, "no posture is measured twice", None
+    if points:
+        return rep["registered_points_mm"], rep["registered_points_reason"], rep
+    return (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"]), None, rep
+
+
 def _region(e, S) -> dict:
     """The 95 % region of a new posture from the nested held-out errors ``e`` and their model covariances ``S``:
-    Σ = b·S + τ² I₃ with ``E|e|² = a + b·tr S`` (S: N·J C_θ Jᵀ) (:func:`~estcal.discrepancy.prediction.variance_model`), τ² = a/3
-    (at least 5 % of the held-out variance per coordinate), the conformal threshold of the scores."""
-    a, b = variance_model(e, S)
-    tau2 = max(a / 3.0, 0.05 * float(np.mean(np.asarray(e) ** 2)))
+    Σ = b·S + τ² I₃ fitted by maximum likelihood (S: N·J C_θ Jᵀ; ``E|e|² = a + b·tr S``, τ² = a/3, at least 5 %
+    of the held-out variance per coordinate; :func:`~estcal.discrepancy.prediction.variance_model`), beyond the
+    farthest held-out leverage with the slope's upper bound (:func:`~estcal.discrepancy.prediction.slope_upper`),
+    the conformal threshold of the scores."""
+    floor = 0.05 * float(np.mean(np.asarray(e) ** 2))
+    a, b = variance_model(e, S, tau2_floor=floor)
+    tau2 = a / 3.0
+    b_far = slope_upper(e, S, b, tau2_floor=floor)
     region = {"level": 0.95, "tau_mm": float(np.sqrt(tau2) * 1e3), "scale": float(b),
+              "scale_far": None if not np.isfinite(b_far) else float(b_far),
+              "leverage_max_m2": float(np.trace(np.asarray(S), axis1=-2, axis2=-1).max()) if np.size(e) else None,
               "variance_model": {"a_mm2": float(a * 1e6), "b": float(b)}}
     d2 = region_scores(e, region_sigma(region, S), 0.0)
     region.update({"threshold_d2": conformal_threshold(d2, 0.95), "chi2_d2": 7.814727903251178,
@@ -372,12 +407,15 @@ def _model_at(budget, data, errors: bool = True):
 
 def region_at(budget, data) -> dict:
     """The budget's 95 % prediction region applied to ``data`` (rows not used by the fit, e.g. a validation
-    file): ``{"coverage": share of the points inside, "n_points", "rmse_mm", "predicted_mm"}`` with the
+    file): ``{"coverage": share of the points inside, "n_points", "rmse_mm", "predicted_mm",
+    "beyond_cv_leverage": share of the points farther than any held-out point of the nested CV}`` with the
     recommended model's Σ (θ covariance of the final fit, scaled, + τ²; :func:`_region`)
     and the conformal threshold; ``predicted_mm`` is :func:`predicted_at` of its postures."""
     e, S = _model_at(budget, data)
-    return {"coverage": region_coverage(budget.extra["region"], e, S), "n_points": int(np.prod(e.shape[:2])),
-            "rmse_mm": rmse_mm(np.linalg.norm(e, axis=-1)), "predicted_mm": _predicted(budget, S)}
+    region = budget.extra["region"]
+    return {"coverage": region_coverage(region, e, S), "n_points": int(np.prod(e.shape[:2])),
+            "rmse_mm": rmse_mm(np.linalg.norm(e, axis=-1)), "predicted_mm": _predicted(budget, S),
+            "beyond_cv_leverage": beyond_leverage(region, S)}
 
 
 def predicted_at(budget, targets) -> float:

@@ -68,7 +68,8 @@ from estcal.discrepancy.stages import fit_stage_sessions, measured_points
 from estcal.validation import grouped_folds
 
 __all__ = ["LEVELS", "Procedure", "choose_level", "region_scores", "conformal_threshold", "region_coverage",
-           "GP_GAIN", "variance_model", "predicted_rmse_at", "region_sigma"]
+           "GP_GAIN", "variance_model", "slope_upper", "predicted_rmse_at", "region_sigma",
+           "beyond_leverage"]
 
 #: geometric levels, simplest first (the order of the one-standard-error rule)
 LEVELS = ("joint_offset", "aic", "full")
@@ -156,21 +157,120 @@ def region_coverage(region: dict, e, S) -> float:
 
 
 def region_sigma(region: dict, S) -> np.ndarray:
-    """Σ = scale · S + τ² I₃ of a region (``scale`` = b of :func:`variance_model`, 1 when absent)."""
-    return region.get("scale", 1.0) * np.asarray(S, float) + (region["tau_mm"] * 1e-3) ** 2 * np.eye(3)
+    """Σ = scale · S + τ² I₃ of a region (``scale`` = b of :func:`variance_model`, 1 when absent); at points
+    whose leverage tr S exceeds the region's ``leverage_max`` (the farthest held-out point that fitted b)
+    the scale is ``scale_far`` (:func:`slope_upper`) when the region has one."""
+    S = np.asarray(S, float)
+    scale = region.get("scale", 1.0)
+    if region.get("scale_far") is not None and region.get("leverage_max_m2") is not None:
+        far = np.trace(S, axis1=-2, axis2=-1) > region["leverage_max_m2"]
+        scale = np.where(far, region["scale_far"], scale)[..., None, None]
+    return scale * S + (region["tau_mm"] * 1e-3) ** 2 * np.eye(3)
 
 
-def variance_model(e, S, b_min: float = 0.0) -> tuple[float, float]:
-    """``(a, b)``, a ≥ 0 (m²) and b ≥ ``b_min``, of ``E|e|² = a + b·tr S`` fitted by least squares over the
-    points: ``e`` (…, 3) held-out errors, ``S`` (…, 3, 3) the (scaled) covariance the model that predicted
-    them gives them (module docstring). Non-negative least squares of two columns on ``|e|² − b_min·tr S``:
-    the unconstrained solution when both are feasible, else the better of the two one-column fits."""
-    y = np.sum(np.asarray(e, float) ** 2, axis=-1).reshape(-1)
-    v = np.trace(np.asarray(S, float), axis1=-2, axis2=-1).reshape(-1)
-    if y.size == 0:
-        return 0.0, b_min
-    a, b = _nnls_line(y - b_min * v, v)
-    return a, b + b_min
+def beyond_leverage(region: dict, S) -> float:
+    """Share of the points (covariances ``S`` (…, 3, 3)) beyond the farthest held-out leverage of the region:
+    where its slope is the bound of :func:`slope_upper`, not an estimate."""
+    lm = region.get("leverage_max_m2")
+    v = np.trace(np.asarray(S, float), axis1=-2, axis2=-1)
+    return float(np.mean(v > lm)) if lm is not None and v.size else 0.0
+
+
+def _eigen_scores(e, S):
+    """(z, λ, scale) of errors ``e`` (…, 3) in the eigenbasis of their covariances ``S`` (…, 3, 3): z = (Uᵀe)²
+    and λ per component, both divided by the mean squared error per coordinate (the scale)."""
+    e = np.asarray(e, float).reshape(-1, 3)
+    S = np.asarray(S, float).reshape(-1, 3, 3)
+    lam, U = np.linalg.eigh(0.5 * (S + S.transpose(0, 2, 1)))
+    z = np.einsum("nji,nj->ni", U, e) ** 2
+    s = max(float(z.mean()), 1e-300) if z.size else 1.0
+    return z / s, np.clip(lam, 0.0, None) / s, s
+
+
+def _nll(b, t, z, lam) -> float:
+    """½ Σ z/(bλ + t) + log(bλ + t): the Gaussian negative log-likelihood (constants dropped)."""
+    var = b * lam + t
+    return 0.5 * float(np.sum(z / var + np.log(var)))
+
+
+def _fit_ml(z, lam, b_lo, t_lo) -> tuple[float, float, float]:
+    """(b, t, negative log-likelihood) at the maximum over b ≥ b_lo, t ≥ t_lo: the profile in log b (τ² profiled
+    out, :func:`_profile_t`) on a coarse grid, then bounded Brent around its best point (two parameters: nested
+    one-dimensional searches are deterministic and cheap)."""
+    from scipy.optimize import minimize_scalar
+
+    lmax = float(lam.max())
+    lo = np.log(max(b_lo, 1e-8 / lmax))
+    hi = max(np.log(1e4 / lmax), lo + 1.0)
+    grid = np.linspace(lo, hi, 33)
+    f = [_profile_t(np.exp(x), z, lam, t_lo)[0] for x in grid]
+    k = int(np.argmin(f))
+    r = minimize_scalar(lambda x: _profile_t(np.exp(x), z, lam, t_lo)[0], method="bounded",
+                        bounds=(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]), options={"xatol": 1e-8})
+    cands = [(float(r.fun), float(np.exp(r.x))), (f[k], float(np.exp(grid[k])))]
+    if b_lo <= np.exp(lo):  # the bound itself (b = 0 when b_lo is 0)
+        cands.append((_profile_t(b_lo, z, lam, t_lo)[0], b_lo))
+    fun, b = min(cands)
+    return b, _profile_t(b, z, lam, t_lo)[1], fun
+
+
+def variance_model(e, S, b_min: float = 0.0, tau2_floor: float = 0.0) -> tuple[float, float]:
+    """``(a, b)``, a ≥ 3·``tau2_floor`` (m²) and b ≥ ``b_min``, of the region's own error model
+    ``e ~ N(0, b·S + (a/3) I₃)`` fitted by maximum likelihood over the points: ``e`` (…, 3) held-out errors,
+    ``S`` (…, 3, 3) the (scaled) covariance the model that predicted them gives them (module docstring).
+    Then ``E|e|² = a + b·tr S``.
+
+    Maximum likelihood and not least squares of ``|e|²`` on ``tr S``: a squared norm's spread grows with its
+    mean, so a line fitted to them is ruled by the few largest errors wherever they fall, and the trace
+    forgets the direction — a point whose error lies along its large-variance direction is evidence for
+    ``b``, one across it for ``a``. With ``S = U diag(λ) Uᵀ`` and ``z = (Uᵀe)²`` the negative log-likelihood
+    is ``½ Σ z/(bλ + τ²) + log(bλ + τ²)`` (τ² = a/3), minimised over the box (:func:`_fit_ml`)."""
+    z, lam, s = _eigen_scores(e, S)
+    if z.size == 0:
+        return 3.0 * tau2_floor, b_min
+    t_lo = max(tau2_floor / s, 1e-9)
+    if not np.any(lam > 0):
+        return 3.0 * max(s * float(z.mean()), tau2_floor), b_min
+    b, t, _ = _fit_ml(z, lam, b_min, t_lo)
+    return float(3.0 * t * s), float(b)
+
+
+def slope_upper(e, S, b: float, tau2_floor: float = 0.0, level: float = 0.95) -> float:
+    """One-sided ``level`` upper confidence bound of ``b`` in :func:`variance_model` by the profile likelihood
+    (Venzon & Moolgavkar 1988): the b > b̂ where twice the rise of the negative log-likelihood, τ² profiled out,
+    reaches the χ²₁ quantile of ``2·level − 1`` (2.71 for 95 %). The held-out points say how fast the error
+    grows with the leverage only up to the farthest of them; beyond it the region takes the largest slope
+    they do not rule out (∞ when nothing bounds it)."""
+    from scipy.optimize import brentq
+    from scipy.stats import chi2
+
+    z, lam, s = _eigen_scores(e, S)
+    if z.size == 0 or not np.any(lam > 0):
+        return float("inf")
+    t_lo = max(tau2_floor / s, 1e-9)
+
+    def profile(bb):
+        return _profile_t(bb, z, lam, t_lo)[0]
+
+    q = float(chi2.ppf(2 * level - 1, 1)) / 2
+    l0 = profile(b)
+    lo = np.log(max(b, 1e-9 / float(lam.max())))
+    for step in range(1, 60):
+        if profile(np.exp(lo + step)) - l0 > q:
+            return float(np.exp(brentq(lambda lb: profile(np.exp(lb)) - l0 - q, lo + step - 1, lo + step,
+                                       xtol=1e-6)))
+    return float("inf")
+
+
+def _profile_t(b, z, lam, t_lo) -> tuple[float, float]:
+    """(min over t ≥ t_lo of the negative log-likelihood at slope b, the minimising t): bounded Brent over
+    log t (z and λ are in units of the mean squared error, so t ≤ 10³ bounds it), and the bound t_lo."""
+    from scipy.optimize import minimize_scalar
+
+    r = minimize_scalar(lambda lt: _nll(b, np.exp(lt), z, lam), bounds=(np.log(t_lo), np.log(1e3)),
+                        method="bounded", options={"xatol": 1e-9})
+    at_lo = _nll(b, t_lo, z, lam)
+    return (at_lo, t_lo) if at_lo <= r.fun else (float(r.fun), float(np.exp(r.x)))
 
 
 def _nnls_line(y, v) -> tuple[float, float]:

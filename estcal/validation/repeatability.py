@@ -18,6 +18,23 @@ Estimator (per coordinate, k points per row, posture g measured n_g times)::
     σ_c² = Σ_g Σ_i ‖p_gi − p̄_g‖² / (3 k Σ_g (n_g − 1) − 6 (S − 1))      (pooled variance)
     floor = √(3 σ_c²)                                                    (RMS norm, m)
 
+* **registered + points** (when the model carries a per-session measured point, e.g. a
+  marker glued anew for every session: ``tool_rotations`` given) — the same after removing,
+  per session, exactly what such a model treats as per-session: the rigid registration *and*
+  a change ``d_s`` of the measured points in the tool frame. Model of a measurement of
+  posture g in session s (first registered session: R = I, t = 0, d = 0)::
+
+      p_sg = R_s (c_g + R_g d_s) + t_s + ε        (R_g: the tool's orientation at posture g)
+
+  fitted by alternation (consensus c_g; then per session a Kabsch step for R_s, t_s and a
+  linear least-squares step for R_sᵀt_s, d_s), 6 + 3k parameters per session after the
+  first. ``d_s`` is told from ``t_s`` only through the rotation of the tool between the
+  repeated postures: when the stacked ``[I, R_g]`` of a session's repeated postures is
+  (numerically) rank-deficient, or no degree of freedom is left, the figure is ``None`` with
+  the reason. Sessions that each measure a *different* point of the tool differ by far more
+  than their repeatability at the same posture (the TALOS sessions: 35 mm after a rigid
+  registration) — that spread is not a floor.
+
 ``floor`` is the root-mean-square length of a single measurement's deviation from the
 posture mean: the RMSE a model that knew every posture's true mean would score. Two
 measurements of a posture differ by √2 · floor in RMS (``difference_rms``).
@@ -53,7 +70,62 @@ def _pooled(P, groups, dof_removed: int):
     return float(np.sqrt(3 * var_c)), float(np.sqrt(6 * var_c)), dof
 
 
-def repeatability_floor(points, groups, sessions=None, n_iter: int = 20) -> dict | None:
+def _points_registered(P, g, s, Rg, sess, n_iter: int, rcond: float = 1e-6):
+    """(floor m, difference RMS m, dof, None) after per-session registration + point change (module
+    docstring), or (None, None, dof, reason). P (N, k, 3) points, g, s (N,) labels, Rg (N, 3, 3)."""
+    k = P.shape[1]
+    shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
+    if len(shared) < 2:
+        return None, None, 0, "fewer than two sessions share two or more postures"
+    for sv in shared[1:]:
+        m = s == sv
+        A = np.concatenate([np.eye(3)[None].repeat(m.sum(), 0), Rg[m]], axis=2).reshape(-1, 6)
+        sv_ = np.linalg.svd(A, compute_uv=False)
+        if sv_[-1] <= rcond * sv_[0]:
+            return None, None, 0, (f"session {sv}: the tool's orientation does not vary enough across its repeated "
+                                   f"postures to tell its measured point from its frame")
+    keep = np.isin(s, shared)
+    P, g, s, Rg = P[keep], g[keep], s[keep], Rg[keep]
+    dof = 3 * k * (len(g) - len(np.unique(g))) - (6 + 3 * k) * (len(shared) - 1)
+    if dof <= 0:
+        return None, None, dof, "too few repeated postures for a registration and a point per session"
+    par = {sv: (np.eye(3), np.zeros(3), np.zeros((k, 3))) for sv in shared}
+    labels, inv = np.unique(g, return_inverse=True)
+    cnt = np.bincount(inv)[:, None, None]
+
+    def common():  # every measurement mapped into the first session's frame and point, and the consensus
+        U = np.empty_like(P)
+        for sv, (R, t, d) in par.items():
+            m = s == sv
+            U[m] = (P[m] - t) @ R - np.einsum("nij,kj->nki", Rg[m], d)
+        c = np.zeros((len(labels), k, 3))
+        np.add.at(c, inv, U)
+        return U, c / cnt
+
+    for _ in range(n_iter):
+        U, c = common()
+        for sv in shared[1:]:
+            m = s == sv
+            R, t, d = par[sv]
+            for _inner in range(3):
+                R, t = _rigid((c[inv[m]] + np.einsum("nij,kj->nki", Rg[m], d)).reshape(-1, 3), P[m].reshape(-1, 3))
+                # R_sᵀ p − c_g = w + R_g d (w = R_sᵀ t): linear in (w, d)
+                y = (P[m] @ R - c[inv[m]]).reshape(-1)
+                nm = int(m.sum())
+                A = np.zeros((nm, k, 3, 3 + 3 * k))
+                A[..., :3] = np.eye(3)
+                for j in range(k):
+                    A[:, j, :, 3 + 3 * j: 6 + 3 * j] = Rg[m]
+                x = np.linalg.lstsq(A.reshape(-1, 3 + 3 * k), y, rcond=None)[0]
+                t, d = R @ x[:3], x[3:].reshape(k, 3)
+            par[sv] = (R, t, d)
+    U, c = common()
+    ss = float(np.sum((U - c[inv]) ** 2))
+    var_c = ss / dof
+    return float(np.sqrt(3 * var_c)), float(np.sqrt(6 * var_c)), dof, None
+
+
+def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_rotations=None) -> dict | None:
     """Repeatability of the measurements at repeated postures, raw and after per-session registration.
 
     Parameters
@@ -62,6 +134,8 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20) -> dict
     groups : (N,) posture labels (:func:`estcal.validation.posture_groups`).
     sessions : (N,) session labels (files, days); default: one session.
     n_iter : generalised-Procrustes iterations.
+    tool_rotations : (N, 3, 3) the tool's orientation at every row (the model's), when the model carries a
+        per-session measured point: adds ``registered_points_mm`` (module docstring).
 
     Returns
     -------
@@ -70,7 +144,9 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20) -> dict
     ``None`` with a single session), ``difference_rms_mm`` ({raw, registered}),
     ``n_repeated_postures``, ``n_rows``, ``n_sessions``, ``within_session_mm`` (floor from
     repeats inside one session only, or ``None``), ``sessions`` ({label: {rotation_mrad,
-    translation_mm}} of each session's registration onto the consensus).
+    translation_mm}} of each session's registration onto the consensus); with ``tool_rotations``
+    also ``registered_points_mm`` (the floor after per-session registration and point change, ``None``
+    when it cannot be estimated) and ``registered_points_reason`` (why not, else ``None``).
     """
     P = np.asarray(points, float)
     if P.ndim == 2:
@@ -118,4 +194,11 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20) -> dict
     out["registered_mm"] = None if reg is None else reg * 1e3
     out["difference_rms_mm"] = {"raw": raw_d * 1e3, "registered": None if reg_d is None else reg_d * 1e3}
     out["sessions"] = {str(k): v for k, v in info.items()}
+    if tool_rotations is not None:
+        Rg = np.asarray(tool_rotations, float)[rep]
+        fl, fd, dof, why = (_points_registered(P, g, s, Rg, sess, 5 * n_iter) if len(sess) > 1
+                            else (None, None, 0, "one session: nothing is per session"))
+        out["registered_points_mm"] = None if fl is None else fl * 1e3
+        out["registered_points_reason"] = why
+        out["difference_rms_mm"]["registered_points"] = None if fd is None else fd * 1e3
     return out
