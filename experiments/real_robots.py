@@ -55,6 +55,7 @@ from estcal.discrepancy.budget import (error_budget, fit_stage_sessions, measure
                                        predicted_points)
 from estcal.discrepancy.residual import fit_residual_model, residual_correction  # noqa: E402
 from estcal.base.jsonio import write_json  # noqa: E402
+from estcal.kinematics.chunked import tool_poses  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
 from estcal.validation import posture_groups, repeatability_floor, seen_new_scores, seen_postures  # noqa: E402
@@ -184,7 +185,9 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     val["recommended"] = seen_new_scores(norms, seen, inside)
     gv = posture_groups(valid.readings, robot.joint_types)
     val["new_rmse_se_mm"] = _boot_se(norms[~seen], gv[~seen]) if (~seen).any() else None
-    val["coverage95_new"] = region_at(budget, valid.subset(~seen))["coverage"] if (~seen).any() else None
+    reg = region_at(budget, valid.subset(~seen)) if (~seen).any() else {}
+    val["coverage95_new"] = reg.get("coverage")
+    val["beyond_cv_leverage_new"] = reg.get("beyond_cv_leverage")
     # the prediction at the validation postures from their joint readings only (never their measurements)
     val["predicted_at_new_mm"] = predicted_at(budget, valid.subset(~seen)) if (~seen).any() else None
     out["validation"] = val
@@ -202,7 +205,11 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
                       "cv_of_the_choice_mm": out.get("cv_of_the_choice_mm"),
                       "ratio_cv_of_the_choice": (None if not new or "cv_of_the_choice_mm" not in out
                                                  else out["cv_of_the_choice_mm"] / new),
-                      "coverage95_new": val["coverage95_new"], "variance_model": budget.extra["region"]["variance_model"]}
+                      "coverage95_new": val["coverage95_new"], "beyond_cv_leverage_new": val["beyond_cv_leverage_new"],
+                      "variance_model": budget.extra["region"]["variance_model"],
+                      "scale_far": budget.extra["region"].get("scale_far"),
+                      "repeatability_mm": budget.repeatability_mm,
+                      "repeatability_reason": budget.extra.get("repeatability_reason")}
     return out
 
 
@@ -231,7 +238,10 @@ def _print(res):
           f"{s['validation_new_se_mm']:.2f} mm; predicted there (from their readings) {s['predicted_at_new_mm']:.2f} mm "
           f"(ratio {s['ratio_at_new']:.2f}); nested CV {s['predicted_validation_mm']:.2f} ± {s['predicted_se_mm']:.2f} "
           f"(ratio {r:.2f})" + (f"; CV of the choice alone {cv:.2f} (ratio {s['ratio_cv_of_the_choice']:.2f})"
-                                if cv is not None else "") + f"; coverage of the 95 % region {s['coverage95_new']:.2f}")
+                                if cv is not None else "") + f"; coverage of the 95 % region {s['coverage95_new']:.2f}"
+          + f" ({100 * (s['beyond_cv_leverage_new'] or 0):.0f} % of the points beyond the CV's farthest leverage)")
+    if s.get("repeatability_reason"):
+        print(f"   repeatability: none ({s['repeatability_reason']})")
 
 
 def _halves(groups, seed):
@@ -293,10 +303,16 @@ def run_talos(seeds, k, restarts):
           + (", ".join(f"session {x['session']} line {x['line']}" for x in gross) or "none"))
     data = data.subset(~bad)
     g = posture_groups(data.readings, robot.joint_types)
-    rep = repeatability_floor(measured_points(data), g, data.columns["session"])
+    # the tool's orientation from a joint-offset fit with a registration and a marker per session: what
+    # remains of the repeated postures once each session's frame *and* marker are removed
+    fs = fit_stage_sessions(robot, data, NOISE, "geometric", "joint_offset", per_session="registration+points")
+    R_tool = tool_poses(fs.robot, data.readings, fs.theta, data.context, fields=("R",)).R
+    rep = repeatability_floor(measured_points(data), g, data.columns["session"], tool_rotations=R_tool)
+    pts = ("none: " + rep["registered_points_reason"] if rep["registered_points_mm"] is None
+           else f"{rep['registered_points_mm']:.2f} mm")
     print(f"\n== TALOS: {data.n} rows, {g.max() + 1} postures; repeated postures across sessions: "
           f"{rep['n_repeated_postures']} (raw spread {rep['raw_mm']:.1f} mm, registered {rep['registered_mm']:.1f} mm "
-          f"— a different marker per session)")
+          f"— a different marker per session; after each session's registration and marker: {pts})")
     out = {"repeatability": rep, "splits": [], "gross_errors": gross}
     for seed in seeds:
         tr = _halves(g, seed)

@@ -46,8 +46,8 @@ Jacobian, is the leverage of the posture (Cook & Weisberg 1982): ``v = N · tr(J
 C_θ the fit's parameter covariance and N its number of training rows — the prediction variance in
 units of one training row's share, so that a fold's fit (fewer rows) and the final fit measure
 distance alike. Inside the nested CV every held-out point has its ``v`` from the fold's own fit,
-and its squared error is modelled as ``E|e|² = a + b·v`` (:func:`variance_model`: least squares
-with ``a, b ≥ 0``): ``a`` the error a model makes anywhere (unstructured residual, session
+and its error is modelled as ``e ~ N(0, b·S + (a/3) I₃)``, so that ``E|e|² = a + b·v``
+(:func:`variance_model`: maximum likelihood with ``a, b ≥ 0``): ``a`` the error a model makes anywhere (unstructured residual, session
 offsets, what a GP leaves), ``b`` how fast it grows as the posture leaves the span of the
 training postures — on real robots mostly model error amplified by extrapolation, which more
 rows of the same postures do not remove (hence the scaling by N). Given target postures (their
@@ -57,6 +57,14 @@ postures it is the nested CV figure. The region becomes ``Σ = b·N·J C_θ Jᵀ
 variance is in ``a``: far from its data it is its prior amplitude wherever the posture is), so it
 widens with the distance, and its conformal threshold is taken over the same nested scores — a
 normalised conformal region (Lei, G'Sell, Rinaldo, Tibshirani & Wasserman 2018, *JASA* 113, §5.2).
+
+The held-out points vouch for ``b`` only up to the farthest of them: the nested CV never holds out a
+posture as far from its training postures as a target beyond every training range can be. Beyond that
+leverage the region takes the one-sided 95 % profile-likelihood upper bound of ``b``
+(:func:`slope_upper`; Venzon & Moolgavkar 1988, *Appl. Statist.* 37) — wide where the held-out points
+say little about the growth, close to ``b`` where they say much — and :func:`beyond_leverage` reports
+the share of such targets. The expected RMSE there stays the estimate ``√mean(a + b·v_t)``: a bound is
+not an expectation.
 """
 from __future__ import annotations
 
