@@ -55,7 +55,6 @@ from estcal.discrepancy.budget import (error_budget, fit_stage_sessions, measure
                                        predicted_points)
 from estcal.discrepancy.residual import fit_residual_model, residual_correction  # noqa: E402
 from estcal.base.jsonio import write_json  # noqa: E402
-from estcal.kinematics.chunked import tool_poses  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
 from estcal.validation import posture_groups, repeatability_floor, seen_new_scores, seen_postures  # noqa: E402
@@ -306,8 +305,7 @@ def run_talos(seeds, k, restarts):
     # the tool's orientation from a joint-offset fit with a registration and a marker per session: what
     # remains of the repeated postures once each session's frame *and* marker are removed
     fs = fit_stage_sessions(robot, data, NOISE, "geometric", "joint_offset", per_session="registration+points")
-    R_tool = tool_poses(fs.robot, data.readings, fs.theta, data.context, fields=("R",)).R
-    rep = repeatability_floor(measured_points(data), g, data.columns["session"], tool_rotations=R_tool)
+    rep = repeatability_floor(measured_points(data), g, data.columns["session"], tool_rotations=fs.tool_rotations(data))
     pts = ("none: " + rep["registered_points_reason"] if rep["registered_points_mm"] is None
            else f"{rep['registered_points_mm']:.2f} mm")
     print(f"\n== TALOS: {data.n} rows, {g.max() + 1} postures; repeated postures across sessions: "

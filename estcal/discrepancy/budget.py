@@ -56,7 +56,6 @@ from estcal.discrepancy.prediction import (GP_GAIN, Procedure, beyond_leverage, 
 from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
-from estcal.kinematics.chunked import tool_poses
 from estcal.methods import NoiseModel
 from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
                                repeatability_floor, rmse_mm)
@@ -361,7 +360,7 @@ def _repeatability(data, g, sessions, final, per_session):
     points = per_session == "registration+points" and len(np.unique(lab)) > 1
     R_tool = None
     if points:
-        R_tool = tool_poses(final.robot, data.readings, final.theta, data.context, fields=("R",)).R
+        R_tool = final.tool_rotations(data)
     rep = repeatability_floor(measured_points(data), g, lab, tool_rotations=R_tool)
     if rep is None:
         return None, "no posture is measured twice", None

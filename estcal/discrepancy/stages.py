@@ -105,6 +105,12 @@ class FittedStage:
                 pred[m] += np.einsum("nij,kj->nki", R_tool[m], dm)
         return pred
 
+    def tool_rotations(self, data):
+        """(N, 3, 3) the fitted tool frame's orientation at every row (the frame of the per-session point change)."""
+        from estcal.kinematics.chunked import tool_poses
+
+        return tool_poses(self.robot, data.readings, self.theta, data.context, fields=("R",)).R
+
     def _map(self, data, vec, forward: bool, shift: bool):
         out = np.array(vec, float)
         for m, R, t, dm in self._each(data):
