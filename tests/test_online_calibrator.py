@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,9 +16,9 @@ from typer.testing import CliRunner
 
 import estcal
 from estcal.cli.main import app
+from online_cli import FREE, run_online
 
 runner = CliRunner()
-FREE = "offset_1,offset_2,offset_3,a_2,d_3,alpha_3,base_tx,base_ty"
 N = 300
 
 
@@ -33,13 +32,6 @@ def data(tmp_path_factory):
     return path
 
 
-def _cli(path, out, *extra):
-    r = runner.invoke(app, ["online", str(path), "--robot", "puma560", "--free", FREE, "--q-mm", "1e-4",
-                            "--json", str(out), *extra])
-    assert r.exit_code == 0, r.output
-    return json.loads(Path(out).read_text())
-
-
 def _cal(**kw):
     return estcal.OnlineCalibrator("puma560", free=FREE, q=1e-7, noise=(1e-4, 1e-3), prior_std=0.1, **kw)
 
@@ -48,7 +40,7 @@ def _cal(**kw):
 def test_chunked_updates_give_the_estimate_of_estcal_online(data, tmp_path, cuts):
     """Fed in chunks — the path at once, one row at a time, uneven chunks, arrays — the object ends
     where ``estcal online`` ends (1e-9 in SI units; the chunking changes only the rounding)."""
-    ref = _cli(data, tmp_path / "cli.json")
+    ref = run_online(data, tmp_path / "cli.json")
     cal = _cal()
     ds = estcal.load_dataset(data, cal.robot)
     if cuts == "whole":

@@ -5,7 +5,6 @@ estimate of the same rows in estcal's layout; the checkpoint keeps the map; the 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +13,11 @@ from typer.testing import CliRunner
 import estcal
 from estcal.base.errors import InputError
 from estcal.cli.main import app
+from online_cli import FREE, run_online
 
 from conftest import REPO, SHARED
 
 runner = CliRunner()
-FREE = "offset_1,offset_2,offset_3,a_2,d_3,alpha_3,base_tx,base_ty"
 N = 120
 COLUMNS = ["mx", "my", "mz", "stamp", "q1", "q2", "q3", "q4", "q5", "q6"]
 MAP = """\
@@ -49,13 +48,6 @@ def files(tmp_path_factory):
     return d
 
 
-def _online(data, out, *extra):
-    r = runner.invoke(app, ["online", str(data), "--robot", "puma560", "--free", FREE, "--q-mm", "1e-4",
-                            "--json", str(out), *extra])
-    assert r.exit_code == 0, r.output
-    return json.loads(Path(out).read_text())
-
-
 def _estimate(res):
     return np.array([v["estimate"] for v in res["parameters"].values()])
 
@@ -69,15 +61,15 @@ def _same(res, ref):
 
 @pytest.mark.parametrize("name", ["pub", "pub_noheader"])
 def test_online_map_reads_the_published_layout(files, tmp_path, name):
-    ref = _online(files / "ref.csv", tmp_path / "ref.json")
-    res = _online(files / f"{name}.csv", tmp_path / "map.json", "--map", str(files / f"{name}.yaml"))
+    ref = run_online(files / "ref.csv", tmp_path / "ref.json")
+    res = run_online(files / f"{name}.csv", tmp_path / "map.json", "--map", str(files / f"{name}.yaml"))
     _same(res, ref)
     if name == "pub_noheader":  # the first line is a data row: line numbers as an editor shows them
         assert res["history"][0]["line"] == 10
 
 
 def test_online_calibrator_takes_the_map_and_its_checkpoint_keeps_it(files, tmp_path):
-    ref = _online(files / "ref.csv", tmp_path / "ref.json")
+    ref = run_online(files / "ref.csv", tmp_path / "ref.json")
     kw = dict(free=FREE, q=1e-7, noise=(1e-4, 1e-3), prior_std=0.1)
     cal = estcal.OnlineCalibrator("puma560", column_map=files / "pub_noheader.yaml", **kw)
     cal.update(files / "pub_noheader.csv")
@@ -101,9 +93,9 @@ def test_online_map_resumes_a_headerless_stream(files, tmp_path):
     first = tmp_path / "first.csv"
     first.write_text("".join(lines[:50]))
     m = ["--map", str(files / "pub_noheader.yaml")]
-    _online(first, tmp_path / "a.json", *m, "--state", str(tmp_path / "s.json"), "--checkpoint-every", "25")
-    res = _online(files / "pub_noheader.csv", tmp_path / "b.json", *m, "--resume", str(tmp_path / "s.json"))
-    whole = _online(files / "pub_noheader.csv", tmp_path / "c.json", *m)
+    run_online(first, tmp_path / "a.json", *m, "--state", str(tmp_path / "s.json"), "--checkpoint-every", "25")
+    res = run_online(files / "pub_noheader.csv", tmp_path / "b.json", *m, "--resume", str(tmp_path / "s.json"))
+    whole = run_online(files / "pub_noheader.csv", tmp_path / "c.json", *m)
     assert res["n_rows"] == N and _estimate(res).tolist() == _estimate(whole).tolist()
 
 
