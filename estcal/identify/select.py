@@ -322,6 +322,23 @@ class IdentifiabilityResult:
             d["excitation"] = self.excitation
         return d
 
+    def excitation_lines(self) -> list[str]:
+        """The dataset excitation check as text lines (none without ``--data``): whether the data identify
+        the same set as random configurations (GECARO's criterion), the two condition numbers, and the
+        parameters that differ — one wording for ``str(result)`` and ``estcal identifiable``."""
+        ex = self.excitation
+        if not ex:
+            return []
+        lines = [f"excitation: same identifiable set as random configurations: {ex['same_set']} (condition "
+                 f"number {ex['condition_number']:.4g} vs {ex['random_condition_number']:.4g} with random "
+                 f"configurations)"]
+        if ex["missing"]:
+            lines.append(f"  not identifiable from these data: {', '.join(ex['missing'])}")
+        if ex["extra"]:
+            lines.append(f"  identifiable only from these data (suspicious: near-dependent columns): "
+                         f"{', '.join(ex['extra'])}")
+        return lines
+
     def __str__(self) -> str:
         lo, hi = self.rank_gap
         head = " ".join(f"{k}={v}" for k, v in self.meta.items() if isinstance(v, (str, int, float)))
@@ -338,15 +355,7 @@ class IdentifiabilityResult:
                 lines.append(f"    {f}")
         if self.excluded:
             lines.append(f"  excluded (priority 0): {', '.join(self.excluded)}")
-        if self.excitation:
-            ex = self.excitation
-            lines.append(f"  excitation check vs random configurations: same set = {ex['same_set']}, "
-                         f"cond(data) = {ex['condition_number']:.4g}, cond(random) = "
-                         f"{ex['random_condition_number']:.4g}")
-            if ex["missing"]:
-                lines.append(f"    identifiable with random poses but not with these data: {ex['missing']}")
-            if ex["extra"]:
-                lines.append(f"    identifiable only with these data (suspicious, near-dependent): {ex['extra']}")
+        lines += ["  " + line for line in self.excitation_lines()]
         return "\n".join(lines)
 
 

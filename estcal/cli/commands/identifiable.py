@@ -29,6 +29,7 @@ MEASURE_HELP = ("position, pose, point-link, frame-link, plane-known, plane-unkn
 
 
 def _print(console, res) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     if isinstance(res, dict):  # Gough platform
@@ -66,16 +67,12 @@ def _print(console, res) -> None:
     console.print(f"condition number of the column-scaled W_b: {res.condition_number:.4g}")
     for note in m.get("notes", []):
         console.print(f"[dim]note: {note}[/dim]")
-    if res.excitation:
-        ex = res.excitation
-        colr = "green" if ex["same_set"] else "red"
-        console.print(f"[{colr}]excitation: same identifiable set as random configurations: {ex['same_set']}"
-                      f"[/{colr}] (condition number {ex['condition_number']:.4g} vs "
-                      f"{ex['random_condition_number']:.4g} with random configurations)")
-        if ex["missing"]:
-            console.print(f"  not identifiable from these data: {', '.join(ex['missing'])}")
-        if ex["extra"]:
-            console.print(f"  identifiable only from these data: {', '.join(ex['extra'])}")
+    lines = res.excitation_lines()
+    if lines:
+        colr = "green" if res.excitation["same_set"] else "red"
+        console.print(f"[{colr}]{escape(lines[0])}[/{colr}]")
+        for line in lines[1:]:
+            console.print(escape(line))
 
 
 @command("identifiable")
