@@ -130,7 +130,8 @@ def _region(e, S):
     return region
 
 
-def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS):
+def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS,
+          compare_levels=True):
     """Steps 1–5 of the module docstring on one split; a JSON-ready dict."""
     from estcal.discrepancy.prediction import predicted_rmse_at, region_coverage
     from estcal.validation import seen_postures
@@ -150,6 +151,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
         S[test] = point_covariance(f_fs, dte) * len(tr)
         fold_widths.append(f_gp.to_dict()["widths"])
     region = _region(held, S)
+    levels = _as_candidate(robot, train, noise, g, k, per_session, held) if compare_levels else None
     seen = seen_postures(train.readings, valid.readings, robot.joint_types)
     new = valid.subset(~seen)
     lo, hi = train.readings.min(0), train.readings.max(0)
@@ -162,7 +164,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
            "new_mm": _rmse(e), "new_inside_mm": _rmse(e[inside]), "new_outside_mm": _rmse(e[~inside]),
            "fraction_outside": float(1 - inside.mean()), "predicted_validation_mm": _rmse(held),
            "predicted_at_new_mm": predicted_rmse_at(region["a_mm2"] * 1e-6, region["b"], Sv) * 1e3,
-           "coverage95_new": region_coverage(region, e, Sv), "region": region, "fit_s": t_fit}
+           "coverage95_new": region_coverage(region, e, Sv), "region": region, "fit_s": t_fit, "levels": levels}
     out["ratio_nested"] = out["predicted_validation_mm"] / out["new_mm"]
     out["ratio_at"] = out["predicted_at_new_mm"] / out["new_mm"]
     # baselines on the same split, no selection
@@ -174,6 +176,25 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     free_fs, _ = _free_fit(robot, train, noise, effects)
     out["free_new_mm"] = _rmse(measured_points(new) - free_fs.predict(new)) if free_fs is not None else None
     out["time_s"] = time.time() - t0
+    return out
+
+
+def _as_candidate(robot, train, noise, g, k, per_session, held):
+    """The prior model as one more candidate of the level choice (:func:`estcal.discrepancy.prediction.choose_level`:
+    posture-grouped CV on the training rows, the same folds, the one-standard-error rule with the prior model
+    as the most complex candidate) → ``{candidate: {cv_mm, se_mm}, "chosen": …}``."""
+    from estcal.discrepancy.prediction import LEVELS, choose_level
+
+    _, out = choose_level(robot, train, noise, g, k, 0, per_session)
+    folds = grouped_folds(g, k, 0)
+    sq = np.sum(held ** 2, axis=-1)
+    fold_mse = np.array([sq[f].mean() for f in folds])
+    rm = np.sqrt(sq.mean())
+    out["prior"] = {"cv_mm": float(rm * 1e3), "se_mm": float(fold_mse.std(ddof=1) / np.sqrt(len(folds)) / (2 * rm) * 1e3)}
+    mse = {c: (out[c]["cv_mm"] * 1e-3) ** 2 for c in (*LEVELS, "prior")}
+    se = {c: 2 * out[c]["cv_mm"] * out[c]["se_mm"] * 1e-6 for c in mse}  # back from the δ-method
+    best = min(mse, key=mse.get)
+    out["chosen"] = next(c for c in (*LEVELS, "prior") if mse[c] <= mse[best] + se[best])
     return out
 
 
@@ -198,12 +219,16 @@ def _print(r):
           f"{r['new_outside_mm']:.2f}, {r['fraction_outside']:.0%} outside); nested CV {r['predicted_validation_mm']:.2f} "
           f"(ratio {r['ratio_nested']:.2f}); at the new postures {r['predicted_at_new_mm']:.2f} (ratio "
           f"{r['ratio_at']:.2f}); coverage {r['coverage95_new']:.2f}")
+    if r["levels"]:
+        lv = r["levels"]
+        print("   as a candidate of the level choice (grouped CV mm ± se): " + ", ".join(
+            f"{c} {lv[c]['cv_mm']:.2f} ± {lv[c]['se_mm']:.2f}" for c in lv if c != "chosen") + f" -> {lv['chosen']}")
     print(f"   baselines at new postures: joint_offset {r['joint_offset_new_mm']:.2f}, full {r['full_new_mm']:.2f}, "
           f"the prior on the geometry only {r['prior_geometric_only_new_mm']:.2f}, the same model without prior {free}"
           f"  ({r['time_s']:.0f} s)")
 
 
-def run_tiago(seeds, **kw):
+def run_tiago(seeds, frames=(None, "registration"), **kw):
     from real_robots import NOISE, _halves, load_tiago
 
     robot, data = load_tiago()
@@ -211,7 +236,7 @@ def run_tiago(seeds, **kw):
     out = []
     for seed in seeds:
         tr = _halves(g, seed)
-        for per in (None, "registration"):
+        for per in frames:
             r = study(robot, data.subset(tr), data.subset(~tr), NOISE, per_session=per, **kw,
                       label=f"TIAGo seed {seed}" + (", per-session registration" if per else ", one frame"))
             r["seed"] = seed
@@ -250,6 +275,34 @@ def run_talos_session(seeds, session=1, **kw):
     return out
 
 
+def run_ablation(seeds, effects=EFFECTS, **_):
+    """TIAGo, one frame: the prior model's effects with the joint-offset level and no prior (least squares) — is it
+    the prior, or the effects, that helps?"""
+    from real_robots import NOISE, _halves, load_tiago
+
+    from estcal.discrepancy.diagnose import default_candidates
+    from estcal.discrepancy.geometric import gravity_ready
+    from estcal.discrepancy.stages import fit_stage_sessions
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    out = []
+    for seed in seeds:
+        tr = _halves(g, seed)
+        T, V = data.subset(tr), data.subset(~tr)
+        rb, _ = gravity_ready(robot)
+        eff = [(c.effect, list(c.joints), dict(c.options)) for c in default_candidates(rb, T, effects=list(effects),
+                                                                                      families=False)]
+        r = {"seed": seed, "effects": [[e[0], e[1]] for e in eff]}
+        for level in ("joint_offset", "aic"):
+            fs = fit_stage_sessions(robot, T, NOISE, "named", level, eff)
+            r[f"{level}_effects_new_mm"] = _rmse(measured_points(V) - fs.predict(V))
+        print(f"-- TIAGo seed {seed}, one frame, {len(eff)} effect terms without prior: joint_offset + effects "
+              f"{r['joint_offset_effects_new_mm']:.2f} mm, aic + effects {r['aic_effects_new_mm']:.2f} mm at new postures")
+        out.append(r)
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robots", default="tiago,ur10,talos_session")
@@ -258,6 +311,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--k", type=int, default=5)
     ap.add_argument("--effects", default=",".join(EFFECTS),
                     help="effect kinds of the prior model (comma-separated registry names; empty: geometry only)")
+    ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -270,7 +324,10 @@ def main(argv=None) -> dict:
     out = {"protocol": __doc__, "criterion": args.criterion, "effects": list(kw["effects"])}
     t0 = time.time()
     if "tiago" in robots:
-        out["tiago"] = run_tiago(seeds, **kw)
+        frames = [{"one": None, "per-session": "registration"}[f] for f in args.frames.split(",")]
+        out["tiago"] = run_tiago(seeds, frames, **kw)
+    if "ablation" in robots:
+        out["ablation"] = run_ablation(seeds, **kw)
     if "ur10" in robots:
         out["ur10"] = run_ur10(**kw)
     if "talos_session" in robots:
