@@ -18,8 +18,9 @@ Protocol per split — every decision on the training rows only, the validation 
    ``per_session``, a rigid registration of every further session by alternation (Kabsch);
 4. nested prediction: 5 posture-grouped outer folds of the training rows, each running 1–3 on its own
    training part and predicting its held-out postures — ``predicted_validation_mm``; the line
-   ``E|e|² = a + b·v`` of the held-out errors against their leverage and the conformal 95 % region
-   (:mod:`estcal.discrepancy.prediction`), applied at the validation postures from their readings;
+   ``E|e|² = a + b·v`` of the held-out errors against their leverage (maximum likelihood) and the
+   conformal 95 % region — the error budget's own (:mod:`estcal.discrepancy.budget`,
+   :mod:`estcal.discrepancy.prediction`) — applied at the validation postures from their readings;
 5. the validation rows at new postures: RMSE of the point-error norms (inside / outside the
    training joint ranges) and the coverage of the 95 % region.
 
@@ -119,21 +120,13 @@ def _plain(robot, data, noise, level, per_session=None):
     return fit_stage_sessions(robot, data, noise, "geometric", level, per_session=per_session)
 
 
-def _region(e, S):
-    """The 95 % region of :mod:`estcal.discrepancy.prediction` from nested held-out errors and leverages."""
-    from estcal.discrepancy.prediction import conformal_threshold, region_scores, region_sigma, variance_model
-
-    a, b = variance_model(e, S)
-    tau2 = max(a / 3.0, 0.05 * float(np.mean(np.asarray(e) ** 2)))
-    region = {"tau_mm": float(np.sqrt(tau2) * 1e3), "scale": float(b), "a_mm2": float(a * 1e6), "b": float(b)}
-    region["threshold_d2"] = conformal_threshold(region_scores(e, region_sigma(region, S), 0.0), 0.95)
-    return region
-
-
 def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS,
           compare_levels=True):
     """Steps 1–5 of the module docstring on one split; a JSON-ready dict."""
-    from estcal.discrepancy.prediction import predicted_rmse_at, region_coverage
+    # the budget's region (one definition: maximum-likelihood variance model, the slope's bound beyond the
+    # farthest held-out leverage, the conformal threshold), from this procedure's nested held-out errors
+    from estcal.discrepancy.budget import _region
+    from estcal.discrepancy.prediction import beyond_leverage, predicted_rmse_at, region_coverage
     from estcal.validation import seen_postures
 
     t0 = time.time()
@@ -163,8 +156,10 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
            "n_parameters": len(gp.result.names), "effective_parameters": gp.result.extra["prior"]["effective_parameters"],
            "new_mm": _rmse(e), "new_inside_mm": _rmse(e[inside]), "new_outside_mm": _rmse(e[~inside]),
            "fraction_outside": float(1 - inside.mean()), "predicted_validation_mm": _rmse(held),
-           "predicted_at_new_mm": predicted_rmse_at(region["a_mm2"] * 1e-6, region["b"], Sv) * 1e3,
-           "coverage95_new": region_coverage(region, e, Sv), "region": region, "fit_s": t_fit, "levels": levels}
+           "predicted_at_new_mm": predicted_rmse_at(region["variance_model"]["a_mm2"] * 1e-6,
+                                                    region["variance_model"]["b"], Sv) * 1e3,
+           "coverage95_new": region_coverage(region, e, Sv), "beyond_cv_leverage": beyond_leverage(region, Sv),
+           "region": region, "fit_s": t_fit, "levels": levels}
     out["ratio_nested"] = out["predicted_validation_mm"] / out["new_mm"]
     out["ratio_at"] = out["predicted_at_new_mm"] / out["new_mm"]
     # baselines on the same split, no selection
