@@ -97,9 +97,7 @@ class FittedStage:
         pred = predicted_points(self.robot, self.theta, data)
         if not self.sessions:
             return pred
-        from estcal.kinematics.chunked import tool_poses
-
-        R_tool = tool_poses(self.robot, data.readings, self.theta, data.context, fields=("R",)).R
+        R_tool = self.tool_rotations(data)
         for m, R, t, dm in self._each(data):
             if m.any() and np.any(dm):
                 pred[m] += np.einsum("nij,kj->nki", R_tool[m], dm)
@@ -141,7 +139,6 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
     into the common frame, then each session's transform (Kabsch) and point change (linear least squares)
     are re-estimated from the model's prediction."""
     from estcal.estimate.registration import kabsch
-    from estcal.kinematics.chunked import tool_poses
 
     lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
     svals = list(dict.fromkeys(lab.tolist()))
@@ -157,7 +154,7 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
         adj = data.subset(slice(None))
         P = meas.copy()
         if fitted is not None:
-            R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
+            R_tool = fitted.tool_rotations(data)
         for sv, (R, t, dm) in sess.items():
             m = lab == sv
             P[m] = (P[m] - t) @ R
@@ -173,7 +170,7 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
                 adj.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
         fitted = FittedStage(*fit_stage(robot, adj, noise, stage, level, effects, max_iter))
         base = predicted_points(fitted.robot, fitted.theta, data)
-        R_tool = tool_poses(fitted.robot, data.readings, fitted.theta, data.context, fields=("R",)).R
+        R_tool = fitted.tool_rotations(data)
         for sv in svals[1:]:
             m = lab == sv
             R, t, dm = sess[sv]
