@@ -172,6 +172,35 @@ def fit_residual_gp(X, residuals, input_names, space: str, restarts: int = 2, rn
                       y_scale, k, {"log_marginal_likelihood": lml})
 
 
+# _ard_kernel, _ard_lml and _fit_ard_gp below are adapted from scikit-learn
+# (sklearn/gaussian_process/kernels.py: RBF, ConstantKernel, WhiteKernel __call__;
+# sklearn/gaussian_process/_gpr.py: GaussianProcessRegressor.fit, log_marginal_likelihood),
+# used under its license:
+#
+#   BSD 3-Clause License
+#   Copyright (c) 2007-2026 The scikit-learn developers. All rights reserved.
+#
+#   Redistribution and use in source and binary forms, with or without modification, are
+#   permitted provided that the following conditions are met:
+#   * Redistributions of source code must retain the above copyright notice, this list of
+#     conditions and the following disclaimer.
+#   * Redistributions in binary form must reproduce the above copyright notice, this list of
+#     conditions and the following disclaimer in the documentation and/or other materials
+#     provided with the distribution.
+#   * Neither the name of the copyright holder nor the names of its contributors may be used
+#     to endorse or promote products derived from this software without specific prior
+#     written permission.
+#
+#   THIS SOFTWARE IS PROVIDED BY THE COPYRIGHT HOLDERS AND CONTRIBUTORS "AS IS" AND ANY EXPRESS
+#   OR IMPLIED WARRANTIES, INCLUDING, BUT NOT LIMITED TO, THE IMPLIED WARRANTIES OF
+#   MERCHANTABILITY AND FITNESS FOR A PARTICULAR PURPOSE ARE DISCLAIMED. IN NO EVENT SHALL THE
+#   COPYRIGHT HOLDER OR CONTRIBUTORS BE LIABLE FOR ANY DIRECT, INDIRECT, INCIDENTAL, SPECIAL,
+#   EXEMPLARY, OR CONSEQUENTIAL DAMAGES (INCLUDING, BUT NOT LIMITED TO, PROCUREMENT OF
+#   SUBSTITUTE GOODS OR SERVICES; LOSS OF USE, DATA, OR PROFITS; OR BUSINESS INTERRUPTION)
+#   HOWEVER CAUSED AND ON ANY THEORY OF LIABILITY, WHETHER IN CONTRACT, STRICT LIABILITY, OR
+#   TORT (INCLUDING NEGLIGENCE OR OTHERWISE) ARISING IN ANY WAY OUT OF THE USE OF THIS
+#   SOFTWARE, EVEN IF ADVISED OF THE POSSIBILITY OF SUCH DAMAGE.
+
 #: bounds of the amplitude a² and the white noise s² of :func:`fit_residual_gp` (standardised units)
 AMPLITUDE_BOUNDS = NOISE_BOUNDS = (1e-4, 10.0)
 #: jitter added to the kernel's diagonal before factorising (scikit-learn's ``alpha`` default)
