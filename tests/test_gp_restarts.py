@@ -30,7 +30,7 @@ def _quadratic(x):
 
 def _run(nll, restarts, maxiter=200, seed=0):
     gen = np.random.default_rng(seed)
-    best = _restarts(nll, BOUNDS, 1, restarts, gen, maxiter, X0)
+    best = _restarts(nll, BOUNDS, restarts, gen, maxiter, X0)
     drawn = not np.array_equal(gen.uniform(size=3), np.random.default_rng(seed).uniform(size=3))
     return best, drawn
 
@@ -54,7 +54,7 @@ def test_a_run_stopped_on_a_bound_restarts_and_the_restart_wins():
         q, gq = _quadratic(np.r_[CENTRE[0], x[1:]])
         w = np.exp(-(x[0] - 2.0) ** 2)
         return q - 2.0 * w + 0.05 * x[0], np.r_[4.0 * (x[0] - 2.0) * w + 0.05, gq[1:]]
-    first = _restarts(f, BOUNDS, 1, 0, np.random.default_rng(0), 200, X0)
+    first = _restarts(f, BOUNDS, 0, np.random.default_rng(0), 200, X0)
     assert first.x[0] == BOUNDS[0][0] and _suspect(first, BOUNDS)
     best, drawn = _run(f, restarts=6)
     assert drawn
@@ -63,7 +63,7 @@ def test_a_run_stopped_on_a_bound_restarts_and_the_restart_wins():
 
 def test_a_run_that_did_not_converge_restarts():
     nll, _ = _counted(_quadratic)
-    first = _restarts(nll, BOUNDS, 1, 0, np.random.default_rng(0), 1, X0)
+    first = _restarts(nll, BOUNDS, 0, np.random.default_rng(0), 1, X0)
     assert not first.success and _suspect(first, BOUNDS)
     _, drawn = _run(nll, restarts=1, maxiter=1)
     assert drawn

@@ -452,8 +452,7 @@ def fit_joint_gp(readings, H, residuals, param_names, joint_of, joint_names, res
 
     fit = joint_gp_fit_problem(readings, H, residuals, joint_of, joint_names, start)
     with single_thread_blas():
-        best = _restarts(fit.nll, fit.bounds, len(fit.active), restarts, np.random.default_rng(rng), maxiter,
-                         fit.x0)
+        best = _restarts(fit.nll, fit.bounds, restarts, np.random.default_rng(rng), maxiter, fit.x0)
     na, nj = len(fit.active), len(joint_names)
     amp = np.zeros(nj)
     ls = fit.qsd.copy()
@@ -496,7 +495,7 @@ def joint_gp_fit_problem(readings, H, residuals, joint_of, joint_names, start=No
                      [b[0] for b in bounds], [b[1] for b in bounds])
     else:
         x0 = np.r_[np.full(na, np.log(0.3 * rms)), np.log(qsd[active]), np.log(0.7 * rms)]
-    return SimpleNamespace(Q=Q, Hs=Hs, scale=scale, Y=Y, joint_of=joint_of, active=active, qsd=qsd, rms=rms,
+    return SimpleNamespace(Q=Q, Hs=Hs, scale=scale, Y=Y, joint_of=joint_of, active=active, qsd=qsd,
                            nll=joint_gp_objective(Q, Hs, Y, joint_of, active, m), bounds=bounds, x0=x0)
 
 
@@ -578,7 +577,7 @@ def _suspect(res, bounds) -> bool:
     return (not res.success) or bool(np.any((res.x <= lo + tol) | (res.x >= hi - tol)))
 
 
-def _restarts(nll, bounds, na, restarts, gen, maxiter, x0):
+def _restarts(nll, bounds, restarts, gen, maxiter, x0):
     """The best of one L-BFGS-B run from ``x0`` and, only when that run is suspect (:func:`_suspect`),
     ``restarts`` runs from uniform random points of the box.
 
