@@ -50,7 +50,7 @@ from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage, measured_points, point_covariance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
-from estcal.validation import grouped_folds, posture_groups  # noqa: E402
+from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds)
 EFFECTS = ("joint_compliance", "backlash")
@@ -147,8 +147,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     levels = _as_candidate(robot, train, noise, g, k, per_session, held) if compare_levels else None
     seen = seen_postures(train.readings, valid.readings, robot.joint_types)
     new = valid.subset(~seen)
-    lo, hi = train.readings.min(0), train.readings.max(0)
-    inside = np.all((new.readings >= lo) & (new.readings <= hi), axis=1)
+    inside = inside_ranges(train.readings, new.readings)
     e = measured_points(new) - fs.predict(new)
     Sv = point_covariance(fs, new) * train.n
     out = {"label": label, "per_session": per_session, "criterion": criterion, "n_train_rows": train.n,

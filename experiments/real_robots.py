@@ -57,7 +57,8 @@ from estcal.discrepancy.residual import fit_residual_model, residual_correction 
 from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.methods import NoiseModel  # noqa: E402
-from estcal.validation import posture_groups, repeatability_floor, seen_new_scores, seen_postures  # noqa: E402
+from estcal.validation import (inside_ranges, posture_groups, repeatability_floor, seen_new_scores,  # noqa: E402
+                               seen_postures)
 
 NOISE = NoiseModel(position=2e-4, orientation=2e-3, known=False)
 LEVELS = ("joint_offset", "aic", "full")
@@ -172,8 +173,7 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     # 6. validation, scored once: the recommended model (fitted on all training rows) at the validation rows
     t3 = time.time()
     seen = seen_postures(train.readings, valid.readings, robot.joint_types)
-    lo, hi = train.readings.min(0), train.readings.max(0)
-    inside = np.all((valid.readings >= lo) & (valid.readings <= hi), axis=1)
+    inside = inside_ranges(train.readings, valid.readings)
     fs = budget.extra["fitted"]
     e = measured_points(valid) - fs.predict(valid)
     val = {"geometric_or_named": seen_new_scores(np.linalg.norm(e, axis=-1), seen, inside)}
@@ -401,7 +401,7 @@ def run_extrapolation(seeds=(0, 1, 2), n_halvings=300, k=5):
     s = Q.std(0)
 
     def stats(A, B):
-        return cKDTree(A / s).query(B / s)[0], np.any((B < A.min(0)) | (B > A.max(0)), axis=1)
+        return cKDTree(A / s).query(B / s)[0], ~inside_ranges(A, B)
 
     def split(seed):
         a = np.isin(np.arange(len(u)), np.random.default_rng(seed).permutation(len(u))[: len(u) // 2])
@@ -513,8 +513,7 @@ def run_explore(seeds=(0, 1, 2)):
         for seed in seeds:
             tr = _halves(g, seed)
             T, V = data.subset(tr), data.subset(~tr)
-            lo, hi = T.readings.min(0), T.readings.max(0)
-            inside = np.all((V.readings >= lo) & (V.readings <= hi), axis=1)
+            inside = inside_ranges(T.readings, V.readings)
             fs = fit_stage_sessions(robot, T, NOISE, stage, level, eff, per_session=per)
             e = measured_points(V) - fs.predict(V)
             gp = fit_residual_model("joints", fs.robot, fs.theta, T.readings, fs.residual_common(T), T.context, 0)

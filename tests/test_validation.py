@@ -191,3 +191,12 @@ def test_calibrate_splits_its_validation_into_seen_and_new_postures():
     assert any(issubclass(x.category, EstcalWarning) and "memory" in str(x.message) for x in w)
     assert not v_mixed["only_seen"] and (v_mixed["seen"]["n_rows"], v_mixed["new"]["n_rows"]) == (10, 8)
     assert "seen" in cal.result.to_dict()["accuracy"]["validation"][1]
+
+
+def test_inside_ranges_marks_rows_beyond_any_training_joint_range():
+    """A row is inside when every joint reading lies in the training span of that joint (bounds included)."""
+    from estcal.validation import inside_ranges
+
+    train = np.array([[0.0, -1.0], [1.0, 1.0], [0.5, 0.0]])
+    rows = np.array([[0.5, 0.5], [0.0, -1.0], [1.0001, 0.0], [0.5, -1.2], [-0.1, 2.0]])
+    assert inside_ranges(train, rows).tolist() == [True, True, False, False, False]

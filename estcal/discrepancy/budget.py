@@ -57,8 +57,8 @@ from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_cor
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
 from estcal.methods import NoiseModel
-from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, n_postures, posture_groups,
-                               repeatability_floor, rmse_mm)
+from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, grouped_folds, inside_ranges, n_postures,
+                               posture_groups, repeatability_floor, rmse_mm)
 
 __all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "predicted_at",
            "region_at", "fit_stage", "fit_stage_sessions", "predicted_points", "measured_points", "point_covariance",
@@ -230,8 +230,7 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
     # × the number of training rows: the leverage in units of one training row (the metric of the identification
     # Jacobian, the same whatever the number of rows of the fit; prediction.py)
     out["S"] = point_covariance(fs, dte) * len(train)
-    lo, hi = dtr.readings.min(0), dtr.readings.max(0)
-    out["outside"] = np.any((dte.readings < lo) | (dte.readings > hi), axis=1)
+    out["outside"] = ~inside_ranges(dtr.readings, dte.readings)
     return out
 
 

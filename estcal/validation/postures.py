@@ -19,13 +19,14 @@ Functions
 posture_groups(readings, joint_types, tol_rad, tol_m) -> (N,) int labels
 grouped_folds(groups, k, rng) -> list of row-index arrays, no posture split
 seen_postures(train_readings, test_readings, ...) -> (M,) bool
+inside_ranges(train_readings, readings) -> (M,) bool
 """
 from __future__ import annotations
 
 import numpy as np
 
 __all__ = ["DEFAULT_TOL_RAD", "DEFAULT_TOL_M", "joint_tolerances", "posture_groups", "grouped_folds",
-           "seen_postures", "n_postures"]
+           "seen_postures", "n_postures", "inside_ranges"]
 
 #: default agreement of two readings of the same posture (rad for revolute, m for prismatic joints)
 DEFAULT_TOL_RAD = 1e-3
@@ -129,3 +130,12 @@ def seen_postures(train_readings, test_readings, joint_types=None, tol_rad: floa
         return np.zeros(B.shape[0], bool)
     lab = posture_groups(np.vstack([A, B]), joint_types, tol_rad, tol_m)
     return np.isin(lab[A.shape[0]:], lab[: A.shape[0]])
+
+
+def inside_ranges(train_readings, readings) -> np.ndarray:
+    """(M,) True where every joint reading of a row lies within the range the training rows span on that
+    joint (an interpolation); False where at least one joint is outside it (an extrapolation, where a
+    model's error grows: docs/real-data.md)."""
+    A = np.asarray(train_readings, float)
+    B = np.asarray(readings, float)
+    return np.all((B >= A.min(0)) & (B <= A.max(0)), axis=1)

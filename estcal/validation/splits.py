@@ -54,12 +54,12 @@ def validation_split(train_readings, valid_readings, errors, joint_types=None, t
     """:func:`seen_new_scores` of a validation file against the training rows (all files stacked),
     with the rows inside the training joint ranges marked, and a ``warning`` when every validation
     row is at a seen posture (its RMSE measures memory, not accuracy at new postures)."""
-    from .postures import seen_postures
+    from .postures import inside_ranges, seen_postures
 
     A = np.asarray(train_readings, float)
     B = np.asarray(valid_readings, float)
     seen = seen_postures(A, B, joint_types, tol_rad, tol_m)
-    inside = np.all((B >= A.min(0)) & (B <= A.max(0)), axis=1)
+    inside = inside_ranges(A, B)
     out = seen_new_scores(errors, seen, inside)
     out["warning"] = ("every validation row is at a posture seen in training: this RMSE measures memory, "
                       "not accuracy at new postures") if out["only_seen"] else None
