@@ -50,6 +50,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estcal.base.units import display_unit  # the one rule for a parameter's unit (mm / mrad)
+
 from ._common import resolve_free
 from estcal.methods.reduced import weighted
 
@@ -206,10 +208,6 @@ def choose_prior_std(problem, free, penalised, theta=None, grid=None, posture_to
 # A prior per parameter group (MAP with group widths chosen by the evidence)
 # ---------------------------------------------------------------------------------------------------
 
-#: name prefixes of the geometric parameters that are lengths (m); the other geometric ones are angles (rad)
-LENGTH_PREFIXES = ("tx", "ty", "tz", "d_", "a_", "r_", "tool_tx", "tool_ty", "tool_tz")
-
-
 def prior_groups(robot, names) -> dict:
     """The prior group of every parameter of ``names`` (``{name: group}``), by unit and meaning.
 
@@ -222,16 +220,14 @@ def prior_groups(robot, names) -> dict:
     (Mooring, Roth & Driels 1991, §4.6 on parameter scaling; GECARO's scaled columns). Base, marker and
     registration parameters get a group too (``base``, ``marker``); the caller leaves them free.
     """
-    pv = robot.params
-    kinds = dict(zip(pv.names, pv.kinds))
-    prismatic = {pv.names[i] for i, t in zip(robot.offset_idx, robot.joint_types) if t == "prismatic"}
+    kinds = dict(zip(robot.params.names, robot.params.kinds))
     out = {}
     for n in names:
         k = kinds[n]
         if k in ("geometric", "tool"):
-            out[n] = "length" if n.startswith(LENGTH_PREFIXES) else "angle"
+            out[n] = "angle" if display_unit(n, robot)[0] == "mrad" else "length"
         elif k == "offset":
-            out[n] = "offset_length" if n in prismatic else "offset"
+            out[n] = "offset_length" if display_unit(n, robot)[0] == "mm" else "offset"
         elif k == "effect":
             out[n] = n.split("_")[0]
         else:
