@@ -51,13 +51,10 @@ from estcal.discrepancy.stages import FittedStage, fit_stage, measured_points, p
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
+from real_robots import _rmse  # noqa: E402
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds)
 EFFECTS = ("joint_compliance", "backlash")
-
-
-def _rmse(e) -> float:
-    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, -1))) * 1e3) if np.size(e) else float("nan")
 
 
 def prior_model(robot, data, noise, effects=EFFECTS):

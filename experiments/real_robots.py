@@ -116,8 +116,9 @@ def load_talos():
 
 
 # ------------------------------------------------------------------ the protocol
-def _rmse(e):
-    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, -1))) * 1e3)
+def _rmse(e) -> float:
+    """RMS (mm) of the norms of point errors ``e`` (…, 3) in m; nan when there is none."""
+    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, -1))) * 1e3) if np.size(e) else float("nan")
 
 
 def _boot_se(err_norms, groups, n=400, seed=0):
