@@ -47,7 +47,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from estcal.base.jsonio import write_json  # noqa: E402
-from estcal.discrepancy.stages import FittedStage, fit_stage, measured_points, point_covariance  # noqa: E402
+from estcal.discrepancy.stages import (FittedStage, fit_stage, fit_stage_sessions, measured_points,  # noqa: E402
+                                       point_covariance)
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
@@ -82,38 +83,20 @@ def prior_model(robot, data, noise, effects=EFFECTS):
 
 def fit_prior(robot, data, noise, criterion="evidence", per_session=None, effects=EFFECTS, n_alt=3):
     """The MAP model of the module docstring on ``data`` → ``(FittedStage, GroupPrior)``; with ``per_session =
-    "registration"``, every session after the first gets a rigid transform onto the first (alternation)."""
-    from estcal.estimate.registration import kabsch
-    from estcal.methods import Problem
+    "registration"``, every session after the first gets a rigid transform onto the first (the alternation of
+    :func:`estcal.discrepancy.stages.fit_stage_sessions`, ``n_alt`` rounds)."""
+    last = {}
 
-    lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
-    svals = list(dict.fromkeys(lab.tolist()))
-    sess = {}
-    meas = measured_points(data)
-    for _ in range(n_alt if per_session and len(svals) > 1 else 1):
-        adj = data.subset(slice(None))
-        if sess:
-            P = meas.copy()
-            for sv, (R, t, dm) in sess.items():
-                P[lab == sv] = (P[lab == sv] - t) @ R
-            adj.points = P
-        problem, free, pen = prior_model(robot, adj, noise, effects)
-        gp = fit_group_prior(problem, free, pen, criterion=criterion)
-        fs = FittedStage(problem.robot, gp.result.theta, free, gp.result)
-        if not (per_session and len(svals) > 1):
-            break
-        pred = fs.predict_common(data)
-        for sv in svals[1:]:
-            m = lab == sv
-            R, t = kabsch(pred[m].reshape(-1, 3), meas[m].reshape(-1, 3))
-            sess[sv] = (R, t, np.zeros((meas.shape[1], 3)))
-        fs.sessions = dict(sess)
-    return fs, gp
+    def fit(rb, d):
+        problem, free, pen = prior_model(rb, d, noise, effects)
+        last["prior"] = gp = fit_group_prior(problem, free, pen, criterion=criterion)
+        return FittedStage(problem.robot, gp.result.theta, free, gp.result)
+
+    fs = fit_stage_sessions(robot, data, noise, "named", per_session=per_session, n_iter=n_alt, fit=fit)
+    return fs, last["prior"]
 
 
 def _plain(robot, data, noise, level, per_session=None):
-    from estcal.discrepancy.stages import fit_stage_sessions
-
     return fit_stage_sessions(robot, data, noise, "geometric", level, per_session=per_session)
 
 
@@ -273,7 +256,6 @@ def run_ablation(seeds, effects=EFFECTS, **_):
 
     from estcal.discrepancy.diagnose import default_candidates
     from estcal.discrepancy.geometric import gravity_ready
-    from estcal.discrepancy.stages import fit_stage_sessions
 
     robot, data = load_tiago()
     g = posture_groups(data.readings, robot.joint_types)

@@ -132,20 +132,29 @@ class FittedStage:
 
 
 def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effects=(), per_session: str | None = None,
-                       n_iter: int = 6, max_iter: int = 100) -> FittedStage:
+                       n_iter: int = 6, max_iter: int = 100, fit=None) -> FittedStage:
     """:func:`fit_stage` with, when ``per_session`` is ``"registration"`` (or ``"registration+points"``),
     a rigid registration of every session's measuring frame (and a change of the measured points on the
     tool) onto the first session's, by alternation: the shared model is fitted to the measurements mapped
     into the common frame, then each session's transform (Kabsch) and point change (linear least squares)
-    are re-estimated from the model's prediction."""
+    are re-estimated from the model's prediction.
+
+    ``fit``: a callable ``(robot, data) → FittedStage`` fitting the shared model instead of :func:`fit_stage`
+    (``stage``, ``level``, ``effects`` and ``max_iter`` are then unused), e.g. a MAP model with a prior
+    (``experiments/prior_study.py``)."""
     from estcal.estimate.registration import kabsch
+
+    if fit is None:
+        def fit(rb, d):
+            return FittedStage(*fit_stage(rb, d, noise, stage, level, effects, max_iter))
 
     lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
     svals = list(dict.fromkeys(lab.tolist()))
     if per_session is None or len(svals) < 2:
-        return FittedStage(*fit_stage(robot, data, noise, stage, level, effects, max_iter))
+        return fit(robot, data)
     if per_session not in ("registration", "registration+points"):
         raise ValueError(f"per_session must be None, 'registration' or 'registration+points', got {per_session!r}")
+    points = per_session == "registration+points"  # else the point change stays 0: no tool frame, one Kabsch
     k = measured_points(data).shape[1]
     sess = {sv: (np.eye(3), np.zeros(3), np.zeros((k, 3))) for sv in svals}
     meas = measured_points(data)
@@ -153,12 +162,12 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
     for _ in range(n_iter):
         adj = data.subset(slice(None))
         P = meas.copy()
-        if fitted is not None:
+        if fitted is not None and points:
             R_tool = fitted.tool_rotations(data)
         for sv, (R, t, dm) in sess.items():
             m = lab == sv
             P[m] = (P[m] - t) @ R
-            if fitted is not None and np.any(dm):
+            if fitted is not None and points and np.any(dm):
                 P[m] -= np.einsum("nij,kj->nki", R_tool[m], dm)
         if adj.points is not None:
             adj.points = P
@@ -168,16 +177,16 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
             for sv, (R, t, dm) in sess.items():
                 m = lab == sv
                 adj.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
-        fitted = FittedStage(*fit_stage(robot, adj, noise, stage, level, effects, max_iter))
+        fitted = fit(robot, adj)
         base = predicted_points(fitted.robot, fitted.theta, data)
-        R_tool = fitted.tool_rotations(data)
+        R_tool = fitted.tool_rotations(data) if points else None
         for sv in svals[1:]:
             m = lab == sv
             R, t, dm = sess[sv]
-            for _inner in range(3):
-                pred = base[m] + np.einsum("nij,kj->nki", R_tool[m], dm)
+            for _inner in range(3 if points else 1):
+                pred = base[m] + np.einsum("nij,kj->nki", R_tool[m], dm) if points else base[m]
                 R, t = kabsch(pred.reshape(-1, 3), meas[m].reshape(-1, 3))
-                if per_session == "registration+points":
+                if points:
                     local = np.einsum("nji,nkj->nki", R_tool[m], (meas[m] - t) @ R - base[m])
                     dm = local.mean(axis=0)
             sess[sv] = (R, t, dm)
