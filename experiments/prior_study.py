@@ -157,18 +157,10 @@ def _as_candidate(robot, train, noise, g, k, per_session, held):
     """The prior model as one more candidate of the level choice (:func:`estcal.discrepancy.prediction.choose_level`:
     posture-grouped CV on the training rows, the same folds, the one-standard-error rule with the prior model
     as the most complex candidate) → ``{candidate: {cv_mm, se_mm}, "chosen": …}``."""
-    from estcal.discrepancy.prediction import LEVELS, choose_level
+    from estcal.discrepancy.prediction import choose_level
 
-    _, out = choose_level(robot, train, noise, g, k, 0, per_session)
-    folds = grouped_folds(g, k, 0)
-    sq = np.sum(held ** 2, axis=-1)
-    fold_mse = np.array([sq[f].mean() for f in folds])
-    rm = np.sqrt(sq.mean())
-    out["prior"] = {"cv_mm": float(rm * 1e3), "se_mm": float(fold_mse.std(ddof=1) / np.sqrt(len(folds)) / (2 * rm) * 1e3)}
-    mse = {c: (out[c]["cv_mm"] * 1e-3) ** 2 for c in (*LEVELS, "prior")}
-    se = {c: 2 * out[c]["cv_mm"] * out[c]["se_mm"] * 1e-6 for c in mse}  # back from the δ-method
-    best = min(mse, key=mse.get)
-    out["chosen"] = next(c for c in (*LEVELS, "prior") if mse[c] <= mse[best] + se[best])
+    chosen, out = choose_level(robot, train, noise, g, k, 0, per_session, extra={"prior": np.sum(held ** 2, axis=-1)})
+    out["chosen"] = chosen
     return out
 
 

@@ -117,15 +117,18 @@ class Procedure:
 
 
 def choose_level(robot, data, noise, groups, k: int = 5, rng=0, per_session=None, levels=LEVELS,
-                 max_iter: int = 60) -> tuple[str, dict]:
+                 max_iter: int = 60, extra=None) -> tuple[str, dict]:
     """The geometric level of ``data`` by posture-grouped CV and the one-standard-error rule.
 
     Returns ``(level, {level: {"cv_mm": pooled CV RMSE, "se_mm": its standard error}})``; the
     standard error is that of the fold mean squared errors, carried to the RMSE (δ-method).
+    ``extra``: ``{name: (N, k) squared held-out point errors}`` of further candidates, held out on the same
+    folds (``grouped_folds(groups, k, rng)``), ranked after the levels (the most complex; e.g. the MAP model
+    of ``experiments/prior_study.py``).
     """
     folds = grouped_folds(groups, k, rng)
     meas = measured_points(data)
-    mse, se, out = {}, {}, {}
+    sqs = {}
     for lv in levels:
         sq = np.zeros(meas.shape[:2])
         for test in folds:
@@ -133,12 +136,16 @@ def choose_level(robot, data, noise, groups, k: int = 5, rng=0, per_session=None
             fs = fit_stage_sessions(robot, data.subset(train), noise, "geometric", lv, per_session=per_session,
                                     max_iter=max_iter)
             sq[test] = np.sum((meas[test] - fs.predict(data.subset(test))) ** 2, axis=-1)
+        sqs[lv] = sq
+    sqs.update(extra or {})
+    mse, se, out = {}, {}, {}
+    for c, sq in sqs.items():
         fold_mse = np.array([sq[f].mean() for f in folds])
-        mse[lv], se[lv] = float(sq.mean()), float(fold_mse.std(ddof=1) / np.sqrt(len(folds)))
-        rm = np.sqrt(mse[lv])
-        out[lv] = {"cv_mm": float(rm * 1e3), "se_mm": float(se[lv] / (2 * rm) * 1e3)}
+        mse[c], se[c] = float(sq.mean()), float(fold_mse.std(ddof=1) / np.sqrt(len(folds)))
+        rm = np.sqrt(mse[c])
+        out[c] = {"cv_mm": float(rm * 1e3), "se_mm": float(se[c] / (2 * rm) * 1e3)}
     best = min(mse, key=mse.get)
-    pick = next(lv for lv in levels if mse[lv] <= mse[best] + se[best])
+    pick = next(c for c in sqs if mse[c] <= mse[best] + se[best])
     return pick, out
 
 
