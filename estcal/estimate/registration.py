@@ -11,20 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from estcal.kinematics.chunked import tool_poses
-from estcal.kinematics.transforms import matrix_to_rpy, rpy_to_matrix
+from estcal.kinematics.transforms import kabsch, matrix_to_rpy, rpy_to_matrix
 
 __all__ = ["kabsch", "register_base"]
-
-
-def kabsch(P, Q):
-    """Rotation R and translation t minimising Σ‖R P_i + t − Q_i‖² (P, Q: (M, 3))."""
-    P, Q = np.asarray(P, float), np.asarray(Q, float)
-    cp, cq = P.mean(0), Q.mean(0)
-    H = (P - cp).T @ (Q - cq)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, cq - R @ cp
 
 
 def register_base(robot, data, theta=None):

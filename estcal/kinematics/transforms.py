@@ -19,7 +19,7 @@ import numpy as np
 __all__ = [
     "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "rpy_to_matrix", "matrix_to_rpy",
     "quat_to_matrix", "matrix_to_quat", "so3_exp", "so3_log", "pose_error",
-    "make_transform", "invert_transform", "so3_right_jacobian_inv",
+    "make_transform", "invert_transform", "so3_right_jacobian_inv", "kabsch",
 ]
 
 
@@ -197,3 +197,15 @@ def so3_right_jacobian_inv(phi):
                  1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(np.where(small, 1.0, ths))))
     K = skew(phi)
     return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)
+
+
+def kabsch(P, Q):
+    """Rotation R and translation t minimising Σ‖R P_i + t − Q_i‖² (P, Q: (M, 3)): the absolute orientation
+    problem in its SVD form (Arun, Huang & Blostein 1987; Kabsch 1976), det(R) = +1."""
+    P, Q = np.asarray(P, float), np.asarray(Q, float)
+    cp, cq = P.mean(0), Q.mean(0)
+    H = (P - cp).T @ (Q - cq)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cq - R @ cp

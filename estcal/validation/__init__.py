@@ -1,7 +1,7 @@
 """Validation that cannot cheat: postures, posture-grouped folds, seen/new splits, the repeatability floor.
 
-Layer 4 (docs/architecture.md): numpy/scipy only, no estimator. Every cross-validation
-of estcal draws its folds from :func:`grouped_folds` so that the twin of a held-out row —
+Layer 4 (docs/architecture.md): numpy/scipy and the rigid transforms of kinematics, no estimator.
+Every cross-validation of estcal draws its folds from :func:`grouped_folds` so that the twin of a held-out row —
 the same posture measured in another session or twice in one file — is never in training
 (docs/real-data.md).
 """

@@ -43,16 +43,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from estcal.kinematics.transforms import kabsch
+
 __all__ = ["repeatability_floor"]
-
-
-def _rigid(P, Q):
-    """R, t minimising Σ‖R P_i + t − Q_i‖² (Arun/Kabsch by SVD; P, Q (M, 3))."""
-    cp, cq = P.mean(0), Q.mean(0)
-    U, _, Vt = np.linalg.svd((P - cp).T @ (Q - cq))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cq - R @ cp
 
 
 def _pooled(P, groups, dof_removed: int):
@@ -108,7 +101,7 @@ def _points_registered(P, g, s, Rg, sess, n_iter: int, rcond: float = 1e-6):
             m = s == sv
             R, t, d = par[sv]
             for _inner in range(3):
-                R, t = _rigid((c[inv[m]] + np.einsum("nij,kj->nki", Rg[m], d)).reshape(-1, 3), P[m].reshape(-1, 3))
+                R, t = kabsch((c[inv[m]] + np.einsum("nij,kj->nki", Rg[m], d)).reshape(-1, 3), P[m].reshape(-1, 3))
                 # R_sᵀ p − c_g = w + R_g d (w = R_sᵀ t): linear in (w, d)
                 y = (P[m] @ R - c[inv[m]]).reshape(-1)
                 nm = int(m.sum())
@@ -179,7 +172,7 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_ro
             shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
             for sv in shared:
                 m = s == sv
-                R, t = _rigid(P[m].reshape(-1, 3), means[inv[m]].reshape(-1, 3))
+                R, t = kabsch(P[m].reshape(-1, 3), means[inv[m]].reshape(-1, 3))
                 Q[m] = P[m] @ R.T + t
                 info[sv] = (R, t)
         n_reg = sum(1 for sv in sess if sv in info)
