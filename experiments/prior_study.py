@@ -47,53 +47,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from estcal.base.jsonio import write_json  # noqa: E402
-from estcal.discrepancy.stages import (FittedStage, fit_stage, fit_stage_sessions, measured_points,  # noqa: E402
-                                       point_covariance)
-from estcal.estimate.regularize import fit_group_prior  # noqa: E402
+# the model (its terms, free and penalised sets, the per-session alternation) lives in the package: the one
+# definition `estcal diagnose --geometric prior` runs
+from estcal.discrepancy.prior_model import EFFECTS, fit_prior, prior_model  # noqa: E402
+from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
 from real_robots import _rmse  # noqa: E402
-
-#: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds)
-EFFECTS = ("joint_compliance", "backlash")
-
-
-def prior_model(robot, data, noise, effects=EFFECTS):
-    """``(problem, free, penalised)`` at the registration fit: the robot with the candidate effects added,
-    the registration parameters free, the structurally identifiable geometric candidates and the effect
-    parameters penalised."""
-    from estcal.discrepancy.diagnose import default_candidates
-    from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
-    from estcal.identify.select import select_identifiable
-    from estcal.methods import Problem
-
-    rb0, theta, reg, _ = fit_stage(robot, data, noise, "nominal")
-    rb, _ = gravity_ready(rb0, theta, robot.params.values)
-    for c in default_candidates(rb, data, effects=list(effects), families=False) if effects else []:
-        rb = rb.add_effect(c.make(rb))
-    problem = Problem(rb, [(None, data, noise)])
-    cands = geometric_candidates(rb)
-    _, A, _ = weighted_system(problem, rb.params.values, cands)
-    geo = select_identifiable(A, names=cands).identifiable
-    eff = [n for n, k in zip(rb.params.names, rb.params.kinds) if k == "effect"]
-    free = list(dict.fromkeys(list(reg) + geo + eff))
-    penalised = [n for n in free if n not in set(reg)]
-    return problem, free, penalised
-
-
-def fit_prior(robot, data, noise, criterion="evidence", per_session=None, effects=EFFECTS, n_alt=3):
-    """The MAP model of the module docstring on ``data`` → ``(FittedStage, GroupPrior)``; with ``per_session =
-    "registration"``, every session after the first gets a rigid transform onto the first (the alternation of
-    :func:`estcal.discrepancy.stages.fit_stage_sessions`, ``n_alt`` rounds)."""
-    last = {}
-
-    def fit(rb, d):
-        problem, free, pen = prior_model(rb, d, noise, effects)
-        last["prior"] = gp = fit_group_prior(problem, free, pen, criterion=criterion)
-        return FittedStage(problem.robot, gp.result.theta, free, gp.result)
-
-    fs = fit_stage_sessions(robot, data, noise, "named", per_session=per_session, n_iter=n_alt, fit=fit)
-    return fs, last["prior"]
 
 
 def _plain(robot, data, noise, level, per_session=None):

@@ -32,7 +32,12 @@ the named effects, the residual GP).
 With a :class:`~estcal.discrepancy.prediction.Procedure` the stages are those of the procedure
 replayed in each fold (``geometric_mm``: the level each fold chose; ``named_mm``: the causes each
 fold named), so every figure is the error of what the tool would do, not of one choice made on
-all rows. ``region`` is the 95 % prediction region of a new posture (b × θ covariance + τ², the
+all rows. A procedure with its own fit (``Procedure.fit``, e.g. the MAP group-prior model of
+:mod:`estcal.discrepancy.prior_model`) puts that model in the named row (``model``: its name) and
+refits it, with every decision it makes (the prior widths), on each fold's training rows; ``decisions``
+records per fold what it decided (``fit``).
+
+``region`` is the 95 % prediction region of a new posture (b × θ covariance + τ², the
 conformal threshold from the nested held-out points) and ``region.variance_model``
 the line ``E|e|² = a + b·tr Σ_θ`` of the nested held-out errors; :func:`region_at` applies the
 region to validation rows and :func:`predicted_at` predicts the RMSE at target postures from their
@@ -116,7 +121,7 @@ def budget_lines(b: dict) -> list[str]:
     return [f"error budget (posture-grouped {b['k_folds']}-fold CV, {b['n_postures']} postures, {b['n_rows']} rows; mm):",
             f"  nominal (registration)   {b['nominal_mm']:8.3f}",
             f"  geometric ({b['level']:<12}) {b['geometric_mm']:8.3f}",
-            f"  + named effects          {b['named_mm']:8.3f}",
+            f"  {(b['model'] + ' model') if b.get('model') else '+ named effects':<24} {b['named_mm']:8.3f}",
             f"  structured, unnamed      {b['structured_unnamed_mm']:8.3f}   "
             f"(GP over {b['unnamed'].get('space', '-')}: {top or '-'})",
             f"  unstructured             {b['unstructured_mm']:8.3f}",
@@ -158,7 +163,8 @@ def _inner_gp_gains(robot, data, noise, level, effects, folds, spaces, cfg) -> d
         train = np.setdiff1d(np.arange(data.n), test)
         dtr, dte = data.subset(train), data.subset(test)
         stage = "named" if effects else "geometric"
-        fs = fit_stage_sessions(robot, dtr, noise, stage, level, effects, cfg["per_session"], max_iter=cfg["max_iter"])
+        fs = fit_stage_sessions(robot, dtr, noise, stage, level, effects, cfg["per_session"], max_iter=cfg["max_iter"],
+                                fit=cfg["fit"])
         held = meas[test] - fs.predict(dte)
         base.append(float(np.sum(held ** 2)))
         r_tr = fs.residual_common(dtr)
@@ -206,10 +212,12 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
     fits = {"nominal": fit_stage_sessions(robot, dtr, noise, "nominal", per_session=per, max_iter=mi),
             "geometric": fit_stage_sessions(robot, dtr, noise, "geometric", lv, per_session=per, max_iter=mi)}
     eff = proc.effects_for(train, fits["geometric"].free) if cfg["nested"] else list(cfg["effects"])
-    fits["named"] = (fit_stage_sessions(robot, dtr, noise, "named", lv, eff, per, max_iter=mi) if eff
-                     else fits["geometric"])
+    fits["named"] = (fit_stage_sessions(robot, dtr, noise, "named", lv, eff, per, max_iter=mi, fit=proc.fit)
+                     if eff or proc.fit is not None else fits["geometric"])
     out = {"held": {st: meas - fs.predict(dte) for st, fs in fits.items()}, "gp": {}, "level": lv,
            "effects": [[e[0], list(e[1])] for e in eff]}
+    if proc.fit is not None:  # what the procedure's own fit decided on this fold's rows (e.g. the prior widths)
+        out["fit"] = fits["named"].result.extra.get("fold_decision")
     fs = fits["named"]
     r_tr = fs.residual_common(dtr)
     gps = {}
@@ -277,12 +285,12 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     folds = grouped_folds(g, k_folds, rng)
     meas = measured_points(data)
     stage = "named" if effects else "geometric"
-    final = fit_stage_sessions(robot, data, noise, stage, level, effects, per_session, max_iter=max_iter)
+    final = fit_stage_sessions(robot, data, noise, stage, level, effects, per_session, max_iter=max_iter, fit=proc.fit)
     r_all = final.residual_common(data)
     gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
                                       rng) for sp in spaces}
     cfg = {"groups": g, "per_session": per_session, "max_iter": max_iter, "rng": rng, "nested": nested,
-           "spaces": spaces, "level": level, "effects": effects, "gp_space": None}
+           "spaces": spaces, "level": level, "effects": effects, "gp_space": None, "fit": proc.fit}
     if not nested and proc.gp != "never":  # the decision on all rows first: the folds keep it
         cfg["gp_space"] = _gp_choice(proc.gp, _inner_gp_gains(robot, data, noise, level, effects,
                                                               grouped_folds(g, proc.k_inner, rng), spaces, cfg))
@@ -299,17 +307,18 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
         for sp in spaces:
             held_gp[sp][test] = o["gp"][sp]
         rec[test], S[test], outside[test] = o["rec"], o["S"], o["outside"]
-        decisions.append({"level": o["level"], "effects": o["effects"], "gp": o["gp_space"]})
+        decisions.append({"level": o["level"], "effects": o["effects"], "gp": o["gp_space"],
+                          **({"fit": o["fit"]} if "fit" in o else {})})
     # the GP decision on all rows: the outer folds' held-out residuals with and without each space's GP
     fsq = lambda h: np.array([np.sum(h[f] ** 2) for f in folds])  # noqa: E731
     ratios = _gains(fsq(held["named"]), {sp: fsq(held_gp[sp]) for sp in spaces})
     gp_space = cfg["gp_space"] if not nested else _gp_choice(proc.gp, ratios if proc.gp != "never" else {})
     return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, final, gps_all, gp_space,
-                     ratios, level, effects, levels_cv, decisions, per_session, nested)
+                     ratios, level, effects, levels_cv, decisions, per_session, nested, proc.label)
 
 
 def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, final, gps_all, gp_space, ratios,
-              level, effects, levels_cv, decisions, per_session, nested) -> ErrorBudget:
+              level, effects, levels_cv, decisions, per_session, nested, model=None) -> ErrorBudget:
     """The :class:`ErrorBudget` from the outer folds' held-out residuals (module docstring)."""
     sq = {k: np.sum(v ** 2, axis=-1) for k, v in held.items()}  # (N, k) squared norms
     rm = {k: rmse_mm(np.sqrt(v)) for k, v in sq.items()}
@@ -335,12 +344,14 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, outside, f
               "fraction_outside": float(outside.mean())}
     region = _region(rec, S)
     rep_mm, rep_reason, rep = _repeatability(data, g, sessions, final, per_session)
-    label = ("named" if effects else "geometric") + (" + GP" if gp_space else "")
+    label = (model or ("named" if effects else "geometric")) + (" + GP" if gp_space else "")
     extra = {"fitted_robot": final.robot, "fitted_theta": final.theta, "fitted": final, "per_session": per_session,
              "extrapolation": in_out, "region": region, "nested": bool(nested), "decisions": decisions,
              "gp_space": gp_space, "gp_held_out_ratio": {sp: {"mse_ratio": r, "se": e} for sp, (r, e) in ratios.items()}}
     if levels_cv:
         extra["levels_cv"] = levels_cv
+    if model:  # a procedure's own model (e.g. prior) in the named row
+        extra["model"] = model
     if rep_reason:
         extra["repeatability_reason"] = rep_reason
     return ErrorBudget(rm["nominal"], rm["geometric"], rm["named"], float(structured), float(rm["named"] - structured),

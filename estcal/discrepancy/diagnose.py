@@ -561,24 +561,16 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     folds = grouped_folds(groups, k_folds, rng)
     requested = geometric
     geometric, level_cv = _geometric_level(robot, data, nm, groups, k_folds, rng, geometric)
-    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=geometric)
-    theta_g = gres.theta.copy()
-    grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
-    problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])
-    b, _, _ = weighted_system(problem, theta_g, gfree)
-    geo = _Model(problem, theta_g, list(gfree), float(b @ b), len(gfree),
-                 cross_validate(problem, theta_g, gfree, folds, cv_max_iter), gres)
-
-    # 2. residual analysis
-    tau = grobot.gravity_torques(data.readings, theta_g, data.context)
-    analysis = residual_analysis(problem, theta_g, known, geo.p, {"tau": tau})
-    analysis.update(lumped_masses=lumped, geometric_level=geometric)
+    # 2. residual analysis (with the geometric fit)
+    geo, gdropped, lumped, tau, analysis, n_rows = _geometric_model(robot, data, nm, free, ident_tol, geometric,
+                                                                    folds, cv_max_iter)
+    problem, theta_g = geo.problem, geo.theta
     if level_cv:
         analysis["geometric_level_cv_mm"] = level_cv
 
     # 3.-4. forward selection of effects
-    rules = _Rules(known, len(b), folds, alpha, min_explained, n_refit, regroup_tol, cv_max_iter)
-    cands = _candidates(candidates, grobot, data, families)
+    rules = _Rules(known, n_rows, folds, alpha, min_explained, n_refit, regroup_tol, cv_max_iter)
+    cands = _candidates(candidates, problem.robot, data, families)
     causes, steps, final, first = _forward_selection(geo, cands, rules, max_effects, verbose)
     lc = _linear_candidates(geo, first, rules, max_effects, data) if first else None
     stab = None
@@ -598,6 +590,23 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
         _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, posture_tol, residual_model,
                       causes)
     return result
+
+
+def _geometric_model(robot, data, nm, free, ident_tol, level, folds, cv_max_iter):
+    """Steps 1–2 of the module docstring: ``(model, dropped parameters, lumped masses, gravity torques (N, n),
+    residual analysis, number of weighted rows)`` of the geometric fit at ``level`` (with the masses the
+    gravity-driven candidates need) and its k-fold CV on ``folds``."""
+    problem, gres, gfree, gdropped = fit_geometric(robot, data, nm, free=free, tol=ident_tol, level=level)
+    theta_g = gres.theta.copy()
+    grobot, lumped = gravity_ready(problem.robot, theta_g, robot.params.values)
+    problem = Problem(grobot, [(t.method, t.data, t.noise) for t in problem.terms])
+    b, _, _ = weighted_system(problem, theta_g, gfree)
+    geo = _Model(problem, theta_g, list(gfree), float(b @ b), len(gfree),
+                 cross_validate(problem, theta_g, gfree, folds, cv_max_iter), gres)
+    tau = grobot.gravity_torques(data.readings, theta_g, data.context)
+    analysis = residual_analysis(problem, theta_g, bool(nm.known), geo.p, {"tau": tau})
+    analysis.update(lumped_masses=lumped, geometric_level=level)
+    return geo, gdropped, lumped, tau, analysis, len(b)
 
 
 def _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, posture_tol, residual_model,

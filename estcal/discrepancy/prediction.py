@@ -96,6 +96,12 @@ class Procedure:
         (and stability rule) on those rows only; None: ``effects`` in every fold.
     gp : ``"never"``, ``"always"`` or ``"cv"`` (module docstring).
     k_inner : folds of the inner CV.
+    fit : ``f(robot, rows) -> FittedStage`` — the recommended model's own fit, replayed on every outer
+        fold's training rows in place of ``level`` + effects (``level`` then only sets the budget's
+        geometric stage), with every decision it makes inside (e.g. the MAP group-prior model, widths
+        by the evidence: :mod:`estcal.discrepancy.prior_model`); what it decided on a fold is read from
+        ``fitted.result.extra["fold_decision"]`` when present. None: level + effects.
+    label : the recommended model's name in the budget (default ``named`` / ``geometric``).
     """
 
     level: str = "full"
@@ -103,12 +109,16 @@ class Procedure:
     select_effects: object = None
     gp: str = "never"
     k_inner: int = 5
+    fit: object = None
+    label: str | None = None
 
     def __post_init__(self):
         if self.level != "auto" and self.level not in LEVELS:
             raise ValueError(f"unknown level {self.level!r}; choose auto or one of {LEVELS}")
         if self.gp not in ("never", "always", "cv"):
             raise ValueError(f"gp must be never, always or cv, got {self.gp!r}")
+        if self.fit is not None and (self.effects or self.select_effects is not None):
+            raise ValueError("a Procedure with its own fit names no effects: give fit, or effects / select_effects")
 
     def effects_for(self, train_rows, free) -> list:
         if self.select_effects is None:

@@ -46,13 +46,22 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     column_map, drop_flagged : the data's column map; leave out the rows the screening flags
         (:func:`estcal.workflows.check.screen`; their findings are warned either way).
     k_folds, **kw : options of :func:`estcal.discrepancy.diagnose` (``alpha``, ``max_effects``,
-        ``geometric``, ``approach_from_order``, ``rng``, ``report`` …).
+        ``geometric``, ``approach_from_order``, ``rng``, ``report`` …); ``geometric="prior"`` runs
+        :func:`estcal.discrepancy.prior_model.diagnose_prior` instead (the MAP group-prior model, no
+        effect selection; ``effects`` refused).
 
     Returns a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`.
     """
     from estcal.discrepancy import diagnose as _diagnose
     from estcal.identify.select import UnidentifiableError
 
+    if kw.get("geometric") == "prior":  # the MAP group-prior model: loaded only when asked for
+        if effects is not None:
+            raise InputError("--effects: --geometric prior keeps every joint_compliance and backlash term the data "
+                             "can excite under its prior and selects no effect, so there is nothing to choose "
+                             "from; drop --effects, or choose another --geometric (docs/real-data.md, 'A prior "
+                             "instead of a level')")
+        from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
     rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)

@@ -95,7 +95,9 @@ def diagnose(
                                           "joint (tool, sensor, gripper) in its mass."),
     geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
                                   "parameter) | aic (those Akaike's criterion supports) | joint_offset | "
-                                  "auto (lowest cross-validated RMSE)."),
+                                  "auto (lowest cross-validated RMSE) | prior (no selection: the full set and "
+                                  "every excitable joint compliance and backlash, each under a nominal-centred "
+                                  "prior, one width per group by the evidence; docs/real-data.md)."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),

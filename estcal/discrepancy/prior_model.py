@@ -1,0 +1,276 @@
+"""The MAP group-prior model: a prior instead of a level — ``estcal diagnose --geometric prior``.
+
+The recommended procedure of :func:`estcal.discrepancy.diagnose` makes two discrete choices — the
+geometric level and the named effects — and on tens of real postures both change from split to split
+(docs/real-data.md, "A prior instead of a level"). This model makes neither:
+
+* **the terms**: registration (base frame, markers / unknown tool) free; the structurally identifiable
+  geometric candidates (``full``: :func:`estcal.identify.select.select_identifiable` on the model's
+  columns at the registration fit) and every per-joint ``joint_compliance`` and ``backlash`` candidate
+  the data can excite (:func:`estcal.discrepancy.diagnose.default_candidates`, no families) — penalised;
+* **the prior**: every penalised parameter ``θ_j ~ N(nominal_j, τ_g²)`` with one width per group of like
+  parameters (lengths, angles, joint offsets, each kind of effect;
+  :func:`estcal.estimate.regularize.prior_groups`), the widths by type-II maximum likelihood — the
+  evidence of the linearised model (MacKay 1992, *Neural Comput.* 4:415; Bishop 2006 eq. 3.86) —
+  alternating with the MAP fit (:func:`estcal.estimate.regularize.fit_group_prior`);
+* **several sessions**: one measuring frame by default, as every other ``--geometric`` choice; with
+  ``per_session="registration"`` each further session gets a rigid transform by alternation
+  (:func:`estcal.discrepancy.stages.fit_stage_sessions`).
+
+Nothing is chosen from the data but the widths, so the nested prediction of the error budget is the
+posture-grouped CV of this fit with the widths refitted on every fold's training rows
+(:class:`estcal.discrepancy.prediction.Procedure` with ``fit=``). A term of this model is not a named
+cause: its amplitude is shrunk, not tested.
+
+When the data excite no compliance or backlash term (every gravity torque zero, or of one sign without
+approach columns), the model is the geometric prior alone, with a warning — still a model with a
+prior on the geometry; its note says so.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from estcal.base.errors import EstcalWarning
+from estcal.discrepancy.diagnose import (DiagnosisResult, _geometric_model, _Model, _noise_components, _prepare_data,
+                                         _result, default_candidates)
+from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
+from estcal.discrepancy.stages import FittedStage, fit_stage, fit_stage_sessions, measured_points
+from estcal.estimate.regularize import fit_group_prior
+from estcal.identify.select import select_identifiable
+from estcal.methods import NoiseModel, Problem
+from estcal.validation import grouped_folds, posture_groups
+
+__all__ = ["EFFECTS", "prior_model", "prior_fit", "fit_prior", "prior_summary", "width_line", "diagnose_prior",
+           "PriorDiagnosisResult"]
+
+#: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds)
+EFFECTS = ("joint_compliance", "backlash")
+
+#: SI unit of an effect group's parameters on a (revolute, prismatic) joint (estcal/effects/library.py)
+_EFFECT_UNITS = {"compliance": ("rad/(N·m)", "m/N"), "backlash": ("rad", "m")}
+_GROUP_UNITS = {"length": "m", "angle": "rad", "offset": "rad", "offset_length": "m", "gain": "1"}
+
+
+def prior_model(robot, data, noise, effects=EFFECTS):
+    """``(problem, free, penalised)`` at the registration fit: the robot with the candidate effects added,
+    the registration parameters free, the structurally identifiable geometric candidates and the effect
+    parameters penalised (module docstring)."""
+    rb0, theta, reg, _ = fit_stage(robot, data, noise, "nominal")
+    rb, _ = gravity_ready(rb0, theta, robot.params.values)
+    for c in default_candidates(rb, data, effects=list(effects), families=False) if effects else []:
+        # per-joint terms only: when no joint qualifies the screening offers the effect on the whole arm, whose
+        # torques are then zero (no gravity) or of one sign (backlash) — nothing the data excite
+        if c.joints:
+            rb = rb.add_effect(c.make(rb))
+    problem = Problem(rb, [(None, data, noise)])
+    cands = geometric_candidates(rb)
+    _, A, _ = weighted_system(problem, rb.params.values, cands)
+    geo = select_identifiable(A, names=cands).identifiable
+    eff = [n for n, k in zip(rb.params.names, rb.params.kinds) if k == "effect"]
+    free = list(dict.fromkeys(list(reg) + geo + eff))
+    penalised = [n for n in free if n not in set(reg)]
+    return problem, free, penalised
+
+
+def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS):
+    """The model's fit as a callable ``fit(robot, data) -> FittedStage`` — what
+    :func:`~estcal.discrepancy.stages.fit_stage_sessions` and the budget's ``Procedure(fit=…)`` replay on any
+    rows: :func:`prior_model` and :func:`~estcal.estimate.regularize.fit_group_prior` on those rows only (the
+    widths included). The fitted result carries its widths (``extra["fold_decision"]``); the last
+    :class:`~estcal.estimate.regularize.GroupPrior` is ``fit.last``."""
+
+    def fit(robot, data):
+        problem, free, pen = prior_model(robot, data, noise, effects)
+        gp = fit_group_prior(problem, free, pen, criterion=criterion)
+        gp.result.extra["fold_decision"] = {"widths_si": {g: float(gp.scale * t) for g, t in gp.widths.items()},
+                                            "sigma0": float(gp.sigma0),
+                                            "effective_parameters": _effective(gp)}
+        fit.last = gp
+        return FittedStage(problem.robot, gp.result.theta, free, gp.result)
+
+    fit.last = None
+    return fit
+
+
+def fit_prior(robot, data, noise, criterion: str = "evidence", per_session=None, effects=EFFECTS, n_alt: int = 3):
+    """The model of the module docstring on ``data`` → ``(FittedStage, GroupPrior)``; with ``per_session =
+    "registration"``, every session after the first gets a rigid transform onto the first (the alternation of
+    :func:`estcal.discrepancy.stages.fit_stage_sessions`, ``n_alt`` rounds)."""
+    fit = prior_fit(noise, criterion, effects)
+    fs = fit_stage_sessions(robot, data, noise, "named", per_session=per_session, n_iter=n_alt, fit=fit)
+    return fs, fit.last
+
+
+def _effective(gp) -> float:
+    return float(gp.result.extra["prior"]["effective_parameters"])
+
+
+def _group_unit(group, names, robot) -> tuple[str, str]:
+    """``(SI unit, display unit)`` of a prior group; an effect group over revolute and prismatic joints has
+    two units for its one width (both listed)."""
+    if group in _GROUP_UNITS:
+        si = _GROUP_UNITS[group]
+        return si, {"m": "mm", "rad": "mrad", "1": ""}[si]
+    if group not in _EFFECT_UNITS:
+        return "SI", "SI"
+    types = dict(zip(robot.joint_names, robot.joint_types))
+    si = list(dict.fromkeys(_EFFECT_UNITS[group][types.get(n.split("_", 1)[1]) == "prismatic"] for n in names))
+    return " | ".join(si), " | ".join("m" + u for u in si)
+
+
+def prior_summary(gp, robot, n_free: int) -> dict:
+    """The prior model's figures as plain data: every group's width in SI and display units (mm, mrad,
+    mrad/(N·m) …: SI × 1000, ``display_unit``) with its number of parameters, σ0 (the fitted scale of the
+    weighted residual, 1 = the noise model), the effective number of parameters ``tr(Σ HᵀWH)``, the log
+    evidence and the effect terms of the model."""
+    d = gp.to_dict()
+    members = {}
+    for n, g in gp.groups.items():
+        members.setdefault(g, []).append(n)
+    widths = {}
+    for g, w in d["widths"].items():
+        si, disp = _group_unit(g, members[g], robot)
+        factor = 1.0 if disp == "SI" else 1e3
+        widths[g] = {"width": w, "unit": si, "width_display": w * factor, "display_unit": disp,
+                     "n_parameters": len(members[g])}
+    effects = {}
+    for e in robot.effects:
+        effects.setdefault(e.name, []).extend(getattr(e, "joints", None) or [])
+    return {"model": "MAP, a nominal-centred Gaussian prior per parameter group (docs/real-data.md, "
+                     "'A prior instead of a level')",
+            "criterion": d["criterion"], "widths": widths, "sigma0": d["sigma0"], "log_evidence": d["log_evidence"],
+            "rounds": d["rounds"], "n_parameters": int(n_free), "n_penalised": d["n_penalised"],
+            "effective_parameters": _effective(gp),
+            "effects": [{"effect": k, "joints": list(v)} for k, v in effects.items()]}
+
+
+def width_line(prior: dict) -> str:
+    """The widths of :func:`prior_summary` as one text line (display units)."""
+    return ", ".join(f"{g} {w['width_display']:.3g} {w['display_unit']}".rstrip()
+                     for g, w in prior["widths"].items())
+
+
+@dataclass
+class PriorDiagnosisResult(DiagnosisResult):
+    """A :class:`~estcal.discrepancy.diagnose.DiagnosisResult` whose extended model is the prior model, with its
+    summary ``prior`` (:func:`prior_summary` + training and CV RMSE) in the text and the JSON."""
+
+    prior: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return dict(super().to_dict(), prior=self.prior)
+
+    def __str__(self) -> str:
+        lines = super().__str__().split("\n")
+        p = self.prior
+        extra = [f"  prior model: {p['n_parameters']} parameters ({p['n_penalised']} under the prior, "
+                 f"{p['effective_parameters']:.1f} effective), σ0 {p['sigma0']:.3g}, training RMSE "
+                 f"{p['train_rmse_mm']:.3f} mm — the 'extended' rows below",
+                 f"  widths ({p['criterion']}): {width_line(p)}"]
+        if p["effects"]:
+            extra.append("  effect terms under the prior: " + "; ".join(
+                f"{e['effect']} ({len(e['joints'])} joints)" for e in p["effects"]))
+        if p.get("note"):
+            extra.append(f"  note: {p['note']}")
+        return "\n".join(lines[:1] + extra + lines[1:])
+
+    def save_model(self, path, provenance: dict | None = None):
+        """The saved model (geometry + every effect term at the MAP estimate) with the prior's widths in its
+        calibration block."""
+        keep = ("model", "criterion", "widths", "sigma0", "effective_parameters")
+        return super().save_model(path, dict(provenance or {}, prior={k: self.prior[k] for k in keep}))
+
+
+def _cv(robot, data, fit, folds) -> tuple[float, float]:
+    """(RMSE, max) in mm of the point-error norms at the held-out postures of ``folds``, the model (and its
+    widths) refitted on each fold's training rows."""
+    meas = measured_points(data)
+    err = np.zeros(meas.shape[:2])
+    for test in folds:
+        fs = fit(robot, data.subset(np.setdiff1d(np.arange(data.n), test)))
+        err[test] = np.linalg.norm(meas[test] - fs.predict(data.subset(test)), axis=-1)
+    return float(np.sqrt(np.mean(err ** 2)) * 1e3), float(err.max() * 1e3)
+
+
+def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
+                   geometric: str = "prior", approach_from_order: bool = False, session_time: bool = True,
+                   posture_tol=(1e-3, 1e-3), budget: bool = False, residual_model: str | None = None,
+                   criterion: str = "evidence", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
+                   alpha=None, max_effects=None):
+    """:func:`estcal.discrepancy.diagnose` with the MAP group-prior model as the recommended model
+    (``geometric="prior"``; module docstring): no forward selection — ``candidates``, ``alpha`` and
+    ``max_effects`` are not used, and candidates given are refused.
+
+    The ``geometric`` rows of the result are the ``full`` geometric fit (as the default diagnosis's), the
+    ``extended`` rows the prior model: training RMSE, posture-grouped CV (the widths refitted on each fold)
+    and validation (``seen`` / ``new`` postures). ``result.prior``: :func:`prior_summary` plus the training
+    and CV RMSE (mm). With ``budget`` (or ``residual_model="gp"``) the error budget's nested prediction
+    refits the model, its widths included, on every outer fold's training rows. Returns a
+    ``DiagnosisResult`` (with ``prior``); saved, compensated and exported like any diagnosis model.
+    """
+    if geometric != "prior":
+        raise ValueError(f"diagnose_prior fits the prior model (geometric='prior'), got {geometric!r}")
+    if candidates:
+        raise ValueError("the prior model keeps every excitable joint_compliance and backlash term under its prior "
+                         "and selects no effect: give no candidates (docs/real-data.md, 'A prior instead of a level')")
+    robot, robot_spec, data, validate, sessions = _prepare_data(robot, data, validate, robot_spec,
+                                                                approach_from_order, session_time)
+    nm = NoiseModel(known=False) if noise is None else NoiseModel.parse(noise, known=True)
+    groups = posture_groups(data.readings, robot.joint_types, *posture_tol)
+    folds = grouped_folds(groups, k_folds, rng)
+    # the reference: the full geometric fit and its residual analysis, as the default diagnosis reports them
+    geo, gdropped, lumped, tau, analysis, _ = _geometric_model(robot, data, nm, None, ident_tol, "full", folds,
+                                                               cv_max_iter)
+    analysis["geometric_level"] = "full"
+    fit = prior_fit(nm, criterion, effects)
+    fs = fit(robot, data)
+    gp = fit.last
+    problem = Problem(fs.robot, [(t.method, t.data, t.noise) for t in geo.problem.terms])
+    final = _Model(problem, fs.theta.copy(), list(fs.free), float(gp.result.chi2), _effective(gp),
+                   _cv(robot, data, fit, folds), gp.result)
+    res = _result(robot, robot_spec, data, validate, sessions, nm, geo, final, [], [], [], analysis, gdropped,
+                  lumped, "prior", approach_from_order, session_time)
+    prior = dict(prior_summary(gp, fs.robot, len(fs.free)), train_rmse_mm=res.rmse_mm["extended"]["train"],
+                 cv_rmse_mm=final.cv[0], note=None)
+    if not prior["effects"]:
+        prior["note"] = (f"the data excite no {' or '.join(effects)} term (every gravity torque is zero, or of one "
+                         f"sign for backlash without approach columns): the prior is on the geometry alone")
+        warnings.warn(f"--geometric prior: {prior['note']}", EstcalWarning, stacklevel=2)
+    out = PriorDiagnosisResult(**{f.name: getattr(res, f.name) for f in fields(res)}, prior=prior)
+    out.verdict = _verdict(out, prior)
+    # REML treats the fit's parameters as unpenalised, which the prior model's are not (its 50-odd terms would
+    # take the residual's degrees of freedom): the noise components of the geometric fit's residual
+    out.measurement_noise = _noise_components(geo)
+    out.figure_inputs = (geo.problem, geo.theta, analysis, tau, robot.name, (final.problem, final.theta))
+    if budget or residual_model:
+        _budget(out, robot, data, nm, k_folds, rng, posture_tol, residual_model, criterion, effects)
+    return out
+
+
+def _verdict(res, prior) -> str:
+    g, x = res.rmse_mm["geometric"], res.rmse_mm["extended"]
+    s = (f"Prior model (MAP, {prior['n_penalised']} parameters under nominal-centred priors, one width per group "
+         f"by the evidence; no cause is named: a term of this model is shrunk, not tested). RMSE train "
+         f"{g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm")
+    if g["validation"] is not None:
+        s += f", validation {g['validation']:.3g} → {x['validation']:.3g} mm"
+    return s + " (geometric: the full level)."
+
+
+def _budget(res, robot, data, nm, k_folds, rng, posture_tol, residual_model, criterion, effects) -> None:
+    """The error budget of the prior model: its nested prediction refits the model, widths included, on every
+    outer fold's training rows."""
+    from estcal.discrepancy.budget import error_budget, region_at
+    from estcal.discrepancy.prediction import Procedure
+
+    proc = Procedure(level="full", fit=prior_fit(nm, criterion, effects), label="prior",
+                     gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
+    b = error_budget(robot, data, nm, level="full", procedure=proc, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
+                     tol_m=posture_tol[1], residual_model=residual_model)
+    res.budget = b.to_dict()
+    res.residual_model = b.residual_model
+    if res.validation_data:  # the 95 % region at the validation rows, beside their RMSE
+        res.budget["validation"] = [dict(region_at(b, d), path=str(d.where)) for d in res.validation_data]
