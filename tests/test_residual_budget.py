@@ -68,7 +68,7 @@ def test_numpy_evaluation_equals_scikit_learn_and_round_trips():
 
 
 @pytest.mark.parametrize("d,restarts,start", [(3, 2, None), (3, 0, (2.0, (0.3, 5.0, 0.07), 0.01)), (1, 1, None),
-                                               (2, 3, None)])
+                                               (2, 3, None), (9, 0, None)])
 def test_ard_fit_is_scikit_learns_to_the_bit(d, restarts, start):
     """_fit_ard_gp computes what scikit-learn's GaussianProcessRegressor fit computes (kernel, likelihood,
     L-BFGS-B runs, random restarts, the best run's factor and weights): the same bits."""

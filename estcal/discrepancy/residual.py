@@ -534,9 +534,12 @@ def joint_gp_objective(Q, Hs, Y, joint_of, active, m: int):
     def nll(x):
         amp, ls, s = unpack(x)
         C = amp[:, None] ** 2 * np.exp(-0.5 * d2 / ls[:, None] ** 2)  # (na, T)
+        # K's lower triangle laid out in Fortran order (the transpose of a C-ordered array whose upper
+        # triangle holds the transposed blocks): LAPACK reads it in place — a C-ordered K would be copied
+        # to Fortran order first, as long as the factorisation itself at this size
         K4 = np.zeros((N, m, N, m))
-        K4[ia, :, ib, :] = (C.T[:, None, :] @ G).reshape(-1, m, m)
-        K = K4.reshape(M, M)
+        K4[ib, :, ia, :] = (C.T[:, None, :] @ GT).reshape(-1, m, m)
+        K = K4.reshape(M, M).T
         K[np.diag_indices(M)] += s * s
         L, info = dpotrf(K, lower=1, clean=1, overwrite_a=1)
         if info != 0:
