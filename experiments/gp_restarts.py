@@ -94,11 +94,11 @@ def study_fit(args, kwargs, restarts):
     from scipy.optimize import minimize
 
     from estcal.base.blas import single_thread_blas
-    from estcal.discrepancy.residual import NLL_FTOL, _suspect, joint_gp_fit_problem
+    from estcal.discrepancy.residual import LBFGS_MEMORY, NLL_FTOL, _suspect, joint_gp_fit_problem
 
     readings, H, residuals, _, joint_of, joint_names = args[:6]
     fit = joint_gp_fit_problem(readings, H, residuals, joint_of, joint_names, kwargs.get("start"))
-    opts = {"maxiter": kwargs.get("maxiter", 200), "ftol": NLL_FTOL}
+    opts = {"maxiter": kwargs.get("maxiter", 200), "ftol": NLL_FTOL, "maxcor": LBFGS_MEMORY}
     gen = np.random.default_rng(kwargs.get("rng", 0))
     with single_thread_blas():
         first = minimize(fit.nll, fit.x0, jac=True, method="L-BFGS-B", bounds=fit.bounds, options=opts)
