@@ -503,6 +503,50 @@ def joint_gp_objective(Q, Hs, Y, joint_of, active, m: int):
     """Negative log marginal likelihood of :class:`JointGP` and its analytic gradient, as a function of
     ``x = [log a_j (active joints), log ℓ_j, log s]`` (up to the constant M/2 log 2π; R & W eq. 5.8–5.9).
 
+    The signal of posture a lies in the range of its design block ``H̃_a`` (m × p): the joints' placement
+    parameters move the measured body rigidly, so the m = 3k coordinates of k points span at most 6
+    directions (a twist). With an orthonormal basis ``[V_a V⊥_a]`` of each posture's coordinates, V_a
+    spanning that range (r = max_a rank H̃_a columns), the covariance ``K = Σ_j … + s² I`` becomes
+    block-diagonal: ``K̃ + s² I`` on the rotated coordinates ``z_a = V_aᵀ y_a`` (K̃ built from ``V_aᵀ H̃_a``
+    as K from H̃) and ``s² I`` on the N(m − r) others, ``w_a = V⊥_aᵀ y_a``. An orthogonal change of basis
+    keeps the likelihood, so
+
+        nll = nll_K̃(z) + ‖w‖² / (2 s²) + N (m − r) log s
+
+    exactly, and its factorisations are of (N r)², not (N m)² — on a TIAGo session with four markers
+    222 instead of 444 rows, an eighth of the Cholesky and inverse flops. r = m (one point per posture,
+    or a design of full rank) leaves the problem as it is. Below, :func:`_joint_gp_blocks_objective`."""
+    Hs = np.asarray(Hs, float)
+    Y = np.asarray(Y, float)
+    M = Y.size
+    N = M // m
+    Hb = Hs.reshape(N, m, -1)
+    U, sv, _ = np.linalg.svd(Hb[:, :, np.isin(joint_of, list(active))], full_matrices=True)
+    r = int(np.max(np.sum(sv > 1e-10 * np.maximum(sv[:, :1], 1e-300), axis=1))) if sv.size else 0
+    if r >= m or r == 0:
+        return _joint_gp_blocks_objective(Q, Hs, Y, joint_of, active, m)
+    V = U[:, :, :r]  # (N, m, r): an orthonormal basis of each posture's signal directions
+    Yb = Y.reshape(N, m)
+    z = np.einsum("nir,ni->nr", V, Yb)
+    w2 = float(np.sum((Yb - np.einsum("nir,nr->ni", V, z)) ** 2))  # ‖w‖², the residual off the signal range
+    n_off = N * (m - r)
+    inner = _joint_gp_blocks_objective(Q, np.einsum("nir,nip->nrp", V, Hb), z.reshape(-1), joint_of, active, r)
+
+    def nll(x):
+        val, g = inner(x)
+        if val >= 1e25:
+            return val, g
+        s2 = float(np.exp(2 * x[-1]))
+        g = g.copy()
+        g[-1] += n_off - w2 / s2
+        return val + 0.5 * w2 / s2 + n_off * x[-1], g
+
+    return nll
+
+
+def _joint_gp_blocks_objective(Q, Hs, Y, joint_of, active, m: int):
+    """:func:`joint_gp_objective` on the rows as given (blocks of ``m`` per posture).
+
     Rows come in blocks of ``m`` per posture and the kernel of joint j is ``a_j² (k_j ⊗ 1) ⊙ G_j``:
     its squared-exponential part ``k_j`` is an N × N matrix of postures, ``G_j = H̃_j H̃_jᵀ`` does not
     depend on x. So ``K`` is assembled posture block by posture block as one batched product
