@@ -23,7 +23,9 @@ checkout with its own ``DIR/.venv`` ("before"), interleaved so that both see the
   second of the whole ``estcal online`` command, this checkout and the baseline's.
 
 The children run with the BLAS thread variables (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``,
-``MKL_NUM_THREADS``) removed from the environment, as a user's shell has them. Usage::
+``MKL_NUM_THREADS``) removed from the environment, as a user's shell has them, and without
+``PYTHONDONTWRITEBYTECODE``, so that both checkouts run from compiled bytecode as an installed package does
+(``compileall`` writes it for both before any timing, as pip does at install time). Usage::
 
     python benchmarks/bench_everyday.py --baseline ../baseline [--repeat 3] [--rows 1000000] [--json out.json]
     python benchmarks/bench_everyday.py --skip refuse-identical refuse-5-postures online   # the quick ones
@@ -68,7 +70,9 @@ class Side:
 
 
 def _env() -> dict:
-    return {k: v for k, v in os.environ.items() if k not in BLAS_VARIABLES}
+    # PYTHONDONTWRITEBYTECODE too: an installed package runs from its compiled bytecode (pip compiles it at
+    # install time); with the variable set, every run of an editable checkout recompiles its ~130 modules
+    return {k: v for k, v in os.environ.items() if k not in BLAS_VARIABLES + ("PYTHONDONTWRITEBYTECODE",)}
 
 
 def child_cpu(cmd, cwd) -> tuple[float, int, str]:
@@ -225,6 +229,10 @@ def main(argv=None):
         return None
     after = Side("after", Path(sys.executable))
     sides = [Side.of_checkout("before", a.baseline), after] if a.baseline else [after]
+    for s, root in zip(sides, ([a.baseline] if a.baseline else []) + [REPO]):
+        # the bytecode pip writes at install time, for both checkouts, before any timing
+        subprocess.run([str(s.python), "-m", "compileall", "-q", str(Path(root) / "estcal")], check=True,
+                       capture_output=True, env=_env())
     skip = set(a.skip)
     if not TIAGO.exists():
         skip |= {"diagnose", "diagnose-no-budget", "tiago-lm"}
