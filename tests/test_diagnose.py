@@ -327,3 +327,21 @@ def test_validation_split_into_seen_and_new_postures(puma):
                        budget=False)
     assert res.rmse_mm["validation_postures"]["only_seen"]
     assert any(issubclass(x.category, EstcalWarning) and "memory" in str(x.message) for x in w)
+
+
+def test_the_table_cv_and_the_nested_cv_are_told_apart():
+    """The table's extended CV refits causes chosen on all rows (optimistic by that choice); the budget's nested
+    CV replays the choice per fold. When causes are named the text says which is which, and says plainly when
+    the nested figure is no better than the geometric model's."""
+    from types import SimpleNamespace
+
+    from estcal.discrepancy.diagnose import DiagnosisResult
+
+    note = lambda **kw: DiagnosisResult._cv_note(SimpleNamespace(**kw))  # noqa: E731
+    b = {"nested": True, "named_mm": 4.838, "geometric_mm": 4.718}
+    line = " ".join(note(causes=["c"], budget=b))
+    assert "4.838 mm against 4.718 mm geometric" in line and "does not lower the error at new postures" in line
+    better = " ".join(note(causes=["c"], budget=dict(b, named_mm=3.9)))
+    assert "3.900 mm" in better and "does not lower" not in better
+    assert note(causes=[], budget=b) == [] and note(causes=["c"], budget=None) == []
+    assert note(causes=["c"], budget=dict(b, nested=False)) == []

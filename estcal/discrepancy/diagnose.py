@@ -356,6 +356,7 @@ class DiagnosisResult:
             r, m = self.rmse_mm[k], self.max_mm[k]
             lines.append(f"  {k:<12}{f(r['train']):>8}{f(r['cv']):>8}{f(r['validation']):>8}   "
                          f"{f(m['train'])} / {f(m['validation'])}")
+        lines += self._cv_note()
         vp = self.rmse_mm.get("validation_postures") or {}
         for part in ("seen", "new") if vp else ():
             d = vp[part]
@@ -380,6 +381,21 @@ class DiagnosisResult:
 
             lines += ["  " + ln for ln in budget_lines(self.budget)]
         return "\n".join(lines)
+
+
+    def _cv_note(self) -> list[str]:
+        """The line that tells the table's CV from the budget's: the table's "extended" CV refits the named
+        causes on every fold (they were chosen on all rows, so it is optimistic by that choice); the
+        budget's nested CV replays the choice on each fold's training rows, the figure to expect at new
+        postures. Said when causes were named and the budget ran nested."""
+        b = self.budget or {}
+        if not (self.causes and b.get("nested") and b.get("named_mm") is not None and not b.get("model")):
+            return []
+        worse = b["named_mm"] >= b["geometric_mm"]
+        return [f"  (CV: the causes above refitted on every fold; each fold choosing its own causes — the nested CV "
+                f"of the error budget, what to expect at new postures — gives {b['named_mm']:.3f} mm against "
+                f"{b['geometric_mm']:.3f} mm geometric" + (": choosing causes from these data does not lower the error "
+                                                          "at new postures)" if worse else ")")]
 
 
 # ------------------------------------------------------------------ helpers
