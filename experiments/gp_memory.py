@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
 
-from gp_restarts import DATA, _cases, captured_fits  # noqa: E402
+from gp_restarts import DATA, _cases, captured_fits, simulated_cases  # noqa: E402
 
 
 def runs(fit, maxcors, maxiter=200):
@@ -71,32 +71,13 @@ def real_fits(groups):
 def simulated_fits(seeds=2, wobbles=(0.1, 0.25), snrs=(0.7, 2.0)):
     """The two-optima simulation of experiments/gp_restarts.py (TIAGo 11-30 design, a short-scale wobble of
     arm_6_joint's placement)."""
-    from estcal.discrepancy.masses import with_urdf_masses
-    from estcal.discrepancy.residual import joint_gp_design, joint_gp_fit_problem
-    from estcal.io.dataset import load_dataset
-    from estcal.kinematics.robots import tiago
+    from estcal.discrepancy.residual import joint_gp_fit_problem
 
-    robot = with_urdf_masses(tiago(n_markers=4))
-    path = DATA / "tiago" / "qualisys_2021-11-30_static_postures.csv"
-    if not path.exists():
+    if not (DATA / "tiago" / "qualisys_2021-11-30_static_postures.csv").exists():
         print("TIAGo data not found: simulated cases skipped")
         return
-    data = load_dataset(path, robot)
-    Q, H, names, jo = joint_gp_design(robot, robot.params.values, data.readings, data.context, 4)
-    N, m, p = H.shape
-    scale = np.sqrt(np.mean(H.reshape(-1, p) ** 2, axis=0))
-    scale[scale < 1e-15] = 1.0
-    Hs = H / scale
-    j = robot.joint_names.index("arm_6_joint")
-    c = jo == j
-    for wobble, snr, seed in ((w, r, s) for w in wobbles for r in snrs for s in range(seeds)):
-        g = np.random.default_rng(seed)
-        q = Q[:, j]
-        Kq = np.exp(-0.5 * (q[:, None] - q[None]) ** 2 / (wobble * q.std()) ** 2) + 1e-9 * np.eye(N)
-        signal = np.einsum("nic,nc->ni", Hs[:, :, c], np.linalg.cholesky(Kq) @ g.standard_normal((N, c.sum())))
-        Y = signal + np.sqrt(np.mean(signal ** 2)) / snr * g.standard_normal(signal.shape)
-        yield (f"simulated ℓ={wobble} snr={snr} seed {seed}", "all rows",
-               joint_gp_fit_problem(Q, H, Y.reshape(N, -1, 3), jo, robot.joint_names))
+    for label, _, (Q, H, R, _names, jo, joint_names) in simulated_cases(seeds, wobbles, snrs):
+        yield label, "all rows", joint_gp_fit_problem(Q, H, R, jo, joint_names)
 
 
 def main(argv=None):

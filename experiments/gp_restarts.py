@@ -112,9 +112,10 @@ def study_fit(args, kwargs, restarts):
             "runs_in_budget": 1 + (kwargs.get("restarts", 1) if _suspect(first, fit.bounds) else 0)}
 
 
-def simulated(seeds, restarts, wobbles=(0.1, 0.15, 0.25), snrs=(0.7, 1.0, 2.0)):
-    """The two-optima case of the module docstring, one fit per seed, wobble length scale (× the joint's
-    spread) and signal-to-noise ratio (RMS)."""
+def simulated_cases(seeds, wobbles=(0.1, 0.15, 0.25), snrs=(0.7, 1.0, 2.0)):
+    """The two-optima cases of the module docstring: ``(label, seed, (Q, H, R, names, joint_of, joint_names))``
+    per seed, wobble length scale (× the joint's spread) and signal-to-noise ratio (RMS), the last tuple the
+    arguments of :func:`~estcal.discrepancy.residual.fit_joint_gp`."""
     from estcal.discrepancy.residual import joint_gp_design
     from estcal.discrepancy.masses import with_urdf_masses
     from estcal.io.dataset import load_dataset
@@ -128,7 +129,6 @@ def simulated(seeds, restarts, wobbles=(0.1, 0.15, 0.25), snrs=(0.7, 1.0, 2.0)):
     scale[scale < 1e-15] = 1.0
     Hs = H / scale
     j = robot.joint_names.index("arm_6_joint")
-    out = []
     for wobble, snr, seed in ((w, r, s) for w in wobbles for r in snrs for s in range(seeds)):
         g = np.random.default_rng(seed)
         q = Q[:, j]
@@ -136,9 +136,16 @@ def simulated(seeds, restarts, wobbles=(0.1, 0.15, 0.25), snrs=(0.7, 1.0, 2.0)):
         c = jo == j
         signal = np.einsum("nic,nc->ni", Hs[:, :, c], np.linalg.cholesky(Kq) @ g.standard_normal((N, c.sum())))
         Y = signal + np.sqrt(np.mean(signal ** 2)) / snr * g.standard_normal(signal.shape)
-        d = study_fit((Q, H, Y.reshape(N, -1, 3), names, jo, robot.joint_names), {"rng": seed, "restarts": 1},
-                      restarts)
-        out.append({"case": f"simulated ℓ={wobble} snr={snr} seed {seed}", "fit": "all rows", **d})
+        yield (f"simulated ℓ={wobble} snr={snr} seed {seed}", seed,
+               (Q, H, Y.reshape(N, -1, 3), names, jo, robot.joint_names))
+
+
+def simulated(seeds, restarts, wobbles=(0.1, 0.15, 0.25), snrs=(0.7, 1.0, 2.0)):
+    """:func:`study_fit` of every case of :func:`simulated_cases`."""
+    out = []
+    for label, seed, args in simulated_cases(seeds, wobbles, snrs):
+        d = study_fit(args, {"rng": seed, "restarts": 1}, restarts)
+        out.append({"case": label, "fit": "all rows", **d})
         _print(out[-1])
     return out
 
