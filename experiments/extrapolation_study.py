@@ -35,10 +35,15 @@ better. Every model is fitted on half A of the postures (both sessions' rows) an
 4. **Training postures that span the ranges** (``span``): halves of the same 62 postures in which half A
    must hold, for every joint, the postures of its smallest and largest reading (the rest drawn at
    random): the new postures then all lie inside the training ranges — what the MAP model scores when the
-   calibration postures span the joint ranges the robot will be used in.
+   calibration postures span the joint ranges the robot will be used in. The same with the extremes of
+   one group of joints only (:data:`SPAN_GROUPS`), and, for each, the model fitted without the forced
+   extremes and scored on the same new postures: what training on them buys (forcing them into half A
+   also takes them out of the scored half, which alone lowers its RMSE).
+5. **Simulation** (``simulation``): the same halves on data simulated from the MAP model of all rows with
+   noise at the repeatability floor — the extrapolation error of a model that is right.
 
-``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (a few minutes on
-2 busy cores; ``--parts attribution,joint_ranges,candidates,span`` selects parts); skips when the shared
+``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (≈ 1.5 min on
+2 busy cores; ``--parts attribution,joint_ranges,candidates,span,simulation`` selects parts); skips when the shared
 data are absent.
 """
 from __future__ import annotations
@@ -344,26 +349,53 @@ def candidates(robot, data, seeds, noise, k=4):
 
 
 # ------------------------------------------------------------------ 4. spanning halves
-def spanning_half(Q, seed):
-    """Mask of half the postures (rows of ``Q``) that holds, for every joint, its smallest and largest reading."""
-    must = set(np.argmin(Q, 0).tolist()) | set(np.argmax(Q, 0).tolist())
+def _extremes(Q, joints=None) -> set:
+    """The rows of ``Q`` that hold the smallest or largest reading of a joint (of the columns ``joints``)."""
+    cols = Q if joints is None else Q[:, list(joints)]
+    return set(np.argmin(cols, 0).tolist()) | set(np.argmax(cols, 0).tolist())
+
+
+def spanning_half(Q, seed, joints=None):
+    """Mask of half the postures (rows of ``Q``) that holds, for every joint (or the columns ``joints``), its
+    smallest and largest reading; the rest drawn at random."""
+    must = _extremes(Q, joints)
     rest = np.random.default_rng(seed).permutation([i for i in range(len(Q)) if i not in must])
     pick = list(must) + rest[: max(0, len(Q) // 2 - len(must))].tolist()
     return np.isin(np.arange(len(Q)), pick)
 
 
+#: joint groups whose extremes the partly spanning halves force into training (by attribution: the upper arm,
+#: the wrist, and the joints that carry nothing)
+SPAN_GROUPS = {"upper arm (arm_2, arm_3)": ("arm_2_joint", "arm_3_joint"),
+               "wrist (arm_6, arm_7)": ("arm_6_joint", "arm_7_joint"),
+               "torso lift, arm_1": ("torso_lift_joint", "arm_1_joint")}
+
+
 def span(robot, data, seeds, noise):
+    """The MAP model on halves whose half A holds the extremes of every joint (``"all"``) or of one group of
+    :data:`SPAN_GROUPS` only — does covering those joints' ranges remove the error their extrapolation
+    carries?"""
     g = posture_groups(data.readings, robot.joint_types)
     u, first = np.unique(g, return_index=True)
     Q = data.readings[first]
-    out = []
-    for seed in seeds:
-        tr = np.isin(g, u[spanning_half(Q, seed)])
-        T, V = data.subset(tr), data.subset(~tr)
-        fs = variant_fit(noise)(robot, T)
-        e = measured_points(V) - fs.predict(V)
-        out.append({"seed": seed, "n_train_postures": int(np.unique(g[tr]).size), **_scores(e, T.readings, V.readings,
-                                                                                               g[~tr])})
+    out = {}
+    for label, joints in [("all", None)] + list(SPAN_GROUPS.items()):
+        cols = None if joints is None else [JOINTS.index(j) for j in joints]
+        out[label] = []
+        for seed in seeds:
+            half = spanning_half(Q, seed, cols)
+            tr = np.isin(g, u[half])
+            T, V = data.subset(tr), data.subset(~tr)
+            fs = variant_fit(noise)(robot, T)
+            e = measured_points(V) - fs.predict(V)
+            row = {"seed": seed, "n_train_postures": int(half.sum()), **_scores(e, T.readings, V.readings, g[~tr])}
+            # the same new postures, the forced extremes not trained on: what training on them bought (removing
+            # them from the scored half lowers its RMSE by itself)
+            cut = half.copy()
+            cut[list(_extremes(Q, cols))] = False
+            fs2 = variant_fit(noise)(robot, data.subset(np.isin(g, u[cut])))
+            row["without_extremes_mm"] = _rmse(measured_points(V) - fs2.predict(V))
+            out[label].append(row)
     return out
 
 
@@ -395,17 +427,25 @@ def simulate(robot, data, seeds, noise, n_draws=2, seed=0):
                                       **_scores(e, T.readings, V.readings, g[~tr])})
     for kind in ("random", "span"):
         rs = [r for r in out["splits"] if r["halves"] == kind]
-        out[kind] = {k: float(np.nanmean([r[k] for r in rs])) for k in ("new_mm", "inside_mm", "outside_mm",
-                                                                       "fraction_outside")}
+        out[kind] = {k: _mean(rs, k) for k in ("new_mm", "inside_mm", "outside_mm", "fraction_outside")}
     return out
 
 
 # ------------------------------------------------------------------ printing
+def _split_line(s) -> str:
+    return (f"   seed {s['seed']}: {s['new_mm']:.2f} ± {s['se_mm']:.2f} mm (inside {s['inside_mm']:.2f}, outside "
+            f"{s['outside_mm']:.2f}; {s['fraction_outside']:.0%} of the new rows outside)")
+
+
+def _mean(rows, key) -> float:
+    v = [r[key] for r in rows if r[key] is not None and np.isfinite(r[key])]
+    return float(np.mean(v)) if v else float("nan")
+
+
 def _print_attribution(splits, att):
     print("\n== MAP model at new postures (halves of real_robots.py, one frame)")
     for s in splits:
-        print(f"   seed {s['seed']}: {s['new_mm']:.2f} ± {s['se_mm']:.2f} mm (inside {s['inside_mm']:.2f}, outside "
-              f"{s['outside_mm']:.2f}; {s['fraction_outside']:.0%} of the new rows outside)")
+        print(_split_line(s))
     print(f"\n== Attribution: {att['n_postures']} new postures of the {len(splits)} halves, {att['n_outside']} outside; "
           f"RMSE {att['rmse_mm']:.2f} mm (inside {att['inside_mm']:.2f}, outside {att['outside_mm']:.2f})")
     print(f"   regression e_p = a + Σ b_j d_pj (NNLS): a = {att['intercept_mm']:.2f} mm; with no joint extrapolated "
@@ -449,13 +489,17 @@ def _print_candidates(cands):
 
 
 def _print_span(sp, splits):
-    print("\n== Halves whose training half spans every joint's range (its extremes forced in; MAP model)")
-    for s in sp:
-        print(f"   seed {s['seed']}: {s['new_mm']:.2f} ± {s['se_mm']:.2f} mm at new postures "
-              f"({s['fraction_outside']:.0%} outside)")
-    print(f"   mean {np.mean([s['new_mm'] for s in sp]):.2f} mm, against random halves "
-          f"{np.mean([s['new_mm'] for s in splits]):.2f} (inside their ranges "
-          f"{np.mean([s['inside_mm'] for s in splits]):.2f}, outside {np.mean([s['outside_mm'] for s in splits]):.2f})")
+    print("\n== Halves whose training half holds the extremes of every joint (all) or of some joints (MAP model)")
+    for s in sp["all"]:
+        print(_split_line(s))
+    print(f"   random halves: {_mean(splits, 'new_mm'):.2f} mm (inside {_mean(splits, 'inside_mm'):.2f}, "
+          f"outside {_mean(splits, 'outside_mm'):.2f}; {_mean(splits, 'fraction_outside'):.0%} outside)")
+    for label, rows in sp.items():
+        print(f"   extremes of {label:<26}: {_mean(rows, 'new_mm'):.2f} mm (inside {_mean(rows, 'inside_mm'):.2f}, "
+              f"outside {_mean(rows, 'outside_mm'):.2f}; {_mean(rows, 'fraction_outside'):.0%} outside; seeds "
+              + " / ".join(f"{r['new_mm']:.2f}" for r in rows) + f"); not trained on them "
+              f"{_mean(rows, 'without_extremes_mm'):.2f} (" + " / ".join(f"{r['without_extremes_mm']:.2f}" for r in rows)
+              + ")")
 
 
 def _print_sim(sim):
