@@ -28,7 +28,8 @@ better. Every model is fitted on half A of the postures (both sessions' rows) an
    link) parameters dropped on the joints the target postures extrapolate along — decided from the
    targets' joint readings only, never their measurements (as ``estcal.discrepancy.budget.predicted_at``);
    (b) the other per-joint effects of the library under the prior: ``encoder_gain``, ``gear_harmonic``;
-   (c) compliance with the hand's mass scaled (the arm_7 link and gripper, ×0.5 / ×2). A common scale of
+   (c) compliance with the hand's mass scaled (the arm_7 link and gripper, ×0.5 / ×2); (d) a stiffening
+   gearbox, the cubic term of the compliance (:class:`StiffeningCompliance`). A common scale of
    all link masses is not a candidate: the torque, hence the compliance column ``c_j τ_j``, is linear in
    the masses, so one scale is absorbed exactly by every ``c_j``; only the *shape* of the torques across
    postures (the hand against the links) can change the fit.
@@ -42,7 +43,7 @@ better. Every model is fitted on half A of the postures (both sessions' rows) an
 5. **Simulation** (``simulation``): the same halves on data simulated from the MAP model of all rows with
    noise at the repeatability floor — the extrapolation error of a model that is right.
 
-``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (≈ 1.5 min on
+``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (≈ 2 min on
 2 busy cores; ``--parts attribution,joint_ranges,candidates,span,simulation`` selects parts); skips when the shared
 data are absent.
 """
@@ -64,6 +65,7 @@ from estcal.base.blas import single_thread_blas  # noqa: E402
 from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.discrepancy.prior_model import EFFECTS, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, measured_points  # noqa: E402
+from estcal.effects.library import JointCompliance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
@@ -114,18 +116,21 @@ def _placement_of(robot, joints):
     return out
 
 
-def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.0, extra=()):
+def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.0, extra=(), stiffening=False):
     """The MAP group-prior model (``estcal.discrepancy.prior_model``) with a variation, as ``fit(robot, data) ->
     FittedStage``: ``effects`` under the prior; ``geometry="offsets"`` keeps only the joint offsets of the
     geometric set; ``drop_joints``: their placement parameters removed (:func:`_placement_of`); ``hand``: the
     last link's mass scaled (:func:`hand_scaled`); ``extra``: ``[(effect, options)]`` added on every joint the
-    effect accepts, under the prior with the others (one group per kind)."""
+    effect accepts, under the prior with the others (one group per kind); ``stiffening``: the cubic compliance
+    term :class:`StiffeningCompliance` on the loaded joints (:func:`with_stiffening`)."""
     from estcal.effects import make_effect
 
     def fit(robot, data):
         rb = hand_scaled(robot, hand) if hand != 1.0 else robot
         for e, opts in extra:  # effects outside prior_model's own screening, added on every joint they accept
             rb = rb.add_effect(make_effect(e, rb, **opts))
+        if stiffening:
+            rb = with_stiffening(rb, data)
         problem, free, pen = prior_model(rb, data, noise, effects)
         kinds = dict(zip(problem.robot.params.names, problem.robot.params.kinds))
         drop = _placement_of(problem.robot, drop_joints)
@@ -140,6 +145,42 @@ def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.
     return fit
 
 
+class StiffeningCompliance(JointCompliance):
+    """The cubic term of a load-dependent joint stiffness: ``δq_j = c3_j · τ_j³ / τ_ref,j²``.
+
+    A gearbox's torsional stiffness is not constant: a harmonic drive is softer at low load and stiffens with
+    it (Tuttle & Seering 1996, *IEEE Trans. Robot. Autom.* 12(3):368), so the deflection is not linear in the
+    gravity torque τ_j (:class:`estcal.effects.library.JointCompliance`) but has odd higher orders; the cubic
+    one is the first. ``τ_ref,j`` (N·m; N for a prismatic joint) is the largest |τ_j| of the training rows, so
+    ``c3_j`` (``compliance3_<joint>``) is, like ``c_j``, in rad/(N·m): the cubic term's deflection at the
+    largest training load is ``c3_j τ_ref,j``. Beyond the training loads it grows as τ³: what extrapolates
+    is exactly this term, which a posture-grouped CV on the training rows weighs."""
+
+    name = "joint_compliance_cubic"
+    prefixes = ("compliance3",)
+
+    def __init__(self, robot, joints=None, tau_ref=None):
+        super().__init__(robot, joints)
+        self.tau_ref = np.asarray(tau_ref if tau_ref is not None else np.ones(len(self.joints)), float)
+
+    def options(self):
+        return {"tau_ref": self.tau_ref.tolist()}
+
+    def features(self, robot, readings, q, theta, context):
+        tau = super().features(robot, readings, q, theta, context)
+        return tau ** 3 / self.tau_ref ** 2
+
+
+def with_stiffening(robot, data):
+    """``robot`` with :class:`StiffeningCompliance` on every joint whose gravity load varies over ``data``'s
+    rows (a vertical axis or the lift's constant weight gives an offset, not a term)."""
+    tau = robot.gravity_torques(data.readings, context=data.context)
+    big = np.abs(tau).max()
+    joints = [j for i, j in enumerate(robot.joint_names) if np.ptp(tau[:, i]) > 1e-6 * big]
+    ref = [float(np.abs(tau[:, robot.joint_names.index(j)]).max()) for j in joints]
+    return robot.add_effect(StiffeningCompliance(robot, joints, tau_ref=ref))
+
+
 #: the candidates, ordered by their number of parameters (the one-standard-error rule prefers the first)
 CANDIDATES = {
     "offsets + effects": dict(geometry="offsets"),
@@ -148,6 +189,7 @@ CANDIDATES = {
     "hand mass x0.5": dict(hand=0.5),
     "hand mass x2": dict(hand=2.0),
     "+ encoder_gain": dict(extra=[("encoder_gain", {})]),
+    "+ stiffening compliance (cubic)": dict(stiffening=True),
     "+ gear_harmonic (1st order)": dict(extra=[("gear_harmonic", {"orders": [1]})]),
 }
 BASE = "MAP (compliance + backlash)"

@@ -88,3 +88,35 @@ def test_hand_scaled_changes_only_the_last_link(study):
     assert abs(t1[0, -1]) > 1e-2
     np.testing.assert_allclose(t2[0, -1], 2 * t1[0, -1], rtol=1e-12)
     assert abs(t2[0, 0] - t1[0, 0]) == pytest.approx(masses[last] * np.linalg.norm(rb.gravity), rel=1e-9)
+
+
+def test_stiffening_compliance_against_torques_and_finite_differences(study):
+    from estcal.io.dataset import Dataset
+    from estcal.kinematics import tiago
+
+    rb = tiago()
+    rng = np.random.default_rng(6)
+    lo, hi = np.array([0.0, 0.1, -1.0, -2.0, 0.5, -1.5, -1.0, -1.5]), np.array([0.35, 1.5, 0.5, 0.0, 2.0, 1.0, 1.0, 1.5])
+    R = lo + (hi - lo) * rng.random((12, rb.n_joints))
+    data = Dataset(list(rb.joint_names), R, "none", None, None, None, {}, {}, np.arange(12), None, [])
+    rs = study.with_stiffening(rb, data)
+    eff = rs.effects[-1]
+    tau = rb.gravity_torques(R)
+    idx = [rb.joint_names.index(j) for j in eff.joints]
+    assert "arm_1_joint" not in eff.joints and "torso_lift_joint" not in eff.joints  # constant loads: no term
+    np.testing.assert_allclose(eff.tau_ref, np.abs(tau[:, idx]).max(0))
+    # the joint correction is c3 τ³ / τ_ref² on each loaded joint (τ from the rigid model: gravity_torques)
+    th = rs.params.values.copy()
+    c3 = rng.normal(size=len(idx)) * 1e-3
+    th[eff.indices] = c3
+    dq, _ = eff.joint_correction(rs, R, R, th, {})
+    np.testing.assert_allclose(dq[:, idx], c3 * tau[:, idx] ** 3 / eff.tau_ref ** 2, rtol=1e-9, atol=1e-15)
+    # the chain's Jacobian column of each c3 against central differences of the tool position
+    kin = rs.kinematics(R, th, jacobian=True)
+    for k, i in enumerate(eff.indices):
+        h = 1e-6
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        fd = (rs.kinematics(R, tp).p - rs.kinematics(R, tm).p) / (2 * h)
+        np.testing.assert_allclose(kin.J[:, :3, i], fd, rtol=1e-5, atol=1e-9)
