@@ -313,6 +313,8 @@ def evidence_widths(A, y, group_of, n_groups, start=None, bounds=(1e-8, 10.0)):
     likelihood, MacKay 1992; L-BFGS-B over the logs, bounded to ``bounds`` in SI)."""
     from scipy.optimize import minimize
 
+    from estcal.base.blas import single_thread_blas
+
     r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
     s2_0 = max(float(r @ r) / max(len(y) - A.shape[1], 1), 1e-12 * max(float(y @ y), 1e-300))
     x0 = np.concatenate([np.log(np.full(n_groups, 1e-3) if start is None else np.asarray(start, float)),
@@ -321,8 +323,10 @@ def evidence_widths(A, y, group_of, n_groups, start=None, bounds=(1e-8, 10.0)):
     f = lambda x: -log_evidence(A, y, group_of, x[:-1], x[-1])  # noqa: E731
     box = [(lo, hi)] * n_groups + [(np.log(s2_0) - 12.0, np.log(s2_0) + 12.0)]
     # where the system is not positive definite the evidence is −∞ and the optimiser's finite differences
-    # subtract infinities (nan, a step it rejects): not worth a RuntimeWarning to the user
-    with np.errstate(invalid="ignore", over="ignore"):
+    # subtract infinities (nan, a step it rejects): not worth a RuntimeWarning to the user. One BLAS thread:
+    # the evidence's small factorisations, a few hundred per search, only spin threads (a TIAGo prior fit
+    # 30–50 s multi-threaded on 2 busy cores, ~1 s on one; the CLI is single-threaded already, the API was not)
+    with np.errstate(invalid="ignore", over="ignore"), single_thread_blas():
         best = minimize(f, x0, method="L-BFGS-B", bounds=box)
         # a second start from the narrow side of the box: the evidence of a group can be flat (a group the data
         # cannot see) or bimodal; keep the better optimum. Both starts sit at the tolerance scale of calibration
