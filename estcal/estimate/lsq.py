@@ -250,9 +250,22 @@ def _calibrate_lsq(problem, method, free, max_iter, tol, theta0, validation, che
     res.extra["time_s"] = time.perf_counter() - t0
     if chunk is not None:
         res.extra["chunk_poses"] = int(chunk)
-    res.accuracy = score(problem, problem.params.values if theta0 is None else np.asarray(theta0, float), theta,
-                         validation)
+    before = problem.params.values if theta0 is None else np.asarray(theta0, float)
+    res.accuracy = score(problem, before, theta, validation, _train_errors(sysp.system, before, theta))
     return res
+
+
+def _train_errors(system, before, after):
+    """The training point-error norms before and after from the first and last linearisations' residuals
+    (:func:`estcal.estimate.result.point_errors_from_rows`), or None (then :func:`score` runs the
+    kinematics at both θ: another pass, a seventh of a TIAGo fit)."""
+    from estcal.estimate.result import point_errors_from_rows
+
+    first, last = getattr(system, "first", None), getattr(system, "last", None)
+    if first is None or not (np.array_equal(first[0], before) and np.array_equal(last[0], after)):
+        return None
+    eb, ea = point_errors_from_rows(system.problem, first[1]), point_errors_from_rows(system.problem, last[1])
+    return None if eb is None or ea is None else (eb, ea)
 
 
 def _scipy_lm(problem, sysp: _Penalised, theta, max_iter, tol):

@@ -57,9 +57,14 @@ def accuracy(robot, theta, data, kin=None) -> dict:
     "norm RMSE" of FIGAROH's tables); per-point RMSE are in ``rmse_mm_per_point``.
     """
     pos, rot = pose_errors(robot, theta, data, kin)
+    return error_statistics(pos, rot, data.n)
+
+
+def error_statistics(pos, rot, n_poses: int) -> dict:
+    """:func:`accuracy` from the error norms ``pos`` (N, k) in m and ``rot`` (N,) in rad (or None)."""
     if pos is None:
-        return {"n_poses": data.n}
-    out = {"n_poses": int(data.n), "rmse_mm": float(np.sqrt(np.mean(pos**2)) * 1e3),
+        return {"n_poses": n_poses}
+    out = {"n_poses": int(n_poses), "rmse_mm": float(np.sqrt(np.mean(pos**2)) * 1e3),
            "mean_mm": float(pos.mean() * 1e3), "max_mm": float(pos.max() * 1e3)}
     if pos.shape[1] > 1:
         out["rmse_mm_per_point"] = [float(v) for v in np.sqrt(np.mean(pos**2, axis=0)) * 1e3]
@@ -210,19 +215,44 @@ class CalibrationResult(Result):
         return "\n".join(lines)
 
 
-def score(problem, theta_before, theta_after, validation=()) -> dict:
-    """Accuracy before/after on the training terms and on each validation dataset."""
+def score(problem, theta_before, theta_after, validation=(), train_errors=None) -> dict:
+    """Accuracy before/after on the training terms and on each validation dataset.
+
+    train_errors : the training point-error norms ``(before (N, k), after (N, k))`` in m when the caller
+        has them from its own residuals (:func:`point_errors_from_rows`), instead of a kinematics pass."""
     robot = problem.robot
     out = {}
     t = problem.terms[0]
     if t.data.kind != "none":
-        out["train"] = {**_before_after(robot, theta_before, theta_after, t.data), "path": t.data.where}
+        ba = ({"before": error_statistics(train_errors[0], None, t.data.n),
+               "after": error_statistics(train_errors[1], None, t.data.n)} if train_errors is not None
+              else _before_after(robot, theta_before, theta_after, t.data))
+        out["train"] = {**ba, "path": t.data.where}
     vals = []
     for d in validation:
         vals.append({"path": d.where, **_before_after(robot, theta_before, theta_after, d)})
     if vals:
         out["validation"] = vals
     return out
+
+
+def point_errors_from_rows(problem, e) -> np.ndarray | None:
+    """The point-error norms (N, k) in m that :func:`pose_errors` returns for the training data, from the
+    residual ``e`` of ``problem.evaluate`` (measured − predicted points, row by row) when the problem's
+    one term measures points (``points``) or one point (``position``) — the same numbers without a
+    kinematics pass; None for any other method or data (the caller then runs :func:`score` as before)."""
+    from estcal.methods.base import PointsMethod, PositionMethod
+
+    if len(problem.terms) != 1:
+        return None
+    t = problem.terms[0]
+    d, method = t.data, t.method
+    if d.points is None or d.kind == "pose" or type(method) not in (PointsMethod, PositionMethod):
+        return None
+    k = d.n_points if type(method) is PointsMethod else 1
+    if k != d.n_points or e.size != 3 * k * d.n:
+        return None
+    return np.linalg.norm(np.asarray(e).reshape(d.n, k, 3), axis=2)
 
 
 def _before_after(robot, theta_before, theta_after, data) -> dict:

@@ -133,6 +133,9 @@ class DenseSystem:
         self.problem, self.fidx = problem, fidx
         self.m = 0
         self._trial = None  # (θ, rows) of the last trial evaluated with its Jacobian
+        # (θ, residual e) of the first and the last linearisation: the fit's accuracy before and after
+        # is read from them (estcal.estimate.result.point_errors_from_rows), not from another pass
+        self.first = self.last = None
 
     def linear(self, theta):
         """``(A, b, bᵀb)`` at θ (reusing the trial's rows when the trial was accepted)."""
@@ -141,6 +144,9 @@ class DenseSystem:
         else:
             rows = self.problem.evaluate(theta)
         self._trial = None
+        self.last = (np.array(theta, float), rows.e)
+        if self.first is None:
+            self.first = self.last
         A, b = weighted(rows, self.fidx)
         self.m = rows.e.size
         return A, b, float(b @ b)
