@@ -247,7 +247,7 @@ def point_errors_from_rows(problem, e) -> np.ndarray | None:
         return None
     t = problem.terms[0]
     d, method = t.data, t.method
-    if d.points is None or d.kind == "pose" or type(method) not in (PointsMethod, PositionMethod):
+    if type(method) not in (PointsMethod, PositionMethod) or getattr(d, "points", None) is None or d.kind == "pose":
         return None
     k = d.n_points if type(method) is PointsMethod else 1
     if k != d.n_points or e.size != 3 * k * d.n:
