@@ -72,7 +72,7 @@ def test_counterfactual_removes_each_joints_line(study):
     assert none == pytest.approx(a)
 
 
-def test_hand_scaled_changes_only_the_last_link(study):
+def test_hand_scaled_changes_only_the_last_link(study, tiago_dir):
     from estcal.kinematics import tiago
 
     rb = tiago()
@@ -90,7 +90,7 @@ def test_hand_scaled_changes_only_the_last_link(study):
     assert abs(t2[0, 0] - t1[0, 0]) == pytest.approx(masses[last] * np.linalg.norm(rb.gravity), rel=1e-9)
 
 
-def test_stiffening_compliance_against_torques_and_finite_differences(study):
+def test_stiffening_compliance_against_torques_and_finite_differences(study, tiago_dir):
     from estcal.io.dataset import Dataset
     from estcal.kinematics import tiago
 

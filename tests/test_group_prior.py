@@ -54,7 +54,7 @@ def test_evidence_optimum_satisfies_mackays_fixed_point():
     assert s2 == pytest.approx(r @ r / (len(y) - gam.sum()), rel=2e-3)
 
 
-def test_prior_groups_by_unit_and_meaning():
+def test_prior_groups_by_unit_and_meaning(tiago_dir):
     r = tiago(n_markers=1)
     g = prior_groups(r, ["tx_arm_1_joint", "rz_arm_1_joint", "offset_arm_2_joint", "offset_torso_lift_joint",
                          "tool_tz", "tool_rx", "base_tx"])

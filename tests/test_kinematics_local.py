@@ -10,7 +10,9 @@ from estcal.kinematics.chain import SerialRobot
 
 
 @pytest.mark.parametrize("make", [puma560, lambda: tiago(n_markers=2)], ids=["khalil-puma560", "urdf-tiago"])
-def test_batched_segments_are_bit_identical(make, monkeypatch):
+def test_batched_segments_are_bit_identical(make, monkeypatch, request):
+    if make is not puma560:
+        request.getfixturevalue("tiago_dir")  # skips without the shared TIAGo URDF
     robot = make()
     rng = np.random.default_rng(1)
     theta = robot.params.values + 1e-3 * rng.normal(size=robot.n_params)
@@ -34,7 +36,7 @@ def test_rotation_of_a_vector_is_the_sum_of_three_products(n):
     np.testing.assert_allclose(_rot_vec(R, v), R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2], rtol=0, atol=1e-14)
 
 
-def test_segment_plan_follows_a_chain_that_grows():
+def test_segment_plan_follows_a_chain_that_grows(tiago_dir):
     """The grouping of the segments is kept across θ and redone when a motion is appended in place (a robot
     being built)."""
     robot = tiago(n_markers=1)

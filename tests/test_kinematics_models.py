@@ -191,7 +191,7 @@ def test_summarized_urdf_names_recover_every_name():
     assert sorted(_expand_summary(summarize_names(names))) == sorted(names)
 
 
-def test_gravity_torques_are_the_moments_of_every_moved_link_and_the_payload():
+def test_gravity_torques_are_the_moments_of_every_moved_link_and_the_payload(tiago_dir):
     """τ_j = a_jᵀ Σ_{i ⪰ j} (c_i − o_j) × m_i g (+ the payload), summed link by link here, on TIAGo (a prismatic
     torso: a_jᵀ Σ m_i g) with a per-pose payload."""
     from estcal.kinematics import tiago

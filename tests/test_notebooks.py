@@ -38,6 +38,8 @@ def test_committed_without_outputs(path):
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, tmp_path, monkeypatch):
+    if path.stem == "real_robot" and not (Path(__file__).resolve().parents[2] / "shared" / "data" / "ur10").exists():
+        pytest.skip("real_robot.ipynb reads the UR10 files of ../shared (absent)")
     monkeypatch.setenv("ESTCAL_NOTEBOOK_QUICK", "1")
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     for f in NB_DIR.iterdir():
