@@ -194,9 +194,9 @@ def _screen(lc: LinearCandidates, m, X, have):
     per screen (a linearised selection screens ~70 times per diagnosis)."""
     b = lc.b[m]
     Q = _orth(X[m])
-    rss = float(np.sum((b - Q @ (Q.T @ b)) ** 2))
-    p, M = Q.shape[1], len(b)
     bp = b - Q @ (Q.T @ b)
+    rss = float(np.sum(bp ** 2))
+    p, M = Q.shape[1], len(b)
     blocks = [(i, blk) for i in range(len(lc.blocks)) if (blk := _block(lc, i, have)) is not None]
     if not blocks:
         return [], rss, p, M
