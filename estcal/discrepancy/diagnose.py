@@ -382,7 +382,6 @@ class DiagnosisResult:
             lines += ["  " + ln for ln in budget_lines(self.budget)]
         return "\n".join(lines)
 
-
     def _cv_note(self) -> list[str]:
         """The line that tells the table's CV from the budget's: the table's "extended" CV refits the named
         causes on every fold (they were chosen on all rows, so it is optimistic by that choice); the
@@ -631,20 +630,27 @@ def _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, p
     and its residual Gaussian process into ``result.residual_model``. Its prediction is the nested CV of the
     diagnosis itself: every outer fold chooses the level (when ``auto``) and the causes (the stability rule,
     linearised) on its training rows only (:mod:`estcal.discrepancy.prediction`)."""
-    from estcal.discrepancy.budget import error_budget
     from estcal.discrepancy.prediction import Procedure
 
     effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in causes]
     proc = Procedure(level="auto" if requested == "auto" else geometric, effects=tuple(effects),
                      select_effects=result.selector, gp="always" if residual_model == "gp" else "never",
                      k_inner=k_folds)
-    b = error_budget(robot, data, nm, level=geometric, effects=effects, procedure=proc, k_folds=k_folds, rng=rng,
+    _attach_budget(result, robot, data, nm, proc, geometric, effects, k_folds, rng, posture_tol, residual_model)
+
+
+def _attach_budget(result, robot, data, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model) -> None:
+    """The error budget of ``proc`` (:func:`estcal.discrepancy.budget.error_budget`, the recommended model's
+    ``level`` and ``effects`` on all rows) into ``result.budget``, its residual GP into
+    ``result.residual_model``, and with validation data the 95 % region at their rows beside their RMSE — for
+    the default diagnosis and the prior model's (:mod:`estcal.discrepancy.prior_model`) alike."""
+    from estcal.discrepancy.budget import error_budget, region_at
+
+    b = error_budget(robot, data, nm, level=level, effects=effects, procedure=proc, k_folds=k_folds, rng=rng,
                      tol_rad=posture_tol[0], tol_m=posture_tol[1], residual_model=residual_model)
     result.budget = b.to_dict()
     result.residual_model = b.residual_model
-    if result.validation_data:  # the 95 % region at the validation rows, beside their RMSE
-        from estcal.discrepancy.budget import region_at
-
+    if result.validation_data:
         result.budget["validation"] = [dict(region_at(b, d), path=str(d.where)) for d in result.validation_data]
 
 

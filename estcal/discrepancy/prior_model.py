@@ -34,8 +34,8 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from estcal.base.errors import EstcalWarning
-from estcal.discrepancy.diagnose import (DiagnosisResult, _geometric_model, _Model, _noise_components, _prepare_data,
-                                         _result, default_candidates)
+from estcal.discrepancy.diagnose import (DiagnosisResult, _attach_budget, _geometric_model, _Model, _noise_components,
+                                         _prepare_data, _result, default_candidates)
 from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
 from estcal.discrepancy.stages import FittedStage, fit_stage, fit_stage_sessions, measured_points
 from estcal.estimate.regularize import fit_group_prior
@@ -281,14 +281,8 @@ def _verdict(res, prior) -> str:
 def _budget(res, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model) -> None:
     """The error budget of the prior model: its nested prediction refits the model, widths included, on every
     outer fold's training rows (the folds of the diagnosis's CV: ``fit`` returns those fits again)."""
-    from estcal.discrepancy.budget import error_budget, region_at
     from estcal.discrepancy.prediction import Procedure
 
     proc = Procedure(level="full", fit=fit, label="prior",
                      gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
-    b = error_budget(robot, data, nm, level="full", procedure=proc, k_folds=k_folds, rng=rng, tol_rad=posture_tol[0],
-                     tol_m=posture_tol[1], residual_model=residual_model)
-    res.budget = b.to_dict()
-    res.residual_model = b.residual_model
-    if res.validation_data:  # the 95 % region at the validation rows, beside their RMSE
-        res.budget["validation"] = [dict(region_at(b, d), path=str(d.where)) for d in res.validation_data]
+    _attach_budget(res, robot, data, nm, proc, "full", (), k_folds, rng, posture_tol, residual_model)
