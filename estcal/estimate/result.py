@@ -238,21 +238,13 @@ def score(problem, theta_before, theta_after, validation=(), train_errors=None) 
 
 def point_errors_from_rows(problem, e) -> np.ndarray | None:
     """The point-error norms (N, k) in m that :func:`pose_errors` returns for the training data, from the
-    residual ``e`` of ``problem.evaluate`` (measured − predicted points, row by row) when the problem's
-    one term measures points (``points``) or one point (``position``) — the same numbers without a
-    kinematics pass; None for any other method or data (the caller then runs :func:`score` as before)."""
-    from estcal.methods.base import PointsMethod, PositionMethod
-
+    residual ``e`` of ``problem.evaluate`` when the problem's one term's method reads them off its rows
+    (:meth:`estcal.methods.base.Method.point_errors`: the ``points`` and ``position`` methods) — the same
+    numbers without a kinematics pass; None otherwise (the caller then runs :func:`score` as before)."""
     if len(problem.terms) != 1:
         return None
     t = problem.terms[0]
-    d, method = t.data, t.method
-    if type(method) not in (PointsMethod, PositionMethod) or getattr(d, "points", None) is None or d.kind == "pose":
-        return None
-    k = d.n_points if type(method) is PointsMethod else 1
-    if k != d.n_points or e.size != 3 * k * d.n:
-        return None
-    return np.linalg.norm(np.asarray(e).reshape(d.n, k, 3), axis=2)
+    return t.method.point_errors(t.data, e)
 
 
 def _before_after(robot, theta_before, theta_after, data) -> dict:

@@ -220,6 +220,12 @@ class Method:
     def rows(self, robot, theta, data, noise: NoiseModel, jacobian: bool = True) -> Rows:
         raise NotImplementedError
 
+    def point_errors(self, data, e) -> np.ndarray | None:
+        """The point-error norms (N, k) in m that :func:`estcal.estimate.result.pose_errors` gives for
+        ``data``, read from this method's residual ``e`` of :meth:`rows` when its rows are the measured minus
+        the predicted points (a fit then scores itself without another kinematics pass); None otherwise."""
+        return None
+
     def residuals_many(self, robot, thetas, data) -> np.ndarray:
         """Residuals ``e`` (W, M) at each row of ``thetas`` (W, P) — MCMC walkers, sigma points.
 
@@ -257,6 +263,12 @@ class PositionMethod(Method):
         N = data.n
         return Rows(e, H, np.repeat(noise.position_sigma(data), 3), np.repeat(np.arange(N), 3), np.zeros(3 * N, int))
 
+    def point_errors(self, data, e):
+        # the rows are point 1 only: they are pose_errors' when the data measure that one point
+        if data.n_points != 1 or np.size(e) != 3 * data.n:
+            return None
+        return np.linalg.norm(np.reshape(e, (data.n, 1, 3)), axis=2)
+
     def residuals_many(self, robot, thetas, data):
         self.check(robot, data)
         kin = robot.kinematics(data.readings, thetas, data.context, jacobian=False)
@@ -286,6 +298,10 @@ class PointsMethod(Method):
         N = data.n
         return Rows(e, H, np.repeat(noise.position_sigma(data), 3 * k), np.repeat(np.arange(N), 3 * k),
                     np.zeros(3 * k * N, int))
+
+    def point_errors(self, data, e):
+        k = data.n_points
+        return None if np.size(e) != 3 * k * data.n else np.linalg.norm(np.reshape(e, (data.n, k, 3)), axis=2)
 
     def residuals_many(self, robot, thetas, data):
         self.check(robot, data)
