@@ -644,8 +644,9 @@ def _restarts(nll, bounds, restarts, gen, maxiter, x0):
     error budget on the published data — TIAGo 11-26, 11-30 and both, the three TALOS sessions, UR10; the
     fit on all rows and its five posture-grouped folds — and 36 fits of a simulated likelihood with two
     optima, a short-scale wobble of one wrist joint against "all noise"; each first run repeated, then five
-    random restarts; L-BFGS-B with scipy's 10 correction pairs then, :data:`LBFGS_MEMORY` since): of the 32 real fits that ended converged with a length scale on its lower bound,
-    the restart this function would run (the first draw) ended > 0.5 nats lower in 2 (TIAGo 11-26 fold 3:
+    random restarts; L-BFGS-B with scipy's 10 correction pairs then, :data:`LBFGS_MEMORY` since): of the 32
+    real fits that ended converged with a length scale on its lower bound, the restart this function would
+    run (the first draw) ended > 0.5 nats lower in 2 (TIAGo 11-26 fold 3:
     23.7 nats; TALOS 02-10 fold 5: 0.53) and one of five restarts in 16 (up to 33 nats, TIAGo 11-26 folds;
     TALOS 02-10 all rows: 1.3); of the 10 other real fits, 0 and 1. Simulated: 2 and 3 of 10 on the lower
     bound (15.5 nats once), 1 and 5 of 26 otherwise. A length scale on its lower bound is a symptom of a
