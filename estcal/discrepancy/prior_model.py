@@ -85,7 +85,7 @@ def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS):
     def fit(robot, data):
         problem, free, pen = prior_model(robot, data, noise, effects)
         gp = fit_group_prior(problem, free, pen, criterion=criterion)
-        gp.result.extra["fold_decision"] = {"widths_si": {g: float(gp.scale * t) for g, t in gp.widths.items()},
+        gp.result.extra["fold_decision"] = {"widths_si": gp.to_dict()["widths"],
                                             "sigma0": float(gp.sigma0),
                                             "effective_parameters": _effective(gp)}
         fit.last = gp
