@@ -62,14 +62,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from estcal.base.blas import single_thread_blas  # noqa: E402
-from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.discrepancy.prior_model import EFFECTS, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, measured_points  # noqa: E402
 from estcal.effects.library import JointCompliance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
-from real_robots import NOISE, _boot_se, _halves, _rmse, load_tiago  # noqa: E402
+from real_robots import NOISE, _boot_se, _halves, _rmse, finish, load_tiago  # noqa: E402
 
 PLACEMENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 
@@ -598,11 +597,7 @@ def _run(args, seeds, parts) -> dict:
     if "simulation" in parts:
         out["simulation"] = simulate(robot, data, seeds, NOISE)
         _print_sim(out["simulation"])
-    out["time_s"] = time.time() - t0
-    print(f"\n({out['time_s']:.0f} s)")
-    if args.json:
-        write_json(args.json, out, announce=True)
-    return out
+    return finish(out, t0, args.json)
 
 
 if __name__ == "__main__":

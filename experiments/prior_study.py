@@ -46,14 +46,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from estcal.base.jsonio import write_json  # noqa: E402
 # the model (its terms, free and penalised sets, the per-session alternation) lives in the package: the one
 # definition `estcal diagnose --geometric prior` runs
 from estcal.discrepancy.prior_model import EFFECTS, fit_prior, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
-from real_robots import _rmse  # noqa: E402
+from real_robots import _rmse, finish  # noqa: E402
 
 
 def _plain(robot, data, noise, level, per_session=None):
@@ -257,11 +256,7 @@ def main(argv=None) -> dict:
         out["ur10"] = run_ur10(**kw)
     if "talos_session" in robots:
         out["talos_session"] = run_talos_session(seeds, **kw)
-    out["time_s"] = time.time() - t0
-    print(f"\n({out['time_s']:.0f} s)")
-    if args.json:
-        write_json(args.json, out, announce=True)
-    return out
+    return finish(out, t0, args.json)
 
 
 if __name__ == "__main__":

@@ -530,6 +530,17 @@ def run_explore(seeds=(0, 1, 2)):
     return {"seeds": list(seeds), "rows": rows}
 
 
+def finish(out: dict, t0: float, json_path) -> dict:
+    """The end of a real-data study's ``main``: its wall time into ``out["time_s"]`` (printed), ``out`` written
+    to ``json_path`` when given (atomically, announced); returns ``out``. Shared by the studies that import
+    this module (prior_study, extrapolation_study)."""
+    out["time_s"] = time.time() - t0
+    print(f"\n({out['time_s']:.0f} s)")
+    if json_path:
+        write_json(json_path, out, announce=True)
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="TIAGo seed 0 and UR10, 3-fold CV, no GP restarts")
@@ -568,11 +579,7 @@ def main(argv=None) -> dict:
     if "design" in robots:
         out["design"] = run_design(ks=(10, 20, 30) if args.quick else (10, 15, 20, 25, 30),
                                    n_random=4 if args.quick else 10)
-    out["time_s"] = time.time() - t0
-    print(f"\n({out['time_s']:.0f} s)")
-    if args.json:
-        write_json(args.json, out, announce=True)
-    return out
+    return finish(out, t0, args.json)
 
 
 if __name__ == "__main__":
