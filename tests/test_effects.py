@@ -51,6 +51,7 @@ EFFECT_CASES = [
     ("encoder_gain", dict(joints=None), 1e-3),
     ("thermal_expansion", dict(), 1.2e-5),
     ("drift", dict(joints=["j2", "j6"], t0=100.0), 1e-7),
+    ("link_tilt", dict(joints=["j1", "j2", "j3"]), 1e-4),
 ]
 
 
@@ -287,7 +288,8 @@ def robot_with_effects(draw):
     return robot, q, theta, ctx, eidx
 
 
-EFFECTS_UNDER_TEST = {"joint_compliance", "backlash", "gear_harmonic", "encoder_gain", "thermal_expansion", "drift"}
+EFFECTS_UNDER_TEST = {"joint_compliance", "backlash", "gear_harmonic", "encoder_gain", "thermal_expansion", "drift",
+                      "link_tilt"}
 
 
 @settings(max_examples=30, deadline=None)

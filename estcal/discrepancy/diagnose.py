@@ -129,9 +129,13 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     the group's likelihood-ratio test with k degrees of freedom finds it). Once
     for whole-arm effects (those that refuse a joint list); thermal expansion in
     both forms, whole arm and links only (``scope``). Time/temperature effects
-    only when the data have the column they need.
+    only when the data have the column they need; gravity effects only on joints
+    the data load. With ``effects=None``, the registered effects that
+    are screened by default (``link_tilt`` is not: ask for it by name).
     """
-    names = list(EFFECTS) if effects is None else list(effects)
+    # effects that ask not to be screened by default (a new kind, measured on request: ``link_tilt``)
+    names = [n for n, f in EFFECTS.items() if getattr(f, "screened_by_default", True)] if effects is None \
+        else list(effects)
     unknown = [e for e in names if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; registered: {', '.join(sorted(EFFECTS))} (docs/effects.md)")
@@ -140,6 +144,12 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     if any(n in ("joint_compliance", "backlash") for n in names):
         tau = robot.gravity_torques(data.readings, context=ctx)
         big = max(float(np.abs(tau).max()), 1e-300)
+    m_across = None
+    if "link_tilt" in names:
+        kin = robot.rigid_kinematics(data.readings)
+        M = robot.gravity_moments(data.readings, context=ctx, kin=kin)
+        a = kin.joint_axis
+        m_across = np.linalg.norm(M - np.sum(M * a, -1, keepdims=True) * a, axis=-1)  # (N, n)
     out = []
     # several sessions: time runs from each session's mean (_prepare_data), so a time effect is zero there
     # and never shifts one session against another
@@ -175,6 +185,8 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
                     continue
                 if name == "backlash" and "approach_" + j not in ctx and (np.all(t > 0) or np.all(t < 0)):
                     continue
+            elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
+                continue  # no moment across this axis (no mass beyond it, or no gravity)
             for o in variants:
                 try:
                     Candidate(name, [j], o).make(robot)

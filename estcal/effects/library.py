@@ -11,6 +11,7 @@ encoder_gain        δq_j = g_j · r_j                             ``encgain_<jo
 thermal_expansion   δx = α · ΔT · (x − o_base)   (every point)    ``thermal_alpha``       1/K
                     or α · ΔT · (flange − o_base) (links only)
 drift               δq_j = v_j · (t − t0)                         ``drift_<joint>``       rad/s, m/s
+link_tilt           δx = Σ_j t_j · M⊥_j × (x − o_j) (every point) ``tilt_<joint>``        rad/(N·m)
 ==================  ===========================================  ======================  ===========
 
 All corrections are linear in their parameters, so their derivatives (the
@@ -25,7 +26,7 @@ import numpy as np
 
 from .base import Effect, JointEffect, register_effect
 
-__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift"]
+__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt"]
 
 
 def _ctx(context: dict, key: str, N: int) -> np.ndarray | None:
@@ -294,5 +295,87 @@ class ThermalExpansion(Effect):
             J_points[:, k] += s[:, None, None] * corr
 
 
-for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift):
+class LinkTilt(Effect):
+    """Tilt of a joint's bearing and link under the gravity moment across its axis:
+    ``δx = Σ_j t_j · M⊥_j × (x − o_j)`` for every measured point ``x``.
+
+    :class:`JointCompliance` deflects a joint about its own axis under the torque along it; the
+    same gravity load has a moment *across* the axis, ``M⊥_j = M_j − (a_jᵀ M_j) a_j``
+    (:meth:`SerialRobot.gravity_moments`: the moment about the joint origin ``o_j`` of the links it
+    moves and the payload; ``a_j`` its world axis), which the bearing, the gear's output stage and
+    the link carrying the joint resist with a finite stiffness: everything beyond the joint turns
+    by the small rotation ``t_j M⊥_j`` about ``o_j``. It is the two across-axis rotations of
+    Klimchik's virtual-joint elastostatic model (Klimchik et al. 2012, the 6×6 compliance of a link
+    and its joint, reduced to one isotropic bending compliance per joint), the part a joint-space
+    effect cannot express: the rotation is about an axis the joint does not have, so no joint value
+    and no constant geometric parameter reproduces it — its direction follows the load, which turns
+    with the posture. For a prismatic joint (a lift column) ``M⊥`` is the column's bending moment.
+
+    ``t_j`` (``tilt_<joint>``) is in rad/(N·m), ≥ 0 physically. The loads are evaluated on the rigid
+    model at the current parameters (their own dependence on the geometry is second order, as for
+    :class:`JointCompliance`); the derivative with respect to ``t`` is exact. Applied to every measured
+    point — the tool origin and the markers — so it acts on every measurement method; a full pose's
+    orientation is not turned (the points, not the frame, carry the effect).
+    """
+
+    name = "link_tilt"
+    prefixes = ("tilt",)
+    #: not among the causes ``estcal diagnose`` screens unless asked (``--effects link_tilt``): on one TIAGo
+    #: session the family is named on all rows but in 1 of 5 posture-grouped folds, and screening it costs
+    #: 1.7 s; the MAP prior model keeps it (docs/real-data.md, "Link tilt under gravity")
+    screened_by_default = False
+
+    def context_keys(self):
+        return ["payload"]
+
+    def loads(self, robot, readings, theta, context):
+        """``(M⊥ (N, s, 3) N·m, o (N, s, 3) m)``: the across-axis gravity moment and the origin of every
+        selected joint."""
+        kin = robot.rigid_kinematics(readings, theta)
+        M = robot.gravity_moments(readings, theta, context, kin=kin)[:, self.joint_index]
+        a = kin.joint_axis[:, self.joint_index]
+        return M - np.sum(M * a, -1, keepdims=True) * a, kin.joint_origin[:, self.joint_index]
+
+    def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None):
+        N, K = points.shape[:2]
+        if not len(self.joints):
+            return np.zeros_like(points), (np.zeros(points.shape + (0,)) if derivatives else None)
+        Mp, o = self.loads(robot, readings, theta, context)
+        t = self.values(theta)
+        phi = np.einsum("nsi,s->ni", Mp, t)  # the total small rotation (N, 3)
+        b = np.einsum("nsi,s->ni", np.cross(Mp, o), t)  # Σ t_j M⊥_j × o_j
+        x = points
+        if derivatives:
+            # The chain passes the already corrected points x' = x + φ × x − b: solve (I + [φ]×) x = x' + b,
+            # so that the derivative columns are those of the uncorrected points (exact, not O(t²)).
+            S = np.zeros((N, 3, 3))
+            S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+            S = S - S.transpose(0, 2, 1) + np.eye(3)
+            x = np.linalg.solve(S[:, None], (points + b[:, None, :])[..., None])[..., 0]
+        d = np.cross(phi[:, None, :], x) - b[:, None, :]
+        if not derivatives:
+            return d, None
+        if J_points is not None and J is not None:
+            self.correct_jacobian(J_points, J, d, phi)
+        rel = x[:, :, None, :] - o[:, None, :, :]  # (N, K, s, 3)
+        F = np.cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
+        return d, np.ascontiguousarray(F.transpose(0, 1, 3, 2))
+
+
+    @staticmethod
+    def correct_jacobian(J_points, J, d, phi) -> None:
+        """Make the other parameters' point columns those of the tilted point (in place).
+
+        The chain differentiates the tilted point ``x' = x + d`` as if it were rigidly attached, giving
+        ``v_i(x') = v_i(x) + ω_i × d``; the tilted point moves by ``(I + [φ]×) v_i(x)``. So the exact
+        column is ``(I + [φ]×)(v_i(x') − ω_i × d)`` with ``ω_i`` the tool's angular velocity column (rows
+        3–5 of the pose Jacobian ``J``) — exact for every parameter the loads do not depend on (the other
+        effects'); for the geometric ones the loads' own variation is second order and neglected.
+        """
+        w = J[:, 3:, :]  # (N, 3, P)
+        for k in range(J_points.shape[1]):
+            v = J_points[:, k] - np.cross(w, d[:, k, :, None], axisa=1, axisb=1, axisc=1)
+            J_points[:, k] = v + np.cross(phi[:, :, None], v, axisa=1, axisb=1, axisc=1)
+
+for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift, LinkTilt):
     register_effect(_cls.name, _cls, overwrite=True)

@@ -761,13 +761,40 @@ class SerialRobot:
         ``context`` in kg). This is the torque gravity exerts, so a compliant joint
         deflects by ``compliance · τ``.
         """
+        m_beyond, moment, kin = self._gravity_loads(readings, theta, context, kin)
+        g = np.asarray(self.gravity, float)
+        prismatic = np.array([t == "prismatic" for t in self.joint_types])[None, :, None]
+        arm = np.where(prismatic, m_beyond[..., None] * g, moment)  # a prismatic joint takes the force
+        return np.einsum("nji,nji->nj", kin.joint_axis, arm)
+
+    def gravity_moments(self, readings, theta=None, context: dict | None = None, kin: Kinematics | None = None):
+        """Static gravity moment (N·m) about every joint's origin, world frame, shape (N, n, 3).
+
+        ``M_j = Σ_{i ⪰ j} (c_i − o_j) × (m_i g)`` over the links joint j moves and the payload, as in
+        :meth:`gravity_torques` — of which the revolute torque is the component along the axis,
+        ``τ_j = a_jᵀ M_j``. The components across the axis load the joint's bearing and the link
+        that carries it (for a prismatic joint: the bending moment of its column); they are what
+        the ``link_tilt`` effect deflects under (:class:`estcal.effects.library.LinkTilt`).
+        """
+        return self._gravity_loads(readings, theta, context, kin)[1]
+
+    def rigid_kinematics(self, readings, theta=None) -> Kinematics:
+        """Frames of the rigid model (joint offsets and gains, no effect; no Jacobian) — where the
+        gravity loads are evaluated (:meth:`gravity_torques`)."""
+        theta = self.params.values if theta is None else np.asarray(theta, float)
+        readings = self.check_readings(readings)
+        # Rigid joint values (no effects): effects such as compliance call this function themselves, and
+        # their feedback on the loads is second order. Without the Cartesian effects either: an effect
+        # moving the points by the loads (link tilt) would otherwise call itself.
+        q, _ = self._joint_values(readings, theta, None, False, effects=False)
+        cart = [e for e in self.effects if hasattr(e, "point_correction")]
+        rigid = self.copy(effects=[e for e in self.effects if e not in cart]) if cart else self
+        return rigid.kinematics(readings, theta, jacobian=False, q_override=q)
+
+    def _gravity_loads(self, readings, theta, context, kin):
+        """``(mass beyond each joint (N, n), gravity moment about each joint origin (N, n, 3), kin)``."""
         if kin is None:
-            theta = self.params.values if theta is None else theta
-            readings = self.check_readings(readings)
-            # Rigid joint values (no effects): effects such as compliance call this
-            # function themselves, and their feedback on the torque is second order.
-            q, _ = self._joint_values(readings, np.asarray(theta, float), None, False, effects=False)
-            kin = self.kinematics(readings, theta, jacobian=False, q_override=q)
+            kin = self.rigid_kinematics(readings, theta)
         N = kin.p.shape[0]
         masses = np.array([lk.mass for lk in self.links])
         coms = np.stack([lk.com for lk in self.links])  # (L, 3)
@@ -788,9 +815,7 @@ class SerialRobot:
         # function's time on 37 poses)
         moment = np.stack([r[..., 1] * g[2] - r[..., 2] * g[1], r[..., 2] * g[0] - r[..., 0] * g[2],
                            r[..., 0] * g[1] - r[..., 1] * g[0]], axis=-1)
-        prismatic = np.array([t == "prismatic" for t in self.joint_types])[None, :, None]
-        arm = np.where(prismatic, m_beyond[..., None] * g, moment)  # a prismatic joint takes the force
-        return np.einsum("nji,nji->nj", kin.joint_axis, arm)
+        return m_beyond, moment, kin
 
     def random_readings(self, n: int, rng=None, margin: float = 0.0) -> np.ndarray:
         """Uniform random readings within joint limits (shrunk by ``margin`` of the range)."""
