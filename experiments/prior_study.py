@@ -60,7 +60,7 @@ def _plain(robot, data, noise, level, per_session=None):
 
 
 def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS,
-          compare_levels=True):
+          compare_levels=True, widths="group", baselines=True):
     """Steps 1–5 of the module docstring on one split; a JSON-ready dict."""
     # the budget's region (one definition: maximum-likelihood variance model, the slope's bound beyond the
     # farthest held-out leverage, the conformal threshold), from this procedure's nested held-out errors
@@ -69,7 +69,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     from estcal.validation import seen_postures
 
     t0 = time.time()
-    fs, gp = fit_prior(robot, train, noise, criterion, per_session, effects)
+    fs, gp = fit_prior(robot, train, noise, criterion, per_session, effects, widths=widths)
     t_fit = time.time() - t0
     g = posture_groups(train.readings, robot.joint_types)
     meas = measured_points(train)
@@ -78,7 +78,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     for test in grouped_folds(g, k, 0):
         tr = np.setdiff1d(np.arange(train.n), test)
         dtr, dte = train.subset(tr), train.subset(test)
-        f_fs, f_gp = fit_prior(robot, dtr, noise, criterion, per_session, effects)
+        f_fs, f_gp = fit_prior(robot, dtr, noise, criterion, per_session, effects, widths=widths)
         held[test] = meas[test] - f_fs.predict(dte)
         S[test] = point_covariance(f_fs, dte) * len(tr)
         fold_widths.append(f_gp.to_dict()["widths"])
@@ -100,6 +100,9 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
            "region": region, "fit_s": t_fit, "levels": levels}
     out["ratio_nested"] = out["predicted_validation_mm"] / out["new_mm"]
     out["ratio_at"] = out["predicted_at_new_mm"] / out["new_mm"]
+    out["time_s"] = time.time() - t0
+    if not baselines:
+        return out
     # baselines on the same split, no selection
     for level in ("joint_offset", "full"):
         b = _plain(robot, train, noise, level, per_session)
@@ -137,7 +140,7 @@ def _free_fit(robot, data, noise, effects):
 
 def _print(r):
     w = ", ".join(f"{g} {v * 1e3:.3g}" for g, v in r["prior"]["widths"].items())
-    free = "—" if r["free_new_mm"] is None else f"{r['free_new_mm']:.2f}"
+    free = "—" if r.get("free_new_mm") is None else f"{r['free_new_mm']:.2f}"
     print(f"-- {r['label']}: widths (mm, mrad, mrad/N·m…) {w}; σ0 {r['prior']['sigma0']:.2f}; "
           f"{r['n_parameters']} parameters, {r['effective_parameters']:.1f} effective")
     print(f"   MAP at new postures {r['new_mm']:.2f} mm (inside {r['new_inside_mm']:.2f}, outside "
@@ -148,6 +151,8 @@ def _print(r):
         lv = r["levels"]
         print("   as a candidate of the level choice (grouped CV mm ± se): " + ", ".join(
             f"{c} {lv[c]['cv_mm']:.2f} ± {lv[c]['se_mm']:.2f}" for c in lv if c != "chosen") + f" -> {lv['chosen']}")
+    if "full_new_mm" not in r:
+        return
     print(f"   baselines at new postures: joint_offset {r['joint_offset_new_mm']:.2f}, full {r['full_new_mm']:.2f}, "
           f"the prior on the geometry only {r['prior_geometric_only_new_mm']:.2f}, the same model without prior {free}"
           f"  ({r['time_s']:.0f} s)")
@@ -236,6 +241,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--effects", default=",".join(EFFECTS),
                     help="effect kinds of the prior model (comma-separated registry names; empty: geometry only)")
     ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
+    ap.add_argument("--widths", default="group", choices=("group", "parameter"),
+                    help="one prior width per group of like parameters, or one per parameter (ARD)")
+    ap.add_argument("--no-baselines", action="store_true",
+                    help="skip the baselines (levels, the geometric prior, no prior) and the level-choice comparison")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -244,8 +253,11 @@ def main(argv=None) -> dict:
         return {"skipped": True}
     seeds = [int(s) for s in args.seeds.split(",")]
     robots = args.robots.split(",")
-    kw = {"criterion": args.criterion, "k": args.k, "effects": tuple(e for e in args.effects.split(",") if e)}
-    out = {"protocol": __doc__, "criterion": args.criterion, "effects": list(kw["effects"])}
+    kw = {"criterion": args.criterion, "k": args.k, "effects": tuple(e for e in args.effects.split(",") if e),
+          "widths": args.widths}
+    if args.no_baselines:
+        kw.update(baselines=False, compare_levels=False)
+    out = {"protocol": __doc__, "criterion": args.criterion, "effects": list(kw["effects"]), "widths": args.widths}
     t0 = time.time()
     if "tiago" in robots:
         frames = [{"one": None, "per-session": "registration"}[f] for f in args.frames.split(",")]

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from estcal.base.errors import EstcalWarning
 from estcal.cli.main import app
 from estcal.discrepancy.geometric import fit_geometric, geometric_candidates, gravity_ready, weighted_system
-from estcal.estimate.regularize import fit_group_prior
+from estcal.estimate.regularize import fit_group_prior, prior_groups
 from estcal.identify.select import select_identifiable
 from estcal.io import load_dataset, write_dataset
 from estcal.io.robotfile import load_robot
@@ -45,7 +45,7 @@ def case(tmp_path_factory):
     return tmp, data, json.loads(js.read_text()), model, r.output
 
 
-def _direct(data_path):
+def _direct(data_path, per_parameter=False):
     """The prior model assembled here from its definition (docs/real-data.md): the registration fit (the
     identifiable base and tool parameters), the compliance of every joint with a gravity torque and the backlash
     of every joint whose torque changes sign, the identifiable geometric set, then fit_group_prior."""
@@ -71,7 +71,8 @@ def _direct(data_path):
     geo = select_identifiable(A, names=cands).identifiable
     eff = [n for n, k in zip(rb.params.names, rb.params.kinds) if k == "effect"]
     penalised = [n for n in geo + eff if n not in reg]  # the registration stays free
-    return problem, fit_group_prior(problem, reg + penalised, penalised), eff
+    groups = {n: n for n in penalised} if per_parameter else None
+    return problem, fit_group_prior(problem, reg + penalised, penalised, groups), eff
 
 
 def test_command_model_is_a_direct_group_prior_fit(case):
@@ -194,3 +195,25 @@ def test_effects_refused_and_no_excitable_effect_falls_back_with_a_note(case, tm
     assert any(issubclass(w.category, EstcalWarning) and "excite no" in str(w.message) for w in caught)
     assert res.prior["effects"] == [] and "geometry alone" in res.prior["note"] and not res.robot.effects
     assert "note: the data excite no" in str(res)
+
+
+def test_one_width_per_parameter_is_a_direct_fit_with_a_group_per_parameter(case):
+    """``--prior-widths parameter`` (automatic relevance determination): the command's widths are those of
+    fit_group_prior with every penalised parameter its own group, each reported with its kind's unit; the text
+    summarises them per kind; without --geometric prior the option is refused."""
+    tmp, data, _, _, _ = case
+    js = tmp / "ard.json"
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
+                         "--no-budget", "--prior-widths", "parameter", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    prior = json.loads(js.read_text())["prior"]
+    problem, gp, _ = _direct(data, per_parameter=True)
+    pen = list(prior["widths"])
+    assert prior["widths_per"] == "parameter"
+    assert {g: w["width"] for g, w in prior["widths"].items()} == pytest.approx(gp.widths, rel=1e-6)
+    kinds = prior_groups(problem.robot, pen)
+    assert all(w["kind"] == kinds[g] and w["n_parameters"] == 1 for g, w in prior["widths"].items())
+    assert {w["display_unit"] for g, w in prior["widths"].items() if kinds[g] == "length"} == {"mm"}
+    assert "one width per parameter" in r.output and "length ×" in r.output
+    bad = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--prior-widths", "parameter"])
+    assert bad.exit_code == 2 and "--geometric prior" in bad.output

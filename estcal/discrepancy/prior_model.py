@@ -38,7 +38,7 @@ from estcal.discrepancy.diagnose import (DiagnosisResult, _attach_budget, _geome
                                          _prepare_data, _result, default_candidates)
 from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
 from estcal.discrepancy.stages import FittedStage, fit_stage, fit_stage_sessions, measured_points
-from estcal.estimate.regularize import fit_group_prior
+from estcal.estimate.regularize import fit_group_prior, prior_groups
 from estcal.identify.select import select_identifiable
 from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
@@ -75,7 +75,7 @@ def prior_model(robot, data, noise, effects=EFFECTS):
     return problem, free, penalised
 
 
-def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS):
+def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS, widths: str = "group"):
     """The model's fit as a callable ``fit(robot, data) -> FittedStage`` — what
     :func:`~estcal.discrepancy.stages.fit_stage_sessions` and the budget's ``Procedure(fit=…)`` replay on any
     rows: :func:`prior_model` and :func:`~estcal.estimate.regularize.fit_group_prior` on those rows only (the
@@ -84,7 +84,7 @@ def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS):
 
     def fit(robot, data):
         problem, free, pen = prior_model(robot, data, noise, effects)
-        gp = fit_group_prior(problem, free, pen, criterion=criterion)
+        gp = fit_group_prior(problem, free, pen, _groups(problem.robot, pen, widths), criterion=criterion)
         gp.result.extra["fold_decision"] = {"widths_si": gp.to_dict()["widths"],
                                             "sigma0": float(gp.sigma0),
                                             "effective_parameters": _effective(gp)}
@@ -95,11 +95,23 @@ def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS):
     return fit
 
 
-def fit_prior(robot, data, noise, criterion: str = "evidence", per_session=None, effects=EFFECTS, n_alt: int = 3):
+def _groups(robot, penalised, widths: str):
+    """The prior groups: ``"group"`` — one width per kind of parameter (:func:`prior_groups`); ``"parameter"``
+    — one width per parameter (automatic relevance determination: MacKay 1994, *ASHRAE Trans.* 100:1053;
+    Tipping 2001, *JMLR* 1:211), the evidence then shrinks each term separately."""
+    if widths == "group":
+        return None
+    if widths == "parameter":
+        return {n: n for n in penalised}
+    raise ValueError(f"widths must be 'group' or 'parameter', got {widths!r}")
+
+
+def fit_prior(robot, data, noise, criterion: str = "evidence", per_session=None, effects=EFFECTS, n_alt: int = 3,
+              widths: str = "group"):
     """The model of the module docstring on ``data`` → ``(FittedStage, GroupPrior)``; with ``per_session =
     "registration"``, every session after the first gets a rigid transform onto the first (the alternation of
     :func:`estcal.discrepancy.stages.fit_stage_sessions`, ``n_alt`` rounds)."""
-    fit = prior_fit(noise, criterion, effects)
+    fit = prior_fit(noise, criterion, effects, widths)
     fs = fit_stage_sessions(robot, data, noise, "named", per_session=per_session, n_iter=n_alt, fit=fit)
     return fs, fit.last
 
@@ -110,7 +122,10 @@ def _effective(gp) -> float:
 
 def _group_unit(group, names, robot) -> tuple[str, str]:
     """``(SI unit, display unit)`` of a prior group; an effect group over revolute and prismatic joints has
-    two units for its one width (both listed)."""
+    two units for its one width (both listed); a group of one parameter (``widths="parameter"``) has the unit
+    of that parameter's kind."""
+    if group not in _GROUP_UNITS and group not in _EFFECT_UNITS and len(names) == 1:
+        group = prior_groups(robot, names)[names[0]]
     if group in _GROUP_UNITS:
         si = _GROUP_UNITS[group]
         return si, {"m": "mm", "rad": "mrad", "1": ""}[si]
@@ -131,26 +146,42 @@ def prior_summary(gp, robot, n_free: int) -> dict:
     for n, g in gp.groups.items():
         members.setdefault(g, []).append(n)
     widths = {}
+    per_parameter = all(members[g] == [g] for g in d["widths"])
     for g, w in d["widths"].items():
         si, disp = _group_unit(g, members[g], robot)
         factor = 1.0 if disp == "SI" else 1e3
         widths[g] = {"width": w, "unit": si, "width_display": w * factor, "display_unit": disp,
                      "n_parameters": len(members[g])}
+        if per_parameter:
+            widths[g]["kind"] = prior_groups(robot, members[g])[g]
     effects = {}
     for e in robot.effects:
         effects.setdefault(e.name, []).extend(getattr(e, "joints", None) or [])
     return {"model": "MAP, a nominal-centred Gaussian prior per parameter group (docs/real-data.md, "
                      "'A prior instead of a level')",
-            "criterion": d["criterion"], "widths": widths, "sigma0": d["sigma0"], "log_evidence": d["log_evidence"],
+            "criterion": d["criterion"], "widths_per": "parameter" if per_parameter else "group", "widths": widths,
+            "sigma0": d["sigma0"], "log_evidence": d["log_evidence"],
             "rounds": d["rounds"], "n_parameters": int(n_free), "n_penalised": d["n_penalised"],
             "effective_parameters": _effective(gp),
             "effects": [{"effect": k, "joints": list(v)} for k, v in effects.items()]}
 
 
 def width_line(prior: dict) -> str:
-    """The widths of :func:`prior_summary` as one text line (display units)."""
-    return ", ".join(f"{g} {w['width_display']:.3g} {w['display_unit']}".rstrip()
-                     for g, w in prior["widths"].items())
+    """The widths of :func:`prior_summary` as one text line (display units); with one width per parameter, per
+    kind of parameter the range of its widths and how many the evidence switched off (below 1 % of the kind's
+    largest: the term is held at its nominal value)."""
+    if prior.get("widths_per") != "parameter":
+        return ", ".join(f"{g} {w['width_display']:.3g} {w['display_unit']}".rstrip()
+                         for g, w in prior["widths"].items())
+    kinds = {}
+    for w in prior["widths"].values():
+        kinds.setdefault((w["kind"], w["display_unit"]), []).append(w["width_display"])
+    parts = []
+    for (kind, unit), v in kinds.items():
+        v = np.asarray(v)
+        off = int(np.sum(v < 1e-2 * v.max()))
+        parts.append(f"{kind} ×{v.size} {v.min():.2g}–{v.max():.2g} {unit}".rstrip() + (f" ({off} off)" if off else ""))
+    return ", ".join(parts)
 
 
 @dataclass
@@ -180,7 +211,7 @@ class PriorDiagnosisResult(DiagnosisResult):
     def save_model(self, path, provenance: dict | None = None):
         """The saved model (geometry + every effect term at the MAP estimate) with the prior's widths in its
         calibration block."""
-        keep = ("model", "criterion", "widths", "sigma0", "effective_parameters")
+        keep = ("model", "criterion", "widths_per", "widths", "sigma0", "effective_parameters")
         return super().save_model(path, dict(provenance or {}, prior={k: self.prior[k] for k in keep}))
 
 
@@ -217,7 +248,7 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
                    geometric: str = "prior", approach_from_order: bool = False, session_time: bool = True,
                    posture_tol=(1e-3, 1e-3), budget: bool = False, residual_model: str | None = None,
                    criterion: str = "evidence", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
-                   alpha=None, max_effects=None):
+                   alpha=None, max_effects=None, widths: str = "group"):
     """:func:`estcal.discrepancy.diagnose` with the MAP group-prior model as the recommended model
     (``geometric="prior"``; module docstring): no forward selection — ``candidates``, ``alpha`` and
     ``max_effects`` are not used, and candidates given are refused.
@@ -232,7 +263,7 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     if geometric != "prior":
         raise ValueError(f"diagnose_prior fits the prior model (geometric='prior'), got {geometric!r}")
     if candidates:
-        raise ValueError("the prior model keeps every excitable joint_compliance and backlash term under its prior "
+        raise ValueError(f"the prior model keeps every excitable {', '.join(effects)} term under its prior "
                          "and selects no effect: give no candidates (docs/real-data.md, 'A prior instead of a level')")
     robot, robot_spec, data, validate, sessions = _prepare_data(robot, data, validate, robot_spec,
                                                                 approach_from_order, session_time)
@@ -243,7 +274,8 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     geo, gdropped, lumped, tau, analysis, _ = _geometric_model(robot, data, nm, None, ident_tol, "full", folds,
                                                                cv_max_iter)
     analysis["geometric_level"] = "full"
-    fit = _once_per_rows(prior_fit(nm, criterion, effects))
+    _groups(robot, [], widths)  # refuse an unknown choice before any fit
+    fit = _once_per_rows(prior_fit(nm, criterion, effects, widths))
     fs = fit(robot, data)
     gp = fit.last
     problem = Problem(fs.robot, [(t.method, t.data, t.noise) for t in geo.problem.terms])
@@ -270,7 +302,8 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
 
 def _verdict(res, prior) -> str:
     g, x = res.rmse_mm["geometric"], res.rmse_mm["extended"]
-    s = (f"Prior model (MAP, {prior['n_penalised']} parameters under nominal-centred priors, one width per group "
+    per = "one width per parameter" if prior.get("widths_per") == "parameter" else "one width per group"
+    s = (f"Prior model (MAP, {prior['n_penalised']} parameters under nominal-centred priors, {per} "
          f"by the evidence; no cause is named: a term of this model is shrunk, not tested). RMSE train "
          f"{g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm")
     if g["validation"] is not None:

@@ -56,12 +56,19 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     from estcal.identify.select import UnidentifiableError
 
     if kw.get("geometric") == "prior":  # the MAP group-prior model: loaded only when asked for
+        from estcal.discrepancy.prior_model import EFFECTS as PRIOR_EFFECTS
+        from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
+
         if effects is not None:
-            raise InputError("--effects: --geometric prior keeps every joint_compliance and backlash term the data "
+            raise InputError(f"--effects: --geometric prior keeps every {', '.join(PRIOR_EFFECTS)} term the data "
                              "can excite under its prior and selects no effect, so there is nothing to choose "
                              "from; drop --effects, or choose another --geometric (docs/real-data.md, 'A prior "
                              "instead of a level')")
-        from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
+        if kw.get("widths", "group") not in ("group", "parameter"):
+            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give group or parameter")
+    elif "widths" in kw:
+        raise InputError(f"--prior-widths: only with --geometric prior (the other --geometric choices fit no prior; "
+                         f"got --geometric {kw.get('geometric', 'full')})")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
     rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)

@@ -98,6 +98,9 @@ def diagnose(
                                   "auto (lowest cross-validated RMSE) | prior (no selection: the full set and "
                                   "every excitable joint compliance and backlash, each under a nominal-centred "
                                   "prior, one width per group by the evidence; docs/real-data.md)."),
+    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior: group (one "
+                                               "width per kind of parameter) | parameter (one per parameter, "
+                                               "automatic relevance determination); docs/real-data.md."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),
@@ -124,7 +127,8 @@ def diagnose(
               tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
               report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,
               posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
-              residual_model=_residual(residual_model), column_map=column_map, drop_flagged=drop_flagged)
+              residual_model=_residual(residual_model), column_map=column_map, drop_flagged=drop_flagged,
+              **({"widths": prior_widths} if prior_widths is not None else {}))
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
