@@ -62,7 +62,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from estcal.base.blas import single_thread_blas  # noqa: E402
-from estcal.discrepancy.prior_model import EFFECTS, prior_model  # noqa: E402
+from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, prior_model, width_groups  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, measured_points  # noqa: E402
 from estcal.effects.library import JointCompliance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
@@ -136,7 +136,8 @@ def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.
         if geometry == "offsets":
             drop |= {n for n in pen if kinds[n] == "geometric"}
         free = [n for n in free if n not in drop]
-        gp = fit_group_prior(problem, free, [n for n in pen if n not in drop])
+        pen = [n for n in pen if n not in drop]
+        gp = fit_group_prior(problem, free, pen, width_groups(problem.robot, pen, WIDTHS))
         fit.last = gp
         return FittedStage(problem.robot, gp.result.theta, free, gp.result)
 

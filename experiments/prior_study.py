@@ -48,7 +48,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 # the model (its terms, free and penalised sets, the per-session alternation) lives in the package: the one
 # definition `estcal diagnose --geometric prior` runs
-from estcal.discrepancy.prior_model import EFFECTS, fit_prior, prior_model  # noqa: E402
+from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, fit_prior, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
@@ -60,7 +60,7 @@ def _plain(robot, data, noise, level, per_session=None):
 
 
 def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evidence", label="", effects=EFFECTS,
-          compare_levels=True, widths="group", baselines=True):
+          compare_levels=True, widths=WIDTHS, baselines=True):
     """Steps 1–5 of the module docstring on one split; a JSON-ready dict."""
     # the budget's region (one definition: maximum-likelihood variance model, the slope's bound beyond the
     # farthest held-out leverage, the conformal threshold), from this procedure's nested held-out errors
@@ -241,7 +241,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--effects", default=",".join(EFFECTS),
                     help="effect kinds of the prior model (comma-separated registry names; empty: geometry only)")
     ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
-    ap.add_argument("--widths", default="group", choices=("group", "parameter"),
+    ap.add_argument("--widths", default=WIDTHS, choices=("group", "parameter"),
                     help="one prior width per group of like parameters, or one per parameter (ARD)")
     ap.add_argument("--no-baselines", action="store_true",
                     help="skip the baselines (levels, the geometric prior, no prior) and the level-choice comparison")

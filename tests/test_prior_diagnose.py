@@ -45,7 +45,7 @@ def case(tmp_path_factory):
     return tmp, data, json.loads(js.read_text()), model, r.output
 
 
-def _direct(data_path, per_parameter=False):
+def _direct(data_path, per_parameter=True):
     """The prior model assembled here from its definition (docs/real-data.md): the registration fit (the
     identifiable base and tool parameters), the compliance of every joint with a gravity torque and the backlash
     of every joint whose torque changes sign, the identifiable geometric set, then fit_group_prior."""
@@ -65,6 +65,12 @@ def _direct(data_path, per_parameter=False):
         for j, name in enumerate(rb.joint_names):
             if keep(tau[:, j]):
                 rb = rb.add_effect(make_effect(effect, rb, joints=[name]))
+    kin = rb.rigid_kinematics(ds.readings)  # link tilt: every joint with a gravity moment across its axis
+    M = rb.gravity_moments(ds.readings, context=ds.context, kin=kin)
+    across = np.linalg.norm(M - np.sum(M * kin.joint_axis, -1, keepdims=True) * kin.joint_axis, axis=-1)
+    for j, name in enumerate(rb.joint_names):
+        if np.abs(across[:, j]).max() > 1e-9 * across.max():
+            rb = rb.add_effect(make_effect("link_tilt", rb, joints=[name]))
     problem = Problem(rb, [(None, ds, noise)])
     cands = geometric_candidates(rb)
     _, A, _ = weighted_system(problem, rb.params.values, cands)
@@ -80,7 +86,9 @@ def test_command_model_is_a_direct_group_prior_fit(case):
     problem, gp, eff = _direct(data)
     prior = fit["prior"]
     assert fit["causes"] == [] and fit["model"]["geometric_level"] == "prior"
-    assert sorted(n for n in fit["model"]["theta"] if n.split("_")[0] in ("compliance", "backlash")) == sorted(eff)
+    assert sorted(n for n in fit["model"]["theta"] if n.split("_")[0] in ("compliance", "backlash", "tilt")) \
+        == sorted(eff)
+    assert any(n.startswith("tilt_") for n in eff)
     assert {g: w["width"] for g, w in prior["widths"].items()} == pytest.approx(gp.widths, rel=1e-6)
     assert prior["sigma0"] == pytest.approx(gp.sigma0, rel=1e-6)
     assert prior["effective_parameters"] == pytest.approx(gp.result.extra["prior"]["effective_parameters"], rel=1e-6)
@@ -93,8 +101,9 @@ def test_command_model_is_a_direct_group_prior_fit(case):
     rmse = np.sqrt(np.mean(np.sum(e ** 2, axis=1))) * 1e3
     assert prior["train_rmse_mm"] == pytest.approx(rmse, rel=1e-9)
     assert fit["rmse_mm"]["extended"]["train"] == pytest.approx(rmse, rel=1e-9)
-    # the text names the widths with their units, σ0 and the effective number of parameters
-    assert "widths (evidence): length" in out and " mm" in out and "mrad/(N·m)" in out
+    # the text summarises the widths per kind with their units, σ0 and the effective number of parameters
+    assert "one width per parameter" in out and "widths (evidence): " in out and "length ×" in out
+    assert " mm" in out and "mrad/(N·m)" in out and "tilt ×" in out
     assert f"{prior['effective_parameters']:.1f} effective" in out and "σ0" in out
 
 
@@ -103,7 +112,7 @@ def test_saved_model_compensates_and_exports(case):
     can reach, export writes the URDF and names the effects it drops."""
     tmp, data, fit, model, _ = case
     saved = load_robot(model)
-    assert {e.name for e in saved.effects} == {"joint_compliance", "backlash"}
+    assert {e.name for e in saved.effects} == {"joint_compliance", "backlash", "link_tilt"}
     for n, v in fit["model"]["theta"].items():
         assert saved.params[n] == pytest.approx(v, abs=1e-12)
     assert saved.meta["calibration"]["prior"]["widths"].keys() == fit["prior"]["widths"].keys()
@@ -161,7 +170,11 @@ def test_budget_refits_the_model_and_its_widths_on_each_folds_training_rows():
     assert d["model"] == "prior" and d["recommended"] == "prior"
     widths = [dec["fit"]["widths_si"] for dec in d["decisions"]]
     all_rows = b.extra["fitted"].result.extra["fold_decision"]["widths_si"]
-    for g in all_rows:
+    # a width the evidence switches off sits at the search's lower bound (1e-8) in several fits alike; every
+    # other differs from fold to fold and from the all-rows width
+    live = [g for g in all_rows if min([all_rows[g]] + [w[g] for w in widths]) > 1.01e-8]
+    assert len(live) >= len(all_rows) // 2
+    for g in live:
         per_fold = [w[g] for w in widths]
         assert len(set(per_fold)) == len(folds) and all_rows[g] not in per_fold, g
     # the nested figure, recomputed: the model refitted on each fold's training rows, scored at its held-out rows
@@ -197,23 +210,26 @@ def test_effects_refused_and_no_excitable_effect_falls_back_with_a_note(case, tm
     assert "note: the data excite no" in str(res)
 
 
-def test_one_width_per_parameter_is_a_direct_fit_with_a_group_per_parameter(case):
-    """``--prior-widths parameter`` (automatic relevance determination): the command's widths are those of
-    fit_group_prior with every penalised parameter its own group, each reported with its kind's unit; the text
-    summarises them per kind; without --geometric prior the option is refused."""
-    tmp, data, _, _, _ = case
-    js = tmp / "ard.json"
-    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
-                         "--no-budget", "--prior-widths", "parameter", "--json", str(js)])
-    assert r.exit_code == 0, r.output
-    prior = json.loads(js.read_text())["prior"]
-    problem, gp, _ = _direct(data, per_parameter=True)
+def test_one_width_per_parameter_by_default_one_per_group_when_asked(case):
+    """The default fit has a width per parameter, each reported with its kind and the kind's unit;
+    ``--prior-widths group`` gives the one-width-per-kind fit of fit_group_prior's own groups; without
+    --geometric prior the option is refused."""
+    tmp, data, fit, _, _ = case
+    prior = fit["prior"]
+    problem, _, _ = _direct(data)
     pen = list(prior["widths"])
-    assert prior["widths_per"] == "parameter"
-    assert {g: w["width"] for g, w in prior["widths"].items()} == pytest.approx(gp.widths, rel=1e-6)
     kinds = prior_groups(problem.robot, pen)
+    assert prior["widths_per"] == "parameter"
     assert all(w["kind"] == kinds[g] and w["n_parameters"] == 1 for g, w in prior["widths"].items())
     assert {w["display_unit"] for g, w in prior["widths"].items() if kinds[g] == "length"} == {"mm"}
-    assert "one width per parameter" in r.output and "length ×" in r.output
+    js = tmp / "group.json"
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
+                         "--no-budget", "--prior-widths", "group", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    grouped = json.loads(js.read_text())["prior"]
+    _, gp, _ = _direct(data, per_parameter=False)
+    assert grouped["widths_per"] == "group"
+    assert {g: w["width"] for g, w in grouped["widths"].items()} == pytest.approx(gp.widths, rel=1e-6)
+    assert "one width per group" in r.output and "widths (evidence): length" in r.output
     bad = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--prior-widths", "parameter"])
     assert bad.exit_code == 2 and "--geometric prior" in bad.output

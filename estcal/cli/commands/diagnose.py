@@ -96,11 +96,11 @@ def diagnose(
     geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
                                   "parameter) | aic (those Akaike's criterion supports) | joint_offset | "
                                   "auto (lowest cross-validated RMSE) | prior (no selection: the full set and "
-                                  "every excitable joint compliance and backlash, each under a nominal-centred "
-                                  "prior, one width per group by the evidence; docs/real-data.md)."),
-    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior: group (one "
-                                               "width per kind of parameter) | parameter (one per parameter, "
-                                               "automatic relevance determination); docs/real-data.md."),
+                                  "every excitable joint compliance, backlash and link tilt, each under a "
+                                  "nominal-centred prior whose width the evidence chooses; docs/real-data.md)."),
+    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior: parameter (one "
+                                               "width per parameter, automatic relevance determination; the "
+                                               "default) | group (one per kind of parameter); docs/real-data.md."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),
