@@ -48,8 +48,8 @@ from estcal.identify.select import select_identifiable
 from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
-__all__ = ["EFFECTS", "WIDTHS", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary", "width_line", "diagnose_prior",
-           "PriorDiagnosisResult"]
+__all__ = ["EFFECTS", "WIDTHS", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
+           "width_line", "diagnose_prior", "PriorDiagnosisResult"]
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds): the gravity
 #: load along each joint's axis (compliance, backlash) and across it (link tilt, docs/effects.md)
@@ -165,8 +165,8 @@ def prior_summary(gp, robot, n_free: int) -> dict:
     effects = {}
     for e in robot.effects:
         effects.setdefault(e.name, []).extend(getattr(e, "joints", None) or [])
-    return {"model": "MAP, a nominal-centred Gaussian prior per parameter group (docs/real-data.md, "
-                     "'A prior instead of a level')",
+    return {"model": f"MAP, a nominal-centred Gaussian prior per {'parameter' if per_parameter else 'parameter group'} "
+                     "(docs/real-data.md, 'A prior instead of a level')",
             "criterion": d["criterion"], "widths_per": "parameter" if per_parameter else "group", "widths": widths,
             "sigma0": d["sigma0"], "log_evidence": d["log_evidence"],
             "rounds": d["rounds"], "n_parameters": int(n_free), "n_penalised": d["n_penalised"],
@@ -188,7 +188,8 @@ def width_line(prior: dict) -> str:
     for (kind, unit), v in kinds.items():
         v = np.asarray(v)
         off = int(np.sum(v < 1e-2 * v.max()))
-        parts.append(f"{kind} ×{v.size} {v.min():.2g}–{v.max():.2g} {unit}".rstrip() + (f" ({off} off)" if off else ""))
+        line = f"{kind} ×{v.size} {v.min():.2g}–{v.max():.2g} {unit}".rstrip()
+        parts.append(line + (f" ({off} off)" if off else ""))
     return ", ".join(parts)
 
 

@@ -322,7 +322,7 @@ class LinkTilt(Effect):
     prefixes = ("tilt",)
     #: not among the causes ``estcal diagnose`` screens unless asked (``--effects link_tilt``): on one TIAGo
     #: session the family is named on all rows but in 1 of 5 posture-grouped folds, and screening it costs
-    #: 1.7 s; the MAP prior model keeps it (docs/real-data.md, "Link tilt under gravity")
+    #: 1.7 s; the MAP prior model keeps it (docs/effects.md; docs/real-data.md, "A prior instead of a level")
     screened_by_default = False
 
     def context_keys(self):
@@ -360,7 +360,6 @@ class LinkTilt(Effect):
         rel = x[:, :, None, :] - o[:, None, :, :]  # (N, K, s, 3)
         F = np.cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
         return d, np.ascontiguousarray(F.transpose(0, 1, 3, 2))
-
 
     @staticmethod
     def correct_jacobian(J_points, J, d, phi) -> None:
