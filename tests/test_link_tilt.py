@@ -10,21 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from test_effects import heavy_puma as _heavy_puma
+
 from estcal.effects import make_effect
-from estcal.kinematics.builder import build_robot
 from estcal.io.robotfile import robot_from_dict, robot_to_dict
-from estcal.kinematics import puma560
-
-
-def _heavy_puma():
-    d = robot_to_dict(puma560())
-    masses = [0.0, 17.4, 4.8, 0.82, 0.34, 0.09]
-    coms = [[0, 0, 0], [-0.3638, 0.006, 0.2275], [-0.0203, -0.0141, 0.070], [0, 0.019, 0], [0, 0, 0], [0, 0, 0.032]]
-    for jd, m, c in zip(d["joints"], masses, coms):
-        jd["mass"], jd["com"] = m, c
-    d["payload"] = {"mass": 2.0, "com": [0.0, 0.0, 0.1]}
-    d["markers"] = [[0.05, 0.0, 0.1], [0.0, -0.07, 0.12], [0.06, 0.05, 0.08]]
-    return robot_from_dict(d, "heavy_puma")
+from estcal.kinematics.builder import build_robot
 
 
 def test_horizontal_arm_on_a_vertical_axis_droops_by_t_m_g_l_squared():

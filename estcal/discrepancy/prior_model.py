@@ -188,7 +188,8 @@ def width_line(prior: dict) -> str:
     for (kind, unit), v in kinds.items():
         v = np.asarray(v)
         off = int(np.sum(v < 1e-2 * v.max()))
-        line = f"{kind} ×{v.size} {v.min():.2g}–{v.max():.2g} {unit}".rstrip()
+        span = f"{v[0]:.2g}" if v.size == 1 else f"{v.min():.2g}–{v.max():.2g}"
+        line = f"{kind} ×{v.size} {span} {unit}".rstrip()
         parts.append(line + (f" ({off} off)" if off else ""))
     return ", ".join(parts)
 

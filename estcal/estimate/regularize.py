@@ -277,6 +277,26 @@ class GroupPrior:
         return f"group prior ({self.criterion}): widths {w} (SI); σ0 = {self.sigma0:.3g}"
 
 
+def _evidence_system(A, y, group_of, log_tau, log_s2):
+    """The scaled system of :func:`log_evidence`: ``(Cholesky factor L of G or None, z = L⁻¹c, log|G| of the
+    unscaled system, the scaled columns A_s, s², the penalised mask)``."""
+    s2 = np.exp(log_s2)
+    pen = group_of >= 0
+    d = np.where(pen, np.exp(np.asarray(log_tau)[np.maximum(group_of, 0)]), 0.0)
+    nrm = np.linalg.norm(A, axis=0)
+    d[~pen] = 1.0 / np.where(nrm[~pen] > 0, nrm[~pen], 1.0)
+    As = A * d
+    G = As.T @ As / s2 + np.diag(pen.astype(float))
+    try:
+        L = np.linalg.cholesky(G)
+    except np.linalg.LinAlgError:
+        return None, None, None, As, s2, pen
+    z = np.linalg.solve(L, As.T @ y / s2)
+    # log|G| of the unscaled system = log|G_s| − 2 Σ log d; the Σ_pen log τ_j² term cancels the penalised part
+    logdet = 2.0 * np.sum(np.log(np.diag(L))) - 2.0 * np.sum(np.log(d[~pen]))
+    return L, z, logdet, As, s2, pen
+
+
 def log_evidence(A, y, group_of, log_tau, log_s2) -> float:
     """Log marginal likelihood of ``y = A x + ε``, ``ε ~ N(0, s² I)``, ``x_j ~ N(0, τ_g(j)²)`` for the
     penalised columns (``group_of[j] ≥ 0``) and a flat prior on the others (``group_of[j] = -1``; the
@@ -289,23 +309,10 @@ def log_evidence(A, y, group_of, log_tau, log_s2) -> float:
     evaluated on the columns scaled by τ_j (penalised) or their norm (free), so that widths from
     micro-radians to metres stay well conditioned.
     """
-    s2 = np.exp(log_s2)
-    pen = group_of >= 0
-    d = np.where(pen, np.exp(np.asarray(log_tau)[np.maximum(group_of, 0)]), 0.0)
-    nrm = np.linalg.norm(A, axis=0)
-    d[~pen] = 1.0 / np.where(nrm[~pen] > 0, nrm[~pen], 1.0)
-    As = A * d
-    G = As.T @ As / s2 + np.diag(pen.astype(float))
-    try:
-        L = np.linalg.cholesky(G)
-    except np.linalg.LinAlgError:
+    L, z, logdet, _, s2, _ = _evidence_system(A, y, group_of, log_tau, log_s2)
+    if L is None:
         return -np.inf
-    c = As.T @ y / s2
-    z = np.linalg.solve(L, c)
-    # log|G| of the unscaled system = log|G_s| − 2 Σ log d; the Σ_pen log τ_j² term cancels the penalised part
-    logdet = 2.0 * np.sum(np.log(np.diag(L))) - 2.0 * np.sum(np.log(d[~pen]))
-    M = len(y)
-    return float(-0.5 * (M * np.log(2 * np.pi * s2) + logdet + y @ y / s2 - z @ z))
+    return float(-0.5 * (len(y) * np.log(2 * np.pi * s2) + logdet + y @ y / s2 - z @ z))
 
 
 def log_evidence_grad(A, y, group_of, log_tau, log_s2):
@@ -320,21 +327,10 @@ def log_evidence_grad(A, y, group_of, log_tau, log_s2):
     exceeds the prior's; n columns, M rows). One Cholesky factor and its inverse per evaluation, where
     finite differences took one factor per group and per side. ``-inf`` and a zero gradient where ``G`` is
     not positive definite."""
-    s2 = np.exp(log_s2)
-    pen = group_of >= 0
     n_groups = len(log_tau)
-    d = np.where(pen, np.exp(np.asarray(log_tau)[np.maximum(group_of, 0)]), 0.0)
-    nrm = np.linalg.norm(A, axis=0)
-    d[~pen] = 1.0 / np.where(nrm[~pen] > 0, nrm[~pen], 1.0)
-    As = A * d
-    G = As.T @ As / s2 + np.diag(pen.astype(float))
-    try:
-        L = np.linalg.cholesky(G)
-    except np.linalg.LinAlgError:
+    L, z, logdet, As, s2, pen = _evidence_system(A, y, group_of, log_tau, log_s2)
+    if L is None:
         return -np.inf, np.zeros(n_groups), 0.0
-    c = As.T @ y / s2
-    z = np.linalg.solve(L, c)
-    logdet = 2.0 * np.sum(np.log(np.diag(L))) - 2.0 * np.sum(np.log(d[~pen]))
     M, n = A.shape
     lp = float(-0.5 * (M * np.log(2 * np.pi * s2) + logdet + y @ y / s2 - z @ z))
     Li = np.linalg.solve(L, np.eye(n))  # L⁻¹: diag(G⁻¹) = column sums of its squares
