@@ -29,6 +29,14 @@ from .base import Effect, JointEffect, register_effect
 __all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt"]
 
 
+def _cross(a, b) -> np.ndarray:
+    """``a × b`` over the last axis (length 3), broadcasting: np.cross's products without its axis moves
+    (the link tilt evaluates it tens of thousands of times in a prior-model diagnosis)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _ctx(context: dict, key: str, N: int) -> np.ndarray | None:
     if context is None or key not in context or context[key] is None:
         return None
@@ -343,22 +351,22 @@ class LinkTilt(Effect):
         Mp, o = self.loads(robot, readings, theta, context)
         t = self.values(theta)
         phi = np.einsum("nsi,s->ni", Mp, t)  # the total small rotation (N, 3)
-        b = np.einsum("nsi,s->ni", np.cross(Mp, o), t)  # Σ t_j M⊥_j × o_j
+        b = np.einsum("nsi,s->ni", _cross(Mp, o), t)  # Σ t_j M⊥_j × o_j
         x = points
         if derivatives:
-            # The chain passes the already corrected points x' = x + φ × x − b: solve (I + [φ]×) x = x' + b,
-            # so that the derivative columns are those of the uncorrected points (exact, not O(t²)).
-            S = np.zeros((N, 3, 3))
-            S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-            S = S - S.transpose(0, 2, 1) + np.eye(3)
-            x = np.linalg.solve(S[:, None], (points + b[:, None, :])[..., None])[..., 0]
-        d = np.cross(phi[:, None, :], x) - b[:, None, :]
+            # The chain passes the already corrected points x' = x + φ × x − b. Solve (I + [φ]×) x = v with
+            # v = x' + b by its closed form x = (v − φ × v + φ (φ·v)) / (1 + |φ|²) — (I + K)(I − K + φφᵀ) =
+            # (1 + |φ|²) I for K = [φ]×, as K φ = 0 and K² = φφᵀ − |φ|² I —, so that the derivative columns
+            # are those of the uncorrected points (exact, not O(t²)).
+            v, P = points + b[:, None, :], phi[:, None, :]
+            x = (v - _cross(P, v) + P * np.sum(P * v, -1, keepdims=True)) / (1.0 + np.sum(P * P, -1, keepdims=True))
+        d = _cross(phi[:, None, :], x) - b[:, None, :]
         if not derivatives:
             return d, None
         if J_points is not None and J is not None:
             self.correct_jacobian(J_points, J, d, phi)
         rel = x[:, :, None, :] - o[:, None, :, :]  # (N, K, s, 3)
-        F = np.cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
+        F = _cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
         return d, np.ascontiguousarray(F.transpose(0, 1, 3, 2))
 
     @staticmethod
@@ -371,10 +379,10 @@ class LinkTilt(Effect):
         3–5 of the pose Jacobian ``J``) — exact for every parameter the loads do not depend on (the other
         effects'); for the geometric ones the loads' own variation is second order and neglected.
         """
-        w = J[:, 3:, :]  # (N, 3, P)
+        w = J[:, 3:, :].transpose(0, 2, 1)  # (N, P, 3)
         for k in range(J_points.shape[1]):
-            v = J_points[:, k] - np.cross(w, d[:, k, :, None], axisa=1, axisb=1, axisc=1)
-            J_points[:, k] = v + np.cross(phi[:, :, None], v, axisa=1, axisb=1, axisc=1)
+            v = J_points[:, k].transpose(0, 2, 1) - _cross(w, d[:, k, None, :])  # (N, P, 3)
+            J_points[:, k] = (v + _cross(phi[:, None, :], v)).transpose(0, 2, 1)
 
 for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift, LinkTilt):
     register_effect(_cls.name, _cls, overwrite=True)

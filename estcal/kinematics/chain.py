@@ -248,6 +248,7 @@ class SerialRobot:
         self.convention = convention
         self.effects = list(effects or [])
         self.meta = dict(meta or {})
+        self._rigid_memo = None  # the last rigid_kinematics: (key, frames)
         self._compile()
 
     # ----------------------------------------------------------------- set-up
@@ -783,13 +784,23 @@ class SerialRobot:
         gravity loads are evaluated (:meth:`gravity_torques`)."""
         theta = self.params.values if theta is None else np.asarray(theta, float)
         readings = self.check_readings(readings)
+        # One evaluation of a model with gravity effects asks for the same rigid frames several times
+        # (the compliance and backlash features, the link tilt's points and its Jacobian): the last one is
+        # kept, keyed by the readings and θ bit for bit (a key compare, then the stored pair, so a reader
+        # never gets another key's frames). The stored frames are never written to.
+        key = (readings.shape, readings.tobytes(), theta.tobytes())
+        memo = self._rigid_memo
+        if memo is not None and memo[0] == key:
+            return memo[1]
         # Rigid joint values (no effects): effects such as compliance call this function themselves, and
         # their feedback on the loads is second order. Without the Cartesian effects either: an effect
         # moving the points by the loads (link tilt) would otherwise call itself.
         q, _ = self._joint_values(readings, theta, None, False, effects=False)
         cart = [e for e in self.effects if hasattr(e, "point_correction")]
         rigid = self.copy(effects=[e for e in self.effects if e not in cart]) if cart else self
-        return rigid.kinematics(readings, theta, jacobian=False, q_override=q)
+        kin = rigid.kinematics(readings, theta, jacobian=False, q_override=q)
+        self._rigid_memo = (key, kin)
+        return kin
 
     def _gravity_loads(self, readings, theta, context, kin):
         """``(mass beyond each joint (N, n), gravity moment about each joint origin (N, n, 3), kin)``."""
