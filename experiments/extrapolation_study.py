@@ -52,7 +52,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -66,9 +65,8 @@ from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, prior_model, width_g
 from estcal.discrepancy.stages import FittedStage, measured_points  # noqa: E402
 from estcal.effects.library import JointCompliance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
-from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
-from real_robots import NOISE, _boot_se, _halves, _rmse, finish, load_tiago  # noqa: E402
+from real_robots import NOISE, _boot_se, _halves, _rmse, finish, load_tiago, start  # noqa: E402
 
 PLACEMENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 
@@ -561,11 +559,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--k", type=int, default=5, help="posture-grouped folds of the candidates' CV on half A")
     ap.add_argument("--parts", default="attribution,joint_ranges,candidates,span,simulation")
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args(argv)
-    warnings.filterwarnings("ignore")
-    if not (shared_dir() / "data" / "tiago").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    args = start(ap, argv)
+    if args is None:
         return {"skipped": True}
     seeds = [int(s) for s in args.seeds.split(",")]
     parts = args.parts.split(",")

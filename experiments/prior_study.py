@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -50,9 +49,8 @@ sys.path.insert(0, str(REPO / "experiments"))
 # definition `estcal diagnose --geometric prior` runs
 from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, fit_prior, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
-from estcal.kinematics.robots import shared_dir  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
-from real_robots import _rmse, finish  # noqa: E402
+from real_robots import _rmse, finish, start  # noqa: E402
 
 
 def _plain(robot, data, noise, level, per_session=None):
@@ -245,11 +243,8 @@ def main(argv=None) -> dict:
                     help="one prior width per group of like parameters, or one per parameter (ARD)")
     ap.add_argument("--no-baselines", action="store_true",
                     help="skip the baselines (levels, the geometric prior, no prior) and the level-choice comparison")
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args(argv)
-    warnings.filterwarnings("ignore")
-    if not (shared_dir() / "data" / "tiago").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    args = start(ap, argv)
+    if args is None:
         return {"skipped": True}
     seeds = [int(s) for s in args.seeds.split(",")]
     robots = args.robots.split(",")

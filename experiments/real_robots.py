@@ -530,6 +530,19 @@ def run_explore(seeds=(0, 1, 2)):
     return {"seeds": list(seeds), "rows": rows}
 
 
+def start(ap, argv=None):
+    """The start of a real-data study's ``main``: ``--json`` added to the parser ``ap``, the arguments parsed,
+    warnings silenced; ``None`` (and a line saying so) when the shared data are absent. Shared by this module
+    and the studies that import it (prior_study, extrapolation_study)."""
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    if not (shared_dir() / "data" / "tiago").is_dir():
+        print(f"shared data not found at {shared_dir() / 'data'}")
+        return None
+    return args
+
+
 def finish(out: dict, t0: float, json_path) -> dict:
     """The end of a real-data study's ``main``: its wall time into ``out["time_s"]`` (printed), ``out`` written
     to ``json_path`` when given (atomically, announced); returns ``out``. Shared by the studies that import
@@ -547,13 +560,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--robots", default="extrapolation,tiago,ur10,talos_session,talos,best,joint,design,explore",
                     help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, joint, "
                          "design, explore")
-    ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--k", type=int, default=None, help="posture-grouped folds (default 5; 3 with --quick)")
-    args = ap.parse_args(argv)
-    if not (shared_dir() / "data" / "tiago").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    args = start(ap, argv)
+    if args is None:
         return {"skipped": True}
-    warnings.filterwarnings("ignore")
     k, restarts = (3, 0) if args.quick else (5, 0)
     k = args.k or k
     seeds = (0,) if args.quick else (0, 1, 2)
