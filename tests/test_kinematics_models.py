@@ -191,29 +191,43 @@ def test_summarized_urdf_names_recover_every_name():
     assert sorted(_expand_summary(summarize_names(names))) == sorted(names)
 
 
+def _check_loads_link_by_link(robot, q, ctx):
+    """``gravity_moments`` and ``gravity_torques`` against the sums over every moved link and the payload, one
+    pose and one joint at a time: M_j = Σ_{i ⪰ j} (c_i − o_j) × m_i g; τ_j = a_jᵀ M_j (revolute) or a_jᵀ Σ m_i g
+    (prismatic)."""
+    tau, M = robot.gravity_torques(q, context=ctx), robot.gravity_moments(q, context=ctx)
+    kin = robot.kinematics(q, jacobian=False)
+    g = np.asarray(robot.gravity, float)
+    pay_c = kin.p + kin.R @ robot.payload_com
+    for n in range(len(q)):
+        for j in range(robot.n_joints):
+            a, o = kin.joint_axis[n, j], kin.joint_origin[n, j]
+            force, moment = ctx["payload"][n] * g, np.cross(pay_c[n] - o, ctx["payload"][n] * g)
+            for i in range(robot._joint_link[j], len(robot.links)):
+                lk = robot.links[i]
+                force = force + lk.mass * g
+                moment = moment + np.cross(kin.link_p[n, i] + kin.link_R[n, i] @ lk.com - o, lk.mass * g)
+            np.testing.assert_allclose(M[n, j], moment, rtol=1e-12, atol=1e-12)
+            want = a @ (force if robot.joint_types[j] == "prismatic" else moment)
+            assert abs(tau[n, j] - want) <= 1e-12 * max(1.0, abs(want)), (n, j)
+    return tau
+
+
 def test_gravity_torques_are_the_moments_of_every_moved_link_and_the_payload(tiago_dir):
-    """τ_j = a_jᵀ Σ_{i ⪰ j} (c_i − o_j) × m_i g (+ the payload), summed link by link here, on TIAGo (a prismatic
-    torso: a_jᵀ Σ m_i g) with a per-pose payload."""
+    """On TIAGo (a prismatic torso: a_jᵀ Σ m_i g) with a per-pose payload."""
     from estcal.kinematics import tiago
 
     robot = tiago(n_markers=1)
     rng = np.random.default_rng(4)
     q = robot.random_readings(9, rng)
-    ctx = {"payload": rng.uniform(0, 2, 9)}
-    tau = robot.gravity_torques(q, context=ctx)
-    kin = robot.kinematics(q, jacobian=False)
-    g = np.asarray(robot.gravity, float)
-    pay_c = kin.p + kin.R @ robot.payload_com
-    for n in range(9):
-        for j in range(robot.n_joints):
-            li = robot._joint_link[j]
-            a, o = kin.joint_axis[n, j], kin.joint_origin[n, j]
-            total = np.zeros(3)
-            for i in range(li, len(robot.links)):
-                lk = robot.links[i]
-                c = kin.link_p[n, i] + kin.link_R[n, i] @ lk.com
-                total += lk.mass * g if robot.joint_types[j] == "prismatic" else np.cross(c - o, lk.mass * g)
-            total += (ctx["payload"][n] * g if robot.joint_types[j] == "prismatic"
-                      else np.cross(pay_c[n] - o, ctx["payload"][n] * g))
-            assert abs(tau[n, j] - a @ total) <= 1e-12 * max(1.0, abs(a @ total)), (n, j)
+    tau = _check_loads_link_by_link(robot, q, {"payload": rng.uniform(0, 2, 9)})
     assert robot.joint_types[0] == "prismatic" and np.ptp(tau[:, 0]) > 0
+
+
+def test_gravity_moments_of_a_heavy_puma():
+    """The same sums on a PUMA 560 with link masses and a payload (no shared data needed)."""
+    from test_effects import heavy_puma
+
+    robot = heavy_puma()
+    rng = np.random.default_rng(2)
+    _check_loads_link_by_link(robot, robot.random_readings(6, rng), {"payload": rng.uniform(0, 3, 6)})

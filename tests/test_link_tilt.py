@@ -1,9 +1,9 @@
 """The link-tilt effect: a bearing / link turning under the gravity moment across its joint's axis.
 
-Checked against a closed form (a horizontal arm on a vertical axis droops by t·m·g·L²), the moments
-summed link by link, finite differences (tests/test_effects.py runs its columns with the other effects),
+Checked against a closed form (a horizontal arm on a vertical axis droops by t·m·g·L²), finite differences (tests/test_effects.py runs its columns with the other effects),
 and a simulated calibration that recovers the tilt compliances which no joint-space effect or geometric
-parameter can stand in for.
+parameter can stand in for. The gravity moments themselves are summed link by link in
+tests/test_kinematics_models.py.
 """
 from __future__ import annotations
 
@@ -38,27 +38,6 @@ def test_horizontal_arm_on_a_vertical_axis_droops_by_t_m_g_l_squared():
     # first order: a drop of t m g L², no horizontal motion to first order (t m g L = 4.7 mrad here)
     np.testing.assert_allclose(d[:, 2], -t * m * g * L ** 2, rtol=0, atol=1e-15)
     np.testing.assert_allclose(d[:, :2], 0.0, atol=1e-15)
-
-
-def test_gravity_moments_are_summed_link_by_link_and_project_onto_the_torques():
-    robot = _heavy_puma()
-    rng = np.random.default_rng(2)
-    q = robot.random_readings(6, rng)
-    ctx = {"payload": rng.uniform(0, 3, 6)}
-    M = robot.gravity_moments(q, context=ctx)
-    kin = robot.kinematics(q, jacobian=False)
-    g = np.asarray(robot.gravity, float)
-    pay_c = kin.p + kin.R @ robot.payload_com
-    for n in range(6):
-        for j in range(robot.n_joints):
-            o = kin.joint_origin[n, j]
-            total = np.cross(pay_c[n] - o, ctx["payload"][n] * g)
-            for i in range(robot._joint_link[j], len(robot.links)):
-                lk = robot.links[i]
-                total += np.cross(kin.link_p[n, i] + kin.link_R[n, i] @ lk.com - o, lk.mass * g)
-            np.testing.assert_allclose(M[n, j], total, rtol=1e-12, atol=1e-12)
-    tau = robot.gravity_torques(q, context=ctx)
-    np.testing.assert_allclose(np.einsum("nji,nji->nj", kin.joint_axis, M), tau, rtol=1e-12, atol=1e-12)
 
 
 def test_tilt_moves_points_by_the_small_rotation_about_each_joint_origin():
