@@ -1,10 +1,12 @@
 """Where the error at new postures comes from: the TIAGo MAP model's extrapolation, joint by joint.
 
 On the shared TIAGo sessions, with posture-disjoint halves (the splits of ``experiments/real_robots.py``),
-the MAP group-prior model (``estcal.discrepancy.prior_model``; docs/real-data.md, "A prior instead of a
-level") scores ~2 mm at new postures inside the training joint ranges and 4–6 mm outside them. This study
-asks which joints' extrapolation carries that error and whether a physically motivated model extrapolates
-better. Every model is fitted on half A of the postures (both sessions' rows) and scored once on half B.
+the MAP prior model as ``estcal diagnose --geometric prior`` fits it (``estcal.discrepancy.prior_model``:
+the full geometric set, joint compliance, backlash and link tilt, one prior width per parameter by the
+evidence; docs/real-data.md, "A prior instead of a level") scores ~1.8 mm at new postures inside the
+training joint ranges and 3.4–4.8 mm outside them. This study asks which joints' extrapolation carries that
+error and whether a physically motivated model extrapolates better. Every model is fitted on half A of the
+postures (both sessions' rows), one measuring frame, and scored once on half B.
 
 1. **Attribution** (``attribution``). For each new posture p and joint j, the extrapolation distance
    ``d_pj = max(0, q_pj − max_A q_j, min_A q_j − q_pj) / (max_A q_j − min_A q_j)`` (in units of the
@@ -27,7 +29,8 @@ better. Every model is fitted on half A of the postures (both sessions' rows) an
    (a) geometry under the prior restricted to the joint offsets; (a') the placement (axis and carried
    link) parameters dropped on the joints the target postures extrapolate along — decided from the
    targets' joint readings only, never their measurements (as ``estcal.discrepancy.budget.predicted_at``);
-   (b) the other per-joint effects of the library under the prior: ``encoder_gain``, ``gear_harmonic``;
+   (b) the other per-joint effects of the library under the prior (each parameter with its own width, as the
+   model's): ``encoder_gain``, ``gear_harmonic``;
    (c) compliance with the hand's mass scaled (the arm_7 link and gripper, ×0.5 / ×2); (d) a stiffening
    gearbox, the cubic term of the compliance (:class:`StiffeningCompliance`). A common scale of
    all link masses is not a candidate: the torque, hence the compliance column ``c_j τ_j``, is linear in

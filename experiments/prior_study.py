@@ -1,14 +1,20 @@
-"""A prior instead of a level: MAP calibration with one nominal-centred prior width per parameter group.
+"""A prior instead of a level: MAP calibration with one nominal-centred prior width per parameter (or per group).
 
 The recommended procedure of ``experiments/real_robots.py`` chooses a discrete geometric level
 (joint_offset / aic / full) and names effects one by one; on half the TIAGo postures both choices are
-unstable (docs/real-data.md). Here nothing is chosen discretely: the model is the ``full`` structurally
-identifiable geometric set **plus** the candidate effects the diagnosis screens (joint compliance and
-backlash of every joint where the data can excite them), every parameter with a Gaussian prior
-centred on its nominal value, one width per group (lengths, angles, joint offsets, each kind of
-effect; :func:`estcal.estimate.regularize.prior_groups`). The widths maximise the evidence of the
-training rows (type-II maximum likelihood, :func:`estcal.estimate.regularize.fit_group_prior`);
-``--criterion evidence+cv`` adds a common multiplier chosen by leave-one-posture-out CV.
+unstable (docs/real-data.md). Here nothing is chosen discretely: the model is the one ``estcal diagnose
+--geometric prior`` fits (:mod:`estcal.discrepancy.prior_model`) — the ``full`` structurally identifiable
+geometric set **plus** the per-joint candidates the diagnosis screens for the gravity load along each
+joint's axis (``joint_compliance``, ``backlash``) and across it (``link_tilt``, docs/effects.md), wherever
+the data can excite them; every such parameter has a Gaussian prior centred on its nominal value. By
+default every parameter has its own width (automatic relevance determination: MacKay 1994, Tipping 2001 —
+the evidence switches off, one by one, the terms the data do not support); ``--widths group`` gives one
+width per group of like parameters (lengths, angles, joint offsets, each kind of effect;
+:func:`estcal.estimate.regularize.prior_groups`), the former default. The widths maximise the evidence of
+the training rows (type-II maximum likelihood, :func:`estcal.estimate.regularize.fit_group_prior`, searched
+by L-BFGS-B with the evidence's gradient in closed form, :func:`estcal.estimate.regularize.log_evidence_grad`);
+``--criterion evidence+cv`` adds a common multiplier chosen by leave-one-posture-out CV; ``--effects``
+changes the effect kinds (empty: the prior on the geometry alone).
 
 Protocol per split — every decision on the training rows only, the validation rows scored once:
 
@@ -17,20 +23,24 @@ Protocol per split — every decision on the training rows only, the validation 
 3. widths by the evidence, MAP fit (alternating, :func:`fit_group_prior`); with
    ``per_session``, a rigid registration of every further session by alternation (Kabsch);
 4. nested prediction: 5 posture-grouped outer folds of the training rows, each running 1–3 on its own
-   training part and predicting its held-out postures — ``predicted_validation_mm``; the line
-   ``E|e|² = a + b·v`` of the held-out errors against their leverage (maximum likelihood) and the
+   training part (widths included) and predicting its held-out postures — ``predicted_validation_mm``; the
+   line ``E|e|² = a + b·v`` of the held-out errors against their leverage (maximum likelihood) and the
    conformal 95 % region — the error budget's own (:mod:`estcal.discrepancy.budget`,
    :mod:`estcal.discrepancy.prediction`) — applied at the validation postures from their readings;
 5. the validation rows at new postures: RMSE of the point-error norms (inside / outside the
    training joint ranges) and the coverage of the 95 % region.
 
-Splits: TIAGo (both sessions, postures halved with seeds 0, 1, 2 — the halves of
-``experiments/real_robots.py``; one frame and per-session registration), UR10 (first 16 / last 7),
-TALOS session 02-10 alone (halves, seeds 0, 1, 2). Baselines on the same splits, no selection:
-``joint_offset`` and ``full`` least squares, and the same model class without a prior (free).
+Splits: TIAGo (both sessions, postures halved with ``--seeds``, default 0, 1, 2 — the halves of
+``experiments/real_robots.py``; one frame and per-session registration, ``--frames``), UR10 (first 16 /
+last 7), TALOS session 02-10 alone (halves, the same seeds). Unless ``--no-baselines``, on the same splits
+and with no selection: ``joint_offset`` and ``full`` least squares, the prior on the geometry alone, the
+same model class without a prior (refused where least squares cannot determine it), and the prior model as
+one more candidate of the level choice (posture-grouped CV, one-standard-error rule). ``--robots ablation``:
+the prior model's effect terms without any prior, with the joint_offset and aic levels (TIAGo, one frame).
 
-``python experiments/prior_study.py [--robots tiago,ur10,talos_session] [--seeds 0,1,2] [--json out.json]``
-(a few minutes on 2 busy cores; ``--robots sim`` runs the simulated check of the width choice).
+``python experiments/prior_study.py [--robots tiago,ur10,talos_session,ablation] [--seeds 0,1,2]
+[--widths parameter|group] [--criterion evidence|evidence+cv] [--json out.json]`` (≈ 11 min on 2 busy
+cores for the default robots; skips when the shared data are absent).
 """
 from __future__ import annotations
 
