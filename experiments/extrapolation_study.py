@@ -46,7 +46,7 @@ postures (both sessions' rows), one measuring frame, and scored once on half B.
 5. **Simulation** (``simulation``): the same halves on data simulated from the MAP model of all rows with
    noise at the repeatability floor — the extrapolation error of a model that is right.
 
-``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (≈ 2 min on
+``python experiments/extrapolation_study.py [--seeds 0,1,2] [--k 5] [--json out.json]`` (≈ 3 min on
 2 busy cores; ``--parts attribution,joint_ranges,candidates,span,simulation`` selects parts); skips when the shared
 data are absent.
 """

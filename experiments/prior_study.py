@@ -39,7 +39,7 @@ one more candidate of the level choice (posture-grouped CV, one-standard-error r
 the prior model's effect terms without any prior, with the joint_offset and aic levels (TIAGo, one frame).
 
 ``python experiments/prior_study.py [--robots tiago,ur10,talos_session,ablation] [--seeds 0,1,2]
-[--widths parameter|group] [--criterion evidence|evidence+cv] [--json out.json]`` (≈ 11 min on 2 busy
+[--widths parameter|group] [--criterion evidence|evidence+cv] [--json out.json]`` (≈ 2 min on 2 busy
 cores for the default robots; skips when the shared data are absent).
 """
 from __future__ import annotations
