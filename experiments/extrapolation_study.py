@@ -117,12 +117,12 @@ def _placement_of(robot, joints):
 
 
 def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.0, extra=(), stiffening=False):
-    """The MAP group-prior model (``estcal.discrepancy.prior_model``) with a variation, as ``fit(robot, data) ->
+    """The MAP prior model (``estcal.discrepancy.prior_model``) with a variation, as ``fit(robot, data) ->
     FittedStage``: ``effects`` under the prior; ``geometry="offsets"`` keeps only the joint offsets of the
     geometric set; ``drop_joints``: their placement parameters removed (:func:`_placement_of`); ``hand``: the
     last link's mass scaled (:func:`hand_scaled`); ``extra``: ``[(effect, options)]`` added on every joint the
-    effect accepts, under the prior with the others (one group per kind); ``stiffening``: the cubic compliance
-    term :class:`StiffeningCompliance` on the loaded joints (:func:`with_stiffening`)."""
+    effect accepts, under the prior with the others (a width per parameter, as the model's); ``stiffening``:
+    the cubic compliance term :class:`StiffeningCompliance` on the loaded joints (:func:`with_stiffening`)."""
     from estcal.effects import make_effect
 
     def fit(robot, data):
@@ -186,14 +186,14 @@ def with_stiffening(robot, data):
 CANDIDATES = {
     "offsets + effects": dict(geometry="offsets"),
     "no placement on extrapolated joints": dict(drop_joints="targets"),
-    "MAP (compliance + backlash)": dict(),
+    "MAP (compliance + backlash + tilt)": dict(),
     "hand mass x0.5": dict(hand=0.5),
     "hand mass x2": dict(hand=2.0),
     "+ encoder_gain": dict(extra=[("encoder_gain", {})]),
     "+ stiffening compliance (cubic)": dict(stiffening=True),
     "+ gear_harmonic (1st order)": dict(extra=[("gear_harmonic", {"orders": [1]})]),
 }
-BASE = "MAP (compliance + backlash)"
+BASE = "MAP (compliance + backlash + tilt)"
 
 
 def _fit_for(spec, noise, train_readings, target_readings):
