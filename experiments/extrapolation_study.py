@@ -68,6 +68,7 @@ from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, prior_model, width_g
 from estcal.discrepancy.stages import FittedStage, measured_points  # noqa: E402
 from estcal.effects.library import JointCompliance  # noqa: E402
 from estcal.estimate.regularize import fit_group_prior  # noqa: E402
+from estcal.validation import extrapolation_distance as extrapolation  # noqa: E402
 from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
 from real_robots import NOISE, _boot_se, _halves, _rmse, finish, load_tiago, start  # noqa: E402
 
@@ -75,15 +76,6 @@ PLACEMENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
 # ------------------------------------------------------------------ distances and errors
-def extrapolation(train_readings, readings) -> np.ndarray:
-    """(M, n) how far each joint reading lies beyond the training range of its joint, in units of that range
-    (0 inside; ``inside_ranges`` is ``all(d == 0)``)."""
-    A, B = np.asarray(train_readings, float), np.asarray(readings, float)
-    lo, hi = A.min(0), A.max(0)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    return np.maximum(0.0, np.maximum(B - hi, lo - B)) / span
-
-
 def posture_errors(err, groups):
     """``(postures, mean squared point-error norm per posture (m²), points per posture)`` of errors (N, k, 3)."""
     sq = np.sum(np.asarray(err) ** 2, -1)

@@ -59,7 +59,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 # definition `estcal diagnose --geometric prior` runs
 from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, fit_prior, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
-from estcal.validation import grouped_folds, inside_ranges, posture_groups  # noqa: E402
+from estcal.validation import extrapolation_distance, grouped_folds, inside_ranges, posture_groups  # noqa: E402
 from real_robots import _rmse, finish, start  # noqa: E402
 
 
@@ -82,9 +82,10 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     g = posture_groups(train.readings, robot.joint_types)
     meas = measured_points(train)
     held, S = np.zeros_like(meas), np.zeros(meas.shape + (3,))
-    fold_widths = []
+    fold_widths, cv_reach = [], 0.0
     for test in grouped_folds(g, k, 0):
         tr = np.setdiff1d(np.arange(train.n), test)
+        cv_reach = max(cv_reach, float(extrapolation_distance(train.readings[tr], train.readings[test]).max()))
         dtr, dte = train.subset(tr), train.subset(test)
         f_fs, f_gp = fit_prior(robot, dtr, noise, criterion, per_session, effects, widths=widths)
         held[test] = meas[test] - f_fs.predict(dte)
@@ -97,6 +98,7 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
     inside = inside_ranges(train.readings, new.readings)
     e = measured_points(new) - fs.predict(new)
     Sv = point_covariance(fs, new) * train.n
+    reach = extrapolation_distance(train.readings, new.readings).max(1)
     out = {"label": label, "per_session": per_session, "criterion": criterion, "n_train_rows": train.n,
            "n_new_rows": int(new.n), "prior": gp.to_dict(), "fold_widths": fold_widths,
            "n_parameters": len(gp.result.names), "effective_parameters": gp.result.extra["prior"]["effective_parameters"],
@@ -105,7 +107,11 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
            "predicted_at_new_mm": predicted_rmse_at(region["variance_model"]["a_mm2"] * 1e-6,
                                                     region["variance_model"]["b"], Sv) * 1e3,
            "coverage95_new": region_coverage(region, e, Sv), "beyond_cv_leverage": beyond_leverage(region, Sv),
-           "region": region, "fit_s": t_fit, "levels": levels}
+           "region": region, "fit_s": t_fit, "levels": levels,
+           # how far the new rows extrapolate (in joint ranges) against the farthest a nested-CV held-out row went
+           # (estcal.discrepancy.budget.reach_at): past it the prediction is calibrated on nothing
+           "reach_max": float(reach.max()) if reach.size else 0.0, "cv_reach_max": cv_reach,
+           "beyond_cv_reach": float(np.mean(reach > cv_reach + 1e-9)) if reach.size else 0.0}
     out["ratio_nested"] = out["predicted_validation_mm"] / out["new_mm"]
     out["ratio_at"] = out["predicted_at_new_mm"] / out["new_mm"]
     out["time_s"] = time.time() - t0
@@ -154,7 +160,8 @@ def _print(r):
     print(f"   MAP at new postures {r['new_mm']:.2f} mm (inside {r['new_inside_mm']:.2f}, outside "
           f"{r['new_outside_mm']:.2f}, {r['fraction_outside']:.0%} outside); nested CV {r['predicted_validation_mm']:.2f} "
           f"(ratio {r['ratio_nested']:.2f}); at the new postures {r['predicted_at_new_mm']:.2f} (ratio "
-          f"{r['ratio_at']:.2f}); coverage {r['coverage95_new']:.2f}")
+          f"{r['ratio_at']:.2f}); coverage {r['coverage95_new']:.2f}; reach {r['reach_max']:.2f} ranges (CV "
+          f"{r['cv_reach_max']:.2f}; {r['beyond_cv_reach']:.0%} of the new rows beyond it)")
     if r["levels"]:
         lv = r["levels"]
         print("   as a candidate of the level choice (grouped CV mm ± se): " + ", ".join(

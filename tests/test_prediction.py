@@ -221,3 +221,39 @@ def test_slope_upper_is_the_profile_likelihood_bound_and_covers():
         e, S = draw(40)
         hits.append(2.0 <= slope_upper(e, S, variance_model(e, S)[1]))
     assert np.mean(hits) >= 0.85
+
+
+def test_validation_rows_extrapolating_farther_than_the_nested_cv_are_flagged():
+    """``reach_at``: joint 2 of a PUMA trained on [0, 0.3π]; targets inside the range are not flagged, targets at
+    −0.6π (twice the range beyond it, farther than any held-out posture of the nested CV went beyond its fold's
+    range) are, with the joint named — the distance recomputed here from the readings."""
+    from estcal.discrepancy.budget import budget_lines, error_budget, reach_at, region_at
+    from estcal.kinematics.robots import puma560
+    from estcal.methods import NoiseModel
+    from estcal.simulate import simulate
+
+    rng = np.random.default_rng(3)
+    Q = rng.uniform(-0.4, 0.4, (24, 6)) * np.pi
+    Q[:, 1] = rng.uniform(0.0, 0.3, 24) * np.pi
+    far = Q[:6].copy()
+    far[:, 1] = -0.6 * np.pi
+    sim = simulate(puma560(), readings=np.r_[Q, far], measure="position", errors="random", seed=3,
+                   noise={"position": 1e-4})
+    train, targets = sim.dataset.subset(np.arange(24)), sim.dataset.subset(np.arange(24, 30))
+    b = error_budget(sim.nominal_robot, train, NoiseModel(position=1e-4, known=False), level="full", k_folds=4,
+                     spaces=())
+    cv = b.extra["extrapolation"]["cv_reach_max"]
+    assert 0.0 < cv < 2.0  # the folds' held-out postures do extrapolate, but not that far
+    inside = reach_at(b, Q[:5])
+    assert inside["reach_max"] == 0.0 and inside["beyond_cv_reach"] == 0.0
+    r = region_at(b, targets)
+    lo, hi = Q[:, 1].min(), Q[:, 1].max()
+    assert r["reach_joint"] == sim.nominal_robot.joint_names[1]
+    assert r["reach_max"] == pytest.approx((lo + 0.6 * np.pi) / (hi - lo), rel=1e-12)
+    assert r["beyond_cv_reach"] == 1.0
+    d = b.to_dict()
+    d["validation"] = [dict(r, path="far.csv")]
+    text = "\n".join(budget_lines(d))
+    assert "extrapolate farther than the CV tried" in text and sim.nominal_robot.joint_names[1] in text
+    assert "untested" in text
+    assert "fitted_readings" not in d

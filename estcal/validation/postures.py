@@ -20,13 +20,14 @@ posture_groups(readings, joint_types, tol_rad, tol_m) -> (N,) int labels
 grouped_folds(groups, k, rng) -> list of row-index arrays, no posture split
 seen_postures(train_readings, test_readings, ...) -> (M,) bool
 inside_ranges(train_readings, readings) -> (M,) bool
+extrapolation_distance(train_readings, readings) -> (M, n) beyond each joint's training range, in ranges
 """
 from __future__ import annotations
 
 import numpy as np
 
 __all__ = ["DEFAULT_TOL_RAD", "DEFAULT_TOL_M", "joint_tolerances", "posture_groups", "grouped_folds",
-           "seen_postures", "n_postures", "inside_ranges"]
+           "seen_postures", "n_postures", "inside_ranges", "extrapolation_distance"]
 
 #: default agreement of two readings of the same posture (rad for revolute, m for prismatic joints)
 DEFAULT_TOL_RAD = 1e-3
@@ -130,6 +131,18 @@ def seen_postures(train_readings, test_readings, joint_types=None, tol_rad: floa
         return np.zeros(B.shape[0], bool)
     lab = posture_groups(np.vstack([A, B]), joint_types, tol_rad, tol_m)
     return np.isin(lab[A.shape[0]:], lab[: A.shape[0]])
+
+
+def extrapolation_distance(train_readings, readings) -> np.ndarray:
+    """(M, n) how far each joint reading of ``readings`` lies beyond the range the training rows span on that
+    joint, in units of that range: ``max(0, q − max_A q, min_A q − q) / (max_A q − min_A q)`` (0 inside; a
+    joint the training rows never move counts its distance in its own units). A model's error grows with it
+    (docs/real-data.md, "Where the error at new postures comes from"); :func:`inside_ranges` is ``all(d == 0)``."""
+    A = np.asarray(train_readings, float)
+    B = np.asarray(readings, float)
+    lo, hi = A.min(0), A.max(0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    return np.maximum(0.0, np.maximum(B - hi, lo - B)) / span
 
 
 def inside_ranges(train_readings, readings) -> np.ndarray:
