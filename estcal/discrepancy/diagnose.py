@@ -51,6 +51,7 @@ from estcal.base.atomic import refuse_input
 from estcal.base.jsonio import write_json
 from estcal.base.progress import progress
 from estcal.effects import EFFECTS, make_effect
+from estcal.effects.library import across_axis_moments
 from estcal.estimate import calibrate_lsq
 from estcal.estimate.result import pose_errors
 from estcal.io.prepare import derive_approach, prepare_data, with_effect_context
@@ -146,10 +147,7 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
         big = max(float(np.abs(tau).max()), 1e-300)
     m_across = None
     if "link_tilt" in names:
-        kin = robot.rigid_kinematics(data.readings)
-        M = robot.gravity_moments(data.readings, context=ctx, kin=kin)
-        a = kin.joint_axis
-        m_across = np.linalg.norm(M - np.sum(M * a, -1, keepdims=True) * a, axis=-1)  # (N, n)
+        m_across = np.linalg.norm(across_axis_moments(robot, data.readings, context=ctx)[0], axis=-1)  # (N, n)
     out = []
     # several sessions: time runs from each session's mean (_prepare_data), so a time effect is zero there
     # and never shifts one session against another

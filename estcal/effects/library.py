@@ -24,17 +24,12 @@ from typing import Sequence
 
 import numpy as np
 
+from estcal.kinematics.transforms import cross
+
 from .base import Effect, JointEffect, register_effect
 
-__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt"]
-
-
-def _cross(a, b) -> np.ndarray:
-    """``a × b`` over the last axis (length 3), broadcasting: np.cross's products without its axis moves
-    (the link tilt evaluates it tens of thousands of times in a prior-model diagnosis)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt",
+           "across_axis_moments"]
 
 
 def _ctx(context: dict, key: str, N: int) -> np.ndarray | None:
@@ -303,6 +298,17 @@ class ThermalExpansion(Effect):
             J_points[:, k] += s[:, None, None] * corr
 
 
+def across_axis_moments(robot, readings, theta=None, context=None):
+    """``(M⊥ (N, n, 3) N·m, o (N, n, 3) m)``: the gravity moment about every joint's origin ``o_j`` across
+    its world axis ``a_j``, ``M⊥_j = M_j − (a_jᵀ M_j) a_j`` (:meth:`SerialRobot.gravity_moments` on the rigid
+    frames), and the origins — the load :class:`LinkTilt` deflects under, and what the diagnosis screens its
+    candidates by."""
+    kin = robot.rigid_kinematics(readings, theta)
+    M = robot.gravity_moments(readings, theta, context, kin=kin)
+    a = kin.joint_axis
+    return M - np.sum(M * a, -1, keepdims=True) * a, kin.joint_origin
+
+
 class LinkTilt(Effect):
     """Tilt of a joint's bearing and link under the gravity moment across its axis:
     ``δx = Σ_j t_j · M⊥_j × (x − o_j)`` for every measured point ``x``.
@@ -337,12 +343,9 @@ class LinkTilt(Effect):
         return ["payload"]
 
     def loads(self, robot, readings, theta, context):
-        """``(M⊥ (N, s, 3) N·m, o (N, s, 3) m)``: the across-axis gravity moment and the origin of every
-        selected joint."""
-        kin = robot.rigid_kinematics(readings, theta)
-        M = robot.gravity_moments(readings, theta, context, kin=kin)[:, self.joint_index]
-        a = kin.joint_axis[:, self.joint_index]
-        return M - np.sum(M * a, -1, keepdims=True) * a, kin.joint_origin[:, self.joint_index]
+        """``(M⊥ (N, s, 3) N·m, o (N, s, 3) m)`` of the selected joints (:func:`across_axis_moments`)."""
+        Mp, o = across_axis_moments(robot, readings, theta, context)
+        return Mp[:, self.joint_index], o[:, self.joint_index]
 
     def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None):
         N, K = points.shape[:2]
@@ -351,7 +354,7 @@ class LinkTilt(Effect):
         Mp, o = self.loads(robot, readings, theta, context)
         t = self.values(theta)
         phi = np.einsum("nsi,s->ni", Mp, t)  # the total small rotation (N, 3)
-        b = np.einsum("nsi,s->ni", _cross(Mp, o), t)  # Σ t_j M⊥_j × o_j
+        b = np.einsum("nsi,s->ni", cross(Mp, o), t)  # Σ t_j M⊥_j × o_j
         x = points
         if derivatives:
             # The chain passes the already corrected points x' = x + φ × x − b. Solve (I + [φ]×) x = v with
@@ -359,14 +362,14 @@ class LinkTilt(Effect):
             # (1 + |φ|²) I for K = [φ]×, as K φ = 0 and K² = φφᵀ − |φ|² I —, so that the derivative columns
             # are those of the uncorrected points (exact, not O(t²)).
             v, P = points + b[:, None, :], phi[:, None, :]
-            x = (v - _cross(P, v) + P * np.sum(P * v, -1, keepdims=True)) / (1.0 + np.sum(P * P, -1, keepdims=True))
-        d = _cross(phi[:, None, :], x) - b[:, None, :]
+            x = (v - cross(P, v) + P * np.sum(P * v, -1, keepdims=True)) / (1.0 + np.sum(P * P, -1, keepdims=True))
+        d = cross(phi[:, None, :], x) - b[:, None, :]
         if not derivatives:
             return d, None
         if J_points is not None and J is not None:
             self.correct_jacobian(J_points, J, d, phi)
         rel = x[:, :, None, :] - o[:, None, :, :]  # (N, K, s, 3)
-        F = _cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
+        F = cross(Mp[:, None], rel)  # (N, K, s, 3): the point's motion per unit t_j
         return d, np.ascontiguousarray(F.transpose(0, 1, 3, 2))
 
     @staticmethod
@@ -381,8 +384,9 @@ class LinkTilt(Effect):
         """
         w = J[:, 3:, :].transpose(0, 2, 1)  # (N, P, 3)
         for k in range(J_points.shape[1]):
-            v = J_points[:, k].transpose(0, 2, 1) - _cross(w, d[:, k, None, :])  # (N, P, 3)
-            J_points[:, k] = (v + _cross(phi[:, None, :], v)).transpose(0, 2, 1)
+            v = J_points[:, k].transpose(0, 2, 1) - cross(w, d[:, k, None, :])  # (N, P, 3)
+            J_points[:, k] = (v + cross(phi[:, None, :], v)).transpose(0, 2, 1)
+
 
 for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift, LinkTilt):
     register_effect(_cls.name, _cls, overwrite=True)

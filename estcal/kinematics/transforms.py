@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
-    "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "rpy_to_matrix", "matrix_to_rpy",
+    "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "cross", "rpy_to_matrix", "matrix_to_rpy",
     "quat_to_matrix", "matrix_to_quat", "so3_exp", "so3_log", "pose_error",
     "make_transform", "invert_transform", "so3_right_jacobian_inv", "kabsch",
 ]
@@ -55,6 +55,15 @@ def skew(v):
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def cross(a, b) -> np.ndarray:
+    """``a × b`` over the last axis (length 3), the other axes broadcast: np.cross's products without its
+    axis moves (several times faster on the small stacked arrays of the gravity loads and the link tilt,
+    which evaluate it tens of thousands of times in a prior-model diagnosis)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def rot_axis(axis, angle):
