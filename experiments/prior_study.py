@@ -57,7 +57,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 # the model (its terms, free and penalised sets, the per-session alternation) lives in the package: the one
 # definition `estcal diagnose --geometric prior` runs
-from estcal.discrepancy.prior_model import EFFECTS, WIDTHS, fit_prior, prior_model  # noqa: E402
+from estcal.discrepancy.prior_model import EFFECTS, WIDTH_CHOICES, WIDTHS, fit_prior, prior_model  # noqa: E402
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
 from estcal.validation import extrapolation_distance, grouped_folds, inside_ranges, posture_groups  # noqa: E402
 from real_robots import _rmse, finish, start  # noqa: E402
@@ -256,7 +256,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--effects", default=",".join(EFFECTS),
                     help="effect kinds of the prior model (comma-separated registry names; empty: geometry only)")
     ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
-    ap.add_argument("--widths", default=WIDTHS, choices=("group", "parameter"),
+    ap.add_argument("--widths", default=WIDTHS, choices=WIDTH_CHOICES,
                     help="one prior width per group of like parameters, or one per parameter (ARD)")
     ap.add_argument("--no-baselines", action="store_true",
                     help="skip the baselines (levels, the geometric prior, no prior) and the level-choice comparison")

@@ -62,8 +62,8 @@ from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_cor
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
 from estcal.methods import NoiseModel
-from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, extrapolation_distance, grouped_folds, inside_ranges,
-                               n_postures, posture_groups, repeatability_floor, rmse_mm)
+from estcal.validation import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, extrapolation_distance, grouped_folds, n_postures,
+                               posture_groups, repeatability_floor, rmse_mm)
 
 __all__ = ["ErrorBudget", "FittedStage", "error_budget", "diagnosis_budget", "budget_lines", "predicted_at",
            "region_at", "reach_at", "fit_stage", "fit_stage_sessions", "predicted_points", "measured_points",
@@ -242,7 +242,7 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
     # × the number of training rows: the leverage in units of one training row (the metric of the identification
     # Jacobian, the same whatever the number of rows of the fit; prediction.py)
     out["S"] = point_covariance(fs, dte) * len(train)
-    out["outside"] = ~inside_ranges(dtr.readings, dte.readings)
+    # how far each held-out row goes beyond its fold's training ranges (0 inside: inside_ranges)
     out["reach"] = extrapolation_distance(dtr.readings, dte.readings).max(1)
     return out
 
@@ -303,8 +303,7 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     held_gp = {sp: np.zeros_like(meas) for sp in spaces}
     rec = np.zeros_like(meas)
     S = np.zeros(meas.shape + (3,))
-    outside = np.zeros(n, bool)  # held-out rows beyond their fold's training joint ranges (extrapolated)
-    reach = np.zeros(n)  # how far, in units of the joint's training range (the farthest joint)
+    reach = np.zeros(n)  # how far held-out rows go beyond their fold's training ranges (the farthest joint)
     decisions = []
     for test in folds:
         o = _outer_fold(robot, data, noise, test, proc, cfg, gps_all)
@@ -312,18 +311,18 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
             held[st][test] = o["held"][st]
         for sp in spaces:
             held_gp[sp][test] = o["gp"][sp]
-        rec[test], S[test], outside[test], reach[test] = o["rec"], o["S"], o["outside"], o["reach"]
+        rec[test], S[test], reach[test] = o["rec"], o["S"], o["reach"]
         decisions.append({"level": o["level"], "effects": o["effects"], "gp": o["gp_space"],
                           **({"fit": o["fit"]} if "fit" in o else {})})
     # the GP decision on all rows: the outer folds' held-out residuals with and without each space's GP
     fsq = lambda h: np.array([np.sum(h[f] ** 2) for f in folds])  # noqa: E731
     ratios = _gains(fsq(held["named"]), {sp: fsq(held_gp[sp]) for sp in spaces})
     gp_space = cfg["gp_space"] if not nested else _gp_choice(proc.gp, ratios if proc.gp != "never" else {})
-    return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, (outside, reach), final, gps_all,
-                     gp_space, ratios, level, effects, levels_cv, decisions, per_session, nested, proc.label)
+    return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, reach, final, gps_all, gp_space,
+                     ratios, level, effects, levels_cv, decisions, per_session, nested, proc.label)
 
 
-def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, extrapolated, final, gps_all, gp_space, ratios,
+def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, reach, final, gps_all, gp_space, ratios,
               level, effects, levels_cv, decisions, per_session, nested, model=None) -> ErrorBudget:
     """The :class:`ErrorBudget` from the outer folds' held-out residuals (module docstring)."""
     sq = {k: np.sum(v ** 2, axis=-1) for k, v in held.items()}  # (N, k) squared norms
@@ -348,7 +347,7 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, extrapolat
     # the recommended model's CV error inside / outside the fold's training joint ranges (extrapolation)
     # and the farthest a held-out row went beyond its fold's training range (in ranges): the nested prediction
     # has seen extrapolation up to there, not beyond (region_at flags validation rows that go farther)
-    outside, reach = extrapolated
+    outside = reach > 0
     in_out = {"cv_inside_mm": rmse_mm(np.sqrt(pred_sq[~outside])), "cv_outside_mm": rmse_mm(np.sqrt(pred_sq[outside])),
               "fraction_outside": float(outside.mean()), "cv_reach_max": float(reach.max()) if reach.size else 0.0}
     region = _region(rec, S)

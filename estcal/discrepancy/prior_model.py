@@ -48,7 +48,7 @@ from estcal.identify.select import select_identifiable
 from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
-__all__ = ["EFFECTS", "WIDTHS", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
+__all__ = ["EFFECTS", "WIDTHS", "WIDTH_CHOICES", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
            "width_line", "diagnose_prior", "PriorDiagnosisResult"]
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds): the gravity
@@ -56,6 +56,7 @@ __all__ = ["EFFECTS", "WIDTHS", "width_groups", "prior_model", "prior_fit", "fit
 EFFECTS = ("joint_compliance", "backlash", "link_tilt")
 #: one prior width per parameter by default (automatic relevance determination; "group": one per kind)
 WIDTHS = "parameter"
+WIDTH_CHOICES = ("parameter", "group")
 
 #: SI unit of an effect group's parameters on a (revolute, prismatic) joint (estcal/effects/library.py)
 _EFFECT_UNITS = {"compliance": ("rad/(N·m)", "m/N"), "backlash": ("rad", "m"), "tilt": ("rad/(N·m)", "rad/(N·m)")}
@@ -107,11 +108,9 @@ def width_groups(robot, penalised, widths: str):
     """The prior groups: ``"group"`` — one width per kind of parameter (:func:`prior_groups`); ``"parameter"``
     — one width per parameter (automatic relevance determination: MacKay 1994, *ASHRAE Trans.* 100:1053;
     Tipping 2001, *JMLR* 1:211), the evidence then shrinks each term separately."""
-    if widths == "group":
-        return None
-    if widths == "parameter":
-        return {n: n for n in penalised}
-    raise ValueError(f"widths must be 'group' or 'parameter', got {widths!r}")
+    if widths not in WIDTH_CHOICES:
+        raise ValueError(f"widths must be one of {WIDTH_CHOICES}, got {widths!r}")
+    return {n: n for n in penalised} if widths == "parameter" else None
 
 
 def fit_prior(robot, data, noise, criterion: str = "evidence", per_session=None, effects=EFFECTS, n_alt: int = 3,

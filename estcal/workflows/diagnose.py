@@ -57,6 +57,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
 
     if kw.get("geometric") == "prior":  # the MAP group-prior model: loaded only when asked for
         from estcal.discrepancy.prior_model import EFFECTS as PRIOR_EFFECTS
+        from estcal.discrepancy.prior_model import WIDTH_CHOICES, WIDTHS
         from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
 
         if effects is not None:
@@ -64,8 +65,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
                              "can excite under its prior and selects no effect, so there is nothing to choose "
                              "from; drop --effects, or choose another --geometric (docs/real-data.md, 'A prior "
                              "instead of a level')")
-        if kw.get("widths", "group") not in ("group", "parameter"):
-            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give group or parameter")
+        if kw.get("widths", WIDTHS) not in WIDTH_CHOICES:
+            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give {' or '.join(WIDTH_CHOICES)}")
     elif "widths" in kw:
         raise InputError(f"--prior-widths: only with --geometric prior (the other --geometric choices fit no prior; "
                          f"got --geometric {kw.get('geometric', 'full')})")
