@@ -130,7 +130,7 @@ def variant_fit(noise, effects=EFFECTS, geometry="full", drop_joints=(), hand=1.
             drop |= {n for n in pen if kinds[n] == "geometric"}
         free = [n for n in free if n not in drop]
         pen = [n for n in pen if n not in drop]
-        gp = fit_group_prior(problem, free, pen, width_groups(problem.robot, pen, WIDTHS))
+        gp = fit_group_prior(problem, free, pen, width_groups(pen, WIDTHS))
         fit.last = gp
         return FittedStage(problem.robot, gp.result.theta, free, gp.result)
 

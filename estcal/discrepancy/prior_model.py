@@ -93,7 +93,7 @@ def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS, widths: str =
 
     def fit(robot, data):
         problem, free, pen = prior_model(robot, data, noise, effects)
-        gp = fit_group_prior(problem, free, pen, width_groups(problem.robot, pen, widths), criterion=criterion)
+        gp = fit_group_prior(problem, free, pen, width_groups(pen, widths), criterion=criterion)
         gp.result.extra["fold_decision"] = {"widths_si": gp.to_dict()["widths"],
                                             "sigma0": float(gp.sigma0),
                                             "effective_parameters": _effective(gp)}
@@ -104,7 +104,7 @@ def prior_fit(noise, criterion: str = "evidence", effects=EFFECTS, widths: str =
     return fit
 
 
-def width_groups(robot, penalised, widths: str):
+def width_groups(penalised, widths: str):
     """The prior groups: ``"group"`` — one width per kind of parameter (:func:`prior_groups`); ``"parameter"``
     — one width per parameter (automatic relevance determination: MacKay 1994, *ASHRAE Trans.* 100:1053;
     Tipping 2001, *JMLR* 1:211), the evidence then shrinks each term separately."""
@@ -283,7 +283,7 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     geo, gdropped, lumped, tau, analysis, _ = _geometric_model(robot, data, nm, None, ident_tol, "full", folds,
                                                                cv_max_iter)
     analysis["geometric_level"] = "full"
-    width_groups(robot, [], widths)  # refuse an unknown choice before any fit
+    width_groups([], widths)  # refuse an unknown choice before any fit
     fit = _once_per_rows(prior_fit(nm, criterion, effects, widths))
     fs = fit(robot, data)
     gp = fit.last

@@ -348,7 +348,6 @@ class LinkTilt(Effect):
         return Mp[:, self.joint_index], o[:, self.joint_index]
 
     def point_correction(self, robot, readings, points, theta, context, derivatives, J_points=None, J=None):
-        N, K = points.shape[:2]
         if not len(self.joints):
             return np.zeros_like(points), (np.zeros(points.shape + (0,)) if derivatives else None)
         Mp, o = self.loads(robot, readings, theta, context)
