@@ -61,6 +61,8 @@ from estcal.validation import (inside_ranges, posture_groups, repeatability_floo
                                seen_postures)
 
 NOISE = NoiseModel(position=2e-4, orientation=2e-3, known=False)
+#: the MAP prior model is a candidate of the recommended procedure's level choice (``--no-prior-candidate``: not)
+PRIOR_CANDIDATE = True
 LEVELS = ("joint_offset", "aic", "full")
 
 
@@ -134,27 +136,35 @@ def _boot_se(err_norms, groups, n=400, seed=0):
     return float(np.std(vals, ddof=1))
 
 
-def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, label="", plain=True, level=None):
+def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, label="", plain=True, level=None,
+          prior=None):
     """Steps 3–6 of the protocol on one split; returns a JSON-ready dict. ``level``: a fixed geometric level
-    instead of the one-standard-error choice (the exploration of a model class)."""
+    instead of the one-standard-error choice (the exploration of a model class). ``prior``: the MAP prior model
+    is a candidate of the level choice, preferred (``estcal diagnose --geometric auto``); False: the levels
+    only (the procedure before it)."""
     from estcal.discrepancy import diagnose
     from estcal.discrepancy.budget import predicted_at, region_at
-    from estcal.discrepancy.prediction import Procedure, choose_level
+    from estcal.discrepancy.prediction import LEVELS, PRIOR, Procedure, choose_level, one_se_choice
+    from estcal.discrepancy.prior_model import prior_fit
     from estcal.discrepancy.stability import cause_key
 
     out, times = {"label": label, "n_train_rows": train.n, "n_valid_rows": valid.n, "per_session": per_session}, {}
     g = posture_groups(train.readings, robot.joint_types)
     t0 = time.time()
-    # 3. geometric level: posture-grouped CV, one-standard-error rule
+    # 3. geometric level (or the prior model): posture-grouped CV, one-standard-error rule
     fixed = level
-    level, levels = choose_level(robot, train, NOISE, g, k_folds, 0, per_session)
+    prior = PRIOR_CANDIDATE if prior is None else prior
+    pf = prior_fit(NOISE) if prior and not fixed else None
+    level, levels = choose_level(robot, train, NOISE, g, k_folds, 0, per_session, fits={PRIOR: pf} if pf else None)
     level = fixed or level
     out["levels"], out["level"] = levels, level
     times["levels"] = time.time() - t0
-    # 4. causes: the diagnosis of the training rows, with its stability rule
+    # 4. causes: the diagnosis of the training rows, with its stability rule — at the level the choice among the
+    # levels alone makes when the prior model is chosen (its causes are not part of the recommended model then)
     t1 = time.time()
-    diag = diagnose(robot, train, k_folds=k_folds, geometric=level, families=False)
-    effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in diag.causes]
+    lv_diag = one_se_choice({lv: levels[lv] for lv in LEVELS}) if level == PRIOR else level
+    diag = diagnose(robot, train, k_folds=k_folds, geometric=lv_diag, families=False)
+    effects = [] if level == PRIOR else [(c.effect, list(c.joints), dict(c.options or {})) for c in diag.causes]
     st = diag.stability or {}
     out["causes"] = {"kept": [cause_key(c) for c in diag.causes], "k_folds": k_folds,
                      "folds_naming": {cause_key(c): c.folds_naming for c in diag.causes},
@@ -162,12 +172,13 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     times["causes"] = time.time() - t1
     # 5. the budget: nested CV of the whole procedure (level, causes, GP chosen again in every outer fold)
     t2 = time.time()
-    proc = Procedure(level=fixed or "auto", select_effects=diag.selector, gp="cv", k_inner=k_folds)
+    proc = Procedure(level=fixed or "auto", select_effects=diag.selector, gp="cv", k_inner=k_folds, prior_fit=pf)
     budget = error_budget(robot, train, NOISE, level=level, effects=effects, procedure=proc, k_folds=k_folds,
                           gp_restarts=gp_restarts, per_session=per_session)
     out["budget"] = budget.to_dict()
     if plain:  # the CV of the chosen model alone (decisions made on all training rows): selection-biased
         pb = error_budget(robot, train, NOISE, level=level, effects=effects, k_folds=k_folds, spaces=(),
+                          procedure=Procedure(level="auto", prior_fit=pf, k_inner=k_folds) if level == PRIOR else None,
                           per_session=per_session, nested=False)
         out["cv_of_the_choice_mm"] = pb.named_mm
     times["budget"] = time.time() - t2
@@ -250,7 +261,7 @@ def _halves(groups, seed):
     return np.isin(groups, a)
 
 
-def run_tiago(seeds, k, restarts, quick):
+def run_tiago(seeds, k, restarts, quick, frames=(None, "registration")):
     robot, data = load_tiago()
     g = posture_groups(data.readings, robot.joint_types)
     rep = repeatability_floor(measured_points(data), g, data.columns["session"])
@@ -260,7 +271,7 @@ def run_tiago(seeds, k, restarts, quick):
     out = {"repeatability": rep, "splits": []}
     for seed in seeds:
         tr = _halves(g, seed)
-        for per in ((None,) if quick else (None, "registration")):
+        for per in ((None,) if quick else frames):
             res = study(robot, data.subset(tr), data.subset(~tr), k_folds=k, per_session=per, gp_restarts=restarts,
                         label=f"TIAGo seed {seed}" + (f", per-session {per}" if per else ""))
             res["seed"], res["per_session"] = seed, per
@@ -561,19 +572,28 @@ def main(argv=None) -> dict:
                     help="comma-separated subset of extrapolation, tiago, ur10, talos, talos_session, best, joint, "
                          "design, explore")
     ap.add_argument("--k", type=int, default=None, help="posture-grouped folds (default 5; 3 with --quick)")
+    ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
+    ap.add_argument("--seeds", default=None, help="TIAGo / TALOS halvings (default 0,1,2; 0 with --quick)")
+    ap.add_argument("--no-prior-candidate", action="store_true",
+                    help="the level choice among the levels only (the procedure before the prior model joined it)")
     args = start(ap, argv)
     if args is None:
         return {"skipped": True}
     k, restarts = (3, 0) if args.quick else (5, 0)
     k = args.k or k
     seeds = (0,) if args.quick else (0, 1, 2)
+    seeds = tuple(int(x) for x in args.seeds.split(",")) if args.seeds else seeds
+    frames = [{"one": None, "per-session": "registration"}[f] for f in args.frames.split(",")]
+    if args.no_prior_candidate:
+        global PRIOR_CANDIDATE
+        PRIOR_CANDIDATE = False
     robots = args.robots.split(",")
     out = {"protocol": __doc__, "quick": args.quick}
     t0 = time.time()
     if "extrapolation" in robots:
         out["extrapolation"] = run_extrapolation(seeds, 50 if args.quick else 300, k)
     if "tiago" in robots:
-        out["tiago"] = run_tiago(seeds, k, restarts, args.quick)
+        out["tiago"] = run_tiago(seeds, k, restarts, args.quick, frames)
     if "ur10" in robots:
         out["ur10"] = run_ur10(k, restarts)
     if "talos" in robots and not args.quick:

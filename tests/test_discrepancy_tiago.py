@@ -61,19 +61,35 @@ def test_tiago_experiment_quick(tiago_dir, tmp_path):
 
 
 def test_tiago_cli_auto_level(tiago_dir, tmp_path):
-    """`estcal diagnose --geometric auto --approach-from-order`: the level by posture-grouped CV with the aic
-    selection redone in every fold and the one-standard-error rule (joint_offset: an aic set chosen on all
-    37 postures looked best only because the CV kept that choice), then arm_6 backlash, named in every fold."""
+    """`estcal diagnose --geometric auto --approach-from-order`, validated on 11-26. Among the levels only (with
+    --effects, as the prior model selects no effect): the level by posture-grouped CV with the aic selection
+    redone in every fold and the one-standard-error rule (joint_offset: an aic set chosen on all 37 postures
+    looked best only because the CV kept that choice), then arm_6 backlash, named in every fold. With the prior
+    model among the candidates (the default of auto) the prior model is chosen — its CV lower than every
+    level's by more than their standard errors — and predicts the 25 postures of 11-26 that 11-30 does not hold
+    better than the levels-only choice does."""
     from typer.testing import CliRunner
 
     from estcal.cli.main import app
 
-    out = tmp_path / "fit.json"
-    r = CliRunner().invoke(app, ["diagnose", str(tiago_dir / "qualisys_2021-11-30_static_postures.csv"),
-                                 "--robot", "tiago", "--geometric", "auto", "--approach-from-order",
-                                 "--validate", str(tiago_dir / "qualisys_2021-11-26_static_postures.csv"),
-                                 "--json", str(out)])
-    assert r.exit_code == 0, r.output
-    d = json.loads(out.read_text())
-    assert d["analysis"]["geometric_level"] == "joint_offset"
+    def run(*extra):
+        out = tmp_path / "fit.json"
+        r = CliRunner().invoke(app, ["diagnose", str(tiago_dir / "qualisys_2021-11-30_static_postures.csv"),
+                                     "--robot", "tiago", "--geometric", "auto", "--approach-from-order",
+                                     "--validate", str(tiago_dir / "qualisys_2021-11-26_static_postures.csv"),
+                                     "--no-budget", "--json", str(out), *extra])
+        assert r.exit_code == 0, r.output
+        return json.loads(out.read_text())
+
+    d = run("--effects", "joint_compliance,backlash,gear_harmonic,encoder_gain,thermal_expansion,drift")
+    assert d["analysis"]["geometric_level"] == "joint_offset" and "geometric_choice" not in d["analysis"]
     assert [(c["effect"], c["joints"][0], c["folds_naming"]) for c in d["causes"]] == [("backlash", "arm_6_joint", 5)]
+    p = run()
+    choice = p["analysis"]["geometric_choice"]
+    assert choice["chosen"] == "prior" and p["prior"]["n_penalised"] > 40
+    cv = choice["cv"]
+    assert all(cv["prior"]["cv_mm"] + cv["prior"]["se_mm"] < cv[lv]["cv_mm"] - cv[lv]["se_mm"]
+               for lv in ("joint_offset", "aic", "full"))
+    new = lambda r: r["rmse_mm"]["validation_postures"]["new"]["extended"]  # noqa: E731
+    assert p["rmse_mm"]["validation_postures"]["new"]["n_rows"] == 25
+    assert new(p) < 0.8 * new(d)

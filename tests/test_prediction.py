@@ -257,3 +257,9 @@ def test_validation_rows_extrapolating_farther_than_the_nested_cv_are_flagged():
     assert "extrapolate farther than the CV tried" in text and sim.nominal_robot.joint_names[1] in text
     assert "untested" in text
     assert "fitted_readings" not in d
+    # one training session: the text says the region has no session-to-session term; with two it does not
+    assert d["training_sessions"] == 1 and "one training session" in text
+    two = error_budget(sim.nominal_robot, train, NoiseModel(position=1e-4, known=False), level="full", k_folds=4,
+                       spaces=(), sessions=np.arange(24) % 2)
+    d2 = dict(two.to_dict(), validation=[dict(region_at(two, targets), path="far.csv")])
+    assert d2["training_sessions"] == 2 and "one training session" not in "\n".join(budget_lines(d2))

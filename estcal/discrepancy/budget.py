@@ -35,7 +35,9 @@ fold named), so every figure is the error of what the tool would do, not of one 
 all rows. A procedure with its own fit (``Procedure.fit``, e.g. the MAP group-prior model of
 :mod:`estcal.discrepancy.prior_model`) puts that model in the named row (``model``: its name) and
 refits it, with every decision it makes (the prior widths), on each fold's training rows; ``decisions``
-records per fold what it decided (``fit``).
+records per fold what it decided (``fit``). A procedure whose level choice has the prior model among its
+candidates (``Procedure.prior_fit``) fits, in a fold that chooses it, the prior model in the named row and
+the ``full`` level in the geometric one (``decisions[i].level``: ``"prior"``).
 
 ``region`` is the 95 % prediction region of a new posture (b × θ covariance + τ², the
 conformal threshold from the nested held-out points) and ``region.variance_model``
@@ -55,8 +57,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.discrepancy.prediction import (GP_GAIN, Procedure, beyond_leverage, choose_level, conformal_threshold,
-                                           predicted_rmse_at, region_coverage, region_scores, region_sigma,
+from estcal.discrepancy.prediction import (GP_GAIN, PRIOR, Procedure, beyond_leverage, choose_level,
+                                           conformal_threshold, predicted_rmse_at, region_coverage, region_scores, region_sigma,
                                            slope_upper, variance_model)
 from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
@@ -149,6 +151,9 @@ def _region_lines(b: dict) -> list[str]:
                      f"{b['extrapolation']['cv_reach_max']:.2g}×): the prediction is untested there")
         out.append(f"  validation {v['path']}: RMSE {v['rmse_mm']:.3f} mm{pred}, inside the region "
                    f"{100 * v['coverage']:.0f} % of {v['n_points']} points")
+    if b.get("validation") and b.get("training_sessions") == 1:
+        out.append("  (one training session: the region has no session-to-session term, so the points of another "
+                   "session fall outside it more often than 5 %; train on several sessions to include it)")
     return out
 
 
@@ -212,15 +217,19 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
     per, mi = cfg["per_session"], cfg["max_iter"]
     lv = cfg["level"]
     if cfg["nested"] and proc.level == "auto":
-        lv = choose_level(robot, dtr, noise, cfg["groups"][train], proc.k_inner, cfg["rng"], per, max_iter=mi)[0]
+        lv = choose_level(robot, dtr, noise, cfg["groups"][train], proc.k_inner, cfg["rng"], per, max_iter=mi,
+                          fits=proc.candidates())[0]
+    # the prior model chosen as the level: its own fit, the full level as the budget's geometric stage
+    fold_fit, geo_lv = (proc.prior_fit, "full") if lv == PRIOR else (proc.fit, lv)
     fits = {"nominal": fit_stage_sessions(robot, dtr, noise, "nominal", per_session=per, max_iter=mi),
-            "geometric": fit_stage_sessions(robot, dtr, noise, "geometric", lv, per_session=per, max_iter=mi)}
-    eff = proc.effects_for(train, fits["geometric"].free) if cfg["nested"] else list(cfg["effects"])
-    fits["named"] = (fit_stage_sessions(robot, dtr, noise, "named", lv, eff, per, max_iter=mi, fit=proc.fit)
-                     if eff or proc.fit is not None else fits["geometric"])
+            "geometric": fit_stage_sessions(robot, dtr, noise, "geometric", geo_lv, per_session=per, max_iter=mi)}
+    eff = ([] if lv == PRIOR else proc.effects_for(train, fits["geometric"].free)) if cfg["nested"] \
+        else list(cfg["effects"])
+    fits["named"] = (fit_stage_sessions(robot, dtr, noise, "named", geo_lv, eff, per, max_iter=mi, fit=fold_fit)
+                     if eff or fold_fit is not None else fits["geometric"])
     out = {"held": {st: meas - fs.predict(dte) for st, fs in fits.items()}, "gp": {}, "level": lv,
            "effects": [[e[0], list(e[1])] for e in eff]}
-    if proc.fit is not None:  # what the procedure's own fit decided on this fold's rows (e.g. the prior widths)
+    if fold_fit is not None:  # what the procedure's own fit decided on this fold's rows (e.g. the prior widths)
         out["fit"] = fits["named"].result.extra.get("fold_decision")
     fs = fits["named"]
     r_tr = fs.residual_common(dtr)
@@ -232,7 +241,8 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
         out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
     if cfg["nested"] and proc.gp != "never":
         inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
-        space = _gp_choice(proc.gp, _inner_gp_gains(robot, dtr, noise, lv, eff, inner, cfg["spaces"], cfg))
+        space = _gp_choice(proc.gp, _inner_gp_gains(robot, dtr, noise, geo_lv, eff, inner, cfg["spaces"],
+                                                    dict(cfg, fit=fold_fit)))
     else:
         space = cfg["gp_space"] if not cfg["nested"] else None
     out["gp_space"] = space
@@ -261,7 +271,8 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     noise : NoiseModel for the fits (default: unknown, 0.2 mm / 0.2 mrad starting scale).
     level, effects : the geometric level (``"auto"``: :func:`~estcal.discrepancy.prediction.choose_level`)
         and the named effects (``(name, joints, options)``) of the recommended model — the procedure's
-        decisions on all rows.
+        decisions on all rows; ``level="prior"`` (or ``"auto"`` choosing it): the procedure's ``prior_fit``,
+        the MAP prior model, is the recommended model (no named effects; the geometric stage is ``full``).
     procedure : the :class:`~estcal.discrepancy.prediction.Procedure` that made them, replayed on every
         outer fold (default: the level as given — ``auto`` is chosen again in every fold — the effects
         fixed, the GP as ``residual_model`` says).
@@ -282,20 +293,29 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     g = posture_groups(data.readings, robot.joint_types, tol_rad, tol_m) if groups is None else np.asarray(groups)
     if sessions is None:
         sessions = data.columns.get("session", np.zeros(n))
+    if level == PRIOR and (procedure is None or procedure.prior_fit is None):
+        raise ValueError("level 'prior' needs a Procedure with prior_fit (the MAP prior model's fit)")
     proc = procedure or Procedure(level=level, effects=tuple(tuple(e) for e in effects),
                                   gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
     levels_cv = None
     if level == "auto":
-        level, levels_cv = choose_level(robot, data, noise, g, proc.k_inner, rng, per_session, max_iter=max_iter)
+        level, levels_cv = choose_level(robot, data, noise, g, proc.k_inner, rng, per_session, max_iter=max_iter,
+                                        fits=proc.candidates())
+    # the prior model chosen as the level: its own fit and no named effects; the full level as the geometric stage
+    chose_prior = level == PRIOR
+    final_fit, model = (proc.prior_fit, proc.label or PRIOR) if chose_prior else (proc.fit, proc.label)
+    if chose_prior:
+        effects, level = (), "full"
     folds = grouped_folds(g, k_folds, rng)
     meas = measured_points(data)
     stage = "named" if effects else "geometric"
-    final = fit_stage_sessions(robot, data, noise, stage, level, effects, per_session, max_iter=max_iter, fit=proc.fit)
+    final = fit_stage_sessions(robot, data, noise, stage, level, effects, per_session, max_iter=max_iter, fit=final_fit)
     r_all = final.residual_common(data)
     gps_all = {sp: fit_residual_model(sp, final.robot, final.theta, data.readings, r_all, data.context, gp_restarts,
                                       rng) for sp in spaces}
     cfg = {"groups": g, "per_session": per_session, "max_iter": max_iter, "rng": rng, "nested": nested,
-           "spaces": spaces, "level": level, "effects": effects, "gp_space": None, "fit": proc.fit}
+           "spaces": spaces, "level": PRIOR if chose_prior else level,
+           "effects": effects, "gp_space": None, "fit": final_fit}
     if not nested and proc.gp != "never":  # the decision on all rows first: the folds keep it
         cfg["gp_space"] = _gp_choice(proc.gp, _inner_gp_gains(robot, data, noise, level, effects,
                                                               grouped_folds(g, proc.k_inner, rng), spaces, cfg))
@@ -319,7 +339,7 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     ratios = _gains(fsq(held["named"]), {sp: fsq(held_gp[sp]) for sp in spaces})
     gp_space = cfg["gp_space"] if not nested else _gp_choice(proc.gp, ratios if proc.gp != "never" else {})
     return _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, reach, final, gps_all, gp_space,
-                     ratios, level, effects, levels_cv, decisions, per_session, nested, proc.label)
+                     ratios, level, effects, levels_cv, decisions, per_session, nested, model)
 
 
 def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, reach, final, gps_all, gp_space, ratios,
@@ -355,6 +375,8 @@ def _assemble(robot, data, g, sessions, folds, held, held_gp, rec, S, reach, fin
     label = (model or ("named" if effects else "geometric")) + (" + GP" if gp_space else "")
     extra = {"fitted_robot": final.robot, "fitted_theta": final.theta, "fitted": final, "per_session": per_session,
              "fitted_readings": data.readings,  # the training readings (not serialised: "fitted…")
+             # one session: the nested held-out errors hold nothing of what changes from one session to the next
+             "training_sessions": int(np.unique(np.asarray(sessions)).size),
              "extrapolation": in_out, "region": region, "nested": bool(nested), "decisions": decisions,
              "gp_space": gp_space, "gp_held_out_ratio": {sp: {"mse_ratio": r, "se": e} for sp, (r, e) in ratios.items()}}
     if levels_cv:

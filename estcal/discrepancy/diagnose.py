@@ -560,7 +560,9 @@ def diagnose(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=
     geometric : ``full`` (every identifiable geometric parameter, default), ``aic``
         (those an Akaike criterion supports) or ``joint_offset``; see
         :func:`~estcal.discrepancy.geometric.fit_geometric`. ``auto``: the one of the
-        three with the lowest cross-validated RMSE on ``data``.
+        three with the lowest cross-validated RMSE on ``data`` (the one-standard-error rule); the
+        command's ``--geometric auto`` (:func:`estcal.discrepancy.prior_model.diagnose_auto`, through
+        :func:`estcal.diagnose`) has the MAP prior model among the candidates too, preferred.
     approach_from_order : infer ``approach_<joint>`` columns from the posture order
         (:func:`~estcal.io.prepare.derive_approach`) for data and validation
         data, so that backlash is tested against the approach direction.

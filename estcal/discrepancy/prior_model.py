@@ -49,6 +49,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
 __all__ = ["EFFECTS", "WIDTHS", "WIDTH_CHOICES", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
+           "diagnose_auto",
            "width_line", "diagnose_prior", "PriorDiagnosisResult"]
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds): the gravity
@@ -257,7 +258,7 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
                    geometric: str = "prior", approach_from_order: bool = False, session_time: bool = True,
                    posture_tol=(1e-3, 1e-3), budget: bool = False, residual_model: str | None = None,
                    criterion: str = "evidence", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
-                   alpha=None, max_effects=None, widths: str = WIDTHS):
+                   alpha=None, max_effects=None, widths: str = WIDTHS, fit=None):
     """:func:`estcal.discrepancy.diagnose` with the MAP group-prior model as the recommended model
     (``geometric="prior"``; module docstring): no forward selection — ``candidates``, ``alpha`` and
     ``max_effects`` are not used, and candidates given are refused.
@@ -267,7 +268,9 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     and validation (``seen`` / ``new`` postures). ``result.prior``: :func:`prior_summary` plus the training
     and CV RMSE (mm). With ``budget`` (or ``residual_model="gp"``) the error budget's nested prediction
     refits the model, its widths included, on every outer fold's training rows. Returns a
-    ``DiagnosisResult`` (with ``prior``); saved, compensated and exported like any diagnosis model.
+    ``DiagnosisResult`` (with ``prior``); saved, compensated and exported like any diagnosis model. ``fit``:
+    the model's fit (:func:`prior_fit` made once per rows) when the caller has one with fits already made on
+    these rows (:func:`diagnose_auto`'s level choice, the same folds).
     """
     if geometric != "prior":
         raise ValueError(f"diagnose_prior fits the prior model (geometric='prior'), got {geometric!r}")
@@ -284,7 +287,7 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
                                                                cv_max_iter)
     analysis["geometric_level"] = "full"
     width_groups([], widths)  # refuse an unknown choice before any fit
-    fit = _once_per_rows(prior_fit(nm, criterion, effects, widths))
+    fit = fit or _once_per_rows(prior_fit(nm, criterion, effects, widths))
     fs = fit(robot, data)
     gp = fit.last
     problem = Problem(fs.robot, [(t.method, t.data, t.noise) for t in geo.problem.terms])
@@ -307,6 +310,53 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     if budget or residual_model:
         _budget(out, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model)
     return out
+
+
+def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0, robot_spec=None,
+                  approach_from_order: bool = False, session_time: bool = True, posture_tol=(1e-3, 1e-3),
+                  budget: bool = False, residual_model: str | None = None, criterion: str = "evidence",
+                  widths: str = WIDTHS, **kw):
+    """``estcal diagnose --geometric auto``: the level chosen by posture-grouped CV among the MAP prior model
+    and the levels ``joint_offset``, ``aic``, ``full`` — the prior model preferred, a level taken only when its
+    CV error is lower by more than one standard error (:func:`estcal.discrepancy.prediction.choose_level`,
+    :mod:`estcal.discrepancy.prediction` says why). The prior model chosen: :func:`diagnose_prior`, its causes
+    not named; a level chosen: :func:`estcal.discrepancy.diagnose` at that level (``kw``: its further options,
+    the candidates among them). Either way the error budget's nested prediction replays the same choice, the
+    prior model among the candidates, in every outer fold (a fold that chooses a level names its causes with
+    the diagnosis's selector; when the prior model was chosen on all rows there is none, and such a fold fits
+    the level alone). The CV of every candidate is in ``analysis["geometric_level_cv_mm"]`` and in the verdict.
+    """
+    from estcal.discrepancy.diagnose import diagnose
+    from estcal.discrepancy.prediction import PRIOR, Procedure, choose_level
+
+    rb, spec, d, _, _ = _prepare_data(robot, data, validate, robot_spec, approach_from_order, session_time)
+    nm = NoiseModel(known=False) if noise is None else NoiseModel.parse(noise, known=True)
+    width_groups([], widths)  # refuse an unknown choice before any fit
+    fit = _once_per_rows(prior_fit(nm, criterion, EFFECTS, widths))
+    groups = posture_groups(d.readings, rb.joint_types, *posture_tol)
+    level, cv = choose_level(rb, d, nm, groups, k_folds, rng, fits={PRIOR: fit})
+    common = dict(validate=validate, k_folds=k_folds, noise=noise, rng=rng, robot_spec=spec,
+                  approach_from_order=approach_from_order, session_time=session_time, posture_tol=posture_tol)
+    gp = "always" if residual_model == "gp" else "never"
+    if level == PRIOR:
+        if kw.get("candidates"):
+            raise ValueError("--geometric auto chose the prior model, which selects no effect: give no candidates")
+        res = diagnose_prior(rb, data, **common, criterion=criterion, widths=widths, fit=fit)
+        proc = Procedure(level="auto", prior_fit=fit, gp=gp, k_inner=k_folds)
+        effects = ()
+    else:
+        res = diagnose(rb, data, geometric=level, **common, **kw)
+        effects = tuple((c.effect, list(c.joints), dict(c.options or {})) for c in res.causes)
+        proc = Procedure(level="auto", select_effects=res.selector, effects=() if res.selector else effects,
+                         gp=gp, k_inner=k_folds, prior_fit=fit)
+    res.analysis["geometric_level_cv_mm"] = {c: v["cv_mm"] for c, v in cv.items()}
+    res.analysis["geometric_choice"] = {"chosen": level, "cv": cv}
+    res.verdict += (" Chosen by --geometric auto (posture-grouped CV, mm, the prior model preferred within one "
+                    "standard error): " + ", ".join(f"{c} {v['cv_mm']:.3g} ± {v['se_mm']:.2g}" for c, v in cv.items())
+                    + f" → {level}.")
+    if budget or residual_model:
+        _attach_budget(res, rb, res.train_data, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model)
+    return res
 
 
 def _verdict(res, prior) -> str:

@@ -48,7 +48,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     k_folds, **kw : options of :func:`estcal.discrepancy.diagnose` (``alpha``, ``max_effects``,
         ``geometric``, ``approach_from_order``, ``rng``, ``report`` …); ``geometric="prior"`` runs
         :func:`estcal.discrepancy.prior_model.diagnose_prior` instead (the MAP group-prior model, no
-        effect selection; ``effects`` refused).
+        effect selection; ``effects`` refused); ``geometric="auto"`` runs
+        :func:`estcal.discrepancy.prior_model.diagnose_auto` (the level chosen by posture-grouped CV among
+        the prior model, preferred, and the levels; with ``effects``, among the levels only).
 
     Returns a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`.
     """
@@ -67,9 +69,18 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
                              "instead of a level')")
         if kw.get("widths", WIDTHS) not in WIDTH_CHOICES:
             raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give {' or '.join(WIDTH_CHOICES)}")
+    elif kw.get("geometric") == "auto" and effects is None:
+        # the level choice with the prior model as its preferred candidate (with --effects: the levels only, as
+        # the prior model selects no effect)
+        from estcal.discrepancy.prior_model import WIDTH_CHOICES, WIDTHS
+        from estcal.discrepancy.prior_model import diagnose_auto as _diagnose
+
+        if kw.get("widths", WIDTHS) not in WIDTH_CHOICES:
+            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give {' or '.join(WIDTH_CHOICES)}")
+        kw.pop("geometric")
     elif "widths" in kw:
-        raise InputError(f"--prior-widths: only with --geometric prior (the other --geometric choices fit no prior; "
-                         f"got --geometric {kw.get('geometric', 'full')})")
+        raise InputError(f"--prior-widths: only with --geometric prior or auto (the other --geometric choices fit no "
+                         f"prior; got --geometric {kw.get('geometric', 'full')})")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
     rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)

@@ -95,10 +95,11 @@ def diagnose(
                                           "joint (tool, sensor, gripper) in its mass."),
     geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
                                   "parameter) | aic (those Akaike's criterion supports) | joint_offset | "
-                                  "auto (lowest cross-validated RMSE) | prior (no selection: the full set and "
+                                  "auto (by posture-grouped CV among prior, preferred, and the three levels) | "
+                                  "prior (no selection: the full set and "
                                   "every excitable joint compliance, backlash and link tilt, each under a "
                                   "nominal-centred prior whose width the evidence chooses; docs/real-data.md)."),
-    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior: parameter (one "
+    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior or auto: parameter (one "
                                                "width per parameter, automatic relevance determination; the "
                                                "default) | group (one per kind of parameter); docs/real-data.md."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
