@@ -35,10 +35,13 @@ Splits: TIAGo (both sessions, postures halved with ``--seeds``, default 0, 1, 2 
 last 7), TALOS session 02-10 alone (halves, the same seeds). Unless ``--no-baselines``, on the same splits
 and with no selection: ``joint_offset`` and ``full`` least squares, the prior on the geometry alone, the
 same model class without a prior (refused where least squares cannot determine it), and the prior model as
-one more candidate of the level choice (posture-grouped CV, one-standard-error rule). ``--robots ablation``:
+one more candidate of the level choice (posture-grouped CV, one-standard-error rule). ``--robots recommended``:
+the command recommended for new postures (``--geometric prior --residual-model gp-joints --folds 10`` on both
+TIAGo sessions: ``evidence+cv`` widths, each further session registered, the joint-space residual GP) through the
+error budget it runs, scored at the new postures of the same halvings (``--gp-spaces``, ``--rec-folds``). ``--robots ablation``:
 the prior model's effect terms without any prior, with the joint_offset and aic levels (TIAGo, one frame).
 
-``python experiments/prior_study.py [--robots tiago,ur10,talos_session,ablation] [--seeds 0,1,2]
+``python experiments/prior_study.py [--robots tiago,ur10,talos_session,recommended,ablation] [--seeds 0,1,2]
 [--widths parameter|group] [--criterion evidence|evidence+cv] [--json out.json]`` (≈ 2 min on 2 busy
 cores for the default robots; skips when the shared data are absent).
 """
@@ -57,7 +60,8 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 # the model (its terms, free and penalised sets, the per-session alternation) lives in the package: the one
 # definition `estcal diagnose --geometric prior` runs
-from estcal.discrepancy.prior_model import EFFECTS, WIDTH_CHOICES, WIDTHS, fit_prior, prior_model  # noqa: E402
+from estcal.discrepancy.prior_model import (EFFECTS, WIDTH_CHOICES, WIDTHS, fit_prior, prior_fit,  # noqa: E402
+                                             prior_model)
 from estcal.discrepancy.stages import FittedStage, fit_stage_sessions, measured_points, point_covariance  # noqa: E402
 from estcal.validation import extrapolation_distance, grouped_folds, inside_ranges, posture_groups  # noqa: E402
 from real_robots import _rmse, finish, start  # noqa: E402
@@ -132,11 +136,13 @@ def study(robot, train, valid, noise, *, k=5, per_session=None, criterion="evide
 def _as_candidate(robot, train, noise, g, k, per_session, held):
     """The prior model as one more candidate of the level choice (:func:`estcal.discrepancy.prediction.choose_level`:
     posture-grouped CV on the training rows, the same folds, the one-standard-error rule with the prior model
-    as the most complex candidate) → ``{candidate: {cv_mm, se_mm}, "chosen": …}``."""
-    from estcal.discrepancy.prediction import choose_level
+    ranked first, as ``estcal diagnose --geometric auto`` ranks it) → ``{candidate: {cv_mm, se_mm}, "chosen": …,
+    "chosen_ranked_last": the choice with the prior model as the most complex candidate, the former rule}``."""
+    from estcal.discrepancy.prediction import choose_level, one_se_choice
 
-    chosen, out = choose_level(robot, train, noise, g, k, 0, per_session, extra={"prior": np.sum(held ** 2, axis=-1)})
-    out["chosen"] = chosen
+    last, out = choose_level(robot, train, noise, g, k, 0, per_session, extra={"prior": np.sum(held ** 2, axis=-1)})
+    out = {"prior": out.pop("prior"), **out}
+    out["chosen"], out["chosen_ranked_last"] = one_se_choice(out), last
     return out
 
 
@@ -165,7 +171,8 @@ def _print(r):
     if r["levels"]:
         lv = r["levels"]
         print("   as a candidate of the level choice (grouped CV mm ± se): " + ", ".join(
-            f"{c} {lv[c]['cv_mm']:.2f} ± {lv[c]['se_mm']:.2f}" for c in lv if c != "chosen") + f" -> {lv['chosen']}")
+            f"{c} {lv[c]['cv_mm']:.2f} ± {lv[c]['se_mm']:.2f}" for c in lv if not c.startswith("chosen"))
+              + f" -> {lv['chosen']} (ranked last: {lv['chosen_ranked_last']})")
     if "full_new_mm" not in r:
         return
     print(f"   baselines at new postures: joint_offset {r['joint_offset_new_mm']:.2f}, full {r['full_new_mm']:.2f}, "
@@ -187,6 +194,45 @@ def run_tiago(seeds, frames=(None, "registration"), **kw):
             r["seed"] = seed
             _print(r)
             out.append(r)
+    return out
+
+
+def run_recommended(seeds, spaces=("joints",), k=10, **_):
+    """TIAGo, both sessions: the command recommended for new postures, ``estcal diagnose S1 S2 --geometric prior
+    --residual-model gp-joints --folds 10`` — the prior model with ``evidence+cv`` widths, each further session's
+    registration and the joint-space residual GP, ten posture-grouped folds — through the error budget it runs (:func:`estcal.discrepancy.budget.error_budget`: the nested
+    CV refits the model, its widths, the registration and the GP in every outer fold), scored at the new postures
+    of half B (their RMSE, the region's coverage, the prediction from their readings)."""
+    from real_robots import NOISE, _halves, load_tiago
+
+    from estcal.discrepancy.budget import error_budget, region_at
+    from estcal.discrepancy.prediction import Procedure
+    from estcal.validation import seen_postures
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    out = []
+    for seed in seeds:
+        tr = _halves(g, seed)
+        T, V = data.subset(tr), data.subset(~tr)
+        t0 = time.time()
+        proc = Procedure(level="full", fit=prior_fit(NOISE, "evidence+cv"), gp="always", label="prior", k_inner=k)
+        b = error_budget(robot, T, NOISE, level="full", procedure=proc, per_session="registration", spaces=spaces,
+                         k_folds=k)
+        new = V.subset(~seen_postures(T.readings, V.readings, robot.joint_types))
+        r = region_at(b, new)
+        res = {"seed": seed, "new_mm": r["rmse_mm"], "predicted_validation_mm": b.predicted_validation_mm,
+               "predicted_at_new_mm": r["predicted_mm"], "coverage95_new": r["coverage"],
+               "ratio_nested": b.predicted_validation_mm / r["rmse_mm"], "ratio_at": r["predicted_mm"] / r["rmse_mm"],
+               "gp_space": b.extra["gp_space"], "fold_gp": [d["gp"] for d in b.extra["decisions"]],
+               "reach_max": r["reach_max"], "beyond_cv_reach": r["beyond_cv_reach"], "time_s": time.time() - t0}
+        print(f"-- TIAGo seed {seed}, the recommended command: at new postures {res['new_mm']:.2f} mm; nested CV "
+              f"{res['predicted_validation_mm']:.2f} (ratio {res['ratio_nested']:.2f}); at the new postures "
+              f"{res['predicted_at_new_mm']:.2f} (ratio {res['ratio_at']:.2f}); coverage {res['coverage95_new']:.2f}; "
+              f"GP {res['gp_space']} (folds {res['fold_gp']})  ({res['time_s']:.0f} s)", flush=True)
+        out.append(res)
+    print(f"   mean at new postures {np.mean([r['new_mm'] for r in out]):.2f} mm, nested CV "
+          f"{np.mean([r['predicted_validation_mm'] for r in out]):.2f}")
     return out
 
 
@@ -258,6 +304,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--frames", default="one,per-session", help="TIAGo: one frame, per-session registration or both")
     ap.add_argument("--widths", default=WIDTHS, choices=WIDTH_CHOICES,
                     help="one prior width per group of like parameters, or one per parameter (ARD)")
+    ap.add_argument("--gp-spaces", default="joints",
+                    help="--robots recommended: the residual GP's spaces (joints,cartesian: the better by inner CV)")
+    ap.add_argument("--rec-folds", type=int, default=10, help="--robots recommended: posture-grouped folds")
     ap.add_argument("--no-baselines", action="store_true",
                     help="skip the baselines (levels, the geometric prior, no prior) and the level-choice comparison")
     args = start(ap, argv)
@@ -274,6 +323,8 @@ def main(argv=None) -> dict:
     if "tiago" in robots:
         frames = [{"one": None, "per-session": "registration"}[f] for f in args.frames.split(",")]
         out["tiago"] = run_tiago(seeds, frames, **kw)
+    if "recommended" in robots:
+        out["recommended"] = run_recommended(seeds, spaces=tuple(args.gp_spaces.split(",")), k=args.rec_folds)
     if "ablation" in robots:
         out["ablation"] = run_ablation(seeds, **kw)
     if "ur10" in robots:

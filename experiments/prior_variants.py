@@ -23,8 +23,12 @@ measuring frame, train on half A, every row of half B; every decision on the tra
 ``tilt-play``    + a tilt of fixed size along the moment across the torso, arm_1 and arm_2 axes (play in a
                  guide or bearing that the load takes up: ``δx = p_j · M⊥_j/|M⊥_j| × (x − o_j)``);
 ``drift``        + the library's joint drift with time (per session, from each session's mean time);
+``payload-shape`` + a second joint compliance and link tilt per joint under the load of a unit mass at the
+                 tool alone (a hand or marker body heavier or lighter than the URDF says changes the shape
+                 of the loads with the posture, which one coefficient per joint on the URDF's loads cannot);
 ``stack``        the four small gains together: per-session registration, ``--criterion evidence+cv``, the
-                 joint-space GP and the bagged mean (the study options of docs/real-data.md plus the two above).
+                 joint-space GP and the bagged mean (the study options of docs/real-data.md plus the two above);
+                 ``stack-no-bag``, ``stack-no-gp``, ``stack-no-cv``, ``stack-one-frame``: the stack without one.
 
 ``python experiments/prior_variants.py [--seeds 0,1,2,3,4,5] [--variants default,joint-gp,…] [--json out.json]``
 (≈ 4 min on 2 busy cores; skips when the shared data are absent). The variants that change the evidence search
@@ -50,13 +54,14 @@ import estcal.estimate.regularize as reg  # noqa: E402
 from estcal.discrepancy.residual import fit_residual_model, residual_correction  # noqa: E402
 from estcal.discrepancy.stages import measured_points  # noqa: E402
 from estcal.effects.base import register_effect  # noqa: E402
-from estcal.effects.library import LinkTilt, across_axis_moments  # noqa: E402
+from estcal.effects.library import JointCompliance, LinkTilt, across_axis_moments  # noqa: E402
 from estcal.methods import Problem  # noqa: E402
 from estcal.validation import grouped_folds, posture_groups  # noqa: E402
 from real_robots import NOISE, _halves, _rmse, finish, load_tiago, start  # noqa: E402
 
 VARIANTS = ("default", "joint-gp", "cartesian-gp", "bagged", "hyper-1", "hyper-2.3", "hyper-4.6", "offsets-free",
-            "lift-tilt", "tilt-play", "drift", "stack")
+            "lift-tilt", "tilt-play", "drift", "payload-shape", "stack", "stack-no-bag", "stack-no-gp",
+            "stack-no-cv", "stack-one-frame")
 
 
 class LiftTilt(LinkTilt):
@@ -81,6 +86,36 @@ class TiltPlay(LinkTilt):
         Mp, o = across_axis_moments(robot, readings, theta, context)
         Mp = Mp[:, self.joint_index]
         return Mp / np.maximum(np.linalg.norm(Mp, axis=-1, keepdims=True), 1e-9), o[:, self.joint_index]
+
+
+def _unit_payload(context, n):
+    """The context with a 1 kg payload at the tool and with none (the difference of their loads is the payload's)."""
+    return dict(context or {}, payload=np.ones(n)), dict(context or {}, payload=np.zeros(n))
+
+
+class PayloadCompliance(JointCompliance):
+    """A joint compliance under the gravity torque of a unit mass at the tool alone."""
+
+    name = "payload_compliance_study"
+    prefixes = ("pcompliance",)
+
+    def features(self, robot, readings, q, theta, context):
+        one, none = _unit_payload(context, len(readings))
+        tau = robot.gravity_torques(readings, theta, one) - robot.gravity_torques(readings, theta, none)
+        return tau[:, None, self.joint_index]
+
+
+class PayloadTilt(LinkTilt):
+    """A link tilt under the moment of a unit mass at the tool alone."""
+
+    name = "payload_tilt_study"
+    prefixes = ("ptilt",)
+
+    def loads(self, robot, readings, theta, context):
+        one, none = _unit_payload(context, len(readings))
+        M1, o = across_axis_moments(robot, readings, theta, one)
+        M0, _ = across_axis_moments(robot, readings, theta, none)
+        return (M1 - M0)[:, self.joint_index], o[:, self.joint_index]
 
 
 @contextlib.contextmanager
@@ -180,6 +215,12 @@ def _context(variant):
     elif variant == "tilt-play":
         stack.enter_context(_swapped(pm, "prior_model", _with_extra_effects(
             lambda rb: [TiltPlay(rb, ["torso_lift_joint", "arm_1_joint", "arm_2_joint"])])))
+    elif variant == "payload-shape":
+        def payload(rb):
+            arm = [j for j in rb.joint_names if j.startswith("arm_")]
+            return [PayloadCompliance(rb, arm[1:]), PayloadTilt(rb, arm)]
+
+        stack.enter_context(_swapped(pm, "prior_model", _with_extra_effects(payload)))
     elif variant == "drift":
         effects = tuple(effects) + ("drift",)
     return stack, effects
@@ -188,14 +229,18 @@ def _context(variant):
 def score(variant, robot, T, V, k=5):
     """RMSE (mm) of ``variant`` at the rows of ``V``, fitted on ``T``."""
     stack, effects = _context(variant)
-    per, crit = ("registration", "evidence+cv") if variant == "stack" else (None, "evidence")
+    stacked = variant.startswith("stack")
+    per = "registration" if stacked and variant != "stack-one-frame" else None
+    crit = "evidence+cv" if stacked and variant != "stack-no-cv" else "evidence"
+    use_gp = variant in ("joint-gp", "cartesian-gp") or (stacked and variant != "stack-no-gp")
+    bag = variant == "bagged" or (stacked and variant != "stack-no-bag")
     with stack:
         def fit(rows):
             return pm.fit_prior(robot, rows, NOISE, crit, per, effects)[0]
 
         def predict(fs, rows):
             p = fs.predict(rows)
-            if variant in ("joint-gp", "cartesian-gp", "stack"):
+            if use_gp:
                 space = "cartesian" if variant == "cartesian-gp" else "joints"
                 R = fs.residual_common(rows_fit[0])
                 gp = fit_residual_model(space, fs.robot, fs.theta, rows_fit[0].readings, R, rows_fit[0].context, 1)
@@ -206,7 +251,7 @@ def score(variant, robot, T, V, k=5):
         rows_fit = [T]
         fs = fit(T)
         pred = predict(fs, V)
-        if variant in ("bagged", "stack"):
+        if bag:
             preds = [pred]
             for test in grouped_folds(posture_groups(T.readings, robot.joint_types), k, 0):
                 rows_fit[0] = T.subset(np.setdiff1d(np.arange(T.n), test))
@@ -222,7 +267,7 @@ def main(argv=None) -> dict:
     args = start(ap, argv)
     if args is None:
         return {"skipped": True}
-    for cls in (LiftTilt, TiltPlay):
+    for cls in (LiftTilt, TiltPlay, PayloadCompliance, PayloadTilt):
         register_effect(cls.name, cls, overwrite=True)  # so that the fitted robots can be copied and saved
     seeds = [int(s) for s in args.seeds.split(",")]
     variants = [v for v in args.variants.split(",") if v]

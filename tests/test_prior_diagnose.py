@@ -39,13 +39,14 @@ def case(tmp_path_factory):
     sim = _simulated()
     data = write_dataset(tmp / "sim.csv", sim.dataset)
     js, model = tmp / "fit.json", tmp / "model.yaml"
+    # the evidence alone, the criterion _direct fits (the default, evidence+cv, is checked against it below)
     r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
-                         "--no-budget", "--json", str(js), "--save-model", str(model)])
+                         "--prior-criterion", "evidence", "--no-budget", "--json", str(js), "--save-model", str(model)])
     assert r.exit_code == 0, r.output
     return tmp, data, json.loads(js.read_text()), model, r.output
 
 
-def _direct(data_path, per_parameter=True):
+def _direct(data_path, per_parameter=True, criterion="evidence"):
     """The prior model assembled here from its definition (docs/real-data.md): the registration fit (the
     identifiable base and tool parameters), the compliance of every joint with a gravity torque and the backlash
     of every joint whose torque changes sign, the identifiable geometric set, then fit_group_prior."""
@@ -78,7 +79,26 @@ def _direct(data_path, per_parameter=True):
     eff = [n for n, k in zip(rb.params.names, rb.params.kinds) if k == "effect"]
     penalised = [n for n in geo + eff if n not in reg]  # the registration stays free
     groups = {n: n for n in penalised} if per_parameter else None
-    return problem, fit_group_prior(problem, reg + penalised, penalised, groups), eff
+    return problem, fit_group_prior(problem, reg + penalised, penalised, groups, criterion=criterion), eff
+
+
+def test_default_criterion_is_evidence_and_cv(case, tmp_path):
+    """Without --prior-criterion the widths are the evidence's times one multiplier chosen by leave-one-posture-out
+    CV (evidence+cv): the command's model is the direct fit with that criterion, its multiplier and CV curve
+    reported."""
+    _, data, _, _, _ = case
+    js = tmp_path / "cv.json"
+    r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
+                         "--no-budget", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    fit = json.loads(js.read_text())
+    problem, gp, _ = _direct(data, criterion="evidence+cv")
+    assert fit["prior"]["criterion"] == "evidence+cv" == gp.criterion
+    names = problem.robot.params.names
+    got = np.array([fit["model"]["theta"][n] for n in gp.result.names])
+    want = gp.result.theta[[names.index(n) for n in gp.result.names]]
+    assert np.all(np.abs(got - want) <= 1e-6 * gp.result.std + 1e-12)
+    assert "widths (evidence+cv): " in r.output
 
 
 def test_command_model_is_a_direct_group_prior_fit(case):
@@ -224,7 +244,7 @@ def test_one_width_per_parameter_by_default_one_per_group_when_asked(case):
     assert {w["display_unit"] for g, w in prior["widths"].items() if kinds[g] == "length"} == {"mm"}
     js = tmp / "group.json"
     r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--geometric", "prior", "--folds", "3",
-                         "--no-budget", "--prior-widths", "group", "--json", str(js)])
+                         "--no-budget", "--prior-widths", "group", "--prior-criterion", "evidence", "--json", str(js)])
     assert r.exit_code == 0, r.output
     grouped = json.loads(js.read_text())["prior"]
     _, gp, _ = _direct(data, per_parameter=False)

@@ -60,7 +60,7 @@ import numpy as np
 from estcal.discrepancy.prediction import (GP_GAIN, PRIOR, Procedure, beyond_leverage, choose_level,
                                            conformal_threshold, predicted_rmse_at, region_coverage, region_scores, region_sigma,
                                            slope_upper, variance_model)
-from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_correction
+from estcal.discrepancy.residual import SPACES, fit_residual_model, residual_choice, residual_correction
 from estcal.discrepancy.stages import (STAGES, FittedStage, fit_stage, fit_stage_sessions, measured_points,
                                        point_covariance, predicted_points)
 from estcal.methods import NoiseModel
@@ -239,7 +239,9 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
                                      start=gps_all[sp])
         corr = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context)
         out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
-    if cfg["nested"] and proc.gp != "never":
+    if cfg["nested"] and proc.gp == "always" and len(cfg["spaces"]) == 1:
+        space = cfg["spaces"][0]  # a choice among one space: no inner CV to make it
+    elif cfg["nested"] and proc.gp != "never":
         inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
         space = _gp_choice(proc.gp, _inner_gp_gains(robot, dtr, noise, geo_lv, eff, inner, cfg["spaces"],
                                                     dict(cfg, fit=fold_fit)))
@@ -281,7 +283,8 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     k_folds : posture-grouped folds (capped at the number of postures).
     spaces : residual GP spaces tried (``joints``, ``cartesian``).
     residual_model : ``"gp"`` makes named + GP the recommended model (``procedure.gp = "always"``) and
-        returns the GP fitted on all rows in ``residual_model``.
+        returns the GP fitted on all rows in ``residual_model``; ``"gp-joints"`` / ``"gp-cartesian"``: the GP of
+        that space only (``spaces`` is then that space).
     per_session : ``"registration"`` / ``"registration+points"``: every stage with a rigid registration
         of each session (and a per-session change of the measured points), see :func:`fit_stage_sessions`.
     nested : replay the procedure's decisions in every outer fold (the honest prediction); False: the
@@ -289,6 +292,8 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
         selection).
     """
     noise = noise or NoiseModel(position=2e-4, orientation=2e-4, known=False)
+    if residual_model is not None and residual_model != "gp":
+        spaces = residual_choice(residual_model)[1]
     n = data.n
     g = posture_groups(data.readings, robot.joint_types, tol_rad, tol_m) if groups is None else np.asarray(groups)
     if sessions is None:
@@ -296,7 +301,7 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     if level == PRIOR and (procedure is None or procedure.prior_fit is None):
         raise ValueError("level 'prior' needs a Procedure with prior_fit (the MAP prior model's fit)")
     proc = procedure or Procedure(level=level, effects=tuple(tuple(e) for e in effects),
-                                  gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
+                                  gp=residual_choice(residual_model)[0], k_inner=k_folds)
     levels_cv = None
     if level == "auto":
         level, levels_cv = choose_level(robot, data, noise, g, proc.k_inner, rng, per_session, max_iter=max_iter,

@@ -643,15 +643,17 @@ def _error_budget(result, robot, data, nm, requested, geometric, k_folds, rng, p
     diagnosis itself: every outer fold chooses the level (when ``auto``) and the causes (the stability rule,
     linearised) on its training rows only (:mod:`estcal.discrepancy.prediction`)."""
     from estcal.discrepancy.prediction import Procedure
+    from estcal.discrepancy.residual import residual_choice
 
     effects = [(c.effect, list(c.joints), dict(c.options or {})) for c in causes]
     proc = Procedure(level="auto" if requested == "auto" else geometric, effects=tuple(effects),
-                     select_effects=result.selector, gp="always" if residual_model == "gp" else "never",
+                     select_effects=result.selector, gp=residual_choice(residual_model)[0],
                      k_inner=k_folds)
     _attach_budget(result, robot, data, nm, proc, geometric, effects, k_folds, rng, posture_tol, residual_model)
 
 
-def _attach_budget(result, robot, data, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model) -> None:
+def _attach_budget(result, robot, data, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model,
+                   per_session=None) -> None:
     """The error budget of ``proc`` (:func:`estcal.discrepancy.budget.error_budget`, the recommended model's
     ``level`` and ``effects`` on all rows) into ``result.budget``, its residual GP into
     ``result.residual_model``, and with validation data the 95 % region at their rows beside their RMSE — for
@@ -659,7 +661,8 @@ def _attach_budget(result, robot, data, nm, proc, level, effects, k_folds, rng, 
     from estcal.discrepancy.budget import error_budget, region_at
 
     b = error_budget(robot, data, nm, level=level, effects=effects, procedure=proc, k_folds=k_folds, rng=rng,
-                     tol_rad=posture_tol[0], tol_m=posture_tol[1], residual_model=residual_model)
+                     tol_rad=posture_tol[0], tol_m=posture_tol[1], residual_model=residual_model,
+                     per_session=per_session)
     result.budget = b.to_dict()
     result.residual_model = b.residual_model
     if result.validation_data:

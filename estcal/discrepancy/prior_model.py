@@ -39,9 +39,10 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from estcal.base.errors import EstcalWarning
-from estcal.discrepancy.diagnose import (DiagnosisResult, _attach_budget, _geometric_model, _Model, _noise_components,
-                                         _prepare_data, _result, default_candidates)
+from estcal.discrepancy.diagnose import (DiagnosisResult, _attach_budget, _geometric_model, _Model, _n_sessions,
+                                         _noise_components, _prepare_data, _result, _scores, default_candidates)
 from estcal.discrepancy.geometric import geometric_candidates, gravity_ready, weighted_system
+from estcal.discrepancy.residual import residual_choice
 from estcal.discrepancy.stages import FittedStage, fit_stage, fit_stage_sessions, measured_points
 from estcal.estimate.regularize import fit_group_prior, prior_groups
 from estcal.identify.select import select_identifiable
@@ -49,7 +50,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
 __all__ = ["EFFECTS", "WIDTHS", "WIDTH_CHOICES", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
-           "diagnose_auto",
+           "diagnose_auto", "SESSION_FRAMES",
            "width_line", "diagnose_prior", "PriorDiagnosisResult"]
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds): the gravity
@@ -214,6 +215,10 @@ class PriorDiagnosisResult(DiagnosisResult):
         if p["effects"]:
             extra.append("  effect terms under the prior: " + "; ".join(
                 f"{e['effect']} ({len(e['joints'])} joints)" for e in p["effects"]))
+        for sv, r in ((p.get("session_frames") or {}).get("sessions") or {}).items():
+            extra.append(f"  session {sv} registered onto the first: {r['rotation_mrad']:.2f} mrad, "
+                         f"{np.linalg.norm(r['translation_mm']):.2f} mm (the model is in the first session's frame; "
+                         f"validation files are scored in it)")
         if p.get("note"):
             extra.append(f"  note: {p['note']}")
         return "\n".join(lines[:1] + extra + lines[1:])
@@ -257,8 +262,9 @@ def _cv(robot, data, fit, folds) -> tuple[float, float]:
 def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
                    geometric: str = "prior", approach_from_order: bool = False, session_time: bool = True,
                    posture_tol=(1e-3, 1e-3), budget: bool = False, residual_model: str | None = None,
-                   criterion: str = "evidence", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
-                   alpha=None, max_effects=None, widths: str = WIDTHS, fit=None):
+                   criterion: str = "evidence+cv", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
+                   alpha=None, max_effects=None, widths: str = WIDTHS, fit=None,
+                   session_frames: str = "per-session"):
     """:func:`estcal.discrepancy.diagnose` with the MAP group-prior model as the recommended model
     (``geometric="prior"``; module docstring): no forward selection — ``candidates``, ``alpha`` and
     ``max_effects`` are not used, and candidates given are refused.
@@ -270,7 +276,12 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     refits the model, its widths included, on every outer fold's training rows. Returns a
     ``DiagnosisResult`` (with ``prior``); saved, compensated and exported like any diagnosis model. ``fit``:
     the model's fit (:func:`prior_fit` made once per rows) when the caller has one with fits already made on
-    these rows (:func:`diagnose_auto`'s level choice, the same folds).
+    these rows (:func:`diagnose_auto`'s level choice, the same folds). ``session_frames``: with several
+    sessions, ``"per-session"`` (default) gives every session after the first its own rigid registration of
+    the measuring frame, fitted with the model by alternation
+    (:func:`~estcal.discrepancy.stages.fit_stage_sessions`) in every fit — all rows, each CV fold, each outer
+    fold of the budget — and the model is the first session's frame (validation files are scored in it);
+    ``"one"``: one measuring frame for all.
     """
     if geometric != "prior":
         raise ValueError(f"diagnose_prior fits the prior model (geometric='prior'), got {geometric!r}")
@@ -287,16 +298,26 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
                                                                cv_max_iter)
     analysis["geometric_level"] = "full"
     width_groups([], widths)  # refuse an unknown choice before any fit
+    if session_frames not in SESSION_FRAMES:
+        raise ValueError(f"session_frames must be one of {SESSION_FRAMES}, got {session_frames!r}")
+    per = "registration" if session_frames == "per-session" and _n_sessions(data) > 1 else None
     fit = fit or _once_per_rows(prior_fit(nm, criterion, effects, widths))
-    fs = fit(robot, data)
+    sfit = _sessions_fit(fit, nm, per)
+    fs = sfit(robot, data)
     gp = fit.last
-    problem = Problem(fs.robot, [(t.method, t.data, t.noise) for t in geo.problem.terms])
+    # every row in the first session's frame: the one robot model describes them all (nothing moves with one frame)
+    data_c = fs.common_data(data)
+    problem = Problem(fs.robot, [(t.method, data_c, t.noise) for t in geo.problem.terms])
     final = _Model(problem, fs.theta.copy(), list(fs.free), float(gp.result.chi2), _effective(gp),
-                   _cv(robot, data, fit, folds), gp.result)
+                   _cv(robot, data, sfit, folds), gp.result)
     res = _result(robot, robot_spec, data, validate, sessions, nm, geo, final, [], [], [], analysis, gdropped,
                   lumped, "prior", approach_from_order, session_time)
+    if per:  # the training figures of the model with each session's registration
+        tr = _scores(fs.robot, fs.theta, [data_c])
+        res.rmse_mm["extended"]["train"], res.max_mm["extended"]["train"] = tr
+        res.model["residual"].update(rmse_mm=tr[0], max_mm=tr[1])
     prior = dict(prior_summary(gp, fs.robot, len(fs.free)), train_rmse_mm=res.rmse_mm["extended"]["train"],
-                 cv_rmse_mm=final.cv[0], note=None)
+                 cv_rmse_mm=final.cv[0], note=None, session_frames=_session_frames(fs, per))
     if not prior["effects"]:
         prior["note"] = (f"the data excite no {' or '.join(effects)} term (every gravity torque is zero, or of one "
                          f"sign for backlash without approach columns): the prior is on the geometry alone")
@@ -308,13 +329,41 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     out.measurement_noise = _noise_components(geo)
     out.figure_inputs = (geo.problem, geo.theta, analysis, tau, robot.name, (final.problem, final.theta))
     if budget or residual_model:
-        _budget(out, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model)
+        _budget(out, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model, per)
+    return out
+
+
+#: the measuring frames of several sessions under ``--geometric prior``
+SESSION_FRAMES = ("per-session", "one")
+
+
+def _sessions_fit(fit, nm, per):
+    """``fit`` (one frame) with each further session's rigid registration fitted by alternation when ``per``
+    (:func:`~estcal.discrepancy.stages.fit_stage_sessions`, its default rounds — as the budget runs it, so the
+    shared fits of the alternation are made once per rows); ``fit`` itself otherwise."""
+    if not per:
+        return fit
+
+    def sessions_fit(robot, data):
+        return fit_stage_sessions(robot, data, nm, "named", per_session=per, fit=fit)
+
+    return sessions_fit
+
+
+def _session_frames(fs, per) -> dict:
+    """``{"frames": "per-session" | "one", "sessions": {label: {"rotation_mrad", "translation_mm"}}}``: each
+    further session's registration onto the first (rotation angle and translation)."""
+    out = {"frames": "per-session" if per else "one", "sessions": {}}
+    for sv, (R, t, _) in fs.sessions.items():
+        ang = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        label = str(int(sv)) if isinstance(sv, (int, float, np.number)) and float(sv).is_integer() else str(sv)
+        out["sessions"][label] = {"rotation_mrad": ang * 1e3, "translation_mm": (np.asarray(t) * 1e3).tolist()}
     return out
 
 
 def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0, robot_spec=None,
                   approach_from_order: bool = False, session_time: bool = True, posture_tol=(1e-3, 1e-3),
-                  budget: bool = False, residual_model: str | None = None, criterion: str = "evidence",
+                  budget: bool = False, residual_model: str | None = None, criterion: str = "evidence+cv",
                   widths: str = WIDTHS, **kw):
     """``estcal diagnose --geometric auto``: the level chosen by posture-grouped CV among the MAP prior model
     and the levels ``joint_offset``, ``aic``, ``full`` — the prior model preferred, a level taken only when its
@@ -337,11 +386,11 @@ def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0,
     level, cv = choose_level(rb, d, nm, groups, k_folds, rng, fits={PRIOR: fit})
     common = dict(validate=validate, k_folds=k_folds, noise=noise, rng=rng, robot_spec=spec,
                   approach_from_order=approach_from_order, session_time=session_time, posture_tol=posture_tol)
-    gp = "always" if residual_model == "gp" else "never"
+    gp = residual_choice(residual_model)[0]
     if level == PRIOR:
         if kw.get("candidates"):
             raise ValueError("--geometric auto chose the prior model, which selects no effect: give no candidates")
-        res = diagnose_prior(rb, data, **common, criterion=criterion, widths=widths, fit=fit)
+        res = diagnose_prior(rb, data, **common, criterion=criterion, widths=widths, fit=fit, session_frames="one")
         proc = Procedure(level="auto", prior_fit=fit, gp=gp, k_inner=k_folds)
         effects = ()
     else:
@@ -362,19 +411,23 @@ def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0,
 def _verdict(res, prior) -> str:
     g, x = res.rmse_mm["geometric"], res.rmse_mm["extended"]
     per = "one width per parameter" if prior.get("widths_per") == "parameter" else "one width per group"
+    how = "the evidence" if prior.get("criterion") != "evidence+cv" else "the evidence, scaled by posture-grouped CV"
+    frames = prior.get("session_frames") or {}
+    reg = f", {len(frames['sessions'])} further session(s) registered" if frames.get("sessions") else ""
     s = (f"Prior model (MAP, {prior['n_penalised']} parameters under nominal-centred priors, {per} "
-         f"by the evidence; no cause is named: a term of this model is shrunk, not tested). RMSE train "
+         f"by {how}{reg}; no cause is named: a term of this model is shrunk, not tested). RMSE train "
          f"{g['train']:.3g} → {x['train']:.3g} mm, CV {g['cv']:.3g} → {x['cv']:.3g} mm")
     if g["validation"] is not None:
         s += f", validation {g['validation']:.3g} → {x['validation']:.3g} mm"
     return s + " (geometric: the full level)."
 
 
-def _budget(res, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model) -> None:
-    """The error budget of the prior model: its nested prediction refits the model, widths included, on every
-    outer fold's training rows (the folds of the diagnosis's CV: ``fit`` returns those fits again)."""
+def _budget(res, robot, data, nm, fit, k_folds, rng, posture_tol, residual_model, per=None) -> None:
+    """The error budget of the prior model: its nested prediction refits the model, widths included (and each
+    session's registration with ``per``), on every outer fold's training rows (the folds of the diagnosis's
+    CV: ``fit`` returns those fits again)."""
     from estcal.discrepancy.prediction import Procedure
 
     proc = Procedure(level="full", fit=fit, label="prior",
-                     gp="always" if residual_model == "gp" else "never", k_inner=k_folds)
-    _attach_budget(res, robot, data, nm, proc, "full", (), k_folds, rng, posture_tol, residual_model)
+                     gp=residual_choice(residual_model)[0], k_inner=k_folds)
+    _attach_budget(res, robot, data, nm, proc, "full", (), k_folds, rng, posture_tol, residual_model, per)

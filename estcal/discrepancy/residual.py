@@ -47,6 +47,21 @@ __all__ = ["ResidualGP", "JointGP", "fit_residual_gp", "fit_joint_gp", "joint_gp
            "residual_model_from_dict", "fit_residual_model", "residual_correction", "compensate_with_residual"]
 
 SPACES = ("joints", "cartesian")
+#: the residual models of a recommended model (``--residual-model``): the GP in the space whose GP lowers the
+#: held-out error most, or in the one space named
+RESIDUAL_MODELS = ("gp", "gp-joints", "gp-cartesian")
+
+
+def residual_choice(residual_model) -> tuple[str, tuple]:
+    """``(GP rule of the procedure, spaces)`` of a ``residual_model`` (None: ``("never", SPACES)`` — the budget
+    still measures the structure both GPs find; ``"gp"``: ``("always", SPACES)``, the better space;
+    ``"gp-joints"`` / ``"gp-cartesian"``: ``("always", (space,))``)."""
+    if residual_model is None:
+        return "never", SPACES
+    if residual_model not in RESIDUAL_MODELS:
+        raise ValueError(f"unknown residual model {residual_model!r}; choose one of {', '.join(RESIDUAL_MODELS)}")
+    space = residual_model.partition("-")[2]
+    return "always", (space,) if space else SPACES
 #: bounds of the standardised length scales: below 0.05 a GP memorises single postures
 LENGTH_BOUNDS = (0.05, 100.0)
 

@@ -130,6 +130,24 @@ class FittedStage:
     def predict(self, data):
         return self.to_session(data, self.predict_common(data))
 
+    def common_data(self, data):
+        """A copy of ``data`` with every session's measurements in the common frame (each session's rigid
+        registration undone: points ``R_sᵀ (p − t_s)``, a measured orientation ``R_sᵀ R``; a per-session point
+        change is not undone), so that the one robot model describes every row."""
+        out = data.subset(slice(None))
+        if not self.sessions:
+            return out
+        P = measured_points(data).copy()
+        for m, R, t, _ in self._each(data):
+            P[m] = (P[m] - t) @ R
+            if out.R is not None:
+                out.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
+        if out.points is not None:
+            out.points = P
+        else:
+            out.p = P[:, 0]
+        return out
+
 
 def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effects=(), per_session: str | None = None,
                        n_iter: int = 6, max_iter: int = 100, fit=None) -> FittedStage:

@@ -57,30 +57,41 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     from estcal.discrepancy import diagnose as _diagnose
     from estcal.identify.select import UnidentifiableError
 
-    if kw.get("geometric") == "prior":  # the MAP group-prior model: loaded only when asked for
-        from estcal.discrepancy.prior_model import EFFECTS as PRIOR_EFFECTS
-        from estcal.discrepancy.prior_model import WIDTH_CHOICES, WIDTHS
-        from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
+    from estcal.discrepancy.residual import RESIDUAL_MODELS
 
-        if effects is not None:
+    if kw.get("residual_model") not in (None, *RESIDUAL_MODELS):
+        raise InputError(f"--residual-model: unknown {kw['residual_model']!r}; choose one of "
+                         f"{', '.join(RESIDUAL_MODELS)}")
+    mode = kw.get("geometric", "full")
+    mode = "auto+prior" if mode == "auto" and effects is None else mode
+    # the prior model's options, and where they apply (with --effects, auto chooses among the levels only)
+    for key, flag, where in (("widths", "--prior-widths", ("prior", "auto+prior")),
+                             ("criterion", "--prior-criterion", ("prior", "auto+prior")),
+                             ("session_frames", "--session-frames", ("prior",))):
+        if key in kw and mode not in where:
+            raise InputError(f"{flag}: only with --geometric {' or '.join(w.split('+')[0] for w in where)} (without "
+                             f"--effects); got --geometric {kw.get('geometric', 'full')}"
+                             + (" with --effects" if effects is not None else ""))
+    if mode in ("prior", "auto+prior"):  # the MAP group-prior model: loaded only when asked for
+        from estcal.discrepancy.prior_model import EFFECTS as PRIOR_EFFECTS
+        from estcal.discrepancy.prior_model import SESSION_FRAMES, WIDTH_CHOICES
+
+        if mode == "prior" and effects is not None:
             raise InputError(f"--effects: --geometric prior keeps every {', '.join(PRIOR_EFFECTS)} term the data "
                              "can excite under its prior and selects no effect, so there is nothing to choose "
                              "from; drop --effects, or choose another --geometric (docs/real-data.md, 'A prior "
                              "instead of a level')")
-        if kw.get("widths", WIDTHS) not in WIDTH_CHOICES:
-            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give {' or '.join(WIDTH_CHOICES)}")
-    elif kw.get("geometric") == "auto" and effects is None:
-        # the level choice with the prior model as its preferred candidate (with --effects: the levels only, as
-        # the prior model selects no effect)
-        from estcal.discrepancy.prior_model import WIDTH_CHOICES, WIDTHS
-        from estcal.discrepancy.prior_model import diagnose_auto as _diagnose
+        for key, flag, choices in (("widths", "--prior-widths", WIDTH_CHOICES),
+                                   ("criterion", "--prior-criterion", ("evidence+cv", "evidence")),
+                                   ("session_frames", "--session-frames", SESSION_FRAMES)):
+            if kw.get(key, choices[0]) not in choices:
+                raise InputError(f"{flag}: {kw[key]!r} is not a choice; give {' or '.join(choices)}")
+        if mode == "prior":
+            from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
+        else:  # the level choice with the prior model as its preferred candidate
+            from estcal.discrepancy.prior_model import diagnose_auto as _diagnose
 
-        if kw.get("widths", WIDTHS) not in WIDTH_CHOICES:
-            raise InputError(f"--prior-widths: {kw['widths']!r} is not a choice; give {' or '.join(WIDTH_CHOICES)}")
-        kw.pop("geometric")
-    elif "widths" in kw:
-        raise InputError(f"--prior-widths: only with --geometric prior or auto (the other --geometric choices fit no "
-                         f"prior; got --geometric {kw.get('geometric', 'full')})")
+            kw.pop("geometric")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
     rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)

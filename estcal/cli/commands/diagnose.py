@@ -59,12 +59,6 @@ def _noise(noise_pos_mm, noise_rot_mrad, known, old_noise_pos):
     return NoiseModel(position=pos, orientation=rot, scalar=pos, known=True)
 
 
-def _residual(name):
-    if name not in (None, "gp"):
-        raise typer.BadParameter(f"--residual-model: unknown {name!r}; the residual model is 'gp'")
-    return name
-
-
 @command("diagnose")
 def diagnose(
     data: list[Path] = typer.Argument(..., help="Measured dataset(s) (CSV: joint columns + x,y,z / x1..zk / "
@@ -102,6 +96,13 @@ def diagnose(
     prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior or auto: parameter (one "
                                                "width per parameter, automatic relevance determination; the "
                                                "default) | group (one per kind of parameter); docs/real-data.md."),
+    session_frames: Optional[str] = typer.Option(None, "--session-frames", help="With --geometric prior and "
+                                                 "several sessions: per-session (each further session's measuring "
+                                                 "frame registered by the fit; the default) | one (one frame for "
+                                                 "all); docs/real-data.md."),
+    prior_criterion: Optional[str] = typer.Option(None, "--prior-criterion", help="With --geometric prior or auto: "
+                                                  "evidence+cv (the evidence's widths times one multiplier by "
+                                                  "leave-one-posture-out CV; the default) | evidence."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),
@@ -112,7 +113,9 @@ def diagnose(
                                 "geometric, named, structured-unnamed (residual GP) and unstructured RMSE, the "
                                 "repeatability floor and the predicted RMSE at new postures (docs/real-data.md)."),
     residual_model: Optional[str] = typer.Option(None, "--residual-model", help="gp: keep the residual Gaussian "
-                                                 "process as a compensation layer of the recommended model."),
+                                                 "process as a compensation layer of the recommended model, in the "
+                                                 "space whose GP lowers the held-out error most; gp-joints / "
+                                                 "gp-cartesian: in that space."),
     json_path: Optional[Path] = json_option("Write the diagnosis as JSON."),
     report: Optional[Path] = report_option("Folder for a report: residual figures (PNG), diagnosis.json, "
                                            "summary.txt and index.html with the tables."),
@@ -128,8 +131,10 @@ def diagnose(
               tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
               report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,
               posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
-              residual_model=_residual(residual_model), column_map=column_map, drop_flagged=drop_flagged,
-              **({"widths": prior_widths} if prior_widths is not None else {}))
+              residual_model=residual_model, column_map=column_map, drop_flagged=drop_flagged,
+              **({"widths": prior_widths} if prior_widths is not None else {}),
+              **({"session_frames": session_frames} if session_frames is not None else {}),
+              **({"criterion": prior_criterion} if prior_criterion is not None else {}))
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
