@@ -145,7 +145,7 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     from estcal.discrepancy import diagnose
     from estcal.discrepancy.budget import predicted_at, region_at
     from estcal.discrepancy.prediction import LEVELS, PRIOR, Procedure, choose_level, one_se_choice
-    from estcal.discrepancy.prior_model import prior_fit
+    from estcal.discrepancy.prior_model import CRITERION, prior_fit
     from estcal.discrepancy.stability import cause_key
 
     out, times = {"label": label, "n_train_rows": train.n, "n_valid_rows": valid.n, "per_session": per_session}, {}
@@ -154,7 +154,7 @@ def study(robot, train, valid, *, k_folds=5, per_session=None, gp_restarts=0, la
     # 3. geometric level (or the prior model): posture-grouped CV, one-standard-error rule
     fixed = level
     prior = PRIOR_CANDIDATE if prior is None else prior
-    pf = prior_fit(NOISE) if prior and not fixed else None
+    pf = prior_fit(NOISE, CRITERION) if prior and not fixed else None  # the command's (--geometric auto)
     level, levels = choose_level(robot, train, NOISE, g, k_folds, 0, per_session, fits={PRIOR: pf} if pf else None)
     level = fixed or level
     out["levels"], out["level"] = levels, level

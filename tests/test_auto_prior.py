@@ -198,3 +198,23 @@ def test_command_refuses_an_unknown_residual_model(tmp_path):
     data = write_dataset(tmp_path / "sim.csv", _compliant(12).dataset)
     r = RUN.invoke(app, ["diagnose", str(data), "--robot", "puma560_masses", "--residual-model", "gp-joint"])
     assert r.exit_code == 2 and "--residual-model: unknown 'gp-joint'; choose one of gp, gp-joints" in r.output
+
+
+def test_recommended_command_registers_sessions_in_every_fold_of_the_budget(tmp_path):
+    """``--geometric prior --residual-model gp-joints`` with two sessions: the budget refits the registration in
+    every outer fold (``per_session``), keeps the joint-space GP in each, and its recommended model is the prior
+    model with that GP; its nested figure is below the one-frame command's, which must absorb the frames' shift."""
+    f1, f2, _, _ = _two_sessions(tmp_path)
+    out = {}
+    for frames in ("per-session", "one"):
+        js = tmp_path / f"b_{frames}.json"
+        r = RUN.invoke(app, ["diagnose", str(f1), str(f2), "--robot", "puma560_masses", "--geometric", "prior",
+                             "--residual-model", "gp-joints", "--folds", "3", "--session-frames", frames,
+                             "--json", str(js)])
+        assert r.exit_code == 0, r.output
+        out[frames] = json.loads(js.read_text())["budget"]
+    b = out["per-session"]
+    assert b["per_session"] == "registration" and out["one"]["per_session"] is None
+    assert b["recommended"] == "prior + GP" and [d["gp"] for d in b["decisions"]] == ["joints"] * 3
+    assert set(b["gp_mm"]) == {"joints"}
+    assert b["predicted_validation_mm"] < out["one"]["predicted_validation_mm"] / 2

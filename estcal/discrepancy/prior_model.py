@@ -18,9 +18,16 @@ geometric level and the named effects — and on tens of real postures both chan
   alternating with the MAP fit (:func:`estcal.estimate.regularize.fit_group_prior`). Measured at new
   postures (docs/real-data.md, "A prior instead of a level"): on TIAGo the tilt terms and the widths per
   parameter each lower the error on 5 of 6 posture-disjoint halvings;
-* **several sessions**: one measuring frame by default, as every other ``--geometric`` choice; with
-  ``per_session="registration"`` each further session gets a rigid transform by alternation
-  (:func:`estcal.discrepancy.stages.fit_stage_sessions`).
+* **the widths' criterion** of the command (``CRITERION``): the evidence's widths times one common
+  multiplier chosen by leave-one-posture-out CV (``evidence+cv``; ``criterion="evidence"`` for the evidence
+  alone, the default of :func:`prior_fit` and :func:`fit_prior`);
+* **several sessions**: in :func:`diagnose_prior` each further session's measuring frame is registered by the
+  fit (``session_frames="per-session"``, the default; ``"one"``: one frame for all, as every other
+  ``--geometric`` choice); in :func:`fit_prior` with ``per_session="registration"``. Either way a rigid
+  transform by alternation (:func:`estcal.discrepancy.stages.fit_stage_sessions`).
+
+For accuracy at new postures the recommended command is ``estcal diagnose S1 S2 --geometric prior
+--residual-model gp-joints --folds 10`` (docs/real-data.md, "The recommended command for new postures").
 
 Nothing is chosen from the data but the widths, so the nested prediction of the error budget is the
 posture-grouped CV of this fit with the widths refitted on every fold's training rows
@@ -50,7 +57,7 @@ from estcal.methods import NoiseModel, Problem
 from estcal.validation import grouped_folds, posture_groups
 
 __all__ = ["EFFECTS", "WIDTHS", "WIDTH_CHOICES", "width_groups", "prior_model", "prior_fit", "fit_prior", "prior_summary",
-           "diagnose_auto", "SESSION_FRAMES",
+           "diagnose_auto", "SESSION_FRAMES", "CRITERION",
            "width_line", "diagnose_prior", "PriorDiagnosisResult"]
 
 #: the candidate effects of the prior model (the diagnosis's per-joint candidates of these kinds): the gravity
@@ -59,6 +66,11 @@ EFFECTS = ("joint_compliance", "backlash", "link_tilt")
 #: one prior width per parameter by default (automatic relevance determination; "group": one per kind)
 WIDTHS = "parameter"
 WIDTH_CHOICES = ("parameter", "group")
+#: the widths' criterion of ``estcal diagnose --geometric prior`` and ``auto`` (the evidence's widths times one
+#: multiplier by leave-one-posture-out CV; docs/real-data.md, "The recommended command for new postures")
+CRITERION = "evidence+cv"
+#: the measuring frames of several sessions under ``--geometric prior``
+SESSION_FRAMES = ("per-session", "one")
 
 #: SI unit of an effect group's parameters on a (revolute, prismatic) joint (estcal/effects/library.py)
 _EFFECT_UNITS = {"compliance": ("rad/(N·m)", "m/N"), "backlash": ("rad", "m"), "tilt": ("rad/(N·m)", "rad/(N·m)")}
@@ -262,7 +274,7 @@ def _cv(robot, data, fit, folds) -> tuple[float, float]:
 def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
                    geometric: str = "prior", approach_from_order: bool = False, session_time: bool = True,
                    posture_tol=(1e-3, 1e-3), budget: bool = False, residual_model: str | None = None,
-                   criterion: str = "evidence+cv", effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
+                   criterion: str = CRITERION, effects=EFFECTS, ident_tol: float = 1e-4, cv_max_iter: int = 30,
                    alpha=None, max_effects=None, widths: str = WIDTHS, fit=None,
                    session_frames: str = "per-session"):
     """:func:`estcal.discrepancy.diagnose` with the MAP group-prior model as the recommended model
@@ -333,8 +345,6 @@ def diagnose_prior(robot, data, validate=(), candidates=None, k_folds: int = 5, 
     return out
 
 
-#: the measuring frames of several sessions under ``--geometric prior``
-SESSION_FRAMES = ("per-session", "one")
 
 
 def _sessions_fit(fit, nm, per):
@@ -363,7 +373,7 @@ def _session_frames(fs, per) -> dict:
 
 def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0, robot_spec=None,
                   approach_from_order: bool = False, session_time: bool = True, posture_tol=(1e-3, 1e-3),
-                  budget: bool = False, residual_model: str | None = None, criterion: str = "evidence+cv",
+                  budget: bool = False, residual_model: str | None = None, criterion: str = CRITERION,
                   widths: str = WIDTHS, **kw):
     """``estcal diagnose --geometric auto``: the level chosen by posture-grouped CV among the MAP prior model
     and the levels ``joint_offset``, ``aic``, ``full`` — the prior model preferred, a level taken only when its
