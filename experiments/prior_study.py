@@ -197,26 +197,34 @@ def run_tiago(seeds, frames=(None, "registration"), **kw):
     return out
 
 
+def _tiago_halvings(seeds):
+    """``(robot, [(seed, half A, half B)])``: both TIAGo sessions, the postures halved with each seed (the halves of
+    ``experiments/real_robots.py``)."""
+    from real_robots import _halves, load_tiago
+
+    robot, data = load_tiago()
+    g = posture_groups(data.readings, robot.joint_types)
+    return robot, [(s, data.subset(_halves(g, s)), data.subset(~_halves(g, s))) for s in seeds]
+
+
 def run_recommended(seeds, spaces=("joints",), k=10, **_):
     """TIAGo, both sessions: the command recommended for new postures, ``estcal diagnose S1 S2 --geometric prior
     --residual-model gp-joints --folds 10`` — the prior model with ``evidence+cv`` widths, each further session's
     registration and the joint-space residual GP, ten posture-grouped folds — through the error budget it runs (:func:`estcal.discrepancy.budget.error_budget`: the nested
     CV refits the model, its widths, the registration and the GP in every outer fold), scored at the new postures
     of half B (their RMSE, the region's coverage, the prediction from their readings)."""
-    from real_robots import NOISE, _halves, load_tiago
+    from real_robots import NOISE
 
     from estcal.discrepancy.budget import error_budget, region_at
     from estcal.discrepancy.prediction import Procedure
+    from estcal.discrepancy.prior_model import CRITERION
     from estcal.validation import seen_postures
 
-    robot, data = load_tiago()
-    g = posture_groups(data.readings, robot.joint_types)
+    robot, halvings = _tiago_halvings(seeds)
     out = []
-    for seed in seeds:
-        tr = _halves(g, seed)
-        T, V = data.subset(tr), data.subset(~tr)
+    for seed, T, V in halvings:
         t0 = time.time()
-        proc = Procedure(level="full", fit=prior_fit(NOISE, "evidence+cv"), gp="always", label="prior", k_inner=k)
+        proc = Procedure(level="full", fit=prior_fit(NOISE, CRITERION), gp="always", label="prior", k_inner=k)
         b = error_budget(robot, T, NOISE, level="full", procedure=proc, per_session="registration", spaces=spaces,
                          k_folds=k)
         new = V.subset(~seen_postures(T.readings, V.readings, robot.joint_types))
@@ -269,17 +277,14 @@ def run_talos_session(seeds, session=1, **kw):
 def run_ablation(seeds, effects=EFFECTS, **_):
     """TIAGo, one frame: the prior model's effects with the joint-offset level and no prior (least squares) — is it
     the prior, or the effects, that helps?"""
-    from real_robots import NOISE, _halves, load_tiago
+    from real_robots import NOISE
 
     from estcal.discrepancy.diagnose import default_candidates
     from estcal.discrepancy.geometric import gravity_ready
 
-    robot, data = load_tiago()
-    g = posture_groups(data.readings, robot.joint_types)
+    robot, halvings = _tiago_halvings(seeds)
     out = []
-    for seed in seeds:
-        tr = _halves(g, seed)
-        T, V = data.subset(tr), data.subset(~tr)
+    for seed, T, V in halvings:
         rb, _ = gravity_ready(robot)
         eff = [(c.effect, list(c.joints), dict(c.options)) for c in default_candidates(rb, T, effects=list(effects),
                                                                                       families=False)]
