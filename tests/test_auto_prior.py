@@ -218,3 +218,10 @@ def test_recommended_command_registers_sessions_in_every_fold_of_the_budget(tmp_
     assert b["recommended"] == "prior + GP" and [d["gp"] for d in b["decisions"]] == ["joints"] * 3
     assert set(b["gp_mm"]) == {"joints"}
     assert b["predicted_validation_mm"] < out["one"]["predicted_validation_mm"] / 2
+    # --geometric auto on the two sessions: one frame (the level choice's), the budget on the stacked rows
+    js = tmp_path / "auto.json"
+    r = RUN.invoke(app, ["diagnose", str(f1), str(f2), "--robot", "puma560_masses", "--geometric", "auto",
+                         "--folds", "3", "--json", str(js)])
+    assert r.exit_code == 0, r.output
+    a = json.loads(js.read_text())
+    assert a["budget"]["n_rows"] == 40 and a["analysis"]["geometric_choice"]["chosen"] in (PRIOR, *LEVELS)

@@ -414,7 +414,8 @@ def diagnose_auto(robot, data, validate=(), k_folds: int = 5, noise=None, rng=0,
                     "standard error): " + ", ".join(f"{c} {v['cv_mm']:.3g} ± {v['se_mm']:.2g}" for c, v in cv.items())
                     + f" → {level}.")
     if budget or residual_model:
-        _attach_budget(res, rb, res.train_data, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model)
+        # the rows as prepared here (several sessions stacked), which the diagnosis prepared alike
+        _attach_budget(res, rb, d, nm, proc, level, effects, k_folds, rng, posture_tol, residual_model)
     return res
 
 
