@@ -195,6 +195,16 @@ def _gains(base, after: dict) -> dict:
     return out
 
 
+def _inner_gp_choice(rule: str, spaces, gains) -> str | None:
+    """:func:`_gp_choice` on the inner CV's gains (``gains()``, computed only when the rule leaves a choice: not
+    for ``never``, nor for ``always`` among one space)."""
+    if rule == "never":
+        return None
+    if rule == "always" and len(spaces) == 1:
+        return spaces[0]
+    return _gp_choice(rule, gains())
+
+
 def _gp_choice(rule: str, gains: dict) -> str | None:
     """The space of the recommended GP (None: no GP) by the procedure's rule (:mod:`.prediction`): ``always``
     the best space; ``cv`` the best space only when it lowers the held-out RMSE by ≥ 5 % and its gain
@@ -239,14 +249,12 @@ def _outer_fold(robot, data, noise, test, proc, cfg, gps_all):
                                      start=gps_all[sp])
         corr = residual_correction(gps[sp], fs.robot, fs.theta, dte.readings, dte.context)
         out["gp"][sp] = out["held"]["named"] - fs.rotate_to_session(dte, corr)
-    if cfg["nested"] and proc.gp == "always" and len(cfg["spaces"]) == 1:
-        space = cfg["spaces"][0]  # a choice among one space: no inner CV to make it
-    elif cfg["nested"] and proc.gp != "never":
-        inner = grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"])
-        space = _gp_choice(proc.gp, _inner_gp_gains(robot, dtr, noise, geo_lv, eff, inner, cfg["spaces"],
-                                                    dict(cfg, fit=fold_fit)))
+    if cfg["nested"]:
+        space = _inner_gp_choice(proc.gp, cfg["spaces"], lambda: _inner_gp_gains(
+            robot, dtr, noise, geo_lv, eff, grouped_folds(cfg["groups"][train], proc.k_inner, cfg["rng"]),
+            cfg["spaces"], dict(cfg, fit=fold_fit)))
     else:
-        space = cfg["gp_space"] if not cfg["nested"] else None
+        space = cfg["gp_space"]
     out["gp_space"] = space
     out["rec"] = out["gp"][space] if space else out["held"]["named"]
     # the parameter covariance only: a GP's variance is the same everywhere far from its data, and a fold
@@ -292,8 +300,9 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
         selection).
     """
     noise = noise or NoiseModel(position=2e-4, orientation=2e-4, known=False)
-    if residual_model is not None and residual_model != "gp":
-        spaces = residual_choice(residual_model)[1]
+    gp_rule, gp_spaces = residual_choice(residual_model)
+    if gp_spaces != SPACES:  # a residual model of one named space; "gp" leaves the caller's spaces
+        spaces = gp_spaces
     n = data.n
     g = posture_groups(data.readings, robot.joint_types, tol_rad, tol_m) if groups is None else np.asarray(groups)
     if sessions is None:
@@ -301,7 +310,7 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     if level == PRIOR and (procedure is None or procedure.prior_fit is None):
         raise ValueError("level 'prior' needs a Procedure with prior_fit (the MAP prior model's fit)")
     proc = procedure or Procedure(level=level, effects=tuple(tuple(e) for e in effects),
-                                  gp=residual_choice(residual_model)[0], k_inner=k_folds)
+                                  gp=gp_rule, k_inner=k_folds)
     levels_cv = None
     if level == "auto":
         level, levels_cv = choose_level(robot, data, noise, g, proc.k_inner, rng, per_session, max_iter=max_iter,
@@ -321,9 +330,9 @@ def error_budget(robot, data, noise=None, *, level: str = "full", effects=(), pr
     cfg = {"groups": g, "per_session": per_session, "max_iter": max_iter, "rng": rng, "nested": nested,
            "spaces": spaces, "level": PRIOR if chose_prior else level,
            "effects": effects, "gp_space": None, "fit": final_fit}
-    if not nested and proc.gp != "never":  # the decision on all rows first: the folds keep it
-        cfg["gp_space"] = _gp_choice(proc.gp, _inner_gp_gains(robot, data, noise, level, effects,
-                                                              grouped_folds(g, proc.k_inner, rng), spaces, cfg))
+    if not nested:  # the decision on all rows first: the folds keep it
+        cfg["gp_space"] = _inner_gp_choice(proc.gp, spaces, lambda: _inner_gp_gains(
+            robot, data, noise, level, effects, grouped_folds(g, proc.k_inner, rng), spaces, cfg))
     held = {st: np.zeros_like(meas) for st in STAGES}
     held_gp = {sp: np.zeros_like(meas) for sp in spaces}
     rec = np.zeros_like(meas)

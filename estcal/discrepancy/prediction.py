@@ -114,8 +114,9 @@ class Procedure:
         ``fitted.result.extra["fold_decision"]`` when present. None: level + effects.
     label : the recommended model's name in the budget (default ``named`` / ``geometric``).
     prior_fit : with ``level="auto"``, a further candidate of the level choice, ``"prior"`` — the MAP prior
-        model's fit (:func:`estcal.discrepancy.prior_model.prior_fit`), ranked after the levels by the
-        one-standard-error rule; where it is chosen it is fitted instead of the level and the effects.
+        model's fit (:func:`estcal.discrepancy.prior_model.prior_fit`), ranked before the levels by the
+        one-standard-error rule (preferred: module docstring); where it is chosen it is fitted instead of the
+        level and the effects.
     """
 
     level: str = "full"

@@ -134,19 +134,28 @@ class FittedStage:
         """A copy of ``data`` with every session's measurements in the common frame (each session's rigid
         registration undone: points ``R_sᵀ (p − t_s)``, a measured orientation ``R_sᵀ R``; a per-session point
         change is not undone), so that the one robot model describes every row."""
-        out = data.subset(slice(None))
-        if not self.sessions:
-            return out
-        P = measured_points(data).copy()
-        for m, R, t, _ in self._each(data):
-            P[m] = (P[m] - t) @ R
-            if out.R is not None:
-                out.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
-        if out.points is not None:
-            out.points = P
-        else:
-            out.p = P[:, 0]
-        return out
+        return _in_common_frame(data, self.sessions)
+
+
+def _in_common_frame(data, sessions: dict, R_tool=None):
+    """A copy of ``data`` with the measurements of every session of ``sessions`` (``{label: (R, t, dm)}``) mapped
+    into the common frame — points ``R_sᵀ (p − t_s)``, a measured orientation ``R_sᵀ R`` — and, with the tool's
+    orientations ``R_tool`` (N, 3, 3), each session's point change ``dm`` undone too."""
+    lab = np.asarray(data.columns.get("session", np.zeros(data.n)))
+    out = data.subset(slice(None))
+    P = measured_points(data).copy()
+    for sv, (R, t, dm) in sessions.items():
+        m = lab == sv
+        P[m] = (P[m] - t) @ R
+        if R_tool is not None and np.any(dm):
+            P[m] -= np.einsum("nij,kj->nki", R_tool[m], dm)
+        if out.R is not None:  # pose data: the measured orientation in the common frame too
+            out.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
+    if out.points is not None:
+        out.points = P
+    else:
+        out.p = P[:, 0]
+    return out
 
 
 def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effects=(), per_session: str | None = None,
@@ -178,23 +187,7 @@ def fit_stage_sessions(robot, data, noise, stage: str, level: str = "full", effe
     meas = measured_points(data)
     fitted = None
     for _ in range(n_iter):
-        adj = data.subset(slice(None))
-        P = meas.copy()
-        if fitted is not None and points:
-            R_tool = fitted.tool_rotations(data)
-        for sv, (R, t, dm) in sess.items():
-            m = lab == sv
-            P[m] = (P[m] - t) @ R
-            if fitted is not None and points and np.any(dm):
-                P[m] -= np.einsum("nij,kj->nki", R_tool[m], dm)
-        if adj.points is not None:
-            adj.points = P
-        else:
-            adj.p = P[:, 0]
-        if adj.R is not None:  # pose data: the measured orientation in the common frame too
-            for sv, (R, t, dm) in sess.items():
-                m = lab == sv
-                adj.R[m] = np.einsum("ji,njk->nik", R, data.R[m])
+        adj = _in_common_frame(data, sess, fitted.tool_rotations(data) if fitted is not None and points else None)
         fitted = fit(robot, adj)
         base = predicted_points(fitted.robot, fitted.theta, data)
         R_tool = fitted.tool_rotations(data) if points else None
