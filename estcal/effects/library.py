@@ -9,7 +9,7 @@ gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic
                                                                  ``harmonic<k>_cos_<j>``
 encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
 thermal_expansion   δx = α · ΔT · (x − o_base)   (every point)    ``thermal_alpha``       1/K
-                    or α · ΔT · (flange − o_base) (links only)
+                    or α · ΔT · (flange − o_base) (links only)    ``thermal_alpha_links``
 drift               δq_j = v_j · (t − t0)                         ``drift_<joint>``       rad/s, m/s
 link_tilt           δx = Σ_j t_j · M⊥_j × (x − o_j) (every point) ``tilt_<joint>``        rad/(N·m)
 ==================  ===========================================  ======================  ===========
@@ -196,7 +196,8 @@ class ThermalExpansion(Effect):
     (the flange) does, and the tool and markers, often on a separate
     thermally stable fixture, keep their size: every point moves by the flange's
     displacement ``αΔT (f − o)``. ``ΔT = temperature − T_ref``
-    (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``)
+    (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``; ``thermal_alpha_links``
+    for the links only)
     is in 1/K (steel ≈ 1.2e-5, aluminium ≈ 2.3e-5). Without a ``temperature``
     column the effect falls back to ``ΔT = t − t_reference`` (warm-up proxy; α
     then in 1/s); with neither it is zero.
@@ -232,7 +233,8 @@ class ThermalExpansion(Effect):
 
     @property
     def param_names(self):
-        return ["thermal_alpha"]
+        # one name per form, so that both forms can be candidates of one model (the diagnosis's)
+        return ["thermal_alpha"] if self.scope == "arm" else ["thermal_alpha_links"]
 
     @property
     def param_frames(self):
