@@ -41,8 +41,9 @@ def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
     assert "joint_compliance" in r.output
     d = json.loads(out.read_text())
     assert [(c["effect"], c["joints"]) for c in d["causes"]] == [("joint_compliance", ["j3"])]
-    assert d["rmse_mm"]["extended"]["cv"] < d["rmse_mm"]["geometric"]["cv"]
-    assert d["rmse_mm"]["extended"]["validation"] is not None
+    assert d["budget"]["model_mm"] < d["budget"]["geometry_mm"]
+    v = d["accuracy"]["validation"]
+    assert len(v) == 1 and v[0]["n_new"] == 8 and v[0]["rmse_mm"] < 3 * d["answer"]["expected_mm"]
     assert (tmp_path / "rep" / "partial_residuals.png").exists()
     v = truth[0]["params"]["compliance_j3"]
     p = d["causes"][0]["parameters"]["compliance_j3"]

@@ -23,135 +23,22 @@ The result (:class:`estcal.discrepancy.result.DiagnosisResult`) holds the one mo
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
-from estcal.effects import EFFECTS, make_effect
-from estcal.effects.library import across_axis_moments
+from estcal.effects import make_effect
 from estcal.estimate.result import pose_errors
 from estcal.io.prepare import derive_approach, with_effect_context
 from estcal.io.robotfile import load_robot, robot_to_dict
 from estcal.methods import NoiseModel
 
-from .result import Cause, DiagnosisResult, plain
+from .result import Cause, DiagnosisResult
+from .terms import Candidate, default_candidates, n_sessions as _n_sessions
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates"]
 
 _BASE = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
-
-
-@dataclass
-class Candidate:
-    """One candidate extension: registered effect ``effect`` on ``joints`` with ``options``."""
-
-    effect: str
-    joints: list | None = None
-    options: dict = field(default_factory=dict)
-
-    @property
-    def label(self) -> str:
-        j = ",".join(self.joints) if self.joints else "arm"
-        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope"))
-        return f"{self.effect}{o}({j})"
-
-    def make(self, robot):
-        return make_effect(self.effect, robot, joints=self.joints, **self.options)
-
-    def make_names(self, robot) -> list:
-        """Parameter names this candidate would add (empty if it cannot be built)."""
-        try:
-            return list(self.make(robot).param_names)
-        except (ValueError, TypeError):
-            return []
-
-    def to_dict(self) -> dict:
-        return {"effect": self.effect, "joints": self.joints, "options": plain(self.options)}
-
-
-def _n_sessions(data) -> int:
-    """Sessions stacked in ``data`` (its ``session`` column; 1 without one)."""
-    lab = data.columns.get("session")
-    return 1 if lab is None else len(np.unique(lab))
-
-
-def default_candidates(robot, data, effects: Sequence[str] | None = None, harmonic_orders=(1, 2, 3),
-                       families: bool = False):
-    """Candidates from the effect registry for ``robot`` and ``data``: per joint for effects that take joints
-    (harmonic orders as separate candidates), once for whole-arm effects (thermal expansion in both forms,
-    whole arm and links only); time effects only when the data have a time (``t`` in the context),
-    gravity effects only on joints the data load (a torque that is numerically zero, or of one sign for
-    backlash without approach columns, gives a column that is noise or an offset). ``families``: also every
-    joint effect once over all its eligible joints. ``effects=None``: every registered effect."""
-    names = list(EFFECTS) if effects is None else list(effects)
-    unknown = [e for e in names if e not in EFFECTS]
-    if unknown:
-        raise ValueError(f"unknown effect(s) {unknown}; registered: {', '.join(sorted(EFFECTS))} (docs/effects.md)")
-    ctx = data.context
-    tau = None
-    if any(n in ("joint_compliance", "backlash") for n in names):
-        tau = robot.gravity_torques(data.readings, context=ctx)
-        big = max(float(np.abs(tau).max()), 1e-300)
-    m_across = None
-    if "link_tilt" in names:
-        m_across = np.linalg.norm(across_axis_moments(robot, data.readings, context=ctx)[0], axis=-1)  # (N, n)
-    out = []
-    # several sessions: time runs from each session's mean, so a time effect is zero there and never shifts one
-    # session against another
-    t_zero = 0.0 if _n_sessions(data) > 1 else (float(np.min(ctx["t"])) if "t" in ctx else 0.0)
-    for name in names:
-        if name == "drift":
-            if "t" not in ctx:
-                continue
-            opts = {"t0": t_zero}
-        elif name == "thermal_expansion":
-            if "temperature" in ctx:
-                opts = {"reference": float(np.mean(ctx["temperature"]))}
-            elif "t" in ctx:
-                opts = {"t_reference": t_zero}
-            else:
-                continue
-            out.append(Candidate(name, None, opts))
-            out.append(Candidate(name, None, dict(opts, scope="links")))
-            continue
-        else:
-            opts = {}
-        variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
-        per_joint = []
-        for ji, j in enumerate(robot.joint_names):
-            if name == "backlash" and "approach_" + j in ctx:
-                if not np.any(ctx["approach_" + j]):
-                    continue
-            elif name in ("joint_compliance", "backlash") and tau is not None:
-                t = tau[:, ji]
-                if np.abs(t).max() <= 1e-9 * big:
-                    continue
-                if name == "backlash" and "approach_" + j not in ctx and (np.all(t > 0) or np.all(t < 0)):
-                    continue
-            elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
-                continue  # no moment across this axis (no mass beyond it, or no gravity)
-            for o in variants:
-                try:
-                    Candidate(name, [j], o).make(robot)
-                except (ValueError, TypeError):
-                    continue
-                per_joint.append(Candidate(name, [j], o))
-        if per_joint:
-            out += per_joint
-            if families:
-                for o in variants:
-                    js = [c.joints[0] for c in per_joint if c.options == o]
-                    if len(js) > 1:
-                        out.append(Candidate(name, js, o))
-        else:
-            try:
-                Candidate(name, None, opts).make(robot)
-                out.append(Candidate(name, None, opts))
-            except (ValueError, TypeError):
-                continue
-    return out
 
 
 # ------------------------------------------------------------------ data preparation
@@ -305,6 +192,7 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     kind = "session" if len(groups.sessions) > 1 else "posture"
     folds = groups.folds(kind, k_folds, rng)
     first = fit_relevance(terms, data, nm, include=load)
+    _check_folds(first.system, folds, k_folds)
     time_folds = groups.folds("time", k_folds) if time_blocks else None
     sel = select_terms(terms, first.system, folds, start=first.sparse.alpha, time_folds=time_folds)
     fit = first if np.array_equal(sel.include, load) else fit_relevance(
@@ -316,6 +204,18 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
         b = error_budget(terms, fit, data, groups, sel, k_folds, rng, time_blocks)
     return _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, groups, b, time_source,
                    approach_from_order, session_time, cv_rmse_mm(sel.cv))
+
+
+def _check_folds(system, folds, k) -> None:
+    """Every fold (and every fold of a fold, the nested CV's) must leave more rows than unpenalised parameters."""
+    from estcal.identify.select import UnidentifiableError
+
+    per_pose = len(system.t) / max(len(np.unique(system.pose)), 1)
+    least = min(len(f.train) for f in folds) * (k - 1) / k * per_pose
+    if least <= system.n_free:
+        raise UnidentifiableError(f"the cross-validation folds leave about {least:.0f} rows for {system.n_free} "
+                                  f"unpenalised parameters (registration, sessions' frames, geometry with "
+                                  f"geometric='full'): give more postures, fewer folds, or the default geometry")
 
 
 # ------------------------------------------------------------------ the result
@@ -438,7 +338,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
                            "k_folds": len(sel.cv["sq"])},
                           model, nm.to_dict(), re_, verdict, terms.lumped, robot=final, covariance=C,
                           covariance_names=names, sigma0=float(np.sqrt(fit.sparse.noise_var)),
-                          train_data=list(sessions) if sessions else data, validation_data=list(validate))
+                          train_data=list(sessions) if sessions else data, validation_data=list(validate),
+                          fit_data=data)
     return res
 
 
@@ -502,11 +403,12 @@ def _validation(final, data, d, joint_types, budget, cov) -> dict:
            "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "predicted_mm": None,
            "coverage": None}
     if budget is not None:
-        from .budget import coverage_at, predicted_at
+        from .budget import coverage_at, predicted_at, reach_at
 
         e, S = _model_points(final, theta, dn, cov, data.n)
         out["predicted_mm"] = predicted_at(budget, S)
         out.update(coverage_at(budget, e, S))
+        out.update(reach_at(budget, data.readings, dn.readings, final.joint_names))
     return out
 
 

@@ -118,8 +118,7 @@ class DiagnosisResult:
     sigma0: float = float("nan")
     train_data: object = field(default=None, repr=False)
     validation_data: list = field(default_factory=list, repr=False)
-    residual_model: object = field(default=None, repr=False)
-    figure_inputs: tuple = field(default=None, repr=False)
+    fit_data: object = field(default=None, repr=False)  # the rows as the diagnosis prepared them (stacked, timed)
 
     @property
     def named(self) -> list[tuple[str, tuple]]:
@@ -156,13 +155,29 @@ class DiagnosisResult:
         return prepare_data(self.robot, data, self.model.get("data_preparation"))
 
     def figures(self) -> dict:
-        """The residual figures ``{file name: Figure}`` (:func:`estcal.discrepancy.analysis.residual_figures`)."""
-        from .analysis import residual_figures
+        """The figures ``{file name: Figure}``: the partial joint residuals of the model's geometry alone (its
+        effects set to zero) and of the model (:func:`estcal.discrepancy.analysis.residual_figures`), and the
+        error budget's bars."""
+        out = {}
+        if self.robot is not None and self.fit_data is not None:
+            from estcal.methods import NoiseModel, Problem
 
-        if self.figure_inputs is None:
-            return {}
-        problem, theta, analysis, tau, title, extended = self.figure_inputs
-        return residual_figures(problem, theta, analysis, tau=tau, title=title, extended=extended)
+            from .analysis import residual_analysis, residual_figures
+
+            rb = self.robot
+            theta = rb.params.values
+            geo = np.where(np.array([k == "effect" for k in rb.params.kinds]), 0.0, theta)
+            problem = Problem(rb, [(None, self.fit_data, NoiseModel.parse(self.noise) if self.noise else
+                                    NoiseModel(known=False))])
+            tau = rb.gravity_torques(self.fit_data.readings, geo, self.fit_data.context)
+            analysis = residual_analysis(problem, geo, False, len(self.covariance_names), {"tau": tau})
+            out = residual_figures(problem, geo, analysis, tau=tau, title=rb.name,
+                                   extended=(problem, theta) if rb.effects else None)
+        if self.budget:
+            from estcal.plots.budget import budget_figure
+
+            out["budget.png"] = budget_figure(self.budget)
+        return out
 
     # ------------------------------------------------------------------ text
     def __str__(self) -> str:
@@ -234,4 +249,7 @@ def _validation_line(v: dict) -> str:
         s += f"; predicted {v['predicted_mm']:.2f}"
     if v.get("coverage") is not None:
         s += f", {100 * v['coverage']:.0f} % inside the 95 % region"
+    if v.get("beyond_cv_reach"):
+        s += (f" — {100 * v['beyond_cv_reach']:.0f} % of its rows extrapolate farther than the cross-validation tried "
+              f"({v['reach_joint']}: {v['reach_max']:.2g}× its training range): the prediction is untested there")
     return s

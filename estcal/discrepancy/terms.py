@@ -29,15 +29,131 @@ Two kinds of effect term (measured on TIAGo at new postures in another session, 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
-__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "Term", "Terms", "build_terms"]
+from estcal.effects import EFFECTS, make_effect
+from estcal.effects.library import across_axis_moments
+
+__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "Candidate", "default_candidates", "Term", "Terms", "build_terms",
+           "n_sessions"]
 
 #: the effects whose terms the evidence keeps without naming them (module docstring)
 LOAD_EFFECTS = ("joint_compliance", "backlash", "link_tilt")
 #: how the geometric parameters enter the model
 GEOMETRIC_MODES = ("sparse", "full", "joint_offset")
+
+
+@dataclass
+class Candidate:
+    """One candidate extension: registered effect ``effect`` on ``joints`` with ``options``."""
+
+    effect: str
+    joints: list | None = None
+    options: dict = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        j = ",".join(self.joints) if self.joints else "arm"
+        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope"))
+        return f"{self.effect}{o}({j})"
+
+    def make(self, robot):
+        return make_effect(self.effect, robot, joints=self.joints, **self.options)
+
+    def make_names(self, robot) -> list:
+        """Parameter names this candidate would add (empty if it cannot be built)."""
+        try:
+            return list(self.make(robot).param_names)
+        except (ValueError, TypeError):
+            return []
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "joints": self.joints, "options": dict(self.options)}
+
+
+def n_sessions(data) -> int:
+    """Sessions stacked in ``data`` (its ``session`` column; 1 without one)."""
+    lab = data.columns.get("session")
+    return 1 if lab is None else len(np.unique(lab))
+
+
+def default_candidates(robot, data, effects: Sequence[str] | None = None, harmonic_orders=(1, 2, 3),
+                       families: bool = False):
+    """Candidates from the effect registry for ``robot`` and ``data``: per joint for effects that take joints
+    (harmonic orders as separate candidates), once for whole-arm effects (thermal expansion in both forms,
+    whole arm and links only); time effects only when the data have a time (``t`` in the context),
+    gravity effects only on joints the data load (a torque that is numerically zero, or of one sign for
+    backlash without approach columns, gives a column that is noise or an offset). ``families``: also every
+    joint effect once over all its eligible joints. ``effects=None``: every registered effect."""
+    names = list(EFFECTS) if effects is None else list(effects)
+    unknown = [e for e in names if e not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; registered: {', '.join(sorted(EFFECTS))} (docs/effects.md)")
+    ctx = data.context
+    tau = None
+    if any(n in ("joint_compliance", "backlash") for n in names):
+        tau = robot.gravity_torques(data.readings, context=ctx)
+        big = max(float(np.abs(tau).max()), 1e-300)
+    m_across = None
+    if "link_tilt" in names:
+        m_across = np.linalg.norm(across_axis_moments(robot, data.readings, context=ctx)[0], axis=-1)  # (N, n)
+    out = []
+    # several sessions: time runs from each session's mean, so a time effect is zero there and never shifts one
+    # session against another
+    t_zero = 0.0 if n_sessions(data) > 1 else (float(np.min(ctx["t"])) if "t" in ctx else 0.0)
+    for name in names:
+        if name == "drift":
+            if "t" not in ctx:
+                continue
+            opts = {"t0": t_zero}
+        elif name == "thermal_expansion":
+            if "temperature" in ctx:
+                opts = {"reference": float(np.mean(ctx["temperature"]))}
+            elif "t" in ctx:
+                opts = {"t_reference": t_zero}
+            else:
+                continue
+            out.append(Candidate(name, None, opts))
+            out.append(Candidate(name, None, dict(opts, scope="links")))
+            continue
+        else:
+            opts = {}
+        variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
+        per_joint = []
+        for ji, j in enumerate(robot.joint_names):
+            if name == "backlash" and "approach_" + j in ctx:
+                if not np.any(ctx["approach_" + j]):
+                    continue
+            elif name in ("joint_compliance", "backlash") and tau is not None:
+                t = tau[:, ji]
+                if np.abs(t).max() <= 1e-9 * big:
+                    continue
+                if name == "backlash" and "approach_" + j not in ctx and (np.all(t > 0) or np.all(t < 0)):
+                    continue
+            elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
+                continue  # no moment across this axis (no mass beyond it, or no gravity)
+            for o in variants:
+                try:
+                    Candidate(name, [j], o).make(robot)
+                except (ValueError, TypeError):
+                    continue
+                per_joint.append(Candidate(name, [j], o))
+        if per_joint:
+            out += per_joint
+            if families:
+                for o in variants:
+                    js = [c.joints[0] for c in per_joint if c.options == o]
+                    if len(js) > 1:
+                        out.append(Candidate(name, js, o))
+        else:
+            try:
+                Candidate(name, None, opts).make(robot)
+                out.append(Candidate(name, None, opts))
+            except (ValueError, TypeError):
+                continue
+    return out
 
 
 @dataclass
@@ -108,10 +224,8 @@ def build_terms(robot, data, noise, effects=None, geometric: str = "sparse", ide
 
     effects : registered effect names to consider (None: every registered effect) or ``()`` for none.
     """
-    from estcal.effects import EFFECTS
     from estcal.identify.select import select_identifiable
 
-    from .diagnose import Candidate, default_candidates
     from .geometric import geometric_candidates, gravity_ready, orthonormal_basis, weighted_system
     from .stages import fit_stage
     from estcal.methods import Problem

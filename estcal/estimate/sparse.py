@@ -268,8 +268,8 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         new_alpha = np.where(usable, new_alpha, np.inf)
         gain = _ell(new_alpha, s, q) - _ell(st.alpha, s, q)
         gain = np.where(np.isfinite(gain), gain, -np.inf)
-        j = int(np.argmax(gain))
-        if gain[j] <= tol:
+        j = int(np.argmax(gain)) if M else 0
+        if not M or gain[j] <= tol:  # (no penalised column: the noise alone)
             if fixed:
                 converged = True
                 break

@@ -175,16 +175,17 @@ def _calibrate(job, opts, rob, ds, vals, warnings) -> dict:
 
 
 def _diagnose(job, opts, rob, ds, vals, warnings) -> dict:
+    """One robot's diagnosis: before = the registration alone, after = the diagnosis's model, both at new
+    postures (cross-validation); each validation file's figure at its new postures."""
     from estcal.discrepancy import diagnose
 
     res = diagnose(rob, ds, validate=vals, noise=opts.noise_pos if opts.known_noise else None, rng=opts.seed)
-    r = res.rmse_mm
-    geo, ext = r.get("geometric", {}), r.get("extended", {})
     causes = [f"{c.effect}({','.join(c.joints) if c.joints else 'arm'})" for c in res.causes]
-    row = {"poses": int(ds.n), "n_parameters": len(res.geometric_free) + sum(len(c.parameters) for c in res.causes),
-           "rmse_before_mm": _first(geo.get("train")), "rmse_after_mm": _first(ext.get("train")),
-           "validation_rmse_before_mm": _first(geo.get("validation")),
-           "validation_rmse_mm": _first(ext.get("validation")), "causes": causes, "verdict": res.verdict}
+    val = res.accuracy.get("validation") or []
+    row = {"poses": int(ds.n), "n_parameters": len(res.covariance_names),
+           "rmse_before_mm": _first((res.budget or {}).get("nominal_mm")), "rmse_after_mm": res.answer["expected_mm"],
+           "validation_rmse_before_mm": None, "validation_rmse_mm": val[0]["rmse_mm"] if val else None,
+           "causes": causes, "verdict": res.verdict}
     if opts.save_models:
         path = Path(opts.save_models) / f"{job.name}.yaml"
         res.save_model(path, {"source": "estcal fleet --diagnose", "robot": job.name})

@@ -45,7 +45,7 @@ def _table(summary, diagnose: bool):
     t = Table(title=f"estcal fleet — {summary.n_ok} of {summary.n_ok + len(summary.failures)} robots "
                     f"{'diagnosed' if diagnose else 'calibrated'} ({summary.scheduler}, {summary.n_workers} "
                     f"worker(s), {summary.wall_s:.1f} s)", title_justify="left")
-    before, after = ("geometric", "extended") if diagnose else ("before", "after")
+    before, after = ("registration", "model") if diagnose else ("before", "after")
     for c, j in (("robot", "left"), ("poses", "right"), (f"RMSE {before} mm", "right"),
                  (f"RMSE {after} mm", "right"), (f"valid. {before} mm", "right"), (f"valid. {after} mm", "right"),
                  ("causes", "left"), ("warnings", "left")):
