@@ -2,7 +2,7 @@
 
 100 good simulated PUMA 560 positions (CMM-like noise 0.02 mm) validated on 100 clean poses of the
 same true robot; into the calibration file are written 5 blunders (x + 3–8 mm), or one wild reading
-(j2 off by 1.5 rad, inside its limits), or one reading beyond its limit (j2 = 10.8 rad). The default
+(j2 off by 1.5 rad, inside its limits, or beyond them), or one reading of j2 at 10.8 rad. The default
 ``estcal calibrate`` must score within 10 % of the clean file's fit on the validation poses and name
 those rows first, by file and line, with their residual and the least-squares fit with them;
 ``--keep-all`` is plain least squares on every row (the default before: these tests failed on it).
@@ -70,8 +70,13 @@ def files(tmp_path_factory):
     def beyond(rows):
         rows[WILD_ROW][j2] = "10.8"
 
+    def wild_out(rows):  # off by 1.5 rad and beyond j2's upper limit 0.785
+        rows[WILD_ROW][j2] = repr(float(rows[WILD_ROW][j2]) + 1.5)
+        assert float(rows[WILD_ROW][j2]) > 0.8
+
     return {"dir": d, "clean": d / "clean.csv", "val": d / "val.csv", "blunders": write("blunders.csv", blunders),
-            "wild": write("wild.csv", wild), "beyond": write("beyond.csv", beyond)}
+            "wild": write("wild.csv", wild), "wild_out": write("wild_out.csv", wild_out),
+            "beyond": write("beyond.csv", beyond)}
 
 
 def _fit(files, name, *extra):
@@ -90,7 +95,7 @@ def clean_fit(files):
 
 
 @pytest.mark.parametrize("case, lines", [("blunders", [i + 2 for i in BLUNDER_ROWS]), ("wild", [WILD_ROW + 2]),
-                                         ("beyond", [WILD_ROW + 2])])
+                                         ("wild_out", [WILD_ROW + 2]), ("beyond", [WILD_ROW + 2])])
 def test_gross_errors_do_not_dominate_the_default_fit(files, clean_fit, case, lines):
     out, d = _fit(files, case)
     kept_all = _fit(files, case, "--keep-all")[1]
@@ -115,8 +120,8 @@ def test_gross_errors_do_not_dominate_the_default_fit(files, clean_fit, case, li
     shift = max(abs(kept_all["parameters"][n]["estimate"] - d["parameters"][n]["estimate"])
                 / d["parameters"][n]["std"] for n in common)
     assert w["max_shift_sigma"] == pytest.approx(shift, rel=1e-6)
-    if case == "beyond":
-        assert rep["rows"][0]["kind"] == "out_of_limits" and "j2 = 10.8 rad" in rep["rows"][0]["reason"]
+    if case in ("beyond", "wild_out"):
+        assert rep["rows"][0]["kind"] == "out_of_limits" and rep["rows"][0]["reason"].startswith("j2 = ")
     else:
         assert {r["kind"] for r in rep["rows"]} == {"outlier"}
     # the residual printed is the row's at the default estimate (recomputed from the estimate)
