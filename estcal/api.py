@@ -66,7 +66,7 @@ def _estimator_and_measure(estimator, measure, method):
 def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None, free=None, level: str = "full",
               selection: str | None = None, validate=(), noise=None, known_noise: bool = False, regularize=None,
               points: int | None = None, root: str | None = None, tip: str | None = None, checks: bool = True,
-              allow_ill_conditioned: bool = False, method: str | None = None, **options):
+              allow_ill_conditioned: bool = False, drop_flagged: bool = True, method: str | None = None, **options):
     """Estimate the robot's parameters from measurements — ``estcal calibrate`` in Python.
 
     Parameters
@@ -93,6 +93,10 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
         converge or the problem is ill-conditioned; ``False`` returns whatever the estimator gives.
     allow_ill_conditioned : turn the rank, convergence and conditioning refusals into warnings
         (``result.extra["reliability"]``), as ``--allow-ill-conditioned``.
+    drop_flagged : leave out (default) the rows the data screening flags — readings beyond the joint limits,
+        outliers after a robust fit, swapped or ghost markers, copies — named with their residual and the
+        least-squares fit with them in ``result.extra["left_out"]`` and one warning; ``False`` fits every row
+        (``--keep-all``). Needs ``checks`` (docs/reliability.md, "Gross errors").
     method : deprecated — the estimator or the measurement, dispatched by name (warned).
     **options : estimator options (``max_iter=50``, ``q=1e-6`` …); ``estcal estimators`` lists them.
 
@@ -107,7 +111,7 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
     cal = run(robot, data, estimator=estimator, measure=measure, free=free,
               level=None if free is not None else level, selection=selection, validate=list(validate),
               noise=as_noise(noise, known_noise), regularize=regularize, options=options, points=points, root=root,
-              tip=tip, checks=checks, allow_ill_conditioned=allow_ill_conditioned)
+              tip=tip, checks=checks, allow_ill_conditioned=allow_ill_conditioned, drop_flagged=drop_flagged)
     return cal.result
 
 

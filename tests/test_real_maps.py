@@ -57,15 +57,18 @@ CALIBRATE = [("ur10", "calibration.csv", "joint_offset", 4.0), ("talos", "talos_
 
 @pytest.mark.parametrize("folder, name, level, rmse_mm", CALIBRATE, ids=[n for _, n, _, _ in CALIBRATE])
 def test_calibrate_reads_the_published_file(folder, name, level, rmse_mm, tmp_path):
-    """docs/dataset.md's calibrations: the file as published, its map, --drop-flagged naming TALOS 02-10's first
-    row; the RMSE after the fit as printed there (to a margin)."""
+    """docs/dataset.md's calibrations: the file as published, its map, TALOS 02-10's first row left out by default
+    and named first; the RMSE after the fit as printed there (to a margin)."""
     data = _need(D / folder / name)
     out = tmp_path / "c.json"
     r = runner.invoke(app, ["calibrate", str(data), "--robot", *ROBOTS[folder], "--map", str(MAPS / f"{folder}.yaml"),
-                            "--level", level, "--drop-flagged", "--json", str(out)])
+                            "--level", level, "--json", str(out)])
     assert r.exit_code == 0, r.output
     acc = json.loads(out.read_text())
-    if name == "talos_feb_arm_02_10_contact.csv":
-        assert "--drop-flagged: 1 row(s) left out (lines 2)" in r.output
+    left = [(d["line"], d["kind"]) for d in acc.get("left_out", {}).get("rows", [])]
+    assert left == ([(2, "outlier")] if name == "talos_feb_arm_02_10_contact.csv" else [])
+    if left:
+        assert r.output.startswith("left out: 1 of 62 rows")
+        assert f"{data} line 2: residual" in r.output
     train = acc["accuracy"]["train"]["after"]["rmse_mm"]
     assert train < rmse_mm, train

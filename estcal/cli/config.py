@@ -69,7 +69,7 @@ def read_config(path: Path, command: str, params, commands=()) -> dict:
                                          f"(see `estcal {command} --help`)")
             if isinstance(v, dict):
                 raise typer.BadParameter(f"{path}: key {k!r} holds a table; give the option's value")
-            if any(o.startswith("--no-") for o in getattr(p, "secondary_opts", [])) and _key(k).startswith("no-"):
+            if _key(k) in {_key(o) for o in getattr(p, "secondary_opts", [])}:  # --no-x, --keep-all: the off switch
                 v = not v
             values[p.name] = [str(x) if isinstance(x, Path) else x for x in v] if isinstance(v, list) else v
     return values

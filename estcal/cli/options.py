@@ -14,7 +14,8 @@ One vocabulary (docs/conventions.md, "One vocabulary"):
 * ``--level`` (``registration`` | ``joint_offset`` | ``full``, default ``full`` everywhere).
 * ``--map FILE.yaml`` reads the data files through a column map (the loader's hook,
   docs/dataset.md); commands that read datasets declare it with :func:`map_option`, and those
-  that fit them ``--drop-flagged`` (:func:`drop_flagged_option`).
+  that fit them ``--drop-flagged`` (:func:`drop_flagged_option`; ``--drop-flagged/--keep-all`` where
+  leaving the flagged rows out is the default, as in ``estcal calibrate``).
 * output files: ``--json``, ``--report DIR``, ``--save-model``, ``-o/--output``.
 
 Nothing here imports more than typer: the command modules import this at start-up.
@@ -139,9 +140,18 @@ def posture_tol(mrad: float, mm: float) -> tuple[float, float]:
     return mrad * 1e-3, mm * 1e-3
 
 
-def drop_flagged_option():
+def drop_flagged_option(default: bool = False):
     """``--drop-flagged``: leave out the rows that the data screening flags (``estcal check``'s defect
-    kinds; docs/dataset.md) — their findings are printed as warnings either way."""
+    kinds; docs/dataset.md) — their findings are printed as warnings either way. Where that is the
+    default (``estcal calibrate``: docs/reliability.md, "Gross errors") the option is the pair
+    ``--drop-flagged/--keep-all``, ``--keep-all`` fitting every row."""
+    if default:
+        return typer.Option(True, "--drop-flagged/--keep-all",
+                            help="Leave out (default) the rows flagged by the data screening — readings beyond the "
+                                 "joint limits, outliers after a robust fit, swapped or ghost markers, duplicates — "
+                                 "and print them first, by file and line, with their residual and the "
+                                 "least-squares fit with them; --keep-all fits every row (plain least squares "
+                                 "unless --robust). `estcal check` lists them.")
     return typer.Option(False, "--drop-flagged",
                         help="Leave out the rows flagged by the data screening (swapped or ghost markers, outliers, "
                              "readings beyond the limits, duplicates), naming their lines; `estcal check` lists "

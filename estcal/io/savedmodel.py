@@ -188,6 +188,8 @@ def save_calibration(result, path, provenance: dict | None = None) -> Path:
         extra.setdefault("selection_criterion", sel.get("criterion"))
     extra["covariance_source"] = result.covariance_source
     extra["converged"] = bool(result.converged)
+    if result.extra.get("left_out"):  # the rows the data screening left out of the fit (not in `train`)
+        extra["left_out"] = [{k: r[k] for k in ("file", "line", "kind")} for r in result.extra["left_out"]["rows"]]
     free, C, unknowns = robot_covariance(result)
     if unknowns:
         extra["method_unknowns"] = unknowns

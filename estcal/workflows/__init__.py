@@ -12,6 +12,7 @@ module                 job
 =====================  ==========================================================
 ``inputs``             loading and checking what every job reads (shared)
 ``calibrate``          batch calibration (``estcal calibrate``, ``estcal.calibrate``)
+``left_out``           the rows a calibration left out, and the fit with them
 ``diagnose``           what the geometric model gets wrong (``estcal diagnose``)
 ``sessions``           several sessions with a repeatability model
 ``design``             measurement plans and the next pose

@@ -109,7 +109,7 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
               regularize=None, robust: str | None = None, options: dict | None = None, points: int | None = None,
               root: str | None = None, tip: str | None = None, checks: bool = True,
               allow_ill_conditioned: bool = False, column_map=None, posture_tol=(1e-3, 1e-3),
-              drop_flagged: bool = False) -> Calibration:
+              drop_flagged: bool = True) -> Calibration:
     """Calibrate ``robot`` on ``data`` — the job of ``estcal calibrate``.
 
     Parameters
@@ -126,8 +126,12 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     regularize : None, ``"loo"`` or a prior std (SI); robust : ``huber`` | ``cauchy``.
     options : estimator options (SI); ``{"chain": path}`` keeps an MCMC chain.
     points, root, tip, column_map : as the loader's (first N points, URDF chain, column map).
-    drop_flagged : leave out the rows that :func:`estcal.workflows.check.screen` flags (their
-        findings are warned either way; docs/dataset.md, "Checking a file").
+    drop_flagged : leave out (default) the rows that the data screening flags as defects — readings beyond
+        the joint limits, outliers after a robust fit, swapped or ghost markers, copies
+        (:func:`estcal.workflows.check.screen_rows`; docs/reliability.md, "Gross errors"); they are named
+        in ``result.extra["left_out"]`` with their residual and the least-squares fit with them
+        (:mod:`estcal.workflows.left_out`). ``False`` (``--keep-all``) fits every row; ``checks=False`` skips
+        the screening.
     checks, allow_ill_conditioned : the numerical refusals (docs/reliability.md).
     posture_tol : ``(rad, m)``: validation rows whose readings agree with a calibration row within it are at
         *seen* postures; each validation score is split into ``seen`` / ``new`` (docs/real-data.md).
@@ -145,12 +149,13 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     check_input_files([*sessions, *validate])
     rob, n_markers = robot_for_data(robot, sessions[0], points, root, tip, column_map)
     parts = load_datasets(sessions, rob, n_markers, column_map)
+    originals, left = parts, []
     if checks:
-        from estcal.workflows.check import screen
+        from estcal.workflows.check import screen_rows
 
         for part in parts:  # the cheap refusals before the screening's robust fit
             refuse_early(rob, part, measure, free, level, allow_ill_conditioned)
-        parts = screen(parts, rob, drop_flagged)
+        parts, left = screen_rows(parts, rob, drop_flagged, warn_dropped=False)
     vals = load_datasets(validate, rob, n_markers, column_map)
     check_held_out(parts, [], "session")
     check_held_out(parts, vals)
@@ -164,6 +169,9 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
     res, sel, problem = _run(rob, ds, robot, estimator, measure, free, level, selection, vals, noise, options,
                              regularize, checks, allow_ill_conditioned)
     _seen_new(res, problem, ds, vals, tuple(posture_tol))
+    if left:
+        _report_left_out(res, left, originals, ds, problem, rob, vals, noise,
+                         dict(measure=measure, free=free, level=level or "full", selection=selection))
     res.extra["measurement_noise"] = _noise_components(problem, res)
     out = Calibration(res, sel, problem, rob, vals, " + ".join(_label(s) for s in sessions),
                       [_label(v) for v in validate])
@@ -172,6 +180,19 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
                      noise=problem.terms[0].noise.to_dict(), points=n_markers)
     res.extra["robot"] = str(res.extra["robot"])
     return out
+
+
+def _report_left_out(res, left, originals, kept, problem, rob, vals, noise, choices) -> None:
+    """``res.extra["left_out"]``: the rows the screening left out and the least-squares fit with them — the
+    fit ``--keep-all`` gives with the default estimator, same measure, free set or level, selection and
+    noise (:mod:`estcal.workflows.left_out`) —, warned in one line."""
+    from estcal.workflows.left_out import left_out_report, warn_left_out
+
+    def refit(data):
+        return run_calibration(rob, data, estimator="lm", validate=vals, noise=noise, checks=False, **choices)[0]
+
+    res.extra["left_out"] = left_out_report(left, originals, kept, problem, res, refit)
+    warn_left_out(res.extra["left_out"])
 
 
 def _noise_components(problem, res, max_rows: int = 20000) -> dict:

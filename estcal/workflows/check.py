@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warnings
 
-__all__ = ["check_file", "findings_for", "drop_flagged", "screen", "SCREEN_OUTLIER_MAX_ROWS"]
+__all__ = ["check_file", "findings_for", "drop_flagged", "screen", "screen_rows", "SCREEN_OUTLIER_MAX_ROWS"]
 
 
 def _robot_for(robot, data_path, root=None, tip=None, column_map=None, points=None):
@@ -51,34 +51,66 @@ def screen(datasets, robot, drop: bool = False) -> list:
     """The data screening of calibrate, diagnose, sessions and online: each dataset's findings warned
     (:func:`findings_for`); with ``drop`` (``--drop-flagged``) the defect rows removed and named in a
     warning. Returns the datasets (the same objects when nothing is dropped)."""
-    from estcal.base.errors import EstcalWarning
+    return screen_rows(datasets, robot, drop)[0]
 
-    out = []
-    for ds in datasets:
+
+def screen_rows(datasets, robot, drop: bool = False, warn_dropped: bool = True) -> tuple[list, list]:
+    """:func:`screen`, also returning the rows left out: ``(datasets, left_out)``, ``left_out`` one dict per
+    row (``file``, ``line``, ``kind``, ``reason``, ``session``: the dataset's index; ``row``: its index in
+    that dataset), in file order. ``warn_dropped=False``: the findings of the rows left out are not warned
+    one by one (the caller reports them)."""
+    from estcal.base.errors import EstcalWarning
+    from estcal.intake.hygiene import DEFECTS
+
+    out, left = [], []
+    for k, ds in enumerate(datasets):
         big = ds.n > SCREEN_OUTLIER_MAX_ROWS
-        report = findings_for(robot, ds, outliers=not big)
+        report = findings_for(robot, ds, outliers=not big, skip=() if warn_dropped or not drop else DEFECTS)
         if big:
             warnings.warn(f"{ds.where}: {ds.n} rows: no outlier test before the fit (run `estcal check` for it)",
                           EstcalWarning, stacklevel=2)
         if drop:
+            full = ds
             ds, lines = drop_flagged(ds, report)
-            if lines:
+            if lines and warn_dropped:
                 shown = ", ".join(str(x) for x in lines[:20]) + (" …" if len(lines) > 20 else "")
                 warnings.warn(f"{ds.where}: --drop-flagged: {len(lines)} row(s) left out (lines {shown})",
                               EstcalWarning, stacklevel=2)
+            left += [dict(r, session=k) for r in _left_out_rows(full, report, lines)]
         out.append(ds)
-    return out
+    return out, left
 
 
-def findings_for(robot, ds, outliers: bool = True):
+def _left_out_rows(ds, report, lines) -> list[dict]:
+    """One dict per left-out line: the file, the line, its row in ``ds``, the finding's kind and its reason
+    (the finding's message without the leading ``line N:``; a duplicate: the line it copies)."""
+    import numpy as np
+
+    from estcal.intake.hygiene import DEFECTS
+
+    row_of = {int(ln): i for i, ln in enumerate(ds.lines)}
+    why = {}
+    for f in report.findings:
+        if f.kind not in DEFECTS:
+            continue
+        for ln in f.lines:
+            text = f.message.split(": ", 1)[1] if f.message.startswith(f"line {ln}: ") else f.message
+            if f.kind == "duplicate_row":
+                text = "a copy, bit for bit, of an earlier row"
+            why.setdefault(int(ln), (f.kind, text.split(" — ")[0]))
+    return [{"file": ds.where, "line": int(ln), "row": row_of[int(ln)], "kind": why[int(ln)][0],
+             "reason": why[int(ln)][1]} for ln in sorted(np.unique(lines).tolist())]
+
+
+def findings_for(robot, ds, outliers: bool = True, skip=()):
     """The findings of ``ds`` warned as :class:`~estcal.base.errors.EstcalWarning` (one per finding,
-    defects first) and returned (the report)."""
+    defects first; not those of the kinds in ``skip``) and returned (the report)."""
     from estcal.base.errors import EstcalWarning
     from estcal.intake.hygiene import check_data
 
     report = check_data(robot, ds, outliers=outliers)
     for f in report.findings:
-        if f.kind != "unused_column":
+        if f.kind != "unused_column" and f.kind not in skip:
             warnings.warn(f"{ds.where}: {f.kind}: {f.message}", EstcalWarning, stacklevel=2)
     return report
 

@@ -47,6 +47,10 @@ def _print_report(console, cal) -> None:
     from estcal.report.tables import rich_table
 
     res, sel, robot = cal.result, cal.selection, cal.robot
+    if res.extra.get("left_out"):  # answer first: what was left out and what it changed
+        from estcal.workflows.left_out import format_left_out
+
+        console.print(format_left_out(res.extra["left_out"]), soft_wrap=True, highlight=False)
     title = (f"estcal calibrate — {robot.name}, {cal.measure}, estimator {cal.estimator}: "
              f"{len(res.names)} parameters, {res.n_iterations} iterations, "
              f"{'converged' if res.converged else 'NOT converged'}, σ0 = {res.sigma0:.3g} "
@@ -193,7 +197,7 @@ def calibrate(
     posture_tol_mm: float = posture_tol_mm_option(),
     points: Optional[int] = points_option(),
     column_map: Optional[Path] = map_option(),
-    drop_flagged: bool = drop_flagged_option(),
+    drop_flagged: bool = drop_flagged_option(True),
     noise_pos_mm: float = noise_pos_option(0.1),
     noise_rot_mrad: float = noise_rot_option(1.0),
     old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
@@ -208,9 +212,9 @@ def calibrate(
     gough_model: int = typer.Option(42, "--model", help="Gough platforms: 42 (attachment points + leg "
                                                         "offsets) or 36 (offsets known)."),
     robust: Optional[str] = typer.Option(None, "--robust", help="Robust kernel huber | cauchy (thresholds "
-                                         "1.345 / 2.385 σ, --option robust_k=K): lm, gauss-newton, iterated-lls, "
-                                         "scipy-lm (IRLS), gtsam, isam2, gtsam-timevarying, kalman; the "
-                                         "down-weighted rows are named."),
+                                         "1.345 / 2.385 σ, --option robust_k=K) on the rows fitted (every row "
+                                         "with --keep-all): lm, gauss-newton, iterated-lls, scipy-lm (IRLS), gtsam, "
+                                         "isam2, gtsam-timevarying, kalman; the down-weighted rows are named."),
     option: list[str] = typer.Option([], "--option", help="Estimator option KEY=VALUE (repeatable; values "
                                      "in SI units, parsed as YAML scalars), e.g. --option max_iter=50, "
                                      "--option q=1e-5 (kalman), --option optimizer=dogleg (gtsam). The keys "
@@ -260,11 +264,18 @@ def calibrate(
                       list(data) + list(validate) + ([Path(robot)] if Path(robot).is_file() else []))
     noise = with_row_sigma(NoiseModel(position=noise_pos, orientation=noise_rot, scalar=noise_pos,
                                       known=known_noise), row_sigma_mm)
-    cal = wf.calibrate(robot, list(data), estimator=estimator, measure=measure, free=free, level=level,
-                       selection=selection, validate=list(validate), noise=noise, regularize=_regularize(regularize),
-                       robust=robust, options=options, points=points, root=root, tip=tip, checks=True,
-                       allow_ill_conditioned=allow_ill, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
-                       column_map=column_map, drop_flagged=drop_flagged)
+    import warnings
+
+    from estcal.workflows.left_out import LeftOutWarning
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=LeftOutWarning)  # the report prints the rows left out first
+        cal = wf.calibrate(robot, list(data), estimator=estimator, measure=measure, free=free, level=level,
+                           selection=selection, validate=list(validate), noise=noise,
+                           regularize=_regularize(regularize), robust=robust, options=options, points=points,
+                           root=root, tip=tip, checks=True, allow_ill_conditioned=allow_ill,
+                           posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), column_map=column_map,
+                           drop_flagged=drop_flagged)
     _outputs(cal, robot, root, tip, json_path, report, save_model)
 
 
