@@ -118,7 +118,7 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None,
              root: str | None = None, tip: str | None = None, folds: int = 5, geometric: str = "sparse",
              budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = False,
-             column_map=None, drop_flagged: bool = False, report=None):
+             column_map=None, drop_flagged: bool = True, report=None):
     """How accurate the robot's model is at new postures, which physical causes it names, what stays
     unexplained — ``estcal diagnose`` (docs/discrepancy.md; the defaults are the command's).
 
@@ -134,7 +134,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     geometric : ``"sparse"`` (every identifiable geometric parameter under a relevance prior), ``"full"``
         (unpenalised) or ``"joint_offset"``.
     budget : the error budget (nested and time-blocked cross-validation, the 95 % region).
-    urdf_chain_masses, approach_from_order, column_map, drop_flagged, report : as ``estcal diagnose``.
+    drop_flagged : leave out the rows the data screening flags (the default, as :func:`calibrate`'s; named in
+        ``result.data["left_out"]`` and in the text); False fits every row.
+    urdf_chain_masses, approach_from_order, column_map, report : as ``estcal diagnose``.
 
     Returns
     -------

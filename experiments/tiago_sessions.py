@@ -11,9 +11,9 @@ with the final model and never inform a choice.
 2. Approach columns are derived per session from the posture order (each
    session starts with no approach), time runs from each session's first pose.
 3. Causes: :func:`estcal.discrepancy.diagnose` on the stacked training sessions
-   (geometric level by cross-validation, ``geometric="auto"``); its extended robot
-   (named effects at their estimates, effect parameters free) is the model of
-   the next steps.
+   (its default model: geometry and effects under relevance priors, causes named by
+   evidence, folds and cross-validation); its model (the effects it keeps at their
+   estimates, effect parameters free) is the model of the next steps.
 4. Free set: the identifiable joint-offset level (base, markers, joint offsets)
    plus the named effects' parameters, by QR on the stacked training sessions.
 5. Varying parameters: forward selection among the free joint offsets and base
@@ -110,9 +110,9 @@ def model_on(sessions, names, quick: bool, log) -> dict:
     """Steps 3–5 on ``sessions``: diagnosis, free set, varying parameters, fit."""
     stacked = stack_sessions(sessions, names)
     k = 5 if quick else min(stacked.n, 10)
-    res = diagnose(ROBOT, stacked, k_folds=k, noise=None, geometric="auto", robot_spec="tiago")
+    res = diagnose(ROBOT, stacked, k_folds=k, noise=None, robot_spec="tiago", budget=False)
     log(f"  diagnosis on {' + '.join(names)}: {res.named or 'no cause'} "
-        f"(geometric level {res.analysis['geometric_level']})")
+        f"(effect terms kept: {', '.join(res.terms['kept']) or 'none'})")
     prepared = [_prepared(res, d) for d in sessions]
     free, _ = _free(res.robot, prepared)
     # start from the diagnosis' estimate (effects included)

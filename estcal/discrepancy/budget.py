@@ -113,7 +113,8 @@ def _nested(terms, system, groups, folds, kind, k, rng, start, time_blocks=True)
     R = groups.readings
     for f in folds:
         sel = select_terms(terms, system, _inner(groups, f, kind, k, rng), rows=system.rows_of(f.train), start=start,
-                           name_load=False, time_folds=_inner(groups, f, "time", k, rng) if time_blocks else None)
+                           name_load=False, time_folds=_inner(groups, f, "time", k, rng) if time_blocks else None,
+                           final_cv=False)
         e = held_out_errors(system, sel.fit, f.test, f.register)
         rt = system.rows_of(f.test)
         ep = point_errors(system, e, rt)

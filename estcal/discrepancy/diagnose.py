@@ -34,7 +34,7 @@ from estcal.io.robotfile import load_robot, robot_to_dict
 from estcal.methods import NoiseModel
 
 from .result import Cause, DiagnosisResult
-from .terms import Candidate, default_candidates, n_sessions as _n_sessions
+from .terms import Candidate, build_terms, default_candidates, n_sessions as _n_sessions
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates"]
 
@@ -178,7 +178,6 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     from estcal.validation.groups import row_groups
 
     from .relevance import cv_rmse_mm, fit_relevance, select_terms
-    from .terms import build_terms
 
     robot, robot_spec, data, validate, sessions, time_source = _prepare_data(
         robot, data, validate, robot_spec, approach_from_order, session_time)
@@ -360,9 +359,9 @@ def _covariance(terms, fit):
     C = np.zeros((len(names), len(names)))
     C[:nf, :nf] = sp.free_cov[:nf, :nf]
     C[nf:, nf:] = sp.cov[np.ix_(act, act)]
-    if "F_pinv_Phi" in sp.extra:
+    if "F_pinv" in sp.extra:
         full = np.zeros((fit.system.n_free, sp.cov.shape[0]))
-        full[keep_f] = -sp.extra["F_pinv_Phi"] @ sp.cov
+        full[keep_f] = -(sp.extra["F_pinv"] @ (sp.extra["Phi"] * sp.extra["Phi_scale"])) @ sp.cov
         C[:nf, nf:] = full[:nf][:, act]
         C[nf:, :nf] = C[:nf, nf:].T
     return names, C

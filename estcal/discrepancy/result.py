@@ -186,9 +186,10 @@ class DiagnosisResult:
     def answer_lines(self) -> list[str]:
         """The first screen: how accurate at new postures, why, what is left, each validation file."""
         a, d = self.answer, self.data
-        out = [f"Expected error at new postures: {a['expected_mm']:.2f} mm RMS, 95 % of points within "
-               f"{a['bound95_mm']:.2f} mm ({a['basis']}; {d['n_postures']} postures, {d['n_sessions']} "
-               f"session{'s' if d['n_sessions'] > 1 else ''})"]
+        bound = (f"95 % of points within {a['bound95_mm']:.2f} mm" if np.isfinite(a.get("bound95_mm", np.nan))
+                 else "too few held-out points for a 95 % bound (19 needed)")
+        out = [f"Expected error at new postures: {a['expected_mm']:.2f} mm RMS, {bound} ({a['basis']}; "
+               f"{d['n_postures']} postures, {d['n_sessions']} session{'s' if d['n_sessions'] > 1 else ''})"]
         t = a.get("time") or {}
         if t:
             src = "the t column" if t["source"] == "t column" else "the row order (no t column: rows taken as " \
@@ -207,6 +208,11 @@ class DiagnosisResult:
                       "repeatability floor unknown (no posture is measured twice)"))
         for v in self.accuracy.get("validation", []):
             out.append("Validation " + _validation_line(v))
+        left = self.data.get("left_out") or []
+        if left:
+            rows = "; ".join(f"{r['file']} line {r['line']} ({r['kind']})" for r in left[:6])
+            out.append(f"Left out: {len(left)} row(s) the data screening flags — {rows}"
+                       + (" …" if len(left) > 6 else "") + " (--keep-all fits them; `estcal check` says why)")
         return out
 
     def detail_lines(self) -> list[str]:

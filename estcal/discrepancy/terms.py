@@ -247,9 +247,13 @@ def build_terms(robot, data, noise, effects=None, geometric: str = "sparse", ide
     kinds = dict(zip(rb.params.names, rb.params.kinds))
     if geometric == "joint_offset":
         geo = [n for n in geo if kinds[n] in ("base", "marker", "offset") or (kinds[n] == "tool" and rb.n_markers == 0)]
-    _, A, _ = weighted_system(problem, theta0, geo)
-    ident = select_identifiable(A, names=geo, tol=ident_tol).identifiable
     free = list(reg)
+    # the registration first: a geometric parameter the registration can stand in for (a last joint's offset
+    # turning a tool point on its axis, which the tool's own translation moves too) is not a candidate — its
+    # remainder would be a sliver of noise, and a relevance prior lets such a sliver grow without bound
+    order = free + [n for n in geo if n not in set(free)]
+    _, A, _ = weighted_system(problem, theta0, order)
+    ident = select_identifiable(A, names=order, tol=ident_tol).identifiable
     geometric_names = [n for n in ident if n not in set(free)]
     # effect terms that regroup into the registration and geometric columns are not candidates
     _, A, _ = weighted_system(problem, theta0, free + geometric_names)

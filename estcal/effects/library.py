@@ -336,10 +336,6 @@ class LinkTilt(Effect):
 
     name = "link_tilt"
     prefixes = ("tilt",)
-    #: not among the causes ``estcal diagnose`` screens unless asked (``--effects link_tilt``): on one TIAGo
-    #: session the family is named on all rows but in 1 of 5 posture-grouped folds, and screening it costs
-    #: 1.7 s; the MAP prior model keeps it (docs/effects.md; docs/real-data.md, "A prior instead of a level")
-    screened_by_default = False
 
     def context_keys(self):
         return ["payload"]

@@ -92,7 +92,7 @@ class SparseFit:
             return Phi @ self.cov @ Phi.T
         F = np.asarray(F, float)
         G = F @ self.extra["F_pinv"]
-        D = Phi - F @ self.extra["F_pinv_Phi"]
+        D = Phi - G @ (self.extra["Phi"] * self.extra["Phi_scale"])
         return self.noise_var * (G @ G.T) + D @ self.cov @ D.T
 
     def predict(self, Phi, F=None):
@@ -104,14 +104,21 @@ class SparseFit:
 
 
 def _project(F, *arrays):
-    """The arrays with their components along the columns of ``F`` removed, and ``rank F``."""
+    """The arrays with their components along the columns of ``F`` removed; ``rank F``; and the pivoted QR
+    factorisation ``(Q (n, r), R (r, r), the r independent columns)`` of the column-scaled ``F`` (Businger &
+    Golub's column pivoting, ``scipy.linalg.qr``) — its rank by the factor's diagonal, its pseudo-inverse on
+    those columns."""
     if F is None or F.shape[1] == 0:
         return arrays, 0, None
+    from scipy.linalg import qr
+
     nrm = np.linalg.norm(F, axis=0)
     nrm[nrm == 0] = 1.0
-    U, sv, _ = np.linalg.svd(F / nrm, full_matrices=False)
-    Q = U[:, sv > 1e-10 * max(sv.max(), 1e-300)]
-    return tuple(a - Q @ (Q.T @ a) for a in arrays), Q.shape[1], Q
+    Q, R, piv = qr(F / nrm, mode="economic", pivoting=True)
+    d = np.abs(np.diag(R))
+    r = int(np.sum(d > 1e-10 * max(d.max(), 1e-300))) if d.size else 0
+    Q = Q[:, :r]
+    return tuple(a - Q @ (Q.T @ a) for a in arrays), r, (Q, R[:r, :r], piv[:r], nrm)
 
 
 class _State:
@@ -134,8 +141,8 @@ class _State:
         if A.size == 0:
             self.logdet = 0.0
             return A, np.zeros((0, 0)), np.zeros(0)
-        H = self.beta * self.G[A][:, A]
-        H[np.diag_indices_from(H)] += self.alpha[A]
+        H = self.beta * self.G[np.ix_(A, A)]
+        H.flat[:: len(A) + 1] += self.alpha[A]
         L = _cholesky(H)
         Li, _ = dtrtri(L, lower=1)
         Sig = Li.T @ Li
@@ -155,10 +162,9 @@ class _State:
             Q = b * self.h
         s, q = S.copy(), Q.copy()
         a = self.alpha[A]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            den = a - S[A]
-            s[A] = a * S[A] / den
-            q[A] = a * Q[A] / den
+        den = a - S[A]
+        s[A] = a * S[A] / den
+        q[A] = a * Q[A] / den
         return s, q
 
     def residual2(self, A, mu):
@@ -199,8 +205,7 @@ def _cholesky(H):
 
 def _ell(alpha, s, q):
     """ℓ(α) of the module docstring (the log evidence gained by the column at precision α; 0 at α = ∞)."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        out = 0.5 * (-np.log1p(s / alpha) + q * q / (alpha + s))
+    out = 0.5 * (-np.log1p(s / alpha) + q * q / (alpha + s))
     return np.where(np.isfinite(alpha), out, 0.0)
 
 
@@ -244,8 +249,9 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     G = Pt.T @ Pt
     h = Pt.T @ yt
     st = _State(G, h, float(yt @ yt), n)
-    # a column whose projected norm vanishes regroups into the unpenalised ones: never a candidate
-    usable &= np.diag(G) > 1e-20
+    # a column whose part orthogonal to the unpenalised ones is below 1e-6 of its norm regroups into them: never
+    # a candidate (a sliver of rounding would otherwise get a prior as wide as it wants)
+    usable &= np.diag(G) > 1e-12
     fixed = noise_var is not None
     st.beta = 1.0 / noise_var if fixed else 1.0 / max(0.1 * float(yt @ yt) / max(n, 1), 1e-300)
     amin = np.zeros(M) if alpha_min is None else np.broadcast_to(np.asarray(alpha_min, float), (M,)) / nrm_s ** 2
@@ -258,14 +264,29 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         S, Qj = st.beta * G[j, j], st.beta * h[j]
         st.alpha[j] = max(S * S / (Qj * Qj - S) if Qj * Qj > S else S, amin[j])  # a weak start: re-estimated or deleted
     max_iter = 20 * M + 50 if max_iter is None else int(max_iter)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        st, A, Sig, mu, it, converged = _search(st, usable, amin, tol, max_iter, fixed, start is not None, M)
+        fit = _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged)
+        # what adding each column alone would gain (the held-out ones included): ℓ at its optimal precision — the
+        # log Bayes factor of that column against this model with every other precision held (a cheap screen)
+        s, q = st.sq(A, Sig, mu)
+        theta = q * q - s
+        out = np.isinf(st.alpha) & (st.dG > 1e-12)
+        best = np.where(theta > 0, np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
+        fit.extra["add_gain"] = np.where(out & (theta > 0), _ell(best, s, q), 0.0)
+    return fit
+
+
+def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
+    """The sequential search (module docstring) from the state's precisions; returns
+    ``(state, A, Σ, μ, steps, converged)``."""
     converged, it = False, 0
     A, Sig, mu = st.posterior()
-    L = st.log_evidence(A, Sig, mu)
+    L = None  # the log evidence, computed when a batch needs the comparison
     for it in range(1, max_iter + 1):
         s, q = st.sq(A, Sig, mu)
         theta = q * q - s
-        new_alpha = np.where(theta > 0, np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
-        new_alpha = np.where(usable, new_alpha, np.inf)
+        new_alpha = np.where(usable & (theta > 0), np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
         gain = _ell(new_alpha, s, q) - _ell(st.alpha, s, q)
         gain = np.where(np.isfinite(gain), gain, -np.inf)
         j = int(np.argmax(gain)) if M else 0
@@ -276,7 +297,7 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
             beta0 = st.beta
             st.update_noise(A, Sig, mu)
             A, Sig, mu = st.posterior()
-            L = st.log_evidence(A, Sig, mu)
+            L = None
             if abs(np.log(st.beta / beta0)) < 1e-6:
                 converged = True
                 break
@@ -288,13 +309,15 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         # Faul's step, which always raises it). The stopping rule is theirs either way: no single action gains.
         good = (gain > tol) & ~((old == new_alpha) | (np.isinf(old) & np.isinf(new_alpha)))
         refresh = good & np.isfinite(old) & np.isfinite(new_alpha)
-        took = False
-        tries = [good] if start is not None else []  # from a warm start: everything at once first
+        tries = [good] if warm else []  # from a warm start: everything at once first
         if refresh[j]:
             tries.append(refresh)
+        took = False
         for batch in tries:
             if batch.sum() < 2:
                 continue
+            if L is None:
+                L = st.log_evidence(A, Sig, mu)
             st.alpha[batch] = new_alpha[batch]
             if np.isfinite(st.alpha).any():
                 A2, Sig2, mu2 = st.posterior()
@@ -310,16 +333,8 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         if not fixed and it % 5 == 0:
             st.update_noise(*st.posterior())
         A, Sig, mu = st.posterior()
-        L = st.log_evidence(A, Sig, mu)
-    fit = _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged)
-    # what adding each column alone would gain (the held-out ones included): ℓ at its optimal precision — the
-    # log Bayes factor of that column against this model with every other precision held (a cheap screen)
-    s, q = st.sq(A, Sig, mu)
-    theta = q * q - s
-    out = np.isinf(st.alpha) & (np.diag(G) > 1e-20)
-    best = np.where(theta > 0, np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
-    fit.extra["add_gain"] = np.where(out & (theta > 0), _ell(best, s, q), 0.0)
-    return fit
+        L = None
+    return st, A, Sig, mu, it, converged
 
 
 def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged) -> SparseFit:
@@ -334,14 +349,16 @@ def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged) -> SparseFit:
     gamma[A] = 1.0 - st.alpha[A] * np.diag(Sig)
     extra = {}
     if F is not None and F.shape[1]:
-        # c given w: least squares of y − Φw on F; its covariance adds the penalised part's through F⁺Φ
-        Fp = np.linalg.pinv(F)
-        r = y - Pn[:, A] @ mu
-        free = Fp @ r
+        # c given w: least squares of y − Φw on F (the pivoted QR of _project; a column F's others span gets 0);
+        # its covariance adds the penalised part's through F⁺Φ
+        Qf, Rf, cols, fn = Q
+        Fp = np.zeros((F.shape[1], F.shape[0]))
+        Fp[cols] = np.linalg.solve(Rf, Qf.T) / fn[cols, None]
+        free = Fp @ (y - Pn[:, A] @ mu)
         P = Fp @ Pn[:, A]
         free_cov = Fp @ Fp.T / st.beta + P @ Sig @ P.T
-        # what a prediction's covariance at other rows needs (prediction_cov)
-        extra = {"F_pinv": Fp, "F_pinv_Phi": Fp @ (Pn * nrm_s)}
+        # what a prediction's covariance at other rows needs (prediction_cov: F⁺ and the training Φ)
+        extra = {"F_pinv": Fp, "Phi": Pn, "Phi_scale": nrm_s}
     else:
         free, free_cov = np.zeros(0), np.zeros((0, 0))
     return SparseFit(alpha, mean, cov, free, free_cov, 1.0 / st.beta, st.log_evidence(A, Sig, mu), gamma, it,
@@ -356,8 +373,8 @@ def log_evidence_ard(Phi, y, alpha, noise_var, F=None) -> float:
     y = np.asarray(y, float)
     N = len(y)
     if F is not None and np.size(F):
-        (_,), r, Q = _project(np.asarray(F, float).reshape(N, -1), y)
-        U, _, _ = np.linalg.svd(np.eye(N) - Q @ Q.T)
+        (_,), r, fac = _project(np.asarray(F, float).reshape(N, -1), y)
+        U, _, _ = np.linalg.svd(np.eye(N) - fac[0] @ fac[0].T)
         B = U[:, : N - r]  # orthonormal basis of the complement
     else:
         B = np.eye(N)

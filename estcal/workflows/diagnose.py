@@ -41,7 +41,7 @@ GEOMETRIC = ("sparse", "full", "joint_offset")
 
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
-             urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = False, folds: int = 5,
+             urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
              geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = False,
              posture_tol=(1e-3, 1e-3), robot_spec=None, report=None):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
@@ -55,8 +55,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     effects : effect names to consider (default: every registered effect, docs/effects.md).
     noise : a :class:`~estcal.methods.NoiseModel` (the rows' relative weights; its scale is fitted either way).
     urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
-    column_map, drop_flagged : the data's column map; leave out the rows the screening flags
-        (:func:`estcal.workflows.check.screen`; their findings are warned either way).
+    column_map, drop_flagged : the data's column map; leave out the rows the data screening flags (the
+        default, as ``estcal calibrate``'s: readings beyond the limits, outliers after a robust fit, swapped or
+        ghost markers, copies — named in the output by file and line; ``False``: every row is fitted).
     folds : cross-validation folds (by posture, and by session with several sessions); seed : their seed.
     geometric : ``sparse`` (default), ``full`` or ``joint_offset`` (:func:`estcal.discrepancy.diagnose`).
     budget : the error budget (nested CV, time-blocked CV, the 95 % region); without it the expected error is
@@ -90,9 +91,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     names = check_effects(effects)
     for d in sessions:
         check_distinct_poses(d)
-    from estcal.workflows.check import screen
+    from estcal.workflows.check import screen_rows
 
-    sessions = screen(sessions, rob, drop_flagged)
+    sessions, left = screen_rows(sessions, rob, drop_flagged, warn_dropped=False)
     check_held_out(sessions, [], "session")
     check_held_out(sessions, vals)
     spec = robot_spec or (str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None)
@@ -111,6 +112,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         res.model["robot_spec"] = str(robot)
     res.model["root"], res.model["tip"] = root, tip
     res.model["urdf_chain_masses"] = bool(urdf_chain_masses and rob.meta.get("urdf"))
+    res.data["left_out"] = [{k: r[k] for k in ("file", "line", "kind", "reason")} for r in left]
     if report is not None:  # the analysis writes no file: figures, diagnosis.json, summary.txt, index.html
         from estcal.report.diagnose import diagnose_report
 

@@ -66,7 +66,7 @@ def diagnose(
     points: Optional[int] = points_option(),
     validate: list[Path] = validate_option(),
     column_map: Optional[Path] = map_option(),
-    drop_flagged: bool = drop_flagged_option(),
+    drop_flagged: bool = drop_flagged_option(True),
     effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to consider "
                                                                   "(default: every registered effect)."),
     noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Position noise std per "
