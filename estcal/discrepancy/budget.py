@@ -56,7 +56,7 @@ class Budget:
     geometry_mm: float
     model_mm: float
     model_se_mm: float
-    bound95_mm: float
+    bound95_mm: float | None
     time: dict
     repeatability_mm: float | None
     repeatability_reason: str | None
@@ -175,13 +175,14 @@ def error_budget(terms, fit, data, groups, selection, k: int = 5, rng=0, time_bl
     model_mm, model_se = _rmse_se(sq, cnt)
     norms = np.linalg.norm(e, axis=1)
     bound = conformal_threshold(norms, 0.95) * 1e3
+    bound = float(bound) if np.isfinite(bound) else None  # too few held-out points for a 95 % bound
     time = _time_cv(system, groups, selection.include, k, start, model_mm, model_se) if time_blocks else {}
     rep = repeatability_floor(measured_points(data), groups.posture, groups.session)
     rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
     expected, basis = model_mm, f"nested {'session- and ' if kind == 'session' else ''}posture-grouped CV"
     if time.get("disagrees"):
         expected, basis = time["model_mm"], "time-blocked CV (the error grows over the campaign: later use)"
-    return Budget(cv_rmse_mm(nominal), cv_rmse_mm(geometry), model_mm, model_se, float(bound), time, rep_mm,
+    return Budget(cv_rmse_mm(nominal), cv_rmse_mm(geometry), model_mm, model_se, bound, time, rep_mm,
                   None if rep is not None else "no posture is measured twice", float(expected), basis, kind,
                   len(folds), groups.n_postures, groups.n, len(groups.sessions), decisions, _region(e, S),
                   {"cv_reach_max": float(reach.max()) if reach.size else 0.0,

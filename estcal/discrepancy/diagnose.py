@@ -291,7 +291,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     names, C = _covariance(terms, fit)
     vals = [_validation(final, data, d, robot.joint_types, budget, (names, C)) for d in validate]
     answer = {"expected_mm": b["expected_mm"] if b else cv_all_rows,
-              "bound95_mm": b["bound95_mm"] if b else float("nan"),
+              "bound95_mm": b["bound95_mm"] if b else None,
               "basis": b["expected_basis"] if b else "CV of the model chosen on all rows (no budget: optimistic)",
               "repeatability_mm": b["repeatability_mm"] if b else None, "time": (b or {}).get("time") or {}}
     active = fit.sparse.active & fit.include

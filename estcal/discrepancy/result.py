@@ -186,7 +186,7 @@ class DiagnosisResult:
     def answer_lines(self) -> list[str]:
         """The first screen: how accurate at new postures, why, what is left, each validation file."""
         a, d = self.answer, self.data
-        bound = (f"95 % of points within {a['bound95_mm']:.2f} mm" if np.isfinite(a.get("bound95_mm", np.nan))
+        bound = (f"95 % of points within {a['bound95_mm']:.2f} mm" if a.get("bound95_mm") is not None
                  else "too few held-out points for a 95 % bound (19 needed)")
         out = [f"Expected error at new postures: {a['expected_mm']:.2f} mm RMS, {bound} ({a['basis']}; "
                f"{d['n_postures']} postures, {d['n_sessions']} session{'s' if d['n_sessions'] > 1 else ''})"]
