@@ -50,7 +50,7 @@ from .chain import SerialRobot
 from .transforms import make_transform, rot_axis
 from .urdf import fixed_subtree, joint_origin, load_urdf_document
 
-__all__ = ["export_urdf", "UrdfExport", "link_transform_parts"]
+__all__ = ["export_urdf", "UrdfExport", "link_transform_parts", "unexpressible"]
 
 _TOL = 1e-9  # metres / radians: a model must match the original URDF's fixed structure to this
 
@@ -126,24 +126,27 @@ def link_transform_parts(robot: SerialRobot, li: int, theta=None):
 
 
 # ------------------------------------------------------------------ warnings
-def _unexpressible(robot: SerialRobot) -> list[str]:
+def unexpressible(robot: SerialRobot, target: str = "a URDF") -> list[str]:
+    """One line for each part of ``robot`` that ``target`` (a URDF, a UR kinematics file: joint origins only)
+    cannot hold: gains ≠ 1, coupling, effects, gravity other than −z with masses, markers."""
     out = []
     vals = robot.params.values
     gains = {robot.joint_names[j]: float(vals[robot.gain_idx[j]]) for j in range(robot.n_joints)}
     bad = {n: g for n, g in gains.items() if g != 1.0}
     if bad:
-        out.append("joint gains cannot be expressed in a URDF (its joint position would have to be "
+        out.append(f"joint gains cannot be expressed in {target} (its joint position would have to be "
                    "gain · reading): " + ", ".join(f"{n} (gain {g:.9g})" for n, g in bad.items())
-                   + "; the offsets are folded into the origins, the gains are written as comments")
+                   + "; the offsets are folded into the origins"
+                   + (", the gains are written as comments" if target == "a URDF" else ", the gains are not written"))
     if robot.coupling is not None:
-        out.append("the joint coupling matrices (Cj, Cm) cannot be expressed in a URDF: its joint "
+        out.append(f"the joint coupling matrices (Cj, Cm) cannot be expressed in {target}: its joint "
                    "positions are the coupled joint values, not the readings")
     for eff in robot.effects:
         d = eff.to_dict() if hasattr(eff, "to_dict") else {}
         name = d.get("effect", type(eff).__name__)
         joints = d.get("joints")
         out.append(f"effect {name!r}" + (f" on {', '.join(map(str, joints))}" if joints else "")
-                   + " cannot be expressed in a URDF (not written; parameters "
+                   + f" cannot be expressed in {target} (not written; parameters "
                    + ", ".join(eff.param_names) + ")")
     has_mass = robot.payload_mass > 0 or any(lk.mass for lk in robot.links)
     if has_mass and not np.array_equal(robot.gravity, [0.0, 0.0, -9.81]):
@@ -151,7 +154,7 @@ def _unexpressible(robot: SerialRobot) -> list[str]:
                    f"[0, 0, -9.81] in the root frame; set it where the URDF is used")
     if robot.n_markers:
         names = [f"marker{k + 1}" for k in range(robot.n_markers)]
-        out.append(f"markers {', '.join(names)} (unknown points in the tool frame) are not part of a URDF "
+        out.append(f"markers {', '.join(names)} (unknown points in the tool frame) are not part of {target} "
                    f"(not written; they stay in the robot file)")
     return out
 
@@ -412,7 +415,7 @@ def export_urdf(robot: SerialRobot, path, from_urdf=None, root: str | None = Non
         if src and path.resolve() == Path(src).resolve():
             raise ValueError(f"{path}: is {what} — write the URDF to another file (inputs are never overwritten)")
     theta = robot.params.values
-    warn_list = _unexpressible(robot)
+    warn_list = unexpressible(robot)
     header = _provenance(robot, source)
     vals = theta
     if from_urdf is None:
