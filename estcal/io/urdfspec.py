@@ -49,7 +49,7 @@ def _file(d, key: str, source, what: str) -> Path | None:
         return None
     if not isinstance(v, str) or not v.strip():
         raise _err(source, key, f"expected the path of the {what} file, got {v!r}")
-    p = Path(v) if Path(v).is_absolute() else Path(source).resolve().parent / v
+    p = Path(v) if Path(v).is_absolute() else Path(source).parent / v  # as the user would write it
     try:
         return check_input_file(p, what, RobotFileError)
     except RobotFileError as exc:

@@ -118,8 +118,8 @@ def _frame_line(what: str, params: str, link_from: str, link_to: str, nominal, c
     from estcal.kinematics.transforms import matrix_to_rpy
 
     def f(T):
-        xyz = ", ".join(f"{v:.6f}" for v in T[:3, 3])
-        rpy = ", ".join(f"{v:.6f}" for v in matrix_to_rpy(T[:3, :3]))
+        xyz = ", ".join(f"{round(v, 6) + 0.0:.6f}" for v in T[:3, 3])
+        rpy = ", ".join(f"{round(v, 6) + 0.0:.6f}" for v in matrix_to_rpy(T[:3, :3]))
         return f"xyz [{xyz}] rpy [{rpy}]"
 
     return (f"the {what} frame ({params}) is not part of a UR kinematics file: {link_from} -> {link_to} is "

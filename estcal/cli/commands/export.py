@@ -62,7 +62,7 @@ def _ur(robot, path, spec, from_urdf, root, tip, json_path) -> None:
     o = ex.origins
     moved = ", ".join(f"{e} {dp:.3g} mm / {dr:.3g} mrad" for e, (dp, dr) in o.changed.items()) or "none"
     typer.echo(f"wrote {path} (UR kinematics file, hash {o.kinematics.hash}); origins changed from "
-               f"{ex.nominal}: {moved}")
+               f"{_near(ex.nominal)}: {moved}")
     if ex.spec is not None:
         typer.echo(f"wrote {ex.spec} (load it with --robot {ex.spec}: the nominal URDF with these origins, the base "
                    f"and the tool frames)")
@@ -72,6 +72,17 @@ def _ur(robot, path, spec, from_urdf, root, tip, json_path) -> None:
         from estcal.base.jsonio import write_json
 
         write_json(json_path, ex.to_dict(robot))
+
+
+def _near(path) -> str:
+    """``path`` relative to the working folder when it is near (``../shared/…``), else as given."""
+    import os
+
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:
+        return str(path)
+    return rel if Path(rel).parts[:2].count("..") <= 1 else str(path)
 
 
 def _urdf(robot, urdf, from_urdf, root, tip, json_path) -> None:
