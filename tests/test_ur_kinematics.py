@@ -317,6 +317,31 @@ def test_a_factory_file_is_read_with_its_urdf(tmp_path):
     assert robot.meta["ur_kinematics_hash"] == "calib_12345"
 
 
+def test_a_model_calibrated_from_a_factory_file_is_expressed_in_it(tmp_path):
+    """Calibrating from a spec (URDF + factory file) and exporting: the origins the calibration did not move
+    keep the factory numbers exactly; the moved one is the factory origin times Rz(offset)."""
+    urdf = _ur_urdf(tmp_path / "ur10.urdf")
+    factory = {e: list(v) for e, v in CB3_UR10.items()}
+    factory["forearm"] = [-0.61213, 0.0003, 0.00012, 0.0011, -0.0007, 0.0021]
+    spec = _spec(tmp_path / "s.yaml", urdf, _kin_file(tmp_path / "factory.yaml", factory), root="world", tip="tool0")
+    model = load_robot(spec)
+    model.params["offset_elbow_joint"] = 0.004
+    save_robot(model, tmp_path / "m.yaml")
+    r = runner.invoke(app, ["export", "--robot", str(tmp_path / "m.yaml"), "--ur-kinematics", str(tmp_path / "k.yaml"),
+                            "--from-urdf", str(spec), "--json", str(tmp_path / "k.json")])
+    assert r.exit_code == 0, r.output
+    kin = yaml.safe_load(open(tmp_path / "k.yaml"))["kinematics"]
+    for e in ENTRIES:
+        if e != "forearm":
+            assert [kin[e][k] for k in KEYS] == [float(x) for x in factory[e]], e
+    got = _T([kin["forearm"][k] for k in KEYS[:3]], [kin["forearm"][k] for k in KEYS[3:]])
+    want = _T(factory["forearm"][:3], factory["forearm"][3:]) @ _Rz4(0.004)
+    assert np.abs(got - want).max() < 1e-14
+    summary = yaml.safe_load(open(tmp_path / "k.json"))
+    assert list(summary["changed"]) == ["forearm"] and summary["changed"]["forearm"]["mrad"] == pytest.approx(4.0)
+    assert summary["hash"] == kin["hash"] and summary["warnings"] == []
+
+
 def test_a_prefixed_arm(tmp_path):
     urdf = _ur_urdf(tmp_path / "left.urdf", prefix="left_")
     model = _calibrate(load_robot(urdf, root="world", tip="left_tool0"), seed=3)

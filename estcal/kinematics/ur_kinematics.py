@@ -71,7 +71,6 @@ MAX_SHIFT_M = 0.015
 #: axis is free: that is the joint offset)
 MAX_TILT_RAD = 0.1
 _SAME = 1e-12  # m / rad: an origin this close to the nominal keeps the nominal numbers
-_MATCH = 1e-9  # m / rad: the model must match the nominal description to this
 
 
 def _num(v: float) -> str:
@@ -275,11 +274,6 @@ class UrOrigins:
     others: list
 
 
-def _check_same(a, b, what: str) -> None:
-    if not np.allclose(a, b, atol=_MATCH, rtol=0):
-        raise RobotFileError(what)
-
-
 def _origin_entry(new: np.ndarray, j, e: str) -> tuple:
     """``(numbers, (mm, mrad) or None)``: the nominal numbers when ``new`` is the nominal origin."""
     old = joint_origin(j)
@@ -301,10 +295,10 @@ def _origin_entry(new: np.ndarray, j, e: str) -> tuple:
 def ur_origins(robot: SerialRobot, tree, source, root: str | None = None, tip: str | None = None) -> UrOrigins:
     """The six calibrated origins of ``robot`` (a URDF-convention model of a UR arm, current parameter
     values) in its nominal description ``tree`` (read from ``source``; ``root``/``tip``: the model's
-    chain in it), with the nominal numbers kept where the calibration changed nothing (module docstring).
-    Raises :class:`RobotFileError` when the model is not this description's chain, and
+    chain in it, guessed when None), with the nominal numbers kept where the calibration changed nothing
+    (module docstring). Raises ``ValueError`` when the model is not this description's chain, and
     :class:`NumericalRefusal` when an origin moved beyond :data:`MAX_SHIFT_M` / :data:`MAX_TILT_RAD`."""
-    from .urdf_export import _guess_chain, link_transform_parts
+    from .urdf_export import _guess_chain, chain_origins, link_transform_parts
 
     if not all(f"tx_{lk.label}" in robot.params.names for lk in robot.links[1:-1]):
         raise RobotFileError(f"{robot.name}: a UR kinematics file needs a model whose frames are the URDF's joints "
@@ -316,47 +310,25 @@ def ur_origins(robot: SerialRobot, tree, source, root: str | None = None, tip: s
         except ValueError as exc:
             raise RobotFileError(f"{source}: {exc}") from None
     chain = chain_joints(tree, root, tip, source)
-    actuated = [j.name for j in chain if j.type != "fixed"]
-    if actuated != list(robot.joint_names):
-        raise RobotFileError(f"{source}: the chain {root} -> {tip} has joints {actuated}, the model "
-                             f"{list(robot.joint_names)}")
-    li_of = {lk.joint: i for i, lk in enumerate(robot.links) if lk.joint is not None}
     theta = robot.params.values
-    by_joint, changed, others, fixed, before_shoulder = {}, {}, [], np.eye(4), None
     entry_of = {prefix + j: e for e, j in UR_JOINTS.items()}
-    for j in chain:
-        if j.type == "fixed":
-            fixed = fixed @ joint_origin(j)
-            continue
-        k = robot.joint_names.index(j.name)
-        link = robot.links[li_of[k]]
-        _check_same(fixed @ joint_origin(j), link.const,
-                    f"{source}: joint {j.name!r}: the model's nominal origin differs from this description's (was the "
-                    f"model calibrated from it, with --root {root} --tip {tip}?)")
-        if before_shoulder is None:
-            before_shoulder = fixed
-        head, _ = link_transform_parts(robot, li_of[k], theta)
-        new = np.linalg.solve(fixed, head)
+    by_entry, changed, others = {}, {}, []
+    for j, new in chain_origins(robot, theta, chain, source, root, tip):
         if j.name in entry_of:
             e = entry_of[j.name]
-            by_joint[e], moved = _origin_entry(new, j, e)
+            by_entry[e], moved = _origin_entry(new, j, e)
             if moved is not None:
                 changed[e] = moved
         elif not np.allclose(new, joint_origin(j), atol=_SAME, rtol=0):
             others.append(j.name)
-        fixed = np.eye(4)
-    _check_same(fixed, robot.links[-1].const, f"{source}: the fixed joints after {robot.joint_names[-1]!r} up to "
-                                              f"{tip!r} differ from the model's tool_origin; give --tip LINK")
-    kin_entries = {e: by_joint[e] for e in ENTRIES}
-    kin = UrKinematics(kin_entries, ur_hash(kin_entries))
+    entries = {e: by_entry[e] for e in ENTRIES}
     base_T, _ = link_transform_parts(robot, 0, theta)
     tool_T, _ = link_transform_parts(robot, len(robot.links) - 1, theta)
-    mount = _mount(chain, prefix, root, before_shoulder, base_T)
-    end = (tip, robot.links[-1].const, tool_T)
-    return UrOrigins(kin, changed, {e: prefix + j for e, j in UR_JOINTS.items()}, root, tip, mount, end, others)
+    return UrOrigins(UrKinematics(entries, ur_hash(entries)), changed, {e: prefix + j for e, j in UR_JOINTS.items()},
+                     root, tip, _mount(chain, prefix, root, base_T), (tip, robot.links[-1].const, tool_T), others)
 
 
-def _mount(chain, prefix: str, root: str, before_shoulder: np.ndarray, base_T: np.ndarray) -> tuple:
+def _mount(chain, prefix: str, root: str, base_T: np.ndarray) -> tuple:
     """``(link, T_root_link nominal, calibrated)``: the link the arm is mounted by (``base_link``, else the
     shoulder joint's parent), from the root, without and with the model's base frame."""
     T, link = np.eye(4), root
@@ -366,5 +338,5 @@ def _mount(chain, prefix: str, root: str, before_shoulder: np.ndarray, base_T: n
         T = T @ joint_origin(j)
         link = j.child
         if j.child == prefix + "base_link":
-            return link, T, base_T @ T
-    return link, before_shoulder, base_T @ before_shoulder
+            break
+    return link, T, base_T @ T
