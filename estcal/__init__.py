@@ -36,6 +36,7 @@ _API = {
     # using a saved model (added by their work packages; one line each):
     "compensate": "estcal.compensation.core:compensate",
     "export_urdf": "estcal.kinematics.urdf_export:export_urdf",
+    "export_ur_kinematics": "estcal.workflows.export:export_ur_kinematics",
 }
 
 __all__ = ["__version__", *_API]

@@ -26,11 +26,11 @@ def test_the_runner_finds_blocks_and_outputs():
 @pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
 def test_docs_page_snippets_run(page, tmp_path):
     code = "".join(c for _, c, _ in python_blocks(page))
-    if "tiago" in code:
-        from estcal.kinematics.robots import shared_dir
+    from estcal.kinematics.robots import shared_dir
 
-        if not (shared_dir() / "data" / "tiago" / "tiago_48_schunk.urdf").exists():
-            pytest.skip("this page's snippets read the TIAGo files of ../shared (absent)")
+    for robot, name in (("tiago", "tiago_48_schunk.urdf"), ("ur10", "ur10_robot.urdf")):
+        if robot in code and not (shared_dir() / "data" / robot / name).exists():
+            pytest.skip(f"this page's snippets read the {robot} files of ../shared (absent)")
     env = dict(os.environ, MPLBACKEND="Agg")
     p = subprocess.run([sys.executable, str(REPO / "tests" / "docs_runner.py"), str(page)], cwd=tmp_path,
                        capture_output=True, text=True, timeout=300, env=env)

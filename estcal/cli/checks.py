@@ -54,10 +54,11 @@ NUMBER_RULES: list[tuple[tuple, tuple | None, tuple]] = [
 # options whose value is a file the command writes (folders such as --report are not checked here)
 OUTPUT_FOLDER_OPTIONS = ("--report", "--out", "--out-dir", "--output-dir", "--save-models")
 OUTPUT_OPTIONS = ("--json", "--output", "--truth", "--save-model", "--save-state", "--checkpoint", "--plot",
-                  "--html", "--urdf")
+                  "--html", "--urdf", "--ur-kinematics", "--robot-spec")
 
 
 _EXAMPLE_NAME = {"--json": "result.json", "--truth": "truth.json", "--urdf": "robot.urdf", "--save-model": "model.yaml",
+                 "--ur-kinematics": "kinematics.yaml", "--robot-spec": "robot_spec.yaml",
                  "--chain": "chain.h5", "--option chain": "chain.h5",
                  "--state": "online.state"}
 

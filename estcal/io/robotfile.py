@@ -50,6 +50,7 @@ from estcal.kinematics.transforms import make_transform, matrix_to_rpy, rpy_to_m
 from estcal.robots import available
 
 from .integrity import stamp_text, verify_text
+from .urdfspec import is_urdf_spec, robot_from_spec
 
 __all__ = ["RobotFileError", "load_robot", "robot_names", "save_robot", "robot_from_dict", "robot_to_dict",
            "read_robot_file", "calibration_covariance", "FORMAT_VERSION", "LENGTH_UNITS", "ANGLE_UNITS"]
@@ -481,7 +482,8 @@ def load_robot(spec, root: str | None = None, tip: str | None = None, n_markers:
     spec : SerialRobot, str or Path
         A robot object (returned as is), a built-in name (``puma560``, ``stanford``,
         ``5r1p``, ``planar2``, ``puma560_fu``, ``tiago``), a packaged robot-file
-        name, a ``.yaml``/``.yml`` robot file, or a ``.urdf`` file.
+        name, a ``.yaml``/``.yml`` robot file, a ``.urdf`` file, or a URDF robot spec (a ``.yaml``
+        naming a ``urdf`` and, for a UR arm, a kinematics file: :mod:`estcal.io.urdfspec`).
     root, tip : str, optional
         URDF links delimiting the chain (root defaults to the URDF's root link;
         tip is required unless the URDF has a single leaf link).
@@ -496,7 +498,10 @@ def load_robot(spec, root: str | None = None, tip: str | None = None, n_markers:
         s = str(spec)
         suffix = Path(s).suffix.lower()
         if suffix in (".yaml", ".yml"):
-            robot = robot_from_dict(read_robot_file(s), source=s, strict=True)
+            d = read_robot_file(s)
+            if is_urdf_spec(d):  # a URDF, its chain, a UR kinematics file (docs/export.md)
+                return robot_from_spec(d, s, root, tip, n_markers)
+            robot = robot_from_dict(d, source=s, strict=True)
         elif suffix == ".urdf":
             from estcal.kinematics.urdf import robot_from_urdf
 

@@ -42,7 +42,7 @@ from .builder import MAX_LENGTH_M, MAX_LIMIT_RAD, build_robot
 from .chain import SerialRobot
 
 __all__ = ["robot_from_urdf", "robot_from_tree", "load_urdf", "load_urdf_document", "root_links", "joint_origin", "fixed_subtree",
-           "UrdfTree", "UrdfRobot", "UrdfJoint", "UrdfLink"]
+           "origin_matrix", "chain_joints", "UrdfTree", "UrdfRobot", "UrdfJoint", "UrdfLink"]
 
 
 # ------------------------------------------------------------------ the kinematic part of a URDF
@@ -82,7 +82,8 @@ class UrdfLink:
 @dataclass
 class UrdfJoint:
     """``<joint>``: origin (4×4 parent link → joint frame; None without ``<origin>``), axis (3,) (default
-    ``1 0 0``, as the specification), limit and mimic (None when absent)."""
+    ``1 0 0``, as the specification), limit and mimic (None when absent); ``xyz_rpy``: the six numbers
+    of ``<origin xyz rpy>`` as written (None without ``<origin>``), for writers that keep them."""
 
     name: str
     type: str
@@ -92,6 +93,7 @@ class UrdfJoint:
     axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
     limit: UrdfLimit | None = None
     mimic: UrdfMimic | None = None
+    xyz_rpy: tuple | None = None
 
 
 @dataclass
@@ -152,17 +154,28 @@ def _euler_sxyz(ai: float, aj: float, ak: float) -> np.ndarray:
     return M
 
 
-def _origin(el, path, where):
-    """``<origin xyz rpy>`` as 4×4 (``compose_matrix(translate=xyz, angles=rpy)``: T · R, then / M[3, 3])."""
-    if el is None:
-        return None
-    xyz = _numbers(el.get("xyz", "0 0 0"), 3, path, where, "<origin xyz>")
-    rpy = _numbers(el.get("rpy", "0 0 0"), 3, path, where, "<origin rpy>")
+def origin_matrix(xyz, rpy) -> np.ndarray:
+    """A URDF ``<origin xyz rpy>`` as 4×4, composed as yourdfpy composes it
+    (``compose_matrix(translate=xyz, angles=rpy)``: T · R, then / M[3, 3]): the same bits for the same numbers."""
     T = np.identity(4)
     T[:3, 3] = xyz
     M = np.dot(np.dot(np.identity(4), T), _euler_sxyz(*rpy))
     M /= M[3, 3]
     return M
+
+
+def _origin_numbers(el, path, where):
+    """``xyz + rpy`` (six floats) of an ``<origin>`` element, None without one."""
+    if el is None:
+        return None
+    return tuple(_numbers(el.get("xyz", "0 0 0"), 3, path, where, "<origin xyz>")
+                 + _numbers(el.get("rpy", "0 0 0"), 3, path, where, "<origin rpy>"))
+
+
+def _origin(el, path, where):
+    """``<origin xyz rpy>`` as 4×4 (:func:`origin_matrix`)."""
+    nums = _origin_numbers(el, path, where)
+    return None if nums is None else origin_matrix(nums[:3], nums[3:])
 
 
 def _read_tree(root, path) -> UrdfTree:
@@ -191,8 +204,10 @@ def _read_tree(root, path) -> UrdfTree:
         mim = j.find("mimic")
         mimic = None if mim is None else UrdfMimic(mim.get("joint"), _number(mim, "multiplier", path, where, 1.0),
                                                    _number(mim, "offset", path, where, 0.0))
+        nums = _origin_numbers(j.find("origin"), path, where)
         joints.append(UrdfJoint(name, j.get("type"), j.find("parent").get("link"), j.find("child").get("link"),
-                                _origin(j.find("origin"), path, where), axis, limit, mimic))
+                                None if nums is None else origin_matrix(nums[:3], nums[3:]), axis, limit, mimic,
+                                nums))
     return UrdfTree(UrdfRobot(root.get("name", ""), links, joints))
 
 
@@ -321,6 +336,12 @@ def _chain(urdf, root: str, tip: str, path=""):
         joints.append(j)
         cur = j.parent
     return joints[::-1]
+
+
+def chain_joints(urdf, root: str, tip: str, path="") -> list:
+    """The joints from link ``root`` down to link ``tip``, in chain order (an error naming the file when
+    a link is missing or ``tip`` is not below ``root``)."""
+    return _chain(urdf, root, tip, path)
 
 
 def joint_origin(j) -> np.ndarray:

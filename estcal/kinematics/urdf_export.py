@@ -50,7 +50,7 @@ from .chain import SerialRobot
 from .transforms import make_transform, rot_axis
 from .urdf import fixed_subtree, joint_origin, load_urdf_document
 
-__all__ = ["export_urdf", "UrdfExport", "link_transform_parts"]
+__all__ = ["export_urdf", "UrdfExport", "link_transform_parts", "unexpressible", "chain_origins"]
 
 _TOL = 1e-9  # metres / radians: a model must match the original URDF's fixed structure to this
 
@@ -126,24 +126,27 @@ def link_transform_parts(robot: SerialRobot, li: int, theta=None):
 
 
 # ------------------------------------------------------------------ warnings
-def _unexpressible(robot: SerialRobot) -> list[str]:
+def unexpressible(robot: SerialRobot, target: str = "a URDF") -> list[str]:
+    """One line for each part of ``robot`` that ``target`` (a URDF, a UR kinematics file: joint origins only)
+    cannot hold: gains ≠ 1, coupling, effects, gravity other than −z with masses, markers."""
     out = []
     vals = robot.params.values
     gains = {robot.joint_names[j]: float(vals[robot.gain_idx[j]]) for j in range(robot.n_joints)}
     bad = {n: g for n, g in gains.items() if g != 1.0}
     if bad:
-        out.append("joint gains cannot be expressed in a URDF (its joint position would have to be "
+        out.append(f"joint gains cannot be expressed in {target} (its joint position would have to be "
                    "gain · reading): " + ", ".join(f"{n} (gain {g:.9g})" for n, g in bad.items())
-                   + "; the offsets are folded into the origins, the gains are written as comments")
+                   + "; the offsets are folded into the origins"
+                   + (", the gains are written as comments" if target == "a URDF" else ", the gains are not written"))
     if robot.coupling is not None:
-        out.append("the joint coupling matrices (Cj, Cm) cannot be expressed in a URDF: its joint "
+        out.append(f"the joint coupling matrices (Cj, Cm) cannot be expressed in {target}: its joint "
                    "positions are the coupled joint values, not the readings")
     for eff in robot.effects:
         d = eff.to_dict() if hasattr(eff, "to_dict") else {}
         name = d.get("effect", type(eff).__name__)
         joints = d.get("joints")
         out.append(f"effect {name!r}" + (f" on {', '.join(map(str, joints))}" if joints else "")
-                   + " cannot be expressed in a URDF (not written; parameters "
+                   + f" cannot be expressed in {target} (not written; parameters "
                    + ", ".join(eff.param_names) + ")")
     has_mass = robot.payload_mass > 0 or any(lk.mass for lk in robot.links)
     if has_mass and not np.array_equal(robot.gravity, [0.0, 0.0, -9.81]):
@@ -151,7 +154,7 @@ def _unexpressible(robot: SerialRobot) -> list[str]:
                    f"[0, 0, -9.81] in the root frame; set it where the URDF is used")
     if robot.n_markers:
         names = [f"marker{k + 1}" for k in range(robot.n_markers)]
-        out.append(f"markers {', '.join(names)} (unknown points in the tool frame) are not part of a URDF "
+        out.append(f"markers {', '.join(names)} (unknown points in the tool frame) are not part of {target} "
                    f"(not written; they stay in the robot file)")
     return out
 
@@ -292,6 +295,39 @@ def _guess_chain(urdf_robot, robot: SerialRobot, root, tip):
     return root, tip
 
 
+def chain_origins(robot: SerialRobot, theta, chain, source, root: str, tip: str) -> list:
+    """``[(joint, origin')]`` for each actuated joint of ``chain`` (a description's joints from ``root`` to
+    ``tip``, e.g. :func:`estcal.kinematics.urdf.chain_joints`): the calibrated origin
+    ``F_J⁻¹ · C_J · E(tx…rz) · J(offset)`` in the joint's parent link, ``F_J`` the fixed joints the loader
+    merged into ``C_J``. The model must be this chain: same actuated joints, axes, nominal origins and
+    fixed joints after the last one (``tool_origin``) to 1e-9, else a ``ValueError`` naming ``source``."""
+    actuated = [j.name for j in chain if j.type != "fixed"]
+    if actuated != list(robot.joint_names):
+        raise ValueError(f"the chain {root} -> {tip} of {source} has joints {actuated}, the model "
+                         f"{list(robot.joint_names)}")
+    li_of = {lk.joint: i for i, lk in enumerate(robot.links) if lk.joint is not None}
+    out, fixed_before = [], np.eye(4)
+    for j in chain:
+        if j.type == "fixed":
+            fixed_before = fixed_before @ joint_origin(j)
+            continue
+        link = robot.links[li_of[robot.joint_names.index(j.name)]]
+        ax = np.asarray(j.axis, float)
+        if not np.allclose(ax / np.linalg.norm(ax), link.joint_axis, atol=_TOL):
+            raise ValueError(f"joint {j.name!r}: axis {ax.tolist()} in {source}, {link.joint_axis.tolist()} "
+                             f"in the model")
+        if not np.allclose(fixed_before @ joint_origin(j), link.const, atol=_TOL, rtol=0):
+            raise ValueError(f"joint {j.name!r}: the model's nominal origin differs from {source}'s "
+                             f"(was the model loaded from this URDF with --root {root} --tip {tip}?)")
+        head, _ = link_transform_parts(robot, li_of[robot.joint_names.index(j.name)], theta)
+        out.append((j, np.linalg.solve(fixed_before, head)))
+        fixed_before = np.eye(4)
+    if not np.allclose(fixed_before, robot.links[-1].const, atol=_TOL, rtol=0):
+        raise ValueError(f"the fixed joints after {robot.joint_names[-1]!r} up to {tip!r} differ from the "
+                         f"model's tool_origin; give --tip LINK")
+    return out
+
+
 def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
     if not all(f"tx_{lk.label}" in robot.params.names for lk in robot.links[1:-1]):
         raise ValueError("--from-urdf needs a model whose every frame is a URDF joint (convention urdf); "
@@ -299,35 +335,11 @@ def _from_urdf(robot: SerialRobot, theta, original: Path, root, tip):
     urdf = load_urdf_document(original)
     ur = urdf.robot
     root, tip = _guess_chain(ur, robot, root, tip)
-    chain = _path_joints(ur, root, tip)
-    actuated = [j for j in chain if j.type != "fixed"]
-    if [j.name for j in actuated] != list(robot.joint_names):
-        raise ValueError(f"the chain {root} -> {tip} of {original} has joints {[j.name for j in actuated]}, "
-                         f"the model {list(robot.joint_names)}")
-    li_of = {lk.joint: i for i, lk in enumerate(robot.links) if lk.joint is not None}
-    changed, fixed_before = [], np.eye(4)
-    for j in chain:
-        if j.type == "fixed":
-            fixed_before = fixed_before @ joint_origin(j)
-            continue
-        k = robot.joint_names.index(j.name)
-        link = robot.links[li_of[k]]
-        ax = np.asarray(j.axis, float)
-        if not np.allclose(ax / np.linalg.norm(ax), link.joint_axis, atol=_TOL):
-            raise ValueError(f"joint {j.name!r}: axis {ax.tolist()} in {original}, {link.joint_axis.tolist()} "
-                             f"in the model")
-        if not np.allclose(fixed_before @ joint_origin(j), link.const, atol=_TOL, rtol=0):
-            raise ValueError(f"joint {j.name!r}: the model's nominal origin differs from {original}'s "
-                             f"(was the model loaded from this URDF with --root {root} --tip {tip}?)")
-        head, _ = link_transform_parts(robot, li_of[k], theta)
-        new = np.linalg.solve(fixed_before, head)
+    changed = []
+    for j, new in chain_origins(robot, theta, _path_joints(ur, root, tip), original, root, tip):
         if not np.allclose(new, joint_origin(j), atol=1e-12, rtol=0):  # else keep the original, bit for bit
             j.origin = new
             changed.append(j.name)
-        fixed_before = np.eye(4)
-    if not np.allclose(fixed_before, robot.links[-1].const, atol=_TOL, rtol=0):
-        raise ValueError(f"the fixed joints after {robot.joint_names[-1]!r} up to {tip!r} differ from the "
-                         f"model's tool_origin; give --tip LINK")
     return urdf, root, tip, changed
 
 
@@ -412,7 +424,7 @@ def export_urdf(robot: SerialRobot, path, from_urdf=None, root: str | None = Non
         if src and path.resolve() == Path(src).resolve():
             raise ValueError(f"{path}: is {what} — write the URDF to another file (inputs are never overwritten)")
     theta = robot.params.values
-    warn_list = _unexpressible(robot)
+    warn_list = unexpressible(robot)
     header = _provenance(robot, source)
     vals = theta
     if from_urdf is None:
