@@ -63,7 +63,7 @@ def _estimator_and_measure(estimator, measure, method):
                      f"measurement ({', '.join(sorted(METHODS))}) — use estimator= or measure=")
 
 
-def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None, free=None, level: str = "full",
+def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None, free=None, level: str | None = None,
               selection: str | None = None, validate=(), noise=None, known_noise: bool = False, regularize=None,
               points: int | None = None, root: str | None = None, tip: str | None = None, checks: bool = True,
               allow_ill_conditioned: bool = False, drop_flagged: bool = True, method: str | None = None, **options):
@@ -79,7 +79,10 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
     measure : what was measured (``position``, ``pose``, ``points``, ``point-link`` …; default: from
         the data's columns).
     free : parameter names or shell patterns to estimate (default: the identifiable set of ``level``).
-    level : ``registration`` | ``joint_offset`` | ``full``.
+    level : ``registration`` | ``joint_offset`` | ``full``; None (the default, as ``estcal calibrate``'s): ``full``,
+        and when its fit is refused for its conditioning (no convergence, a condition number above the limit) the
+        identifiable geometric parameters under relevance priors instead (``result.extra["default_model"]`` says
+        so; docs/calibration.md, "When the full level is refused").
     selection : ``structural`` (default) | ``aic`` | ``bic``.
     validate : datasets or paths scored before/after (never used for the fit).
     noise : measurement noise — see :func:`as_noise` (number = position std in m).

@@ -331,7 +331,7 @@ def _frame_columns(system: System, s) -> np.ndarray:
 
 
 def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20, max_rounds: int = 6,
-                  system0=None) -> RelevanceFit:
+                  system0=None, rigid: bool = True) -> RelevanceFit:
     """The relevance model of ``terms`` on ``data`` (module docstring) by MacKay's alternation (1992): at fixed
     hyperparameters (the precisions and the noise) Gauss–Newton on the MAP estimate until no parameter moves by
     a thousandth of its standard deviation; then the hyperparameters by the evidence at that estimate (a warm
@@ -340,7 +340,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
     every Gauss–Newton step instead oscillates between near-equal optima of the evidence: the whitened
     problem's posterior is sharp and a relinearisation moves the estimate by several of its standard
     deviations. ``include``: the penalised columns allowed (None: all); ``system0``: a fit of the same rows
-    to start from (its whitening kept)."""
+    to start from (its whitening kept); ``rigid=False``: independent rows (no rigid error per posture)."""
     theta = terms.theta0.copy() if system0 is None else system0.theta.copy()
     frames = {} if system0 is None else dict(system0.frames)
     psi, s2 = (None, None) if system0 is None else (system0.psi, system0.s2)
@@ -383,7 +383,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         if same:
             converged = True
             break
-        if rnd == 0 and psi is None and system0 is None and sysm.blocks and RIGID:
+        if rnd == 0 and psi is None and system0 is None and sysm.blocks and rigid and RIGID:
             psi, s2 = random_effect(_residual(sysm, fit, np.arange(len(sysm.t))), sysm.blocks)
             hyper = None  # the whitening changes the evidence: search afresh (warm)
     sysm = linearise(terms, data, noise, theta, frames, psi, s2)

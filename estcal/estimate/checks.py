@@ -311,6 +311,12 @@ def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessmen
             A = reduce_system(problem, res.theta, fidx, ck)[0]
         else:
             A, _ = weighted(problem.evaluate(res.theta), fidx)
+        prior_rows = (res.extra.get("prior") or {}).get("std", {})
+        if prior_rows:  # a MAP fit: its prior rows are equations too (the conditioning of AᵀA + diag(1/τ²))
+            P = np.zeros((len(prior_rows), A.shape[1]))
+            for k, (n, sd) in enumerate(prior_rows.items()):
+                P[k, list(res.names).index(n)] = 1.0 / sd
+            A = np.vstack([A, P])
         cond = scaled_condition(A)
     except (ValueError, np.linalg.LinAlgError):
         cond = float("nan")
