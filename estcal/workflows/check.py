@@ -78,7 +78,8 @@ def findings_for(robot, ds, outliers: bool = True):
 
     report = check_data(robot, ds, outliers=outliers)
     for f in report.findings:
-        if f.kind != "unused_column":
+        # unused columns are warned when a column map would read them (an orientation fitted without)
+        if f.kind != "unused_column" or f.details.get("map"):
             warnings.warn(f"{ds.where}: {f.kind}: {f.message}", EstcalWarning, stacklevel=2)
     return report
 
