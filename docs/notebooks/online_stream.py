@@ -49,8 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("data", nargs="?", default="-", help="CSV file, or '-' (default) for standard input")
     ap.add_argument("--noise-pos-mm", type=float, default=0.1, help="position noise std per coordinate (mm)")
     ap.add_argument("--noise-rot-mrad", type=float, default=1.0, help="orientation noise std per axis (mrad)")
-    ap.add_argument("--free", default=None, help="comma-separated names/patterns to estimate (default: the robot's "
-                                                 "free mask)")
+    ap.add_argument("--free", default=None, help="comma-separated names/patterns to estimate (default: the "
+                                                 "identifiable set of the measurement)")
     ap.add_argument("--q-mm", type=float, default=0.0, help="process-noise std per row, in each parameter's "
                                                             "milli-unit (mm, mrad; 0 = constant parameters)")
     ap.add_argument("--q-params", default=None, help="apply --q-mm only to these comma-separated names/patterns")

@@ -295,8 +295,10 @@ class CsvStream:
             yield from self._chunks(texts[bad + 1:], lines[bad + 1:], raw[at + 1:])
 
 
-#: rows per chunk of :func:`read_dataset` (a chunk is parsed as text, then kept as floats)
+#: rows per chunk of :func:`read_dataset` (a chunk is parsed as text, then kept as floats), and the file
+#: size above which it streams (below, the whole text costs little and the loader reads it at once)
 READ_CHUNK_ROWS = 4096
+STREAM_ABOVE_BYTES = 1 << 20
 
 
 def _count_lines(path) -> int:
@@ -339,10 +341,12 @@ def read_dataset(path, robot, *, column_map=None, max_rows: int | None = None, c
 
     from estcal.io.dataset import _read_numeric, check_dataset_units, load_dataset
 
-    p = Path(path)
+    from estcal.base.textinput import check_input_file
+
+    p = check_input_file(Path(path), "dataset", DatasetError)  # a folder, a missing file: named first
     cmap = as_column_map(column_map)
     table = None if cmap is not None else _read_numeric(p)
-    if table is not None or p.stat().st_size < (1 << 20):
+    if table is not None or p.stat().st_size < STREAM_ABOVE_BYTES:
         if table is not None:
             from estcal.io.dataset import dataset_from_table
 
