@@ -119,7 +119,8 @@ API_WORDS = {"--free": ("free", "list"), "--level": ("level", "str"), "--selecti
              "--estimator": ("estimator", "str"), "--measure": ("measure", "str"), "--points": ("points", "raw"),
              "--root": ("root", "str"), "--tip": ("tip", "str"), "--validate": ("validate", "raw"),
              "--regularize": ("regularize", "raw"), "--robust": ("robust", "str"), "--chain": ("chain", "raw"),
-             "--allow-ill-conditioned": ("allow_ill_conditioned=True", None), "--known-noise": ("known_noise=True", None),
+             "--allow-ill-conditioned": ("allow_ill_conditioned=True", None),
+             "--known-noise": ("known_noise=True", None),
              "--noise-pos-mm": ("noise", "si"), "--noise-rot-mrad": ("noise", "si"),
              "--option": ("an estimator keyword", None)}
 _FLAG = None

@@ -20,7 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from estcal.cli.main import app
-from estcal.io.dataset import dataset_from_arrays, write_dataset
+from estcal.io.dataset import write_dataset
 from estcal.io.robotfile import load_robot
 
 from conftest import REPO, SHARED
@@ -285,11 +285,13 @@ def test_design_candidates_name_the_file_and_its_line(data, tmp_path):
 
 
 @pytest.mark.parametrize("toml,pattern", [
-    ('noise-pos-mm = "abc"', r"bad\.toml: key 'noise-pos-mm' = 'abc' \(a string\): --noise-pos-mm expects a number"),
-    ("noise-pos-mm = [1]", r"bad\.toml: key 'noise-pos-mm' holds a list \[1\] but --noise-pos-mm takes one value "
-                           r"\(a number\)"),
-    ('known-noise = "yes"', r"bad\.toml: key 'known-noise' = 'yes' \(a string\): --known-noise expects true or false"),
-    ("validate = 3", r"bad\.toml: key 'validate' = 3 \(an integer\): --validate expects a path"),
+    ('noise-pos-mm = "abc"', r"bad\.toml: key 'noise-pos-mm' = 'abc' \(a string\): option '--noise-pos-mm' "
+                             r"expects a number"),
+    ("noise-pos-mm = [1]", r"bad\.toml: key 'noise-pos-mm' holds a list \[1\] but option '--noise-pos-mm' takes one "
+                           r"value \(a number\)"),
+    ('known-noise = "yes"', r"bad\.toml: key 'known-noise' = 'yes' \(a string\): option '--known-noise' expects "
+                            r"true or false"),
+    ("validate = 3", r"bad\.toml: key 'validate' = 3 \(an integer\): option '--validate' expects a path"),
     ("noise-pos-mm = -1", r"bad\.toml: key 'noise-pos-mm': --noise-pos-mm -1: must be a number > 0"),
 ])
 def test_a_bad_config_value_names_the_file_the_key_and_the_type(data, tmp_path, toml, pattern):
@@ -349,16 +351,19 @@ def test_orientation_columns_left_unused_are_named_with_the_map(tmp_path):
     assert r.exit_code == 0, r.output
     assert re.search(r"warning: .*rpy\.csv: unused_column: column\(s\) roll, pitch, yaw are not used — they look like "
                      r"the measured orientation: read the file as a full pose with a column map \(--map MAP\.yaml\) "
-                     r"holding `points: \[\[x, y, z\]\], orientation: \{rpy: \[roll, pitch, yaw\]\}`", r.stderr), r.stderr
+                     r"holding `points: \[\[x, y, z\]\], orientation: \{rpy: \[roll, pitch, yaw\]\}`",
+                     r.stderr), r.stderr
     (tmp_path / "m.yaml").write_text("points: [[x, y, z]]\norientation: {rpy: [roll, pitch, yaw]}\n")
-    r = runner.invoke(app, ["calibrate", str(tmp_path / "rpy.csv"), "-r", "puma560", "--map", str(tmp_path / "m.yaml")])
+    r = runner.invoke(app, ["calibrate", str(tmp_path / "rpy.csv"), "-r", "puma560", "--map",
+                            str(tmp_path / "m.yaml")])
     assert r.exit_code == 0 and "unused" not in r.stderr and "pose" in r.stdout, r.output
 
 
 @pytest.mark.skipif(not (UR10 / "calibration.csv").exists(), reason="UR10 data not in ../shared")
 @pytest.mark.parametrize("command", ["calibrate", "frames"])
 def test_ur10_without_map_names_the_orientation_columns_and_the_map(command):
-    """Was: calibrate fitted positions (13 parameters) and frames ranked another tip, phix1…phiz1 unused in silence."""
+    """Was: calibrate fitted positions (13 parameters) and frames ranked another tip, phix1…phiz1 unused in
+    silence."""
     args = [command, str(UR10 / "calibration.csv"), "-r", str(UR10 / "ur10_robot.urdf")]
     if command == "calibrate":
         args += ["--tip", "camera_color_optical_frame"]

@@ -107,7 +107,7 @@ def _check_type(p, key: str, value, path: Path) -> None:
     want = _EXPECTED.get(kind, getattr(kind, "__name__", str(kind)))
     flag = next((o for o in getattr(p, "opts", []) if o.startswith("--")), p.name)
     if not many and isinstance(value, list):
-        raise typer.BadParameter(f"{path}: key {key!r} holds a list {value!r} but {flag} takes one value "
+        raise typer.BadParameter(f"{path}: key {key!r} holds a list {value!r} but option {flag!r} takes one value "
                                  f"({want})")
     for v in (value if isinstance(value, list) else [value]):
         bad = ((kind in (float, int) and (isinstance(v, bool) or not isinstance(v, (int, float))))
@@ -115,7 +115,7 @@ def _check_type(p, key: str, value, path: Path) -> None:
                or (kind is bool and not isinstance(v, bool))
                or (kind in (str, Path) and not isinstance(v, str)))
         if bad:
-            raise typer.BadParameter(f"{path}: key {key!r} = {v!r} ({_toml_type(v)}): {flag} expects {want}"
+            raise typer.BadParameter(f"{path}: key {key!r} = {v!r} ({_toml_type(v)}): option {flag!r} expects {want}"
                                      + (" (or a list of them)" if many else ""))
 
 

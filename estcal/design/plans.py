@@ -30,7 +30,7 @@ import numpy as np
 
 from estcal.base.jsonio import to_jsonable
 from estcal.base.progress import progress
-from estcal.base.textinput import read_text, sniff_delimiter
+from estcal.base.textinput import read_text
 from estcal.scale.runner import TaskError, run_tasks
 
 from .criteria import CRITERIA, criterion_loss, criterion_value, evaluate_all, larger_is_better, normalise_criterion

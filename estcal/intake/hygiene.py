@@ -60,7 +60,8 @@ from estcal.estimate.robust import chi2_median, chi2_ppf
 
 __all__ = ["Finding", "CheckReport", "check_data", "studentised_outliers", "DEFECTS", "KINDS"]
 
-KINDS = ("unexplained", "marker_swap", "non_rigid", "outlier", "out_of_limits", "repeated_pose", "duplicate_row", "unused_column")
+KINDS = ("unexplained", "marker_swap", "non_rigid", "outlier", "out_of_limits", "repeated_pose", "duplicate_row",
+         "unused_column")
 #: kinds that mark rows a fit should not use (``--drop-flagged`` removes them)
 DEFECTS = ("marker_swap", "non_rigid", "outlier", "out_of_limits", "duplicate_row")
 ALPHA = 0.05

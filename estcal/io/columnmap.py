@@ -294,9 +294,10 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             same = [h for h in header if h and ascii_skeleton(h) == ascii_skeleton(col)]
             if same:  # one of the two is typed with look-alike letters of another script
-                a, b = (same[0], col) if not same[0].isascii() else (col, same[0])
+                a = same[0] if not same[0].isascii() else col  # the one typed with look-alike letters
+                where_to = "the column name in the file" if a == same[0] else "it in the map"
                 hint = (f" — the file's column {same[0]!r} reads the same but {lookalike_note(a, ascii_skeleton(a))}"
-                        f" (look-alike letters); retype {'the column name in the file' if a == same[0] else 'it in the map'}")
+                        f" (look-alike letters); retype {where_to}")
                 raise ColumnMapError(f"{cmap.at(*key)}: column {col!r} is not in {where}{hint}")
             if header and all(is_number(h) for h in header if h):
                 hint += (" — its first line holds numbers: the file has no header row; name its columns with "
@@ -432,9 +433,7 @@ def suggest_map(unused, header, points) -> str | None:
 def published_map(header, columns) -> str | None:
     """The map of ``docs/maps/`` (in estcal's source tree, when it is there) that reads every column of
     ``columns`` from a file with this ``header`` — e.g. ``docs/maps/ur10.yaml`` for the UR10 file."""
-    import estcal
-
-    folder = Path(estcal.__file__).resolve().parents[1] / "docs" / "maps"
+    folder = Path(__file__).resolve().parents[2] / "docs" / "maps"  # the source tree beside the package
     if not folder.is_dir():
         return None
     present = set(header)

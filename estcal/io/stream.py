@@ -173,14 +173,11 @@ class CsvStream:
             raise DatasetError(f"{self.where}, line {self.header_line}: no measurement columns (x,y,z / x1..zk / "
                                f"x,y,z,qw,qx,qy,qz)")
 
-    def layout(self) -> Dataset | None:
+    def layout(self) -> Dataset:
         """A dataset of no rows with the input's columns (joints, measurement kind, points), read from its
         header before any row: what a free set chosen by measurement needs (``estcal online`` on standard
-        input). None when the header does not read as a dataset (the rows then bring the error)."""
-        try:
-            return self._header_dataset()
-        except (DatasetError, ValueError):
-            return None
+        input). A header that does not read as a dataset raises the loader's :class:`DatasetError`."""
+        return self._header_dataset()
 
     def _header_dataset(self) -> Dataset:
         from estcal.base.textinput import CsvTable

@@ -190,6 +190,14 @@ class OnlineCalibrator:
         self.flt = ParameterFilter(pv.values, self.fidx, P0, Q, kind=kind, names=self.names)
         self._rowwise = max(32, 4 * len(self.names))
 
+    def start(self, data) -> list[str]:
+        """Choose the free set now from the measurement of ``data`` (a Dataset of any number of rows — the
+        layout a stream's header gives, :meth:`CsvStream.layout`) when ``free`` was not given; :meth:`update`
+        does it with its first rows otherwise. Returns the free parameters."""
+        if self.flt is None:
+            self._start(default_free_set(self.robot, data, self.method and self.method.name, self.noise))
+        return list(self.names)
+
     def _started(self) -> ParameterFilter:
         if self.flt is None:
             raise InputError("no rows yet: the free set (free=None: the identifiable set of the measurement) is "
@@ -274,8 +282,7 @@ class OnlineCalibrator:
             ds = dataset_from_arrays(self.robot.joint_names, data, points, R, p, context)
         if self.source is None:
             self.source = ds.where
-        if self.flt is None:  # free=None: the identifiable set of this measurement (docs/conventions.md)
-            self._start(default_free_set(self.robot, ds, self.method and self.method.name, self.noise))
+        self.start(ds)  # free=None: the identifiable set of this measurement (docs/conventions.md)
         parts = [self._feed(ds.subset(slice(i, i + FEED_ROWS)) if ds.n > FEED_ROWS else ds, trace)
                  for i in range(0, ds.n, FEED_ROWS)]
         if not parts:
@@ -486,6 +493,9 @@ def default_free_set(robot, data, measure=None, noise=None) -> list[str]:
     from estcal.estimate.checks import generic_dataset
     from estcal.identify.select import select_identifiable
 
+    if data.kind not in ("position", "points", "pose"):
+        raise InputError(f"{data.where}: no measured position, points or pose to choose the free set by — give "
+                         f"free=… (--free)")
     meth = get_method(measure) if measure else None
     per_pose = 6 if data.kind == "pose" else 3 * max(data.n_points, 1)
     n = max(8, int(np.ceil(2 * len(robot.params.free_names) / per_pose)))

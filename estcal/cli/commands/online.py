@@ -264,11 +264,12 @@ class _Run:
             rb = load_robot(robot, root=options["root"], tip=options["tip"])
             self._src = CsvStream("-", rb, cut=lambda n: self._cut(n), measure=options["measure"],
                                   column_map=options["column_map"])
-            layout = self._src.layout()
-            ok = layout is not None and (layout.kind != "none" or options["measure"])
-            # a header that does not read: its error comes with the first rows (the mask meanwhile)
-            opts["free"] = (default_free_set(rb, layout, options["measure"], options["noise"]) if ok
-                            else rb.params.free_names)
+            try:
+                layout = self._src.layout()
+            except ValueError:  # a header that does not read: the stream names it (binary rows first, as before)
+                layout = None
+            opts["free"] = (default_free_set(rb, layout, options["measure"], options["noise"])
+                            if layout is not None and layout.kind != "none" else rb.params.free_names)
         try:
             cal = OnlineCalibrator(rb, history_every=every, **opts)
         except KeyError as exc:
