@@ -6,12 +6,14 @@ a PUMA 560 pose dataset of N rows simulated once per size (noise 0.05 mm / 0.5 m
 
     python benchmarks/bench_memory.py --n 20000 100000 --json out.json
     python benchmarks/bench_memory.py --quick            # N = 5000, for a smoke run
+    python benchmarks/bench_memory.py --commands check-random frames-random   # 50 MB of random numbers
 
 Commands measured: ``simulate`` (always: it writes the dataset), ``fk``, ``identifiable --data``,
 ``online --free (5 parameters)``, ``online-state`` (the same with ``--state``: a checkpoint every
 100 rows, the journal appended), ``calibrate`` (full level, LM) and ``calibrate-robust`` (the same
 with ``--robust huber``: iteratively reweighted), ``calibrate-gtsam`` and ``calibrate-kalman``
-(the same with ``--estimator gtsam`` / ``kalman``). Figures: docs/benchmarks.md
+(the same with ``--estimator gtsam`` / ``kalman``); ``check-random`` and ``frames-random``: ``estcal check``
+and ``estcal frames`` on 50 MB of random numbers under a joint/position header. Figures: docs/benchmarks.md
 ("Memory on large datasets").
 """
 from __future__ import annotations
@@ -54,13 +56,21 @@ def main(argv=None):
     ap.add_argument("--n", type=int, nargs="+", default=[20000, 100000], help="dataset sizes (poses)")
     ap.add_argument("--commands", nargs="+", default=["fk", "identifiable", "online", "calibrate"],
                     choices=["fk", "identifiable", "online", "online-state", "calibrate", "calibrate-robust",
-                             "calibrate-gtsam", "calibrate-kalman"])
+                             "calibrate-gtsam", "calibrate-kalman", "check-random", "frames-random"])
+    ap.add_argument("--random-mb", type=float, default=50.0,
+                    help="size of the random-numbers file of check-random / frames-random (MB)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per command")
     ap.add_argument("--quick", action="store_true", help="N = 5000 only")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     sizes = [5000] if a.quick else a.n
     out = []
+    random_cmds = [c for c in a.commands if c.endswith("-random")]
+    a.commands = [c for c in a.commands if c not in random_cmds]
+    if random_cmds:
+        out += random_numbers(random_cmds, a.random_mb, a.timeout)
+    if not a.commands:
+        sizes = []
     with tempfile.TemporaryDirectory() as d:
         for n in sizes:
             data = Path(d) / f"pose{n}.csv"
@@ -92,6 +102,36 @@ def main(argv=None):
                       f"{wall:8.1f} s  exit {rc}", flush=True)
     if a.json:
         a.json.write_text(json.dumps(out, indent=2))
+    return out
+
+
+def random_numbers(commands, mb: float, timeout: float) -> list:
+    """Peak RSS and wall time of ``estcal check`` (robot puma560) and ``estcal frames`` (the PUMA 560 as a URDF,
+    ``estcal.export_urdf``) on a file of ``mb`` MB of uniform random numbers under the header j1…j6,x,y,z
+    (joints in ±1 rad, positions in ±0.5 m: they pass the loader's unit checks). Before the bounded paths:
+    check 2 min 47 s and 2.15 GB on 50 MB, frames 1.5 GB."""
+    import numpy as np
+
+    import estcal
+
+    out = []
+    with tempfile.TemporaryDirectory() as d:
+        urdf = Path(d) / "puma560.urdf"
+        estcal.export_urdf(estcal.load_robot("puma560"), urdf)
+        header = ["j1", "j2", "j3", "j4", "j5", "j6", "x", "y", "z"]
+        n = int(mb * 2**20 / (20 * len(header)))  # ~20 characters a field
+        rng = np.random.default_rng(0)
+        f = Path(d) / "random.csv"
+        np.savetxt(f, np.c_[rng.uniform(-1, 1, (n, 6)), rng.uniform(-0.5, 0.5, (n, 3))], delimiter=",",
+                   header=",".join(header), comments="", fmt="%.17g")
+        for c in commands:
+            robot = "puma560" if c == "check-random" else str(urdf)
+            rss, wall, rc = run([c.split("-")[0], str(f), "--robot", robot], timeout)
+            row = {"command": c, "n_poses": n, "file_mb": f.stat().st_size / 2**20, "peak_rss_mb": rss,
+                   "wall_s": wall, "exit_code": rc}
+            out.append(row)
+            print(f"{c:13s} N={n:8d}  file {row['file_mb']:7.1f} MB  peak RSS {rss:8.1f} MB  {wall:8.1f} s  "
+                  f"exit {rc}", flush=True)
     return out
 
 

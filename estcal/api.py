@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import warnings
 
-__all__ = ["calibrate", "diagnose", "as_noise", "robot_and_data"]
+__all__ = ["calibrate", "diagnose", "as_noise", "robot_and_data", "to_api_words", "api_words"]
 
 
 def as_noise(noise=None, known: bool = False):
@@ -111,11 +111,81 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
     from estcal.workflows.calibrate import calibrate as run
 
     estimator, measure = _estimator_and_measure(estimator, measure, method)
-    cal = run(robot, data, estimator=estimator, measure=measure, free=free,
-              level=None if free is not None else level, selection=selection, validate=list(validate),
-              noise=as_noise(noise, known_noise), regularize=regularize, options=options, points=points, root=root,
-              tip=tip, checks=checks, allow_ill_conditioned=allow_ill_conditioned, drop_flagged=drop_flagged)
+    with api_words():
+        cal = run(robot, data, estimator=estimator, measure=measure, free=free,
+                  level=None if free is not None else level, selection=selection, validate=list(validate),
+                  noise=as_noise(noise, known_noise), regularize=regularize, options=options, points=points,
+                  root=root, tip=tip, checks=checks, allow_ill_conditioned=allow_ill_conditioned,
+                  drop_flagged=drop_flagged)
     return cal.result
+
+
+#: the command line's words → the Python API's (docs/conventions.md, "One vocabulary"): a flag → its keyword
+#: and how its value is written (``list``: ``--free a,b`` → ``free=['a', 'b']``; ``str``: quoted; ``raw``;
+#: ``si``: not copied, the flag's unit is not the keyword's; None: a flag without value → the keyword that sets it)
+API_WORDS = {"--free": ("free", "list"), "--level": ("level", "str"), "--selection": ("selection", "str"),
+             "--estimator": ("estimator", "str"), "--measure": ("measure", "str"), "--points": ("points", "raw"),
+             "--root": ("root", "str"), "--tip": ("tip", "str"), "--validate": ("validate", "raw"),
+             "--regularize": ("regularize", "raw"), "--robust": ("robust", "str"), "--chain": ("chain", "raw"),
+             "--allow-ill-conditioned": ("allow_ill_conditioned=True", None),
+             "--known-noise": ("known_noise=True", None),
+             "--noise-pos-mm": ("noise", "si"), "--noise-rot-mrad": ("noise", "si"),
+             "--option": ("an estimator keyword", None)}
+_FLAG = None
+#: words that may follow a flag as its value although they carry no digit, '_', ',' or '.'
+_CHOICES = {"full", "registration", "structural", "aic", "bic", "lm", "gtsam", "isam2", "kalman", "ukf", "mcmc",
+            "position", "pose", "points", "huber", "cauchy", "loo"}
+
+
+def to_api_words(text: str) -> str:
+    """``text`` (a message of the workflows, written with the command line's flags) in the API's keywords:
+    ``pass --allow-ill-conditioned`` → ``pass allow_ill_conditioned=True``, ``(--level joint_offset, --free …)``
+    → ``(level='joint_offset', free=…)``."""
+    import re
+
+    global _FLAG
+    if _FLAG is None:
+        flags = "|".join(sorted((re.escape(f) for f in API_WORDS), key=len, reverse=True))
+        _FLAG = re.compile(rf"(?<![\w-])({flags})(?![\w-])(:?)(?:[ =]([^\s;:()]+?)(?=[\s;:()]|[,.](?:\s|$)|$))?")
+
+    def value_of(v):
+        if v is None:
+            return None
+        if len(v) > 1 and v[0] == v[-1] and v[0] in "'\"":
+            return v[1:-1]
+        return v if (v == "…" or re.search(r"[\d_,.*]", v) or v in _CHOICES) else None
+
+    def sub(m):
+        word, how = API_WORDS[m.group(1)]
+        colon, raw = m.group(2), m.group(3)
+        value = None if colon else value_of(raw)
+        rest = "" if value is not None or raw is None or colon else f" {raw}"
+        if how is None:
+            return word + colon + rest
+        if colon:
+            return word + colon + (f" {raw}" if raw else "")
+        if value is None or value == "…" or how == "si":  # "si": the flag's milli-unit value is not the keyword's
+            return f"{word}=…{rest}"
+        if how == "list":
+            return f"{word}={[v for v in value.split(',') if v]!r}{rest}"
+        return (f"{word}={value!r}" if how == "str" else f"{word}={value}") + rest
+
+    return _FLAG.sub(sub, text)
+
+
+class api_words:
+    """Errors raised inside the block speak the API's keywords (:func:`to_api_words`), not the command
+    line's flags; the exception's type is kept."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, typ, exc, tb):
+        from estcal.base.errors import EstcalError
+
+        if isinstance(exc, EstcalError) and exc.args and isinstance(exc.args[0], str):
+            exc.args = (to_api_words(exc.args[0]),) + tuple(exc.args[1:])
+        return False
 
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None,

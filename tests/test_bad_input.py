@@ -175,6 +175,23 @@ def _d_12_8_rad(b, t):
     return write(t, "big.csv", csv_from(replace_value(lines_of(b), 3, 1, "12.8")))
 
 
+def _d_homoglyph(b, t):
+    ls = lines_of(b)
+    return write(t, "homoglyph.csv", csv_from([ls[0].replace("j1", "\u04581", 1)] + ls[1:]))
+
+
+def _d_still(b, t):
+    hdr = lines_of(b)[0].split(",")
+    ix = [hdr.index(c) for c in "xyz"]
+    out = [lines_of(b)[0]]
+    for i, ln in enumerate(lines_of(b)[1:]):
+        f = ln.split(",")
+        for k, c in enumerate(ix):
+            f[c] = repr(0.3 + 0.1 * k + 1e-5 * ((i * 7 + k) % 5))  # a marker that does not move (10 µm jitter)
+        out.append(",".join(f))
+    return write(t, "still.csv", csv_from(out))
+
+
 def _d_mm(b, t):
     return write(t, "mm.csv", csv_from(scale_columns(lines_of(b), ["x", "y", "z"], 1000)))
 
@@ -290,6 +307,10 @@ DATA_CASES = {
     "degrees": (_d_degrees, r"deg\.csv, line \d+, column 'j2': .* readings look like degrees", 2),
     "12.8-rad": (_d_12_8_rad, r"big\.csv, line 5, column 'j2': 12\.8 rad is beyond ±4π \(two turns\) — not a "
                               r"plausible joint angle", 2),
+    "homoglyph-header": (_d_homoglyph, r"homoglyph\.csv, line 1, column 'ј1': reads like 'j1' but its 'ј' is U\+0458 "
+                                       r"CYRILLIC SMALL LETTER JE, not 'j' \(U\+006A\) — a look-alike letter", 2),
+    "positions-still": (_d_still, r"still\.csv: the measured positions do not move with the joints — they are "
+                                  r"[0-9.e-]+ m apart", 2),
     "millimetres": (_d_mm, r"mm\.csv, line \d+, column '[xyz]': measured coordinate .* looks like millimetres", 2),
     "ten-times": (_d_ten_times, r"x10\.csv: the measured positions are .* m apart .* \(10×\) — wrong unit", 2),
     "tenth": (_d_tenth, r"x01\.csv: the measured positions are .* m apart .* \(0\.1×\) — wrong unit", 2),

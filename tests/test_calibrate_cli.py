@@ -128,7 +128,7 @@ def test_unidentifiable_free_set_suggests_identifiable(tmp_path):
     train, _ = _simulate(tmp_path, 10, 7, "train.csv")
     r = _run([str(train), "--robot", "puma560", "--free", "theta_2,offset_2"])
     assert r.exit_code == 2
-    assert "not identifiable" in r.output and "estcal identifiable" in r.output
+    assert "offset_2 is regrouped (n), absorbed by theta_2" in r.output and "estcal identifiable" in r.output
 
 
 def test_bad_method_and_conflicting_options(tmp_path):

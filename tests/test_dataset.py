@@ -58,8 +58,11 @@ def test_ragged_row(tmp_path, robot):
 
 
 def test_degrees_and_millimetres_suspected(tmp_path, robot):
-    path = _csv(tmp_path, "j1,j2,j3,j4,j5,j6,x,y,z\n90,0,0,0,0,0,1,2,3\n")
+    path = _csv(tmp_path, "j1,j2,j3,j4,j5,j6,x,y,z\n90,0,0,0,0,0,1,2,3\n45,0,0,0,0,0,1,2,3\n-60,0,0,0,0,0,1,2,3\n")
     with pytest.raises(DatasetError, match="look like degrees"):
+        load_dataset(path, robot)
+    path = _csv(tmp_path, "j1,j2,j3,j4,j5,j6,x,y,z\n90,0,0,0,0,0,1,2,3\n")  # one reading: a wild value
+    with pytest.raises(DatasetError, match=r"90 rad is beyond ±4π \(two turns\) — not a plausible joint angle"):
         load_dataset(path, robot)
     path = _csv(tmp_path, "j1,j2,j3,j4,j5,j6,x,y,z\n0,0,0,0,0,0,100,200,300\n")
     with pytest.raises(DatasetError, match="millimetres"):

@@ -151,7 +151,7 @@ def test_load_candidates(tmp_path):
     np.testing.assert_allclose(Q, np.radians([[20, 10], [40, -30]]))
     g = tmp_path / "bad.csv"
     g.write_text("0.1,0.2\n0.3,7.0\n")
-    with pytest.raises(ValueError, match=r"row 2 joint 'q2'"):
+    with pytest.raises(ValueError, match=r"bad\.csv, line 2: joint 'q2'"):
         load_candidates(g, robot)
 
 

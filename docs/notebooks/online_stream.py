@@ -49,8 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("data", nargs="?", default="-", help="CSV file, or '-' (default) for standard input")
     ap.add_argument("--noise-pos-mm", type=float, default=0.1, help="position noise std per coordinate (mm)")
     ap.add_argument("--noise-rot-mrad", type=float, default=1.0, help="orientation noise std per axis (mrad)")
-    ap.add_argument("--free", default=None, help="comma-separated names/patterns to estimate (default: the robot's "
-                                                 "free mask)")
+    ap.add_argument("--free", default=None, help="comma-separated names/patterns to estimate (default: the "
+                                                 "identifiable set of the measurement)")
     ap.add_argument("--q-mm", type=float, default=0.0, help="process-noise std per row, in each parameter's "
                                                             "milli-unit (mm, mrad; 0 = constant parameters)")
     ap.add_argument("--q-params", default=None, help="apply --q-mm only to these comma-separated names/patterns")
@@ -70,16 +70,21 @@ def main(argv=None) -> int:
                                       q=q, prior_std=a.prior_std_mm * milli, column_map=a.map)
     except (ValueError, KeyError, FileNotFoundError) as exc:
         die(str(exc))
-    names = cal.names
-    show = [s.strip() for s in a.show.split(",")] if a.show else names[:3]
+    src = "<stdin>" if a.data == "-" else a.data
+    wanted = [s.strip() for s in a.show.split(",")] if a.show else []
+    if set(wanted) - set(cal.robot.params.names):
+        die(f"--show: {', '.join(sorted(set(wanted) - set(cal.robot.params.names)))} are not parameters of "
+            f"{cal.robot.name}")
+    try:
+        rows = CsvStream(a.data, cal.robot, column_map=cal.column_map)  # reads and checks the header
+        # without --free: the identifiable set of the measurement the header names (as `estcal online`)
+        names = cal.names or cal.start(rows.layout())
+    except (ValueError, OSError) as exc:
+        die(str(exc))
+    show = wanted or names[:3]
     if set(show) - set(names):
         die(f"--show: {', '.join(sorted(set(show) - set(names)))} not among the free parameters ({', '.join(names)})")
     show = [names.index(s) for s in show]
-    src = "<stdin>" if a.data == "-" else a.data
-    try:
-        rows = CsvStream(a.data, cal.robot, column_map=cal.column_map)  # reads and checks the header
-    except (ValueError, OSError) as exc:
-        die(str(exc))
     print(f"online_stream: {cal.robot.name}, {len(names)} free parameters, q = {a.q_mm:g} mm / mrad; reading {src} "
           f"(estimates in m, rad)", flush=True)
     skipped = 0

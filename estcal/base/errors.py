@@ -17,7 +17,8 @@
 """
 from __future__ import annotations
 
-__all__ = ["EstcalError", "InputError", "NumericalRefusal", "MissingExtraError", "EstcalWarning", "RobotFileError"]
+__all__ = ["EstcalError", "InputError", "NumericalRefusal", "MissingExtraError", "EstcalWarning", "RobotFileError",
+           "OPTIONAL_MODULES", "require", "missing_extra"]
 
 
 class EstcalError(Exception):
@@ -51,3 +52,28 @@ class MissingExtraError(InputError, ImportError):
 
 class EstcalWarning(UserWarning):
     """A warning of estcal (printed by the command line as ``warning: …`` on stderr)."""
+
+
+#: optional modules → the pip extra of pyproject.toml that installs them (tested against pyproject.toml)
+OPTIONAL_MODULES = {"h5py": "mcmc", "arviz": "mcmc", "corner": "mcmc", "dask": "dask", "distributed": "dask"}
+
+
+def require(module: str, what: str):
+    """``import module``, or :class:`MissingExtraError` naming ``what`` needs it and the extra that
+    installs it (:data:`OPTIONAL_MODULES`) — never an internal error."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise MissingExtraError(what, OPTIONAL_MODULES[module.split(".")[0]], module) from None
+
+
+def missing_extra(exc: BaseException) -> "MissingExtraError | None":
+    """The :class:`MissingExtraError` for an ``ImportError`` of an optional module that nothing caught
+    where it was imported (the command line's last safety net), else None."""
+    name = getattr(exc, "name", None) or ""
+    extra = OPTIONAL_MODULES.get(name.split(".")[0])
+    if not isinstance(exc, ImportError) or isinstance(exc, MissingExtraError) or extra is None:
+        return None
+    return MissingExtraError("this command", extra, name)

@@ -29,7 +29,7 @@ from pathlib import Path
 from .errors import InputError
 
 __all__ = ["InputError", "check_input_file", "read_text", "read_csv", "read_csv_header", "read_json", "read_yaml", "parse_csv_text", "CsvTable",
-           "DELIMITERS"]
+           "DELIMITERS", "ascii_skeleton", "lookalike_note"]
 
 # spreadsheet exports: comma, semicolon (locales with a decimal comma), tab
 DELIMITERS = (",", ";", "\t")
@@ -236,3 +236,34 @@ def read_yaml(path, what: str = "YAML", error=InputError):
     import yaml
 
     return _read_parsed(path, what, error, yaml.safe_load, _syntax_yaml, "YAML")
+
+
+# Letters of other scripts drawn like Latin ones (Unicode's confusables for the letters and digits of
+# column names; NFKC folds the full-width and other compatibility forms): a header typed or pasted
+# with one of them names another column, and a message that says "missing j1" beside a column
+# that reads j1 leaves the user searching.
+_LOOKALIKE = dict(zip(
+    "аАВсСеЕНіІјЈКМоОрРѕЅТхХуУԁԛԝαΑΒΕΖΗιΙκΚΜνΝοΟρΡτΤυΥχΧ",
+    "aABcCeEHiIjJKMoOpPsSTxXyYdqwaABEZHiIkKMvNoOpPtTuYxX"))
+
+
+def ascii_skeleton(text: str) -> str:
+    """``text`` with its look-alike letters replaced by the Latin letters they imitate (``ј1`` → ``j1``)."""
+    import unicodedata
+
+    return "".join(_LOOKALIKE.get(c, c) for c in unicodedata.normalize("NFKC", text))
+
+
+def lookalike_note(text: str, meant: str) -> str | None:
+    """When ``text`` differs from ``meant`` only by look-alike characters: the characters named, e.g.
+    ``"its 'ј' is U+0458 CYRILLIC SMALL LETTER JE, not 'j' (U+006A)"``; else None."""
+    import unicodedata
+
+    if text == meant or ascii_skeleton(text) != meant:
+        return None
+    parts = []
+    for c in dict.fromkeys(c for c in text if not c.isascii()):
+        latin = ascii_skeleton(c)
+        name = unicodedata.name(c, "unnamed character")
+        parts.append(f"its {c!r} is U+{ord(c):04X} {name}, not {latin!r} (U+{ord(latin[0]):04X})")
+    return "; ".join(parts)

@@ -183,7 +183,15 @@ def option_checks(command: str, sig: inspect.Signature):
         for pname, value in arguments.items():
             opt, kind = names.get(pname, ("", ""))
             if opt:
-                check_number(opt, value, command)
+                try:
+                    check_number(opt, value, command)
+                except InputError as exc:
+                    from estcal.cli.config import from_config
+
+                    src = from_config(pname, value)
+                    if src is None:
+                        raise
+                    raise InputError(f"{src[0]}: key {src[1]!r}: {exc}") from None
             for v in value if isinstance(value, (list, tuple)) else [value]:
                 if kind == "file" and v is not None:
                     outputs[opt] = Path(v)

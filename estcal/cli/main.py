@@ -27,6 +27,14 @@ def _mount() -> None:
 _mount()
 
 
+#: an option a command does not have, where another of its options means what was meant
+#: (the same concept named differently across commands: docs/conventions.md, "One vocabulary")
+OPTION_POINTERS = {
+    ("diagnose", "--level"): "the geometric model of `estcal diagnose` is --geometric (registration, joint_offset, "
+                             "full, prior, auto)",
+}
+
+
 def _usage_error(exc) -> int:
     """A command-line usage error as one line on stderr (Click draws a box of several lines):
     ``error: estcal calibrate: No such option: --nosuch — see `estcal calibrate --help```.
@@ -39,6 +47,9 @@ def _usage_error(exc) -> int:
         return exc.exit_code
     path = ctx.command_path if ctx is not None else "estcal"
     msg = " ".join(exc.format_message().split()).rstrip(".")
+    pointer = OPTION_POINTERS.get((path.split()[-1], getattr(exc, "option_name", None)))
+    if pointer and type(exc).__name__ == "NoSuchOption":
+        msg += f" — {pointer}"
     print(f"error: {path}: {msg} — see `{path} --help`", file=sys.stderr)
     return exc.exit_code
 

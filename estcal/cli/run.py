@@ -23,7 +23,7 @@ from typing import Optional
 
 import typer
 
-from estcal.base.errors import EstcalWarning, InputError, MissingExtraError, NumericalRefusal
+from estcal.base.errors import EstcalWarning, InputError, MissingExtraError, NumericalRefusal, missing_extra
 
 __all__ = ["EXIT_INPUT", "EXIT_REFUSED", "exit_code", "error_line", "mapped_errors", "printed_warnings", "guarded",
            "on_exit", "run_exit_hooks"]
@@ -75,6 +75,12 @@ def mapped_errors():
     except (InputError, NumericalRefusal, MissingExtraError) as exc:
         typer.echo(error_line(exc), err=True)
         raise typer.Exit(exit_code(exc)) from None
+    except ImportError as exc:  # an optional module imported without require(): still its extra, not a bug
+        extra = missing_extra(exc)
+        if extra is None:
+            raise
+        typer.echo(error_line(extra), err=True)
+        raise typer.Exit(exit_code(extra)) from None
 
 
 @contextlib.contextmanager

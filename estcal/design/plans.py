@@ -30,7 +30,7 @@ import numpy as np
 
 from estcal.base.jsonio import to_jsonable
 from estcal.base.progress import progress
-from estcal.base.textinput import read_text, sniff_delimiter
+from estcal.base.textinput import read_text
 from estcal.scale.runner import TaskError, run_tasks
 
 from .criteria import CRITERIA, criterion_loss, criterion_value, evaluate_all, larger_is_better, normalise_criterion
@@ -131,40 +131,47 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
 
     One row per candidate; a header row naming the joints (in any order, matched
     to ``robot.joint_names``) is optional. Values are in rad / m unless
-    ``degrees`` (revolute columns in degrees).
-    """
-    import csv
-    import io
+    ``degrees`` (revolute columns in degrees). Every message names the file and the
+    line an editor shows (blank and ``#`` lines counted)."""
     from pathlib import Path
 
+    from estcal.base.textinput import parse_csv_text
 
     path = Path(path)
     text = read_text(path, "candidates", ValueError)  # folder, binary, encoding: one clear message
-    delim = sniff_delimiter(next((ln for ln in text.splitlines() if ln.strip()), ""))
-    rows = [r for r in csv.reader(io.StringIO(text, newline=""), delimiter=delim)
-            if r and not r[0].lstrip().startswith("#")]
-    if not rows:
+    # '#' lines are comments here: blanked (not removed) so that line numbers stay physical
+    text = "".join("\n" if ln.lstrip().startswith("#") else ln for ln in text.splitlines(keepends=True))
+    if not text.strip():
         raise ValueError(f"{path}: no candidate rows")
+    table = parse_csv_text(text, str(path), "candidates", ValueError)
     names = robot.joint_names
+    first = [h.strip() for h in table.header]
     try:
-        [float(v) for v in rows[0]]
-        header, body = None, rows
+        [float(v) for v in first]
+        header, body, lines = None, [first] + table.rows, [table.header_line] + list(table.lines)
     except ValueError:
-        header, body = [h.strip() for h in rows[0]], rows[1:]
-    data = []
-    for i, r in enumerate(body, start=2 if header else 1):
-        try:
-            data.append([float(v) for v in r])
-        except ValueError as exc:
-            raise ValueError(f"{path}, row {i}: {exc}") from None
-    A = np.asarray(data, float)
+        header, body, lines = first, table.rows, list(table.lines)
+    ncol = len(header) if header is not None else len(body[0])
+    A = np.empty((len(body), ncol))
+    for i, r in enumerate(body):
+        if len(r) != ncol:
+            raise ValueError(f"{path}, line {lines[i]}: {len(r)} fields, expected {ncol}")
+        for j, v in enumerate(r):
+            col = f", column {header[j]!r}" if header is not None else f", column {j + 1}"
+            try:
+                A[i, j] = float(v)
+            except ValueError:
+                raise ValueError(f"{path}, line {lines[i]}{col}: {v.strip()!r} is not a number") from None
+            if not np.isfinite(A[i, j]):
+                raise ValueError(f"{path}, line {lines[i]}{col}: value {v.strip()!r} is not a finite number — "
+                                 f"a candidate pose needs every joint reading") from None
     if header is not None:
         missing = [n for n in names if n not in header]
         if missing:
-            raise ValueError(f"{path}: header {header} lacks joints {missing}")
+            raise ValueError(f"{path}, line {table.header_line}: header {header} lacks joints {missing}")
         A = A[:, [header.index(n) for n in names]]
-    if A.ndim != 2 or A.shape[1] != len(names):
-        raise ValueError(f"{path}: expected {len(names)} columns ({names}), got {A.shape}")
+    if A.shape[1] != len(names):
+        raise ValueError(f"{path}: expected {len(names)} columns ({names}), got {A.shape[1]}")
     if degrees:
         rev = np.array([t == "revolute" for t in robot.joint_types])
         A[:, rev] = np.radians(A[:, rev])
@@ -172,7 +179,7 @@ def load_candidates(path, robot, degrees: bool = False) -> np.ndarray:
     bad = np.argwhere((A < lo - 1e-9) | (A > hi + 1e-9))
     if len(bad):
         i, j = bad[0]
-        raise ValueError(f"{path}: row {i + 1 + (header is not None)} joint {names[j]!r} = {A[i, j]:.6g} "
+        raise ValueError(f"{path}, line {lines[i]}: joint {names[j]!r} = {A[i, j]:.6g} "
                          f"outside limits [{lo[j]:.6g}, {hi[j]:.6g}]")
     return A
 

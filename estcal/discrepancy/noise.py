@@ -27,6 +27,9 @@ import numpy as np
 __all__ = ["reml_variance_components", "measurement_noise", "noise_lines"]
 
 AXES = "xyz"
+#: floor of a class's starting variance (a class of exact zeros) and the half-width of the search in log σ²
+V_FLOOR = 1e-200
+LOG_SPAN = 30.0
 
 
 def _neg2ll(logv, A, r, cls, C, s2=1.0):
@@ -69,9 +72,13 @@ def reml_variance_components(A, r, classes, names=None, scale=None) -> dict:
     s[s == 0] = 1.0
     A = A / s
     s2 = 1.0 if scale is None else np.asarray(scale, float) ** 2
-    v0 = np.array([max(np.mean((r ** 2 / s2)[cls == c] if scale is not None else r[cls == c] ** 2), 1e-300)
+    v0 = np.array([max(np.mean((r ** 2 / s2)[cls == c] if scale is not None else r[cls == c] ** 2), V_FLOOR)
                    for c in range(C)])
-    res = minimize(_neg2ll, np.log(v0), args=(A, r, cls, C, s2), method="L-BFGS-B")
+    # bounded search in log σ²: unbounded, L-BFGS-B's first line searches try exp(±700) — overflow to inf and
+    # a division by zero in V⁻¹ (the RuntimeWarnings of the test run) — for a variance that the data put within
+    # a factor e^±LOG_SPAN of the plain residual variance anyway
+    bounds = [(lv - LOG_SPAN, lv + LOG_SPAN) for lv in np.log(v0)]
+    res = minimize(_neg2ll, np.log(v0), args=(A, r, cls, C, s2), method="L-BFGS-B", bounds=bounds)
     v = np.exp(res.x)
     # observed information in σ² (central differences of −ℓ_R = ½ · neg2ll)
     h = 1e-4

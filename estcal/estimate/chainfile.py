@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from estcal.base.atomic import atomic_path
-from estcal.base.errors import InputError
+from estcal.base.errors import InputError, require
 
 __all__ = ["ChainFileError", "BufferedHDFBackend", "check_chain_path", "open_chain", "fingerprint"]
 
@@ -115,7 +115,7 @@ def _backend_class():
         def flush(self):
             """Append the buffered steps to a copy of the file and rename it over the file (a kill at
             any instant leaves the previous or the new complete chain)."""
-            import h5py
+            h5py = require("h5py", "an MCMC chain file (--chain)")
 
             if not self._buf:
                 return
@@ -160,7 +160,7 @@ def check_chain_path(path) -> Path:
 def open_chain(path, *, names, fp: str, n_walkers: int, ndim: int):
     """``(backend, saved)``: the chain backend for ``path`` and the stored frame ``{center, covariance}``
     when the file holds a chain this run can continue (None for a new chain)."""
-    import h5py
+    h5py = require("h5py", "an MCMC chain file (--chain)")
 
     path = check_chain_path(path)
     backend = BufferedHDFBackend(str(path))
@@ -196,7 +196,7 @@ def open_chain(path, *, names, fp: str, n_walkers: int, ndim: int):
 
 def write_frame(path, *, names, fp: str, n_walkers: int, ndim: int, center, covariance) -> None:
     """Store the sampling frame of a new chain (group ``estcal``)."""
-    import h5py
+    h5py = require("h5py", "an MCMC chain file (--chain)")
 
     with h5py.File(path, "a") as f:
         if "estcal" in f:

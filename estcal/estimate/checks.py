@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estcal.base.errors import NumericalRefusal
+from estcal.identify.select import UnidentifiableError
 from estcal.io.dataset import dataset_from_arrays
 from estcal.methods.problem import Problem
 from estcal.methods.reduced import chi2_and_rows, reduce_system, use_chunks, weighted
@@ -157,11 +158,12 @@ _GENERIC_CACHE: dict = {}
 _GENERIC_CACHE_MAX = 64
 
 
-def _generic_dataset(robot, data, theta, n: int, seed: int = 0):
+def generic_dataset(robot, data, theta, n: int, seed: int = 0):
     """Same kind of data on ``n`` uniform random poses, measured exactly at ``theta``."""
     rng = np.random.default_rng(seed)
     q = robot.random_readings(n, rng)
-    ctx = {k: np.asarray(v)[np.arange(n) % data.n] for k, v in data.context.items()}
+    # the data's context repeated (a layout of no rows, such as a header read before any row: none)
+    ctx = {k: np.asarray(v)[np.arange(n) % data.n] for k, v in data.context.items()} if data.n else {}
     kin = robot.kinematics(q, theta[: robot.n_params] if theta.size > robot.n_params else theta, ctx,
                            jacobian=False)
     if data.kind == "pose":
@@ -209,14 +211,16 @@ def structure_key(problem, theta, n: int, extra=()) -> str:
     return h.hexdigest()
 
 
-def generic_identifiable(problem, level, theta, exclude=(), groups=None):
+def generic_identifiable(problem, level, theta, exclude=(), groups=None, exact: bool = False):
     """The selection the same method makes on generic poses (see module docstring), or None when
     the data are not direct measurements (links, planes: their analysis is ``estcal identifiable``).
 
     Structural identifiability belongs to the robot and the measurement, not to the data: it is
     computed once per content (:func:`structure_key`; an in-process cache) on as few uniform random
     poses as give twice the equations the candidates need (at least :data:`GENERIC_POSES_MIN`), at
-    ``theta`` with its registration values rounded to :data:`REGISTRATION_ROUNDING`."""
+    ``theta`` with its registration values rounded to :data:`REGISTRATION_ROUNDING` (``exact``: not rounded —
+    a regrouping that holds exactly at ``theta``, such as a base axis along a joint axis at −90°, is then
+    seen)."""
     if len(problem.terms) != 1:
         return None
     t = problem.terms[0]
@@ -229,13 +233,14 @@ def generic_identifiable(problem, level, theta, exclude=(), groups=None):
     n = max(GENERIC_POSES_MIN, int(np.ceil(GENERIC_ROWS_PER_PARAMETER * len(pv.names) / rows_per_pose)))
     th = np.asarray(theta, float).copy()
     reg = np.array([k in _EXEMPT_KINDS or k == "tool" for k in pv.kinds])
-    th[reg] = np.round(th[reg] / REGISTRATION_ROUNDING) * REGISTRATION_ROUNDING
+    if not exact:
+        th[reg] = np.round(th[reg] / REGISTRATION_ROUNDING) * REGISTRATION_ROUNDING
     key = structure_key(problem, th, n, (level, None if groups is None else [list(g) for g in groups],
                                          sorted(exclude)))
     if key in _GENERIC_CACHE:
         return _GENERIC_CACHE[key]
     try:
-        gen = Problem(problem.robot, [(t.method, _generic_dataset(problem.robot, t.data, th, n), t.noise)], t.noise)
+        gen = Problem(problem.robot, [(t.method, generic_dataset(problem.robot, t.data, th, n), t.noise)], t.noise)
         out = select_free(gen, level, "structural", theta=th, refine_registration=False, exclude=exclude,
                           groups=groups)
     except (ValueError, np.linalg.LinAlgError, AttributeError, IndexError):
@@ -283,8 +288,12 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     elif data.kind in ("position", "points", "pose"):
         gen = generic_identifiable(problem, level, np.asarray(theta, float), groups=[list(free)])
         here = select_free(problem, groups=[list(free)], theta=theta, refine_registration=False)
+        if gen is not None and len(here.identifiable) < len(gen.identifiable):
+            exact = generic_identifiable(problem, level, np.asarray(theta, float), groups=[list(free)], exact=True)
+            if exact is not None and len(exact.identifiable) < p:
+                raise UnidentifiableError(regrouping_message(exact, free))
         if gen is not None and len(here.identifiable) == len(gen.identifiable) and len(gen.identifiable) < p:
-            gen = None  # structurally unidentifiable --free set: a usage error, reported by the estimator
+            raise UnidentifiableError(regrouping_message(gen, free))
         sel = here
     if gen is not None:
         here = list(sel.identifiable) + list(sel.rejected)  # aic/bic pruning is a choice, not a rank loss
@@ -298,6 +307,27 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
                    f"joint ranges (estcal design), or pass --allow-ill-conditioned to fit the smaller set")
             (out.warnings if allow_ill_conditioned else out.refusals).append(msg)
     return out
+
+
+def regrouping_message(sel, free) -> str:
+    """A ``--free`` set whose parameters regroup on any poses (``sel``: the selection on generic poses),
+    in the words of ``estcal identifiable`` (no effect (0), regrouped (n), the base parameter's formula)."""
+    lost = [n for n in free if n not in sel.identifiable]
+    parts = []
+    for n in lost:
+        rel = sel.regrouped.get(n) if hasattr(sel, "regrouped") else None
+        if n in getattr(sel, "no_effect", ()):
+            parts.append(f"{n} has no effect (0) on this measurement")
+        elif rel:
+            kept = ", ".join(f"{k} ({b:+.4g})" for k, b in rel.items())
+            formula = " and ".join(f"{k} {'+' if b >= 0 else '-'} {abs(b):.4g}*{n}" for k, b in rel.items())
+            parts.append(f"{n} is regrouped (n), absorbed by {kept}: only {formula} is identifiable")
+        else:
+            parts.append(f"{n} is regrouped (n)")
+    keep = [n for n in free if n in sel.identifiable]
+    return (f"--free {','.join(free)}: {'; '.join(parts)} — on any poses, by the robot's structure and the "
+            f"measurement (as `estcal identifiable` reports), not because of these data. Estimate the base "
+            f"parameter alone (--free {','.join(keep) or '…'}), or let estcal choose the set (--level)")
 
 
 def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessment:

@@ -68,8 +68,26 @@ class InnovationTests:
     def to_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, (np.floating,)) else v) for k, v in asdict(self).items()}
 
+    @property
+    def cause(self) -> str | None:
+        """What a failed NIS test says about the noise (None when it passed): NIS/row ≪ 1 — the innovations
+        are smaller than the assumed noise predicts, the noise is overstated (a clean file read with the
+        default 0.1 mm); ≫ 1 — larger: the noise is understated or the model misses an effect."""
+        if "NIS" not in self.failed or not self.nis_mean_per_row > 0:
+            return None
+        f = float(np.sqrt(self.nis_mean_per_row))
+        if self.nis_mean_per_row < 1:
+            return (f"the innovations are {f:.2g}× the size the assumed measurement noise predicts (NIS/row "
+                    f"{self.nis_mean_per_row:.3g} < 1): the noise is overstated — the data are consistent with a "
+                    f"noise about {f:.2g}× the assumed one; give that noise to test the model")
+        return (f"the innovations are {f:.2g}× the size the assumed noise and the estimate's uncertainty predict "
+                f"(NIS/row {self.nis_mean_per_row:.3g} > 1): the noise is understated, or the model misses an "
+                f"effect (estcal diagnose names it)")
+
     def __str__(self) -> str:
         verdict = "MODEL REJECTED (" + ", ".join(self.failed) + ")" if self.fires else "consistent"
+        if self.cause:
+            verdict += " — " + self.cause
         return (f"innovations: {self.n_steps} steps after burn-in {self.burn_in}; "
                 f"NIS/row {self.nis_mean_per_row:.3f} (p={self.nis_p_value:.3g}), "
                 f"mean χ²={self.mean_chi2:.1f}/{self.mean_dof} (p={self.mean_p_value:.3g}), "

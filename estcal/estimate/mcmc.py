@@ -148,8 +148,11 @@ class PosteriorSamples:
         return np.quantile(self.flat, [a, 1 - a], axis=0).T
 
     def to_inference_data(self):
-        """ArviZ InferenceData (chains = walkers); raises ImportError without arviz."""
-        import arviz as az
+        """ArviZ InferenceData (chains = walkers); :class:`~estcal.base.errors.MissingExtraError` (an
+        ImportError) naming the ``mcmc`` extra without arviz."""
+        from estcal.base.errors import require
+
+        az = require("arviz", "MCMCResult.to_inference_data")
 
         post = {n: self.chain[:, :, i].T for i, n in enumerate(self.names)}
         if self.noise_scale is not None:

@@ -102,7 +102,8 @@ def identify(robot, method: str | None = "position", data=None, n_poses: int = 6
             W, names, n_rows = reduced_observation_matrix(problem, names, chunk=ck)
         else:
             W, names = observation_matrix(problem, names)
-        meta.update({"source": data.where, "n_poses": int(data.n)})
+        n_distinct = int(np.unique(np.asarray(data.readings), axis=0).shape[0]) if data.n else 0
+        meta.update({"source": data.where, "n_poses": int(data.n), "n_distinct": n_distinct})
     prio = scan_priorities(problem, names, priorities, rules)
     res = identifiable(W, names, prio, pivoting=pivoting, tol_factor=tol_factor, tau_floor=tau_floor, meta=meta,
                        n_rows=None if data is None else n_rows)

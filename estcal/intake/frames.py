@@ -73,6 +73,10 @@ def chain_candidates(urdf, joints, path="URDF"):
                                  f"(no path from {first_parent!r} to {last!r})")
         j = parent_joint[link]
         if j.type != "fixed":
+            if j.name not in joints and j.mimic is not None:
+                raise RobotFileError(f"{path}: joint {j.name!r} lies between the data's joints and is a <mimic> of "
+                                     f"{j.mimic.joint!r}: estcal reads one column per independent joint and does not "
+                                     f"couple joints from a URDF — describe the chain in a robot file (coupling)")
             if j.name not in joints:
                 raise RobotFileError(f"{path}: joint {j.name!r} ({j.type}) lies between the data's joints but the "
                                      f"data have no column for it")
@@ -99,21 +103,29 @@ def data_joints(urdf, header, column_map=None) -> list[str]:
             if j.type != "fixed" and j.mimic is None and mapped.get(j.name, j.name) in present]
 
 
+#: rows above which the candidates are ranked on an evenly spaced sample of this many rows (the RMSEs
+#: of 20,000 rows are within ~1 % of the whole file's; memory and time stay bounded on any file)
+FRAMES_MAX_ROWS = 20_000
+
+
 def find_frames(urdf_path, data_path, column_map=None, points: int | None = None) -> dict:
     """Rank the (root, tip) candidates of ``urdf_path`` for the data file ``data_path``.
 
     Returns ``{"joints": [...], "kind": …, "n_poses": N, "candidates": [{"root", "tip", "roots",
-    "rmse_mm", "rmse_mrad", …}, …]}`` best first (module docstring). ``column_map``: path or
-    :class:`~estcal.io.columnmap.ColumnMap`."""
-    from estcal.io.columnmap import ColumnMap, apply_column_map, load_column_map
-    from estcal.io.dataset import DatasetError, dataset_from_table
-    from estcal.base.textinput import read_csv
+    "rmse_mm", "rmse_mrad", …}, …]}`` best first (module docstring), with ``"sampled"`` (rows ranked on,
+    when fewer than the file's), ``"notes"`` (what was left unused and why) and ``"explained"`` (the
+    best candidate's residual against the measured positions' spread, :mod:`estcal.intake.explained`).
+    ``column_map``: path or :class:`~estcal.io.columnmap.ColumnMap`."""
+    from estcal.io.columnmap import ColumnMap, load_column_map
+    from estcal.io.dataset import DatasetError
+    from estcal.io.stream import read_dataset
+    from estcal.base.textinput import read_csv_header
     from estcal.kinematics.urdf import load_urdf, robot_from_urdf
 
     urdf = load_urdf(urdf_path)
     cmap = column_map if column_map is None or isinstance(column_map, ColumnMap) else load_column_map(column_map)
-    table = read_csv(Path(data_path), "dataset", DatasetError)
-    header = [h.strip() for h in (cmap.columns if cmap is not None and cmap.columns else table.header)]
+    file_header = read_csv_header(Path(data_path), "dataset", DatasetError)
+    header = [h.strip() for h in (cmap.columns if cmap is not None and cmap.columns else file_header)]
     joints = data_joints(urdf, header, cmap)
     if not joints:
         raise DatasetError(f"{data_path}: no column is a joint of {urdf_path} (its actuated joints are "
@@ -121,14 +133,13 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
                            f"--map (joints: {{urdf_joint: column}})")
     roots, top, last, tips = chain_candidates(urdf, joints, urdf_path)
     robot = robot_from_urdf(urdf_path, root=top, tip=last)
-    if cmap is not None:
-        types = list(robot.joint_types)
-        tab, _ = apply_column_map(table, cmap, robot.joint_names, types)
-    else:
-        tab = table
-    ds = dataset_from_table(tab, None, robot.joint_names, points, check_units=False)
+    ds, total = read_dataset(Path(data_path), robot, column_map=cmap, max_rows=FRAMES_MAX_ROWS, check_units=False)
+    if points is not None:
+        ds = ds.with_points(points)
     if ds.kind == "none":
         raise DatasetError(f"{data_path}: no measured pose or points (x,y,z, x1..zk or a pose; map them with --map)")
+    mimic = _mimic_notes(urdf, header, cmap, urdf_path)
+    notes = [m for _, m in mimic] + _unused_notes(ds, robot, {c for c, _ in mimic})
     from estcal.kinematics.chunked import tool_poses
 
     F = tool_poses(robot, ds.readings)
@@ -138,8 +149,8 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
     # ``last`` (robot_from_urdf merges them), so F_T is ``last`` in ``top``
     C = np.stack([c for _, c in tips])
     T = np.einsum("nij,cjk->cnik", F_T, C)  # (tips, N, 4, 4)
-    out = {"joints": list(robot.joint_names), "kind": ds.kind, "n_poses": int(ds.n), "root": top,
-           "roots": list(roots), "candidates": []}
+    out = {"joints": list(robot.joint_names), "kind": ds.kind, "n_poses": int(total), "root": top,
+           "roots": list(roots), "candidates": [], "sampled": int(ds.n) if ds.n < total else None, "notes": notes}
     rows = []
     if ds.kind == "pose":
         R_B, p_B, e_pos, e_rot = register_base_pose(T[..., :3, :3], T[..., :3, 3], ds.R, ds.p)
@@ -165,4 +176,47 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
         rows.sort(key=lambda r: r["marker_mm"])
     for r in rows:
         out["candidates"].append({"root": top, **r, "roots": list(roots)})
+    out["explained"] = _explained(ds, rows)
     return out
+
+
+def _explained(ds, rows) -> dict:
+    """The best candidate's residual (with the tool registered, for pose data) against the spread of the
+    measured positions: above :data:`~estcal.intake.explained.UNEXPLAINED_RATIO`, no candidate explains
+    the data."""
+    from .explained import UNEXPLAINED_RATIO, spread
+
+    best = rows[0]
+    rmse = 1e-3 * (best["registered_rmse_mm"] if ds.kind == "pose" else best["rmse_mm"])
+    s = spread(ds.p if ds.kind == "pose" else ds.points)
+    ratio = rmse / s if s > 0 else float("inf")
+    return {"rmse_m": rmse, "spread_m": s, "ratio": ratio, "poses": int(ds.n), "of": int(ds.n),
+            "explains": bool(ratio <= UNEXPLAINED_RATIO)}
+
+
+def _mimic_notes(urdf, header, cmap, path) -> list[tuple[str, str]]:
+    """A column that is a ``<mimic>`` joint of the URDF: said what is done with it (never dropped in
+    silence) — estcal reads one column per independent joint and does not couple joints from a URDF.
+    ``[(column, note)]``."""
+    mapped = dict(cmap.joints) if cmap is not None else {}
+    present = set(header)
+    out = []
+    for j in urdf.robot.joints:
+        col = mapped.get(j.name, j.name)
+        if j.type != "fixed" and j.mimic is not None and col in present:
+            m = j.mimic
+            out.append((col, f"column {col!r} is joint {j.name!r}, a <mimic> of {m.joint!r} in {Path(path).name} "
+                             f"(q = {m.multiplier if m.multiplier is not None else 1:g}·q_{m.joint} + "
+                             f"{m.offset if m.offset is not None else 0:g}): no candidate chain goes through it and "
+                             f"its column is not used (estcal reads one column per independent joint and does not "
+                             f"couple joints from a URDF)"))
+    return out
+
+
+def _unused_notes(ds, robot, skip) -> list[str]:
+    """The file columns no candidate reads (besides the mimic joints'), with the map that would read them."""
+    from .hygiene import unused_columns, unused_message
+
+    unused, foreign, suggestion = unused_columns(ds, robot)
+    unused = [c for c in unused if c not in skip]
+    return [unused_message(ds, robot, unused, foreign, suggestion)] if unused else []

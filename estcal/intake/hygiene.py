@@ -21,6 +21,10 @@ Each finding has a ``kind``, the file ``lines`` it concerns and a ``message``:
     symmetry (several labellings fit), the labelling closest to the registered model decides.
 ``outlier``
     a pose whose residual after a robust fit is beyond the Bonferroni limit (below).
+``unexplained``
+    the robot's nominal model leaves a residual of the order of the measured positions' own spread
+    once the unknown frames are registered (:mod:`estcal.intake.explained`): random or unrelated
+    numbers, positions that do not follow the joints, another robot — no row can be blamed.
 ``unused_column``
     file columns nothing reads (named so that a misspelt or unmapped column is seen); those
     that look like joints of the robot that the chain does not have are said so.
@@ -56,13 +60,15 @@ from estcal.estimate.robust import chi2_median, chi2_ppf
 
 __all__ = ["Finding", "CheckReport", "check_data", "studentised_outliers", "DEFECTS", "KINDS"]
 
-KINDS = ("marker_swap", "non_rigid", "outlier", "out_of_limits", "repeated_pose", "duplicate_row", "unused_column")
+KINDS = ("unexplained", "marker_swap", "non_rigid", "outlier", "out_of_limits", "repeated_pose", "duplicate_row",
+         "unused_column")
 #: kinds that mark rows a fit should not use (``--drop-flagged`` removes them)
 DEFECTS = ("marker_swap", "non_rigid", "outlier", "out_of_limits", "duplicate_row")
 ALPHA = 0.05
 LIMIT_SLACK = 0.01  # readings at a limit overshoot it by encoder noise (TIAGo torso: 0.35018 m for 0.35)
 RIGID_FLOOR_M = 1e-3
 MAX_PERM_POINTS = 6
+RIGID_CHUNK_NUMBERS = 4_000_000  # floats per chunk of the relabelling test (32 MB)
 ROWS_PER_PARAMETER = 5
 QUANTILES = (0.5, 0.9)
 GROSS = 8.0  # residual / median residual set aside before the quantiles are taken
@@ -191,9 +197,14 @@ def _rigidity(ds, robot, skip, predicted=None) -> tuple[list, np.ndarray, np.nda
     spread = 1.4826 * np.median(np.abs(D[use] - ref))
     tol = max(RIGID_FLOOR_M, 8 * spread)
     perms = np.array(list(permutations(range(k))))
-    # distance vector of every row under every labelling: D_π[i] uses points π(a), π(b)
-    Dp = np.linalg.norm(P[:, perms[:, a], :] - P[:, perms[:, b], :], axis=-1)  # (N, perms, pairs)
-    dev = np.abs(Dp - ref).max(axis=-1)  # (N, perms)
+    # distance vector of every row under every labelling: D_π[i] uses points π(a), π(b) — in chunks of
+    # rows, since (rows, perms, pairs, 3) is k!·k(k−1)/2·3 numbers a row (1.1 kB at k = 4, 600 kB at 6)
+    dev = np.empty((ds.n, len(perms)))
+    step = max(1, RIGID_CHUNK_NUMBERS // (len(perms) * len(a) * 3))
+    for c in range(0, ds.n, step):
+        Pc = P[c:c + step]
+        Dp = np.linalg.norm(Pc[:, perms[:, a], :] - Pc[:, perms[:, b], :], axis=-1)  # (rows, perms, pairs)
+        dev[c:c + step] = np.abs(Dp - ref).max(axis=-1)
     fits = dev <= tol
     out, non_rigid, swapped = [], [], []
     for i in range(ds.n):
@@ -293,31 +304,48 @@ def _matched_chi2(q, d_max: float):
     return d, float(lo / chi2_ppf(QUANTILES[0], d))
 
 
-def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALPHA, max_iter: int = 20):
-    """``(flag, F, d)``: poses beyond the Bonferroni limit of the studentised residual test (module
-    docstring), their statistics ``F = q/c`` (≈ χ²_d for clean poses) and the matched dof ``d``."""
+def _pose_blocks(rows, n_poses: int):
+    """Whitened Jacobian rows grouped by pose: ``(g, order, starts, dims)``."""
+    g = np.asarray(rows.pose, int)
+    dims = np.bincount(g, minlength=n_poses)
+    order = np.argsort(g, kind="stable")
+    return g, order, np.r_[0, np.cumsum(dims)], dims
+
+
+def _studentised_q(J, e, blocks, Ai, predicted) -> np.ndarray:
+    """``q_g = e_gᵀ (I ∓ J_g A⁻¹ J_gᵀ)⁻¹ e_g`` of every pose (− fitted, + ``predicted``), vectorised over
+    the poses of each residual dimension m (m × m solves in one call)."""
+    g, order, starts, dims = blocks
+    q = np.zeros(dims.size)
+    for m in np.unique(dims[dims > 0]):
+        poses = np.flatnonzero(dims == m)
+        rr = order[starts[poses][:, None] + np.arange(m)]  # (poses, m) rows of each pose
+        Jg, eg = J[rr], e[rr]
+        h = np.einsum("gip,pq,gjq->gij", Jg, Ai, Jg)
+        sign = np.where(predicted[poses], 1.0, -1.0)[:, None, None]
+        M = np.eye(m) + sign * h
+        q[poses] = np.einsum("gi,gi->g", eg, np.linalg.solve(M, eg[..., None])[..., 0])
+    return q
+
+
+def _studentised(problem, theta, names, n_poses: int, alpha: float = ALPHA, max_iter: int = 20) -> dict:
+    """The iteration of :func:`studentised_outliers`; also returns what scores other poses against the
+    same fit: ``Ai`` = (JᵀJ)⁻¹ of the unflagged poses and the scale ``c`` of the statistic."""
     rows = problem.evaluate(theta)
     fi = problem.params.indices(list(names))
     J = rows.H[:, fi] / rows.sigma[:, None]
     e = rows.e / rows.sigma
-    g = np.asarray(rows.pose, int)
+    blocks = _pose_blocks(rows, n_poses)
+    g, dims = blocks[0], blocks[3]
     N = n_poses
-    dims = np.bincount(g, minlength=N)
-    order = np.argsort(g, kind="stable")
-    starts = np.r_[0, np.cumsum(dims)]
     flag = np.zeros(N, bool)
     F = np.zeros(N)
     d = float(dims.max())
+    scale = 1.0
     for it in range(max_iter):
         keep = ~flag[g]
         Ai = np.linalg.pinv(J[keep].T @ J[keep])
-        q = np.zeros(N)
-        for i in range(N):  # m × m blocks: N small solves (m ≤ 3k or 6)
-            rr = order[starts[i]:starts[i + 1]]
-            Jg = J[rr]
-            h = Jg @ Ai @ Jg.T
-            M = np.eye(len(rr)) + (h if flag[i] else -h)
-            q[i] = e[rr] @ np.linalg.solve(M, e[rr])
+        q = _studentised_q(J, e, blocks, Ai, flag)
         if it == 0:  # gross residuals out of the quantiles first (then judged like the others)
             flag = q > GROSS ** 2 * np.median(q)
             if flag.any():
@@ -331,14 +359,59 @@ def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALP
         if np.array_equal(new, flag):
             break
         flag = new
-    return flag, F, d
+    return {"flag": flag, "F": F, "d": d, "scale": scale, "Ai": Ai, "J_columns": fi}
+
+
+def studentised_outliers(problem, theta, names, n_poses: int, alpha: float = ALPHA, max_iter: int = 20):
+    """``(flag, F, d)``: poses beyond the Bonferroni limit of the studentised residual test (module
+    docstring), their statistics ``F = q/c`` (≈ χ²_d for clean poses) and the matched dof ``d``."""
+    out = _studentised(problem, theta, names, n_poses, alpha, max_iter)
+    return out["flag"], out["F"], out["d"]
+
+
+#: poses above which the outlier test fits its robust model, and sets the scale of its statistic, on an
+#: evenly spaced sample of this many poses; every pose is then tested against that fit, chunk by chunk
+#: (memory O(sample + chunk), not O(rows × parameters))
+OUTLIER_FIT_MAX_POSES = 20_000
+SCORE_CHUNK_POSES = 20_000
+
+
+def _score_all(prob, theta, st: dict, sub, sample) -> np.ndarray:
+    """``F`` of every pose of ``sub`` against the fit on ``sub.subset(sample)`` (predictions for the poses
+    outside the sample, the sample's own statistics for the others), chunk by chunk."""
+    from estcal.methods.problem import Problem, Term
+
+    F = np.empty(sub.n)
+    t = prob.terms[0]
+    for a in range(0, sub.n, SCORE_CHUNK_POSES):
+        part = sub.subset(slice(a, a + SCORE_CHUNK_POSES))
+        cp = Problem.__new__(Problem)
+        cp.robot, cp.terms = prob.robot, [Term(t.method, part, t.noise)]
+        rows = cp.evaluate(theta)
+        J = rows.H[:, st["J_columns"]] / rows.sigma[:, None]
+        e = rows.e / rows.sigma
+        F[a:a + part.n] = _studentised_q(J, e, _pose_blocks(rows, part.n), st["Ai"], np.ones(part.n, bool)) \
+            / st["scale"]
+    F[sample] = st["F"]
+    return F
 
 
 def _outliers(robot, ds, skip, level, alpha) -> tuple[list, dict]:
     keep = np.setdiff1d(np.arange(ds.n), skip)
     sub = ds.subset(keep)
-    res, prob, lev = _robust_fit(robot, sub, level)
-    flag, F, d = studentised_outliers(prob, res.theta, res.names, sub.n, alpha)
+    sample = None
+    fit = sub
+    if sub.n > OUTLIER_FIT_MAX_POSES:
+        sample = np.unique(np.linspace(0, sub.n - 1, OUTLIER_FIT_MAX_POSES).astype(int))
+        fit = sub.subset(sample)
+    res, prob, lev = _robust_fit(robot, fit, level)
+    st = _studentised(prob, res.theta, res.names, fit.n, alpha)
+    d = st["d"]
+    if sample is None:
+        flag, F = st["flag"], st["F"]
+    else:
+        F = _score_all(prob, res.theta, st, sub, sample)
+        flag = F > chi2_ppf(1 - alpha / sub.n, d)
     med = chi2_median(d)
     limit = float(np.sqrt(chi2_ppf(1 - alpha / sub.n, d) / med))
     out = []
@@ -349,12 +422,17 @@ def _outliers(robot, ds, skip, level, alpha) -> tuple[list, dict]:
                            f"({lev} level) — beyond the Bonferroni limit {limit:.1f}× (α = {alpha:g} over {sub.n} "
                            f"poses, {d:.2g} matched dof)", {"ratio": ratio}))
     info = {"level": lev, "effective_dof": d, "limit_ratio": limit, "theta": res.theta, "problem": prob,
-            "kept": keep}
+            "kept": keep, "sampled": None if sample is None else int(sample.size)}
     return out, info
 
 
 # ----------------------------------------------------------------------------- columns
-def _unused(ds, robot) -> list:
+def unused_columns(ds, robot) -> tuple[list, list, str | None]:
+    """``(unused, joint_like, map)``: the file columns nothing reads (through a column map: also the file
+    columns the map left out), those that look like joints the robot does not have, and a column map
+    that would read the others as a measured orientation (:func:`estcal.io.columnmap.suggest_map`),
+    else None."""
+    from estcal.io.columnmap import suggest_map
     from estcal.io.columns import METHOD_COLUMNS
     from estcal.io.dataset import foreign_joint_columns
 
@@ -364,18 +442,53 @@ def _unused(ds, robot) -> list:
         read |= set(window)  # t is the middle of the window
     carried = [c for c in ds.columns if c not in read]
     if ds.source_header is None:
-        unused = carried
+        unused, header = carried, None
     else:  # through a column map: also the file columns the map left out
         sources = {s for v in ds.renamed.values() for s in v.split("/")}
         unused = [h for h in ds.source_header if h and h not in sources and (h in carried or h not in ds.columns)]
-    if not unused:
-        return []
+        header = list(ds.source_header)
     foreign = foreign_joint_columns(unused, robot)
+    suggestion = None
+    if ds.kind == "position" and ds.coordinates and unused:
+        pos = [ds.renamed.get(c, c) for c in ds.coordinates]
+        suggestion = suggest_map(unused, header or list(ds.columns) + pos, [pos])
+    return unused, foreign, suggestion
+
+
+def unused_message(ds, robot, unused, foreign, suggestion) -> str:
+    """The sentence naming the unused columns, with the column map that would read them."""
     msg = f"column(s) {', '.join(unused)} are not used"
     if foreign:
         msg += (f"; {', '.join(foreign)} look like joints the robot {robot.name!r} does not have (its joints: "
                 f"{', '.join(robot.joint_names)}) — wrong chain (--root/--tip), a truncated robot file, or map them")
-    return [Finding("unused_column", [], msg, {"columns": unused, "joint_like": foreign})]
+    if suggestion:
+        from estcal.io.columnmap import published_map
+
+        known = published_map((ds.source_header or []) + list(ds.columns) + [ds.renamed.get(c, c) for c in
+                                                                              ds.coordinates or []],
+                              [c for c in unused if c not in foreign])
+        msg += (f" — they look like the measured orientation: read the file as a full pose with a column map "
+                f"(--map MAP.yaml) holding `{suggestion}`" + (f" ({known} is that map)" if known else "")
+                + "; without it only the positions are fitted")
+    return msg
+
+
+def _unused(ds, robot) -> list:
+    unused, foreign, suggestion = unused_columns(ds, robot)
+    if not unused:
+        return []
+    return [Finding("unused_column", [], unused_message(ds, robot, unused, foreign, suggestion),
+                    {"columns": unused, "joint_like": foreign, "map": suggestion})]
+
+
+def _unexplained(robot, ds) -> list:
+    from .explained import UNEXPLAINED_RATIO, explained, unexplained_message
+
+    fig = explained(robot, ds)
+    if fig is None or not fig["ratio"] > UNEXPLAINED_RATIO:
+        return []
+    msg = unexplained_message(fig, f"the nominal model of {robot.name!r} does not explain these data")
+    return [Finding("unexplained", [], msg, {k: fig[k] for k in ("rmse_m", "spread_m", "ratio")})]
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -383,6 +496,7 @@ def check_data(robot, ds, *, level: str = "auto", alpha: float = ALPHA, outliers
     """All checks of the module docstring on a loaded dataset (robot with one marker per measured point
     for point data). Returns a :class:`CheckReport`; lines are the file's."""
     report = CheckReport(ds.where, ds.n)
+    report.findings += _unexplained(robot, ds)
     dup_f, dup = _duplicates(ds)
     lim_f, lim = _limits(ds, robot)
     report.findings += dup_f
@@ -412,7 +526,9 @@ def check_data(robot, ds, *, level: str = "auto", alpha: float = ALPHA, outliers
     report.findings += _repeated(ds, robot, dup)
     report.findings += _unused(ds, robot)
     if info is not None:
-        report.notes.append(f"outlier test: robust fit at the {info['level']} level, Bonferroni α = {alpha:g}, "
+        on = (f" on an evenly spaced sample of {info['sampled']:,} of {len(info['kept']):,} rows (the memory stays "
+              f"bounded; every row is tested against that fit)" if info["sampled"] else "")
+        report.notes.append(f"outlier test: robust fit at the {info['level']} level{on}, Bonferroni α = {alpha:g}, "
                             f"{info['effective_dof']:.2g} matched dof")
     order = {k: i for i, k in enumerate(KINDS)}
     report.findings.sort(key=lambda f: (order[f.kind], f.lines[:1]))

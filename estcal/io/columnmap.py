@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from estcal.base.errors import InputError
+from estcal.base.textinput import ascii_skeleton, lookalike_note
 from estcal.io.columns import CONTEXT_COLUMNS, NUMBERED, QUAT_COLUMNS, DatasetError, is_number
 
 __all__ = ["ColumnMap", "ColumnMapError", "load_column_map", "column_map_from_dict", "apply_column_map",
@@ -251,6 +252,25 @@ def headerless(table, cmap: ColumnMap):
     return CsvTable(list(cmap.columns), rows, lines, 0, table.delimiter, table.where)
 
 
+def _one_column_per_joint(jmap: dict, cmap: ColumnMap, where: str) -> None:
+    """Two robot joints read from one file column (``j6: j5``, or ``j6: j5`` while ``j5`` keeps its own
+    name) would move both joints together: the fit then absorbs a wrong chain into the geometry
+    without any warning. Refused, naming the map line and the column."""
+    by_col: dict = {}
+    for j, col in jmap.items():
+        by_col.setdefault(col, []).append(j)
+    for col, joints in by_col.items():
+        if len(joints) > 1:
+            mapped = [j for j in joints if j in cmap.joints]
+            at = cmap.at("joints", mapped[-1]) if mapped else cmap.path
+            own = [j for j in joints if j not in cmap.joints]
+            how = (f" ({', '.join(repr(j) for j in own)} by its own name)" if own else "")
+            many = "both" if len(joints) == 2 else "all"
+            raise ColumnMapError(f"{at}: joints {', '.join(repr(j) for j in joints)} are {many} read from column "
+                                 f"{col!r} of {where}{how} — every joint needs its own column; map each joint to "
+                                 f"the column that holds its readings")
+
+
 def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
     """The table ``table`` (:class:`~estcal.base.textinput.CsvTable`) in estcal's columns.
 
@@ -272,6 +292,13 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
         if col not in present:
             close = difflib.get_close_matches(col, [h for h in header if h], n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
+            same = [h for h in header if h and ascii_skeleton(h) == ascii_skeleton(col)]
+            if same:  # one of the two is typed with look-alike letters of another script
+                a = same[0] if not same[0].isascii() else col  # the one typed with look-alike letters
+                where_to = "the column name in the file" if a == same[0] else "it in the map"
+                hint = (f" — the file's column {same[0]!r} reads the same but {lookalike_note(a, ascii_skeleton(a))}"
+                        f" (look-alike letters); retype {where_to}")
+                raise ColumnMapError(f"{cmap.at(*key)}: column {col!r} is not in {where}{hint}")
             if header and all(is_number(h) for h in header if h):
                 hint += (" — its first line holds numbers: the file has no header row; name its columns with "
                          "columns: [...] in the map")
@@ -296,6 +323,7 @@ def apply_column_map(table, cmap: ColumnMap, joint_names, joint_types=None):
                                  f"add `{j}: <column>` under joints: ({len(unmapped)} unmapped: {unmapped}); the "
                                  f"file's columns are {header}")
         jmap[j] = col
+    _one_column_per_joint(jmap, cmap, where)
     for i, p in enumerate(cmap.points):
         for c in p:
             need(c, "points", i)
@@ -361,3 +389,60 @@ def rename_message(msg: str, renamed: dict, cmap: ColumnMap) -> str:
         return m.group(0) if fc is None or fc == c else f"column {fc!r} (mapped to {c!r} by {Path(cmap.path).name})"
 
     return re.sub(r"column '([^']+)'", sub, msg)
+
+
+# --------------------------------------------------------------------------- what a map would read
+_RPY_WORDS = (("roll", "pitch", "yaw"), ("rx", "ry", "rz"), ("phix", "phiy", "phiz"), ("rotx", "roty", "rotz"),
+              ("thetax", "thetay", "thetaz"), ("ax", "ay", "az"), ("a", "b", "c"))
+_QUAT_WORDS = (("qw", "qx", "qy", "qz"), ("q0", "q1", "q2", "q3"), ("w", "x", "y", "z"))
+
+
+def _triples(columns, words, sep_ok=True):
+    """Groups of ``columns`` named ``<word><suffix>`` (or ``<prefix><word>``) for every word of a set, with
+    one shared suffix/prefix: ``phix1, phiy1, phiz1`` → [["phix1", "phiy1", "phiz1"]]."""
+    low = {c.lower(): c for c in columns}
+    out = []
+    for ws in words:
+        first = [c for c in low if c.startswith(ws[0]) or c.endswith(ws[0])]
+        for c in first:
+            for pre, suf in ((c[:len(c) - len(ws[0])], ""), ("", c[len(ws[0]):])):
+                if (pre + ws[0] + suf) != c:
+                    continue
+                group = [low.get(pre + w + suf) for w in ws]
+                if all(group) and not any(g in sum(out, []) for g in group):
+                    out.append(group)
+    return out
+
+
+def suggest_map(unused, header, points) -> str | None:
+    """A column map (one line of YAML) that would read ``unused`` columns of a file whose ``header`` they
+    belong to, when they look like a measured orientation: roll-pitch-yaw (``phix1, phiy1, phiz1``,
+    ``roll, pitch, yaw``, ``rx, ry, rz`` …) or a quaternion. ``points``: the file's columns of the measured
+    position (one [x, y, z] triple), which a pose map names as the frame's origin. None otherwise."""
+    if points is None or len(points) != 1:
+        return None
+    cand = [c for c in unused if c in header]
+    pos = "[[" + ", ".join(points[0]) + "]]"
+    for group in _triples(cand, _QUAT_WORDS):
+        return f"points: {pos}, orientation: {{quaternion: [{', '.join(group)}]}}"
+    for group in _triples(cand, _RPY_WORDS):
+        return f"points: {pos}, orientation: {{rpy: [{', '.join(group)}]}}"
+    return None
+
+
+def published_map(header, columns) -> str | None:
+    """The map of ``docs/maps/`` (in estcal's source tree, when it is there) that reads every column of
+    ``columns`` from a file with this ``header`` — e.g. ``docs/maps/ur10.yaml`` for the UR10 file."""
+    folder = Path(__file__).resolve().parents[2] / "docs" / "maps"  # the source tree beside the package
+    if not folder.is_dir():
+        return None
+    present = set(header)
+    for f in sorted(folder.glob("*.yaml")):
+        try:
+            m = load_column_map(f)
+        except (InputError, OSError):
+            continue
+        used = set(m.file_columns())
+        if m.columns is None and used <= present and set(columns) <= used:
+            return f"docs/maps/{f.name}"
+    return None

@@ -38,6 +38,9 @@ __all__ = ["Dataset", "DatasetError", "load_dataset", "write_dataset", "dataset_
 
 # allowance of the spread check for unknown marker offsets and calibration errors (m)
 SPREAD_SLACK_M = 0.2
+#: measured positions that spread less than this fraction of the nominal model's do not follow the joints
+#: (a unit mistake makes them larger: mm, cm, inches given as metres)
+STILL_RATIO = 0.02
 
 
 @dataclass
@@ -69,6 +72,8 @@ class Dataset:
     # the file's own column names and {estcal column: file column} when read through a column map
     source_header: list | None = None
     renamed: dict = field(default_factory=dict)
+    # estcal's names of the measured coordinates as the file gave them (x,y,z or x1…zk), when read from a table
+    coordinates: list | None = None
 
     def __post_init__(self):
         if self.lines is None:
@@ -92,7 +97,7 @@ class Dataset:
         return Dataset(list(self.joint_names), self.readings[idx], self.kind, take(self.points), take(self.R),
                        take(self.p), {k: v[idx] for k, v in self.context.items()},
                        {k: v[idx] for k, v in self.columns.items()}, self.lines[idx], self.path,
-                       list(self.warnings))
+                       list(self.warnings), coordinates=self.coordinates)
 
     def with_points(self, k: int) -> "Dataset":
         """Keep the first ``k`` measured points (``--points k``)."""
@@ -383,10 +388,27 @@ def _known_columns(header: list[str], names: list[str]) -> set[str]:
     return known
 
 
+def _check_lookalikes(header: list[str], names: list[str], at: str) -> None:
+    """A column whose name is a known one typed with look-alike letters of another script (a Cyrillic
+    ``ј`` in ``ј1``) is named as such, instead of "missing column j1" beside a column that reads j1."""
+    from estcal.base.textinput import ascii_skeleton, lookalike_note
+
+    known = set(names) | set(POSE_COLUMNS) | set(CONTEXT_COLUMNS) | set(METHOD_COLUMNS)
+    for h in header:
+        if not h or h.isascii() or h in known:
+            continue
+        meant = ascii_skeleton(h)
+        if meant in known or NUMBERED.match(meant):
+            raise DatasetError(f"{at}, column {h!r}: reads like {meant!r} but {lookalike_note(h, meant)} — a "
+                               f"look-alike letter (typed on another keyboard layout or pasted); retype the "
+                               f"column name")
+
+
 def _check_header(header: list[str], names: list[str], where: str, line: int) -> list[str]:
     """Structural checks of a header (duplicates, case, partial measurement sets);
     returns warnings (unknown columns that look like misspelt known ones)."""
     at = f"{where}, line {line}"
+    _check_lookalikes(header, names, at)
     first: dict[str, int] = {}
     for i, h in enumerate(header):
         if h and h in first:
@@ -553,14 +575,38 @@ def dataset_from_table(table: CsvTable, robot=None, joint_names=None, points: in
     # Method columns may be partly empty (e.g. ``distance`` only on the second row of a
     # pair): keep them with NaN where empty; drop only columns with no number at all.
     columns = {h: col[h].copy() for h in col if h not in used and np.any(np.isfinite(col[h]))}
-    ds = Dataset(names, readings, kind, pts, R, p, context, columns, lines, where, warnings)
+    ds = Dataset(names, readings, kind, pts, R, p, context, columns, lines, where, warnings,
+                 coordinates=_coord_names(kind, k) if kind != "none" else None)
     if check_units:
-        coord_names = (["x", "y", "z"] if kind == "pose" or (kind == "position" and k == 0) else
-                       [f"{c}{i + 1}" for i in range(k) for c in "xyz"])
-        _check_units(ds, robot, coord_names)
+        _check_units(ds, robot, _coord_names(kind, k))
     if points is not None:
         ds = ds.with_points(points)
     return ds
+
+
+def _coord_names(kind: str, k: int) -> list[str]:
+    """The columns of the measured coordinates (``k``: numbered points x1…zk of the header, 0 for x,y,z)."""
+    return (["x", "y", "z"] if kind == "pose" or (kind == "position" and k == 0) else
+            [f"{c}{i + 1}" for i in range(k) for c in "xyz"])
+
+
+def check_dataset_units(ds: Dataset, robot, header=None, column_map=None) -> None:
+    """The unit and range checks of the loader on a dataset assembled from parts of one file (a file read
+    in chunks): the same messages (``header``: the file's estcal columns, for the coordinates' names;
+    ``column_map``: named in the file's own columns)."""
+    k = _point_columns(list(header)) if header is not None else (ds.n_points if ds.kind == "points" else 0)
+    try:
+        _check_units(ds, robot, _coord_names(ds.kind, k))
+    except DatasetError as exc:
+        if column_map is None:
+            raise
+        from estcal.io.columnmap import rename_message
+
+        raise DatasetError(rename_message(str(exc), ds.renamed, column_map)) from None
+
+
+#: readings beyond ±π a revolute column needs before it is said to look like degrees
+DEGREES_MIN_READINGS = 3
 
 
 def _check_units(ds: Dataset, robot, coord_names=None) -> None:
@@ -572,7 +618,10 @@ def _check_units(ds: Dataset, robot, coord_names=None) -> None:
             b = int(np.argmax(np.abs(v)))
             at = f"{ds.where}, line {ds.lines[b]}, column {name!r}"
             if typ == "revolute" and abs(v[b]) > 4 * np.pi:
-                if np.median(np.abs(v)) > np.pi and abs(v[b]) <= 400:
+                # degrees are a column's unit: judged on several readings, never on one wild value
+                # (a row streamed alone, or one outlier, has its own value as the median)
+                if np.count_nonzero(np.abs(v) > np.pi) >= DEGREES_MIN_READINGS and np.median(np.abs(v)) > np.pi \
+                        and abs(v[b]) <= 400:
                     raise DatasetError(f"{at}: {v[b]:g} rad is beyond ±4π and the column's typical value "
                                        f"{np.median(np.abs(v)):.3g} is beyond ±π — readings look like degrees; "
                                        f"convert to radians (× π/180)")
@@ -627,6 +676,12 @@ def _check_spread(ds: Dataset, robot) -> None:
     sm = float(np.median(pdist(meas[take])))
     sp = float(np.median(pdist(pred)))
     slack = SPREAD_SLACK_M
+    if sm < STILL_RATIO * sp:  # no unit is that much larger than the metre: not a unit mistake
+        raise DatasetError(
+            f"{ds.where}: the measured positions do not move with the joints — they are {sm:.3g} m apart (median "
+            f"over pairs of rows) where the nominal model of {robot.name!r} moves the tool {sp:.3g} m for these "
+            f"joint readings: a marker on a part the joints do not move (the base, the room), a frozen tracker, or "
+            f"the wrong position columns?")
     if sm > 2 * sp + slack or sm < 0.5 * sp - slack:
         ratio = f"{sm / sp:.3g}×" if sp > 0 else "∞×"
         raise DatasetError(

@@ -23,7 +23,7 @@ from estcal.io.columns import DatasetError
 from estcal.io.dataset import Dataset
 from estcal.io.integrity import CheckpointError, PrefixHasher, file_sha256
 
-__all__ = ["CsvStream", "Chunk"]
+__all__ = ["CsvStream", "Chunk", "read_dataset", "concat_datasets"]
 
 _BINARY = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f]")  # never in CSV text (tab, LF, CR allowed)
 
@@ -167,10 +167,22 @@ class CsvStream:
     def _check_header(self) -> None:
         """The loader's header checks, once (after the first data line was read and found to be text);
         through the column map, its checks of the header (columns it names, joints it leaves unmapped)."""
+        self._header_checked = True
+        ds = self._header_dataset()
+        if ds.kind == "none" and not self.allow_none:
+            raise DatasetError(f"{self.where}, line {self.header_line}: no measurement columns (x,y,z / x1..zk / "
+                               f"x,y,z,qw,qx,qy,qz)")
+
+    def layout(self) -> Dataset:
+        """A dataset of no rows with the input's columns (joints, measurement kind, points), read from its
+        header before any row: what a free set chosen by measurement needs (``estcal online`` on standard
+        input). A header that does not read as a dataset raises the loader's :class:`DatasetError`."""
+        return self._header_dataset()
+
+    def _header_dataset(self) -> Dataset:
         from estcal.base.textinput import CsvTable
         from estcal.io.dataset import dataset_from_table
 
-        self._header_checked = True
         header = self.header
         if self.cmap is not None:
             from estcal.io.columnmap import ColumnMapError, apply_column_map
@@ -183,10 +195,7 @@ class CsvStream:
                 raise DatasetError(str(exc)) from None
         empty = CsvTable(header, None, [], self.header_line, self.delimiter, self.where,
                          numeric=np.zeros((0, len(header))))
-        ds = dataset_from_table(empty, self.robot, check_units=False)
-        if ds.kind == "none" and not self.allow_none:
-            raise DatasetError(f"{self.where}, line {self.header_line}: no measurement columns (x,y,z / x1..zk / "
-                               f"x,y,z,qw,qx,qy,qz)")
+        return dataset_from_table(empty, self.robot, check_units=False)
 
     def _check_prefix(self) -> None:
         """The input read so far (up to :meth:`position`) is the checkpointed run's."""
@@ -281,3 +290,88 @@ class CsvStream:
             self._at = start
             at = [j for j, t in enumerate(raw) if t.strip()][bad]  # the bad row among the lines read
             yield from self._chunks(texts[bad + 1:], lines[bad + 1:], raw[at + 1:])
+
+
+#: rows per chunk of :func:`read_dataset` (a chunk is parsed as text, then kept as floats), and the file
+#: size above which it streams (below, the whole text costs little and the loader reads it at once)
+READ_CHUNK_ROWS = 4096
+STREAM_ABOVE_BYTES = 1 << 20
+
+
+def _count_lines(path) -> int:
+    """Newlines in a file (binary, 1 MiB at a time): an upper bound of its data rows + 1."""
+    n = 0
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            n += block.count(b"\n")
+    return n
+
+
+def concat_datasets(parts: list) -> Dataset:
+    """One dataset from consecutive parts of one file (as :func:`read_dataset` reads them)."""
+    first = parts[0]
+    if len(parts) == 1:
+        return first
+
+    def cat(get):
+        a = [get(p) for p in parts]
+        return None if a[0] is None else np.concatenate(a)
+
+    ds = Dataset(list(first.joint_names), cat(lambda p: p.readings), first.kind, cat(lambda p: p.points),
+                 cat(lambda p: p.R), cat(lambda p: p.p), {k: cat(lambda p, k=k: p.context[k]) for k in first.context},
+                 {k: cat(lambda p, k=k: p.columns.get(k, np.full(p.n, np.nan))) for k in first.columns},
+                 cat(lambda p: p.lines), first.path, list(dict.fromkeys(w for p in parts for w in p.warnings)))
+    ds.source_header, ds.renamed, ds.coordinates = first.source_header, dict(first.renamed), first.coordinates
+    return ds
+
+
+def read_dataset(path, robot, *, column_map=None, max_rows: int | None = None, check_units: bool = True):
+    """A dataset file read in bounded memory: ``(dataset, data rows in the file)``.
+
+    Large files are streamed (:class:`CsvStream`, :data:`READ_CHUNK_ROWS` rows parsed as text at a time,
+    kept as floats), so that the text of a file that is not a plain numeric table (a column map, quoted
+    fields, blank lines …) is never held whole — ~5 kB of Python strings per row otherwise. ``max_rows``:
+    keep an evenly spaced sample of about that many rows (every k-th row; lines stay the file's). Small
+    files and plain numeric tables (:func:`estcal.io.dataset.load_dataset`'s fast path) are read as
+    ``load_dataset`` reads them; the unit checks are those of the whole file (``check_units``)."""
+    from pathlib import Path
+
+    from estcal.io.dataset import _read_numeric, check_dataset_units, load_dataset
+
+    from estcal.base.textinput import check_input_file
+
+    p = check_input_file(Path(path), "dataset", DatasetError)  # a folder, a missing file: named first
+    cmap = as_column_map(column_map)
+    table = None if cmap is not None else _read_numeric(p)
+    if table is not None or p.stat().st_size < STREAM_ABOVE_BYTES:
+        if table is not None:
+            from estcal.io.dataset import dataset_from_table
+
+            ds = dataset_from_table(table, robot, check_units=check_units)
+        else:
+            ds = load_dataset(p, robot, check_units=check_units, column_map=cmap)
+        total = ds.n
+        if max_rows is not None and ds.n > max_rows:
+            ds = ds.subset(np.arange(0, ds.n, -(-ds.n // max_rows)))
+        return ds, total
+    every = max(1, -(-_count_lines(p) // max_rows)) if max_rows else 1
+    parts, seen = [], 0
+    src = CsvStream(str(p), robot, cut=lambda n: n % READ_CHUNK_ROWS == 0, checked=True, column_map=cmap)
+    for chunk in src:
+        if chunk.error is not None:
+            raise chunk.error
+        ds = chunk.data
+        if every > 1:
+            ds = ds.subset(np.flatnonzero((seen + np.arange(ds.n)) % every == 0))
+        seen += chunk.data.n
+        if ds.n:
+            parts.append(ds)
+    if not parts:
+        raise DatasetError(f"{p}: header only, no data rows")
+    ds = concat_datasets(parts)
+    if check_units:
+        header = None if cmap is not None else src.header
+        if cmap is not None:  # the mapped columns: one point x,y,z with an orientation, else x1…zk
+            header = ["x", "y", "z"] if cmap.rpy or cmap.quaternion else [f"x{i + 1}" for i in range(len(cmap.points))]
+        check_dataset_units(ds, robot, header, cmap)
+    return ds, seen

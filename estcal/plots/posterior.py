@@ -12,9 +12,12 @@ def corner_figure(samples, names, truths=None, max_params: int = 8, quantiles=(0
     """Corner plot of the first ``max_params`` columns of ``samples`` (n_draws, p), in
     display units, with the 2.5 / 50 / 97.5 % quantiles marked on the marginals.
 
-    Requires the optional ``corner`` package (``pip install estcal[mcmc]``).
+    Requires the optional ``corner`` package (``pip install estcal[mcmc]``):
+    :class:`~estcal.base.errors.MissingExtraError` (an ImportError) naming it otherwise.
     """
-    import corner
+    from estcal.base.errors import require
+
+    corner = require("corner", "the posterior corner plot")
 
     X = np.asarray(samples, float)
     k = min(max_params, X.shape[1])

@@ -51,6 +51,11 @@ def online_report(folder, names, nominal, trace_estimate, trace_std, nis, dims, 
                         [[lab, tests.get(k)] for k, lab in _TEST_ROWS]))
         verdict = ("MODEL REJECTED (" + ", ".join(tests.get("failed", [])) + ")") if tests.get("fires") \
             else "innovations consistent with the model"
+        from estcal.estimate.innovation import InnovationTests
+
+        cause = InnovationTests(**tests).cause
+        if cause:
+            rep.text(f"{verdict}: {cause}")
     rows = np.arange(1, len(X) + 1)
     rep.figure("online_history.png",
                online_history_figure(rows, (X - nominal) * f, S * f, list(names), [u for u, _ in us], nis, dims,

@@ -89,7 +89,11 @@ def _check_choices(estimator, measure, level, free, robust, regularize) -> None:
     if free is not None and level is not None:
         raise InputError("give either --free or --level, not both")
     if level is not None and level not in LEVELS:
-        raise InputError(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}")
+        hint = ""
+        if level in ("structural", "aic", "bic"):  # a selection criterion given as a level: say where it goes
+            hint = (f" — {level!r} is a selection criterion, not a level: --selection {level} (it prunes the "
+                    f"identifiable set of --level, default full)")
+        raise InputError(f"unknown --level {level!r}; choose one of {', '.join(LEVELS)}{hint}")
     if robust is None:
         return
     if robust not in ROBUST_KERNELS:

@@ -35,10 +35,12 @@ def check_file(data, robot, *, root=None, tip=None, column_map=None, points=None
     """All checks of :mod:`estcal.intake.hygiene` on the file ``data`` (CSV; ``column_map``: its column
     map). Returns ``(report, robot, dataset)``."""
     from estcal.intake.hygiene import check_data
-    from estcal.io.dataset import load_dataset
+    from estcal.io.stream import read_dataset
 
     rb = _robot_for(robot, data, root, tip, column_map, points)
-    ds = load_dataset(data, rb, points=points, column_map=column_map)
+    ds = read_dataset(data, rb, column_map=column_map)[0]  # bounded memory on any file (streamed when large)
+    if points is not None:
+        ds = ds.with_points(points)
     return check_data(rb, ds, outliers=outliers, level=level), rb, ds
 
 
@@ -110,7 +112,8 @@ def findings_for(robot, ds, outliers: bool = True, skip=()):
 
     report = check_data(robot, ds, outliers=outliers)
     for f in report.findings:
-        if f.kind != "unused_column" and f.kind not in skip:
+        # unused columns are warned when a column map would read them (an orientation fitted without)
+        if f.kind not in skip and (f.kind != "unused_column" or f.details.get("map")):
             warnings.warn(f"{ds.where}: {f.kind}: {f.message}", EstcalWarning, stacklevel=2)
     return report
 

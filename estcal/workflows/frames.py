@@ -1,6 +1,10 @@
 """``estcal frames``: which (root, tip) links of a URDF the data measure (:mod:`estcal.intake.frames`)."""
 from __future__ import annotations
 
+import warnings
+
+from estcal.base.errors import EstcalWarning
+
 __all__ = ["frames_file", "format_frames"]
 
 
@@ -13,16 +17,25 @@ def frames_file(data, urdf, *, column_map=None, points=None) -> dict:
 
     if not str(urdf).lower().endswith(".urdf"):
         raise RobotFileError(f"{urdf}: estcal frames needs a URDF (its tree of links is searched)")
-    return find_frames(Path(urdf), Path(data), column_map, points)
+    out = find_frames(Path(urdf), Path(data), column_map, points)
+    for note in out["notes"]:  # columns left unused: never in silence
+        warnings.warn(f"{data}: {note}", EstcalWarning, stacklevel=2)
+    return out
 
 
 def format_frames(out: dict, most: int = 10) -> str:
     """A table of the best candidates."""
+    from estcal.intake.explained import unexplained_message
+
     c = out["candidates"]
     pose = out["kind"] == "pose"
-    head = (f"{out['n_poses']} {out['kind']} rows, joints {', '.join(out['joints'])}; roots equivalent under the "
-            f"base registration: {', '.join(out['roots'])}")
-    rows = [head, f"{'rank':>4}  {'root':<16} {'tip':<32} {'RMSE mm':>8} " +
+    sampled = (f" (ranked on an evenly spaced sample of {out['sampled']:,} rows)" if out.get("sampled") else "")
+    head = (f"{out['n_poses']} {out['kind']} rows{sampled}, joints {', '.join(out['joints'])}; roots equivalent "
+            f"under the base registration: {', '.join(out['roots'])}")
+    ex = out.get("explained")
+    rows = [] if ex is None or ex["explains"] else [
+        unexplained_message(ex, "no candidate frame explains these data") + " — the ranking below means nothing"]
+    rows += [head, f"{'rank':>4}  {'root':<16} {'tip':<32} {'RMSE mm':>8} " +
             (f"{'mrad':>8} {'tool mm':>8} {'tool mrad':>9}" if pose else f"{'markers mm':>10}")]
     for i, r in enumerate(c[:most]):
         line = f"{i + 1:>4}  {r['root']:<16} {r['tip']:<32} {r['rmse_mm']:8.2f} "

@@ -55,6 +55,7 @@ from estcal.methods.base import NoiseModel, get_method, method_for_dataset
 from estcal.methods.problem import Problem
 
 __all__ = ["OnlineCalibrator", "OnlineUpdate", "OnlineResult", "CsvStream", "Chunk", "check_file", "file_free_set",
+           "default_free_set",
            "run_options"]
 
 #: rows fed to the filter at a time when a whole file or a large Dataset is given to update()
@@ -122,7 +123,8 @@ class OnlineCalibrator:
     ----------
     robot : a robot object, a built-in name, a robot file or a URDF (with ``root``/``tip``).
     free : names or patterns of the parameters to estimate (list or comma-separated string);
-        default: the robot's free mask (``file_free_set`` gives the identifiable set of a file).
+        default: the identifiable subset of the robot's free mask for the measurement of the first rows
+        given to :meth:`update` (:func:`default_free_set`) — the set ``estcal online`` estimates.
     measure : measurement kind (``position``, ``pose``, ``points`` …); default: from each row's columns.
     noise : measurement noise std, ``(position m, orientation rad)``, a dict or a NoiseModel
         (default 0.1 mm, 1 mrad), trusted as absolute (the filter's R).
@@ -162,60 +164,95 @@ class OnlineCalibrator:
                              f"streams rows and supports {', '.join(PER_POSE_METHODS)} — use `estcal calibrate "
                              f"--estimator kalman`")
         self.noise = _noise_model(noise)
-        pv = rb.params
-        self.names, self.fidx = pv.free_names, pv.free_indices
-        if not self.names:
-            raise InputError("no free parameter to estimate (give free=… or set the robot's free mask)")
-        Q = process_noise(self.names, q)
-        P0 = np.diag(prior_std_vector(None, self.names, prior_std) ** 2)
-        self.flt = ParameterFilter(pv.values, self.fidx, P0, Q, kind=filter, names=self.names)
+        self._filter_options = (q, prior_std, filter)
+        self.names = self.fidx = self.flt = None
+        if names is not None:
+            self._start(rb.params.free_names)
         self.relinearize = 1 if filter == "ukf" else relinearize
         self.history_every = int(history_every)
         self.history: list = []
         self.burn = None  # step after which the running NIS per row is averaged
         self.source = None
         self._lin = None  # the linearisation state after the last update (estcal.estimate.kalman.run_steps)
-        self._rowwise = max(32, 4 * len(self.names))
         self._states: dict = {}  # path -> (lock, journal) of the checkpoints this object writes
         self._resumed = None  # (checkpoint dict, its path) after resume()
+
+    def _start(self, names) -> None:
+        """The filter over ``names`` (the free set: given, or chosen from the first rows' measurement)."""
+        q, prior_std, kind = self._filter_options
+        if not names:
+            raise InputError("no free parameter to estimate (give free=… or set the robot's free mask)")
+        self.robot = self.robot.copy(self.robot.params.with_free(list(names)))
+        pv = self.robot.params
+        self.names, self.fidx = pv.free_names, pv.free_indices
+        Q = process_noise(self.names, q)
+        P0 = np.diag(prior_std_vector(None, self.names, prior_std) ** 2)
+        self.flt = ParameterFilter(pv.values, self.fidx, P0, Q, kind=kind, names=self.names)
+        self._rowwise = max(32, 4 * len(self.names))
+
+    def start(self, data) -> list[str]:
+        """Choose the free set now from the measurement of ``data`` (a Dataset of any number of rows — the
+        layout a stream's header gives, :meth:`CsvStream.layout`) when ``free`` was not given; :meth:`update`
+        does it with its first rows otherwise. Returns the free parameters."""
+        if self.flt is None:
+            self._start(default_free_set(self.robot, data, self.method and self.method.name, self.noise))
+        return list(self.names)
+
+    def _started(self) -> ParameterFilter:
+        if self.flt is None:
+            raise InputError("no rows yet: the free set (free=None: the identifiable set of the measurement) is "
+                             "chosen from the first rows given to update() — give free=… to start without rows")
+        return self.flt
 
     # ------------------------------------------------------------------ state
     @property
     def n_rows(self) -> int:
         """Rows processed so far (one filter step each)."""
-        return self.flt.n_steps
+        return 0 if self.flt is None else self.flt.n_steps
 
     @property
     def estimate(self) -> np.ndarray:
-        return self.flt.x
+        return self._started().x
 
     @property
     def std(self) -> np.ndarray:
-        return self.flt.std
+        return self._started().std
 
     @property
     def covariance(self) -> np.ndarray:
-        return self.flt.P
+        return self._started().P
 
     @property
     def nis(self) -> np.ndarray:
         """(n,) normalised innovation squared of every row (χ² with the row's dimension under the model)."""
-        return self.flt.monitor.nis
+        return self._started().monitor.nis
 
     @property
     def running_nis(self) -> float:
         """Mean NIS per measured component since the burn-in (expected 1; NaN during the burn-in)."""
-        return self.flt.monitor.running(self.burn or self.n_rows)["nis_per_row"]
+        return self._started().monitor.running(self.burn or self.n_rows)["nis_per_row"]
 
     def innovation_tests(self, burn_in: int | None = None, lags: int = 10, alpha: float = 0.05) -> InnovationTests:
         """NIS, zero-mean and whiteness tests of the innovations after the burn-in
         (:meth:`estcal.estimate.innovation.InnovationMonitor.tests`; default burn-in: until 2 p rows)."""
-        mon = self.flt.monitor
+        mon = self._started().monitor
         bi = default_burn_in(mon.dims, len(self.names)) if burn_in is None else burn_in
         return mon.tests(burn_in=bi, lags=lags, alpha=alpha)
 
     def result(self) -> OnlineResult:
-        """The estimate, covariance, innovation tests and history (the schema of ``estcal online --json``)."""
+        """The estimate, covariance, innovation tests and history (the schema of ``estcal online --json``).
+        Warns (``EstcalWarning``) when the rows give no more equations than free parameters — data
+        ``estcal calibrate`` refuses (degrees of freedom ≤ 0): the estimates are then the prior's."""
+        m, p = int(np.sum(self._started().monitor.dims)), len(self.names)
+        if self.n_rows and m <= p:
+            import warnings
+
+            from estcal.base.errors import EstcalWarning
+
+            warnings.warn(f"{self.source}: {self.n_rows} rows give {m} equations for {p} free parameters (degrees of "
+                          f"freedom {m - p} ≤ 0), which `estcal calibrate` refuses: the estimates below are held by "
+                          f"the prior, not by the data — feed more rows, or estimate fewer parameters",
+                          EstcalWarning, stacklevel=2)
         try:
             tests = self.innovation_tests().to_dict()
         except ValueError as exc:
@@ -245,6 +282,7 @@ class OnlineCalibrator:
             ds = dataset_from_arrays(self.robot.joint_names, data, points, R, p, context)
         if self.source is None:
             self.source = ds.where
+        self.start(ds)  # free=None: the identifiable set of this measurement (docs/conventions.md)
         parts = [self._feed(ds.subset(slice(i, i + FEED_ROWS)) if ds.n > FEED_ROWS else ds, trace)
                  for i in range(0, ds.n, FEED_ROWS)]
         if not parts:
@@ -288,7 +326,7 @@ class OnlineCalibrator:
 
         kind = (self.method.name if self.method is not None else "position")
         kind = {"location": "pose"}.get(kind, kind)
-        st = CalibrationState(list(self.names), self.flt.x, self.flt.P, self.robot.name)
+        st = CalibrationState(list(self.names), self._started().x, self.flt.P, self.robot.name)
         model = DesignModel(self.robot, kind, list(self.names), sigma=self.noise.position,
                             sigma_rot=self.noise.orientation if kind == "pose" else None)
         return propose_next_pose(model, st, criterion, q_test=q_test, candidates=candidates,
@@ -302,12 +340,13 @@ class OnlineCalibrator:
 
         ``position``: where the rows came from, for ``estcal online --resume`` (``line``,
         ``input_bytes``, ``input_sha256_prefix``, ``input_sha256``: :meth:`CsvStream.position`)."""
+        flt = self._started()
         path = Path(path)
         key = str(path.resolve())
         if key not in self._states:
             self._open_state(path, key)
         journal = self._states[key][1]
-        ptr = journal.append(self.flt.monitor, self.history)
+        ptr = journal.append(flt.monitor, self.history)
         pos = {"line": None, "input_bytes": 0, "input_sha256_prefix": PrefixHasher().hexdigest(),
                "input_sha256": None, **(position or {})}
         save_checkpoint(path, filter_checkpoint(self.flt, options=self.options, rows=self.n_rows, position=pos,
@@ -441,6 +480,28 @@ def check_file(path, robot, column_map=None) -> Dataset:
     check_distinct_poses(ds)
     warn_datasets([ds])
     return ds
+
+
+def default_free_set(robot, data, measure=None, noise=None) -> list[str]:
+    """The free set of ``OnlineCalibrator(robot)`` and ``estcal online`` by default: the identifiable subset
+    of the robot's free mask (gains and offsets included: a filter that follows a stream tracks what
+    drifts) for the measurement of ``data`` — the rank test (:func:`estcal.identify.select_identifiable`,
+    GECARO's priority order) on generic poses, uniform within the joint limits and measured exactly at
+    the robot's values (:func:`estcal.estimate.checks.generic_dataset`). It belongs to the robot and the
+    measurement, not to the rows: a stream fed in any chunks gets the set the whole file gets.
+    ``data``: a Dataset of the measurement (any number of rows, none: a header's layout)."""
+    from estcal.estimate.checks import generic_dataset
+    from estcal.identify.select import select_identifiable
+
+    if data.kind not in ("position", "points", "pose"):
+        raise InputError(f"{data.where}: no measured position, points or pose to choose the free set by — give "
+                         f"free=… (--free)")
+    meth = get_method(measure) if measure else None
+    per_pose = 6 if data.kind == "pose" else 3 * max(data.n_points, 1)
+    n = max(8, int(np.ceil(2 * len(robot.params.free_names) / per_pose)))
+    gen = generic_dataset(robot, data, robot.params.values, n)
+    with single_thread_blas():
+        return select_identifiable(Problem(robot, [(meth, gen, _noise_model(noise))])).identifiable
 
 
 def file_free_set(robot, data, free=None, measure=None, noise=None) -> list[str]:

@@ -61,7 +61,9 @@ def _print(console, res) -> None:
         t.add_row(name, label[st], str(res.priorities.get(name, "")), "" if rd is None else f"{rd:.3g}", rel)
     console.print(t)
     lo, hi = res.rank_gap
-    console.print(f"rows {res.n_rows}, source: {m.get('source')} ({m.get('n_poses')} configurations"
+    n, nd = m.get("n_poses"), m.get("n_distinct", m.get("n_poses"))
+    configs = f"{n} configurations" if nd == n else f"{n} poses, {nd} distinct configuration{'s' if nd != 1 else ''}"
+    console.print(f"rows {res.n_rows}, source: {m.get('source')} ({configs}"
                   f"{', seed ' + str(m['seed']) if 'seed' in m else ''}), priority rules: {m.get('rules')}")
     console.print(f"QR: {res.qr}; τ = {res.tau:.3g}; gap: smallest kept |R_jj| {lo:.3g}, largest rejected {hi:.3g}")
     console.print(f"condition number of the column-scaled W_b: {res.condition_number:.4g}")
@@ -114,6 +116,11 @@ def identifiable(
     console = Console()
     res = run(robot, measure, data, n_poses, seed, priority, free, rules, pivoting, plane, points, root, tip, tau_floor,
               column_map=column_map)
+    nd = None if isinstance(res, dict) else res.meta.get("n_distinct")
+    if data is not None and nd is not None and nd < res.meta.get("n_poses", 0):
+        warn(f"{data}: {res.meta['n_poses']} poses but only {nd} distinct joint configuration{'s' if nd != 1 else ''}"
+             f" — a repeated pose adds no information: the analysis is that of {nd} configuration"
+             f"{'s' if nd != 1 else ''}")
     if data is not None and not isinstance(res, dict) and res.n_rows < res.n_parameters:
         warn(f"{data}: {res.n_rows} equations ({res.meta.get('n_poses')} poses) for {res.n_parameters} "
              f"parameters — at most {res.n_rows} can be identifiable from these data, whatever the robot; "

@@ -94,6 +94,23 @@ def online(
         run.finish(json_path, report)
 
 
+def _default_set(robot, ds, file_set, options, path):
+    """The default free set of a file: the measurement's identifiable set (what ``OnlineCalibrator(robot)``
+    estimates, :func:`estcal.workflows.online.default_free_set`); when the file identifies fewer
+    parameters (degenerate poses), its own set, with a warning naming what is lost."""
+    from estcal.cli.common import warn
+    from estcal.workflows.online import default_free_set
+
+    generic = default_free_set(robot, ds, options["measure"], options["noise"])
+    if set(file_set) == set(generic):
+        return generic
+    lost = [n for n in generic if n not in file_set]
+    warn(f"{path}: these rows identify {len(file_set)} of the {len(generic)} parameters the measurement identifies "
+         f"on generic poses (lost: {', '.join(lost[:8])}{' …' if len(lost) > 8 else ''}) — the filter estimates the "
+         f"{len(file_set)}; degenerate poses (a joint barely moved?)")
+    return file_set
+
+
 def _relinearize(text):
     if text is None or text == "auto":
         return None if text is None else "auto"
@@ -238,6 +255,21 @@ class _Run:
                 fail(f"--free: {message(exc)}")
             except ValueError as exc:
                 fail(f"--free: {self.data}: {exc}" if options["free"] else exc)
+            if options["free"] is None:
+                opts["free"] = _default_set(self.rb, self.ds_all, opts["free"], options, self.data)
+        elif options["free"] is None:  # standard input: the set of the measurement its header names
+            from estcal.io.robotfile import load_robot
+            from estcal.workflows.online import CsvStream, default_free_set
+
+            rb = load_robot(robot, root=options["root"], tip=options["tip"])
+            self._src = CsvStream("-", rb, cut=lambda n: self._cut(n), measure=options["measure"],
+                                  column_map=options["column_map"])
+            try:
+                layout = self._src.layout()
+            except ValueError:  # a header that does not read: the stream names it (binary rows first, as before)
+                layout = None
+            opts["free"] = (default_free_set(rb, layout, options["measure"], options["noise"])
+                            if layout is not None and layout.kind != "none" else rb.params.free_names)
         try:
             cal = OnlineCalibrator(rb, history_every=every, **opts)
         except KeyError as exc:
@@ -270,11 +302,12 @@ class _Run:
             return n % CHUNK_ROWS == 0 or (self.state_path is not None and cal.boundary(n)
                                            and n // checkpoint_every > self.last_ck // checkpoint_every)
 
+        self._cut = cut
         expect = (saved["input_bytes"], saved["input_sha256_prefix"]) if saved else None
         try:
-            src = CsvStream(self.data, cal.robot, cut=cut, measure=cal.method and cal.method.name, skip=skip,
-                            expect=expect, checked=self.ds_all is not None, throttle=throttle,
-                            column_map=cal.column_map)
+            src = getattr(self, "_src", None) or CsvStream(
+                self.data, cal.robot, cut=cut, measure=cal.method and cal.method.name, skip=skip, expect=expect,
+                checked=self.ds_all is not None, throttle=throttle, column_map=cal.column_map)
         except (ValueError, OSError) as exc:
             self._fail(exc)
         self.src, self.shown = src, list(range(min(show, len(cal.names))))
