@@ -113,6 +113,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     res.model["root"], res.model["tip"] = root, tip
     res.model["urdf_chain_masses"] = bool(urdf_chain_masses and rob.meta.get("urdf"))
     res.data["left_out"] = [{k: r[k] for k in ("file", "line", "kind", "reason")} for r in left]
+    res.data["drop_flagged"] = bool(drop_flagged)
     if report is not None:  # the analysis writes no file: figures, diagnosis.json, summary.txt, index.html
         from estcal.report.diagnose import diagnose_report
 
