@@ -58,8 +58,11 @@ __all__ = ["LN_BF_NAMED", "System", "RelevanceFit", "linearise", "fit_relevance"
 
 #: the decisive Bayes factor of a named cause: ln B ≥ 5 (2 ln B ≥ 10, Kass & Raftery's "very strong")
 LN_BF_NAMED = 5.0
+#: Gauss–Newton stops when no parameter moves by this fraction of its standard deviation (the Jacobian of the load
+#: terms neglects their loads' own dependence on the geometry — second order, but it slows the last steps)
+GN_TOL = 0.02
 #: the evidence fits stop when no single change gains more than this (nats): far below every decision's scale
-TOL = 1e-3
+TOL = 1e-2
 #: the model's terms (study switch): the named causes and the load terms the evidence keeps
 MODEL = "named+load"
 LOAD_BY_CV = False
@@ -212,6 +215,35 @@ def random_effect(r, blocks, iters: int = 100, tol: float = 1e-6, s2_min: float 
     return psi, s2
 
 
+def _evaluate(robot, data, noise, theta, frames, jacobian: bool):
+    """``(e, σ, H or None, pose, kind)`` of every row, each session's rows at its own frame (``frames``: ``{session:
+    (6,) base increment}``), in session order."""
+    ibase = robot.params.indices([n for n in _BASE if n in robot.params.names])
+    lab = _session_labels(data)
+    parts = []
+    for s in dict.fromkeys(lab.tolist()):
+        m = np.flatnonzero(lab == s)
+        th = np.array(theta, float, copy=True)
+        if s in frames:
+            th[ibase] += frames[s]
+        parts.append((m, Problem(robot, [(None, data.subset(m), noise)]).evaluate(th, jacobian=jacobian)))
+    H = np.concatenate([r.H for _, r in parts]) if jacobian else None
+    return (np.concatenate([r.e for _, r in parts]), np.concatenate([r.sigma for _, r in parts]), H,
+            np.concatenate([m[r.pose] for m, r in parts]), np.concatenate([r.kind for _, r in parts]))
+
+
+def _map_objective(terms, data, noise, theta, frames, sysm, hyper) -> float:
+    """The MAP objective the Gauss–Newton steps lower: the whitened residual over the noise variance plus the
+    relevance priors, ``‖L⁻¹ b(θ)‖²/σ² + Σ α_j (θ_j − μ_j)²`` — evaluated without a Jacobian (the line search)."""
+    e, sig, _, _, _ = _evaluate(terms.robot, data, noise, theta, frames, False)
+    (bw,) = _whiten(sysm.blocks, sysm.psi, sysm.s2, e / sig) if sysm.psi is not None else (e / sig,)
+    alpha = hyper[0]
+    ipen = terms.robot.params.indices(terms.penalised)
+    d = theta[ipen] - terms.nominal[ipen]
+    fin = np.isfinite(alpha)
+    return float(bw @ bw / hyper[1] + np.sum(alpha[fin] * d[fin] ** 2))
+
+
 def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     """The :class:`System` of ``terms`` (:class:`~estcal.discrepancy.terms.Terms`) on ``data`` at ``theta``, each
     session's rows at its own frame (``frames``: ``{session: (6,) base increment}``)."""
@@ -222,20 +254,7 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     ibase = robot.params.indices([n for n in _BASE if n in robot.params.names])
     lab = _session_labels(data)
     svals = list(dict.fromkeys(lab.tolist()))
-    parts = []
-    for s in svals:
-        m = np.flatnonzero(lab == s)
-        th = np.array(theta, float, copy=True)
-        if s in frames:
-            th[ibase] += frames[s]
-        problem = Problem(robot, [(None, data.subset(m), noise)])
-        rows = problem.evaluate(th)
-        parts.append((m, rows))
-    e = np.concatenate([r.e for _, r in parts])
-    sig = np.concatenate([r.sigma for _, r in parts])
-    H = np.concatenate([r.H for _, r in parts])
-    pose = np.concatenate([m[r.pose] for m, r in parts])
-    kind = np.concatenate([r.kind for _, r in parts])
+    e, sig, H, pose, kind = _evaluate(robot, data, noise, theta, frames, True)
     session = lab[pose]
     b = e / sig
     A = H[:, idx] / sig[:, None]
@@ -334,7 +353,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
                   system0=None, rigid: bool = True) -> RelevanceFit:
     """The relevance model of ``terms`` on ``data`` (module docstring) by MacKay's alternation (1992): at fixed
     hyperparameters (the precisions and the noise) Gauss–Newton on the MAP estimate until no parameter moves by
-    a thousandth of its standard deviation; then the hyperparameters by the evidence at that estimate (a warm
+    ``GN_TOL`` of its standard deviation; then the hyperparameters by the evidence at that estimate (a warm
     sequential search); until the search keeps the same terms with precisions within 1 %. The first round's
     residual gives each posture's rigid-motion covariance (the whitening, module docstring). A search after
     every Gauss–Newton step instead oscillates between near-equal optima of the evidence: the whitened
@@ -350,20 +369,36 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
     nf = len(terms.free)
     hyper, converged, n_gn = None, False, 0
 
-    def step(sysm, fit):
+    def step(sysm, fit, search: bool = False):
+        """Move θ (and the session frames) by the fit's step; with ``search``, halve the step until the MAP
+        objective decreases (a joint whose load changes sign with the parameters — backlash by the load's side —
+        makes the residual step at that posture, and a full Gauss–Newton step can jump back and forth across it).
+        Returns whether the step was below ``GN_TOL`` of every standard deviation."""
         nonlocal theta
-        new = theta.copy()
-        new[ifree] += fit.free[:nf]
-        new[ipen] = terms.nominal[ipen] + fit.mean
-        for s, cols in sysm.frame_of.items():
-            frames[s] = frames.get(s, np.zeros(6)) + fit.free[cols]
+        d_free, d_pen = fit.free[:nf], terms.nominal[ipen] + fit.mean - theta[ipen]
+        d_frames = {s: fit.free[cols] for s, cols in sysm.frame_of.items()}
         sd = np.sqrt(np.maximum(np.r_[np.diag(fit.free_cov)[:nf], np.diag(fit.cov)], 0.0))
-        moved = np.abs(np.r_[new[ifree] - theta[ifree], new[ipen] - theta[ipen]])
+        scale, base = 1.0, None
+        for _ in range(6 if search else 1):
+            new = theta.copy()
+            new[ifree] += scale * d_free
+            new[ipen] += scale * d_pen
+            new_frames = {s: frames.get(s, np.zeros(6)) + scale * d_frames.get(s, 0.0)
+                          for s in set(frames) | set(d_frames)}
+            if not search:
+                break
+            base = _map_objective(terms, data, noise, theta, frames, sysm, hyper) if base is None else base
+            if _map_objective(terms, data, noise, new, new_frames, sysm, hyper) <= base:
+                break
+            scale *= 0.5
+        moved = scale * np.abs(np.r_[d_free, d_pen])
         if DEBUG:
             r = moved[sd > 0] / sd[sd > 0]
-            print(f"      step: max/sd {r.max():.3g} at {np.argmax(r)}, median {np.median(r):.3g}")
+            print(f"      step ×{scale:g}: max/sd {r.max():.3g} at {np.argmax(r)}, median {np.median(r):.3g}")
         theta = new
-        return bool(np.all(moved[sd > 0] <= 1e-3 * sd[sd > 0]))
+        frames.clear()
+        frames.update(new_frames)
+        return bool(np.all(moved[sd > 0] <= GN_TOL * sd[sd > 0]))
 
     for rnd in range(max_rounds):
         sysm = linearise(terms, data, noise, theta, frames, psi, s2)
@@ -375,7 +410,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             sysm = linearise(terms, data, noise, theta, frames, psi, s2)
             fit = refit(sysm, include=include, hyper=hyper)
             n_gn += 1
-            if step(sysm, fit):
+            if step(sysm, fit, search=True):
                 break
         if DEBUG:
             print(f"    round {rnd}: {int(fit.active.sum())} terms, same hyperparameters {same}, "

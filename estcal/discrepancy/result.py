@@ -228,9 +228,13 @@ class DiagnosisResult:
         kept = [r for r in t.get("kept_unnamed", [])]
         if kept:
             out.append("kept, not named (load terms the evidence keeps): " + ", ".join(kept))
+        unscored = [r["term"] for r in t.get("tested", []) if not r["named"] and r["reason"].startswith("not scored")]
         for r in t.get("tested", []):
-            if not r["named"]:
+            if not r["named"] and r["term"] not in unscored:
                 out.append(f"not named: {r['term']} — {r['reason']}")
+        if unscored:
+            out.append(f"not scored: {len(unscored)} further candidate terms (the search stops at the first step where "
+                       f"none passes; the JSON's terms.tested lists them)")
         if t.get("regrouped"):
             out.append("regrouped into geometry (not separable on these data): "
                        + ", ".join(r["term"] for r in t["regrouped"]))

@@ -236,11 +236,24 @@ def build_terms(robot, data, noise, effects=None, geometric: str = "sparse", ide
     rb0, theta, reg, _ = fit_stage(robot, data, noise, "nominal")
     rb, lumped = gravity_ready(rb0, theta, robot.params.values)
     base = rb
-    cands = []
-    for c in default_candidates(rb, data, effects=names, families=False) if names else []:
-        eff = c.make(rb)
-        rb = rb.add_effect(eff)
-        cands.append(c)
+    cands = list(default_candidates(rb, data, effects=names, families=False)) if names else []
+    # one effect instance per kind and options over all its candidate joints: the same parameters as one per
+    # joint, but the chain evaluates each kind once (a link tilt turns every other column with the points: eight
+    # instances did it eight times)
+    kinds_of = {}
+    for c in cands:
+        kinds_of.setdefault((c.effect, repr(sorted(c.options.items()))), []).append(c)
+    for group in kinds_of.values():
+        joints = [j for c in group for j in (c.joints or [])]
+        rb = rb.add_effect(make_effect(group[0].effect, rb, joints=joints or None, **dict(group[0].options)))
+    # the side each joint's load pushes it to, fixed at the registration fit (a context column of the data, in
+    # place): backlash by the load's side would otherwise flip at a posture whose load crosses zero as the
+    # geometry moves, and Gauss–Newton would jump back and forth across that step
+    if any(c.effect == "backlash" for c in cands):
+        tau = rb.gravity_torques(data.readings, rb.params.values, data.context)
+        for ji, j in enumerate(rb.joint_names):
+            if f"approach_{j}" not in data.context:
+                data.context[f"load_side_{j}"] = np.where(tau[:, ji] >= 0, 1.0, -1.0)
     problem = Problem(rb, [(None, data, noise)])
     theta0 = rb.params.values.copy()
     geo = geometric_candidates(rb)

@@ -74,22 +74,29 @@ class Backlash(JointEffect):
     When the dataset has a column ``approach_<joint>`` (the sign of the joint
     velocity just before the pose was reached: +1 / −1 / 0), the link lags the
     motor: ``δq_j = −b_j · sign(approach_j)``; this column takes precedence.
+    A context column ``load_side_<joint>`` (±1) fixes the load's side instead of
+    evaluating it at the current parameters: a fit that moves the geometry would
+    otherwise flip it at a posture whose load is near zero, and the residual steps
+    there (``estcal diagnose`` fixes it at the registration fit).
     """
 
     name = "backlash"
     prefixes = ("backlash",)
 
     def context_keys(self):
-        return ["payload"] + [f"approach_{j}" for j in self.joints]
+        return ["payload"] + [f"approach_{j}" for j in self.joints] + [f"load_side_{j}" for j in self.joints]
 
     def features(self, robot, readings, q, theta, context):
         N = q.shape[0]
         keys = [_ctx(context, f"approach_{j}", N) for j in self.joints]
+        sides = [_ctx(context, f"load_side_{j}", N) for j in self.joints]
         S = np.empty((N, 1, len(self.joints)))
         tau = None
-        for i, (j, a) in enumerate(zip(self.joint_index, keys)):
+        for i, (j, a, side) in enumerate(zip(self.joint_index, keys, sides)):
             if a is not None:
                 S[:, 0, i] = -np.sign(a)
+            elif side is not None:
+                S[:, 0, i] = np.sign(side)
             else:
                 if tau is None:
                     tau = robot.gravity_torques(readings, theta, context)
