@@ -92,11 +92,17 @@ def _free(robot, sessions, level="joint_offset", effects=None):
     parameter of ``robot``). The diagnosis's model keeps further load terms under relevance priors; fitted
     without their priors on one session they are not determined, so only the named causes' parameters are
     freed and the other kept terms stay at the diagnosis's estimate."""
-    prob = Problem(robot, [(None, d, NOISE) for d in sessions], NOISE)
+    is_effect = np.array([k == "effect" for k in robot.params.kinds])
+    # the level's identifiable set of the geometry alone (the effects at zero): a kept load term at its estimate
+    # would make a parameter it nearly regroups with (arm_7's offset with the markers) formally identifiable,
+    # and the unpenalised fit would wander along that direction (26 rad on 11-30)
+    geometric = robot.with_values(np.where(is_effect, 0.0, robot.params.values))
+    prob = Problem(geometric, [(None, d, NOISE) for d in sessions], NOISE)
     sel = select_free(prob, level)
-    effect = [n for n, k in zip(robot.params.names, robot.params.kinds) if k == "effect"
-              and (effects is None or n in effects)]
-    return sel.identifiable + [n for n in effect if n not in sel.identifiable], sel.theta
+    effect = [n for n, e in zip(robot.params.names, is_effect) if e and (effects is None or n in effects)]
+    # start: the level's own registration fit for a geometric robot, the diagnosis's estimate for its model
+    start = robot.params.values.copy() if is_effect.any() else sel.theta
+    return sel.identifiable + [n for n in effect if n not in sel.identifiable], start
 
 
 def _score(fit, d) -> dict:
