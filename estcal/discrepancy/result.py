@@ -201,6 +201,9 @@ class DiagnosisResult:
             out.append("Named causes (value ± std; evidence; gain at new postures; share of the geometric residual):")
             out += [f"  {c.describe()}" for c in self.causes]
             out += [f"  together, {n}" for n in self.terms.get("together", [])]
+        elif not self.terms.get("effects_considered"):
+            out.append("Named causes: none considered — no effect term is a candidate (--effects none, or none "
+                       "excitable on these data): the geometric model alone")
         else:
             out.append("Named causes: none — no term passes every test (docs/discrepancy.md, 'Naming')")
         rep = a.get("repeatability_mm")

@@ -18,7 +18,10 @@ __all__ = ["diagnose", "check_effects"]
 
 
 def check_effects(effects) -> list[str] | None:
-    """Effect names (a list or comma-separated text) checked against the registered effects."""
+    """Effect names (a list or comma-separated text) checked against the registered effects; ``"none"`` (or an
+    empty list) for none: the geometric model alone, scored like the model with effects."""
+    if isinstance(effects, str) and effects.strip().lower() == "none":
+        return []
     names = split_names(effects, "--effects")
     if names is None:
         return None

@@ -68,7 +68,8 @@ def diagnose(
     column_map: Optional[Path] = map_option(),
     drop_flagged: bool = drop_flagged_option(True),
     effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to consider "
-                                                                  "(default: every registered effect)."),
+                                                                  "(default: every registered effect); 'none': the "
+                                                                  "geometric model alone."),
     noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Position noise std per "
                                                  "coordinate (mm; default 0.1 with --known-noise): the rows' weights."),
     noise_rot_mrad: Optional[float] = typer.Option(None, "--noise-rot-mrad", help="Orientation noise std (mrad; "
