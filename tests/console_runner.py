@@ -1,10 +1,15 @@
 """Run the ```console blocks of a documentation page and compare their output with the page.
 
 A console block is a shell session: lines starting with ``$ `` are commands (a trailing ``\\``
-continues on the next line), the lines up to the next command are its documented output. A line
-that is only ``…`` marks output the page trimmed; every other documented line must appear in the
-real output of its command, where numbers may differ within a tolerance (``numbers_match``). A line
-``[exit N]`` is the command's documented exit status (0 when absent).
+continues on the next line; a command ending in a here-document ``<< 'EOF'`` takes the lines up to
+``EOF``), the lines up to the next command are its documented output: stdout and stderr as a
+terminal shows them, compared line by line and in order (``output_differs``), with numbers equal
+within a tolerance (``numbers_match``). A line starting with ``…`` stands for real lines the page
+left out (``… (parameter table)``); without one the documented output is the whole output. A
+command shown without output is only run. A line ``[exit N]``, or the output of a following
+``$ echo $?``, is the command's documented exit status (0 when absent); ``$?`` is the previous
+command's status, as in one shell (each command runs in its own ``bash -c``: no ``cd`` or
+variable carries over).
 
 A block fenced `` ```console no-run: REASON `` is shown, not run (it needs a real cluster, minutes of
 CPU, the repository itself …): the reason is in the info string and the page says it. Keep those few.
@@ -38,6 +43,7 @@ NUMBER = re.compile(r"(?<![\w.])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?![
 REPO = Path(__file__).resolve().parents[1]
 ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 TRIM = "…"
+HEREDOC = re.compile(r"<<-?\s*['\"]?(\w+)['\"]?\s*$")
 
 
 @dataclass
@@ -80,6 +86,13 @@ def console_commands(text: str, infos=("console",), no_run: bool = False) -> lis
                 while cmd.endswith("\\") and k + 1 < len(lines):
                     k += 1
                     cmd = cmd[:-1].rstrip() + " " + lines[k].strip()
+                here = HEREDOC.search(cmd)
+                if here:  # the document's lines up to its delimiter belong to the command
+                    while k + 1 < len(lines):
+                        k += 1
+                        cmd += "\n" + lines[k]
+                        if lines[k] == here.group(1):
+                            break
                 cur = Command(line + 1 + i, cmd, block=line)
                 out.append(cur)
                 i = k + 1
@@ -262,9 +275,9 @@ class Outcome:
     def describe(self, show: bool = False) -> str:
         c = self.command
         if self.output is None:
-            return f"line {c.line}: skipped (reads ../shared, absent): {c.cmd[:100]}"
+            return f"line {c.line}: skipped (reads ../shared, absent): {c.cmd.splitlines()[0][:100]}"
         state = "ok" if self.ok else f"FAIL (exit {self.returncode}, documented {c.exit_code})"
-        head = f"line {c.line}: {state} [{self.cpu:.1f} s CPU]: {c.cmd[:100]}"
+        head = f"line {c.line}: {state} [{self.cpu:.1f} s CPU]: {c.cmd.splitlines()[0][:100]}"
         if self.ok:
             return head
         lines = [head] + ["    " + ln for ln in self.difference.splitlines()]
