@@ -15,7 +15,7 @@ A block fenced `` ```console no-run: REASON `` is shown, not run (it needs a rea
 CPU, the repository itself …): the reason is in the info string and the page says it. Keep those few.
 
 The commands of a page run in order in one fresh folder ``TMP/work`` (``docs_layout``): ``../shared``
-is the shared data (a link), ``docs/maps`` a copy of the repository's column maps and ``experiments``
+is a copy of the shared data, ``docs/maps`` a copy of the repository's column maps and ``experiments``
 a link to the repository's, so that a page's relative paths hold while its outputs stay in ``TMP``.
 A block that reads the shared data (``needs_shared``) is skipped when they are absent.
 
@@ -242,8 +242,8 @@ def shared_data() -> Path:
 
 
 def docs_layout(tmp: Path, repo: Path = REPO) -> Path:
-    """``tmp/work``, the folder a page's commands run in: ``tmp/shared`` links to the shared data
-    (when present), ``tmp/work/docs/maps`` is a copy of the repository's column maps and
+    """``tmp/work``, the folder a page's commands run in: ``tmp/shared`` is a copy of the shared
+    data (when present), ``tmp/work/docs/maps`` is a copy of the repository's column maps and
     ``tmp/work/experiments`` links to its experiment scripts (read, never written: their outputs
     are named on the command line)."""
     import shutil
@@ -252,8 +252,8 @@ def docs_layout(tmp: Path, repo: Path = REPO) -> Path:
     (work / "docs").mkdir(parents=True)
     shutil.copytree(repo / "docs" / "maps", work / "docs" / "maps")
     (work / "experiments").symlink_to(repo / "experiments", target_is_directory=True)
-    if shared_data().is_dir():
-        (tmp / "shared").symlink_to(shared_data().resolve(), target_is_directory=True)
+    if shared_data().is_dir():  # a copy (150 kB): paths written relative to it stay ../shared/…
+        shutil.copytree(shared_data(), tmp / "shared")
     return work
 
 
