@@ -1,5 +1,5 @@
 """TALOS left arm, one session, at new postures: the default ``estcal diagnose`` on a posture-grouped 40/19 split
-fixed before the model was scored (docs/discrepancy.md, "How accurate").
+fixed before the model was scored (docs/discrepancy.md, "How accurate, on the real robots").
 
 Data: ``../shared/data/talos/talos_feb_arm_02_10_contact.csv`` (62 rows, one marker), read with the column map
 ``docs/maps/talos.yaml``; robot ``talos_reduced.urdf``, ``base_link`` → ``arm_left_7_link``. Split: the session's

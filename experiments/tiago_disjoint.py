@@ -1,5 +1,5 @@
 """TIAGo at new postures of another session: the default ``estcal diagnose`` on a posture- and session-disjoint
-protocol, fixed before the model was scored (docs/discrepancy.md, "How accurate: TIAGo").
+protocol, fixed before the model was scored (docs/discrepancy.md, "How accurate, on the real robots").
 
 Protocol (``../shared/data/tiago``, never copied):
 

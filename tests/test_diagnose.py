@@ -56,6 +56,8 @@ def test_hidden_effect_is_named(puma, seed):
     assert res.named == [(e, (j,))], (e, j, m, opts, res.terms["tested"])
     c = res.causes[0]
     assert c.ln_bf >= 5 and c.folds > c.k_folds / 2 and c.gain_mm > 0
+    # the one hidden cause is most of what the geometry leaves (the rest: the noise)
+    assert 0.5 < c.explained_fraction <= 1.0, c.explained_fraction
     _recovered(res, truth)
     d = res.to_dict()
     assert {"answer", "causes", "accuracy", "model", "terms"} <= set(d)
@@ -341,3 +343,27 @@ def test_gravity_ready_lumped_masses_and_measurement_frame():
     # a robot with masses keeps them
     r2, l2 = gravity_ready(puma_masses := load_robot("puma560_masses"))
     assert not l2 and [lk.mass for lk in r2.links] == [lk.mass for lk in puma_masses.links]
+
+
+def test_compliance_past_a_dead_zone_reads_together(puma):
+    """A joint that gives only past a torque threshold τf (friction or a preload) is, beyond it, a compliance plus
+    a negative backlash by the load's side: c·τ − c·τf·sign τ. Simulated so (c = 3e-5 rad/(N·m), τf = 4 N·m on
+    j3), both are named and the answer reads them together, the threshold |b|/c within three standard
+    deviations (propagated from the two estimates) of τf."""
+    from estcal.simulate import NoiseModel as SimNoise, simulate
+
+    c, tf = 3e-5, 4.0
+    sim = simulate(puma, n_poses=60, measure="points", errors="random",
+                   error_std={"angle": 5e-4, "length": 5e-4, "offset": 1e-3}, seed=3, noise=SimNoise(SIGMA, SIGMA),
+                   effects=[{"effect": "joint_compliance", "joints": ["j3"], "params": {"compliance_j3": c}},
+                            {"effect": "backlash", "joints": ["j3"], "params": {"backlash_j3": -c * tf}}])
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert sorted(res.named) == [("backlash", ("j3",)), ("joint_compliance", ("j3",))]
+    p = {n: v for cz in res.causes for n, v in cz.parameters.items()}
+    cv, bv = p["compliance_j3"], p["backlash_j3"]
+    ratio = -bv["estimate"] / cv["estimate"]
+    sd = ratio * np.hypot(bv["std"] / bv["estimate"], cv["std"] / cv["estimate"])
+    assert abs(ratio - tf) < 3 * sd
+    (note,) = res.terms["together"]
+    assert note.startswith("j3:") and f"{ratio:.2g} N·m" in note
+    assert any(line.startswith("  together, j3") for line in res.answer_lines())

@@ -38,7 +38,7 @@ def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
                                  "--json", str(out), "--report", str(tmp_path / "rep"),
                                  "--validate", str(held)])
     assert r.exit_code == 0, r.output
-    assert "joint_compliance" in r.output
+    assert "joint compliance of j3:" in r.output
     d = json.loads(out.read_text())
     assert [(c["effect"], c["joints"]) for c in d["causes"]] == [("joint_compliance", ["j3"])]
     assert d["budget"]["model_mm"] < d["budget"]["geometry_mm"]

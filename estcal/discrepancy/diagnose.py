@@ -34,7 +34,7 @@ from estcal.io.robotfile import load_robot, robot_to_dict
 from estcal.methods import NoiseModel
 
 from .result import Cause, DiagnosisResult
-from .terms import Candidate, build_terms, default_candidates, n_sessions as _n_sessions
+from .terms import Candidate, build_terms, default_candidates, n_sessions as _n_sessions, set_load_sides
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates"]
 
@@ -191,6 +191,11 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     kind = "session" if len(groups.sessions) > 1 else "posture"
     folds = groups.folds(kind, k_folds, rng)
     first = fit_relevance(terms, data, nm, include=load)
+    if any(k.startswith("load_side_") for k in data.context) and set_load_sides(
+            terms.robot, data, first.system.theta):
+        # the load's side of a posture near zero load, at the fitted geometry rather than the nominal one: once,
+        # afresh (the rigid error per posture estimated with the wrong sides would stay in the whitening)
+        first = fit_relevance(terms, data, nm, include=load)
     _check_folds(first.system, folds, k_folds)
     time_folds = groups.folds("time", k_folds) if time_blocks else None
     sel = select_terms(terms, first.system, folds, start=first.sparse.alpha, time_folds=time_folds)
@@ -248,6 +253,26 @@ def _display(name, robot, time_unit: str) -> tuple[float, str]:
     return table.get(head, (1.0, "SI"))
 
 
+def _together(causes, data) -> list[str]:
+    """What two named load causes of one joint mean together: a compliance ``c`` and a backlash by the load's side
+    ``b`` of the opposite sign give ``δq = c·τ − |b|·sign τ = c·sign τ·(|τ| − |b|/c)`` beyond ``|τ| = |b|/c`` —
+    a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play."""
+    by = {}
+    for c in causes:
+        if len(c.joints) == 1:
+            by.setdefault(c.joints[0], {})[c.effect] = c
+    out = []
+    for j, e in by.items():
+        if {"joint_compliance", "backlash"} <= set(e) and f"approach_{j}" not in data.context:
+            cv = e["joint_compliance"].parameters[f"compliance_{j}"]["estimate"]
+            bv = e["backlash"].parameters[f"backlash_{j}"]["estimate"]
+            if cv > 0 > bv:
+                out.append(f"{j}: compliance and a negative backlash by the load's side together are a compliance "
+                           f"beyond a dead zone of |τ| ≈ {abs(bv) / cv:.2g} N·m (friction or a preload holds the "
+                           "joint below it)")
+    return out
+
+
 def _cause(term, rec, fit, robot, system_names, explained, time_unit) -> Cause:
     """A named :class:`Cause` from its term, its naming record and the model's posterior."""
     pen = system_names[fit.system.n_free:]
@@ -278,13 +303,12 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
         return float(r @ r)
 
     ss_geo = ss(geo_only)
-    ss_model = ss(sel.include)
     causes = []
     recs = {r["term"]: r for r in sel.records}
     for i in sel.named:
         t = terms.terms[i]
         m = tidx == i
-        frac = max(ss(sel.include & ~m) - ss_model, 0.0) / max(ss_geo, 1e-300)
+        frac = max(ss_geo - ss(geo_only | m), 0.0) / max(ss_geo, 1e-300)
         causes.append(_cause(t, recs[t.label], fit, terms.robot, system.names, frac, time_unit))
     train_mm = _scores(final, final.params.values, [data])[0] if data.kind in ("position", "points", "pose") else None
     b = budget.to_dict() if budget is not None else None
@@ -303,7 +327,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
                "effects_considered": len(terms.terms), "effects_kept": len(kept),
                "kept": [t.label for t in kept], "kept_unnamed": kept_unnamed,
                "tested": [{k: v for k, v in r.items()} for r in sel.records],
-               "regrouped": terms.regrouped, "candidates": [t.to_dict() for t in terms.terms]}
+               "regrouped": terms.regrouped, "candidates": [t.to_dict() for t in terms.terms],
+               "together": _together(causes, data)}
     re_ = {}
     if system.psi is not None:
         re_ = {"sigma_weighted": float(np.sqrt(fit.sparse.noise_var)),

@@ -42,7 +42,7 @@ class Cause:
     cv_with_mm / cv_without_mm : the cross-validated RMSE at new postures with and without the term;
         ``gain_mm`` their difference
     explained_fraction : the share of the geometry-only model's training residual (sum of squares) the term
-        removes
+        removes when it alone is added to the geometry (named causes that overlap can each explain much)
     load : a load term (kept in the model by relevance, named or not)
     """
 
@@ -200,6 +200,7 @@ class DiagnosisResult:
         if self.causes:
             out.append("Named causes (value ± std; evidence; gain at new postures; share of the geometric residual):")
             out += [f"  {c.describe()}" for c in self.causes]
+            out += [f"  together, {n}" for n in self.terms.get("together", [])]
         else:
             out.append("Named causes: none — no term passes every test (docs/discrepancy.md, 'Naming')")
         rep = a.get("repeatability_mm")

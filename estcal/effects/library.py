@@ -77,7 +77,8 @@ class Backlash(JointEffect):
     A context column ``load_side_<joint>`` (±1) fixes the load's side instead of
     evaluating it at the current parameters: a fit that moves the geometry would
     otherwise flip it at a posture whose load is near zero, and the residual steps
-    there (``estcal diagnose`` fixes it at the registration fit).
+    there (``estcal diagnose`` fixes it at the registration fit, then once more at
+    the fitted model).
     """
 
     name = "backlash"
