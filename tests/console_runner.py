@@ -4,7 +4,7 @@ A console block is a shell session: lines starting with ``$ `` are commands (a t
 continues on the next line; a command ending in a here-document ``<< 'EOF'`` takes the lines up to
 ``EOF``), the lines up to the next command are its documented output: stdout and stderr as a
 terminal shows them, compared line by line and in order (``output_differs``), with numbers equal
-within a tolerance (``numbers_match``). A line starting with ``…`` stands for real lines the page
+within a tolerance (``numbers_match``; a duration, "26.2 s", only in its place). A line starting with ``…`` stands for real lines the page
 left out (``… (parameter table)``); without one the documented output is the whole output. A
 command shown without output is only run. A line ``[exit N]``, or the output of a following
 ``$ echo $?``, is the command's documented exit status (0 when absent); ``$?`` is the previous
@@ -23,6 +23,7 @@ Usage (the README's path is tested by tests/test_readme.py, every page by tests/
 
     python tests/console_runner.py docs/export.md            # run and compare every block
     python tests/console_runner.py docs/export.md --show     # and print the real output of what differs
+    python tests/console_runner.py docs/export.md --rewrite  # paste the real output where it differs
 """
 from __future__ import annotations
 
@@ -52,6 +53,8 @@ class Command:
     cmd: str
     expected: list = field(default_factory=list)
     block: int = 0                # 1-based line of the block's fence
+    span: int = 1                 # page lines of the command (continuations, here-document)
+    indent: str = ""              # the block's indentation in the page
 
     echoed: int | None = None     # the status the next command (``echo $?``) prints
 
@@ -76,9 +79,11 @@ def console_commands(text: str, infos=("console",), no_run: bool = False) -> lis
     ``infos``, ``""`` for plain fences) of ``text`` with their documented output; the blocks
     flagged ``no-run`` only with ``no_run=True``."""
     out = []
+    page = text.splitlines()
     for line, info, extra, body in code_blocks(text):
         if info not in infos or (is_no_run(extra) and not no_run):
             continue
+        indent = page[line - 1][:len(page[line - 1]) - len(page[line - 1].lstrip())]
         lines, cur, i = body.rstrip("\n").split("\n"), None, 0
         while i < len(lines):
             if lines[i].startswith("$ "):
@@ -93,7 +98,7 @@ def console_commands(text: str, infos=("console",), no_run: bool = False) -> lis
                         cmd += "\n" + lines[k]
                         if lines[k] == here.group(1):
                             break
-                cur = Command(line + 1 + i, cmd, block=line)
+                cur = Command(line + 1 + i, cmd, block=line, span=k - i + 1, indent=indent)
                 out.append(cur)
                 i = k + 1
                 continue
@@ -131,12 +136,22 @@ def is_exit(line: str) -> bool:
     return re.fullmatch(r"\[exit \d+\]", line.strip()) is not None
 
 
+DURATION = re.compile(r"\s?s(?!\w)")  # after a number: seconds ("26.2 s", "(5.6 s)")
+
+
+def numbers(line: str) -> list[tuple[float, bool]]:
+    """The numbers of ``line``, each with whether it is a duration in seconds (wall-clock time:
+    it differs from run to run, so only its place is compared)."""
+    return [(float(m.group()), DURATION.match(line, m.end()) is not None) for m in NUMBER.finditer(line)]
+
+
 def lines_match(expected: str, actual: str, rtol: float = 1e-3) -> bool:
-    """The same words (whitespace collapsed) and the same numbers within ``numbers_match``."""
+    """The same words (whitespace collapsed) and the same numbers within ``numbers_match``,
+    durations in seconds aside."""
     if skeleton(expected) != skeleton(actual):
         return False
-    want, got = NUMBER.findall(expected), NUMBER.findall(actual)
-    return len(want) == len(got) and all(numbers_match(float(w), float(g), rtol) for w, g in zip(want, got))
+    want, got = numbers(expected), numbers(actual)
+    return len(want) == len(got) and all(dw or numbers_match(w, g, rtol) for (w, dw), (g, _) in zip(want, got))
 
 
 def missing_lines(expected: list[str], actual: str, rtol: float = 1e-3) -> list[str]:
@@ -314,6 +329,27 @@ def run_page(text: str, work: Path, timeout: float = 300) -> list[Outcome]:
     return out
 
 
+def rewrite(text: str, outcomes: list[Outcome]) -> tuple[str, list[str]]:
+    """``text`` with the documented output of every differing command replaced by its real output
+    (an ``[exit N]`` line added for a non-zero status not shown by a following ``echo $?``);
+    the commands whose output the page trims (``…``) are left for a hand edit and listed."""
+    lines, left = text.split("\n"), []
+    for k, o in sorted(enumerate(outcomes), key=lambda ko: -ko[1].command.line):
+        c = o.command
+        if o.ok or o.output is None:
+            continue
+        if any(is_trim(e) for e in c.expected):
+            left.append(f"line {c.line}: {c.cmd.splitlines()[0][:80]} (its output is trimmed with …: edit by hand)")
+            continue
+        new = [ln.rstrip() for ln in o.output.rstrip("\n").split("\n")]
+        nxt = outcomes[k + 1].command if k + 1 < len(outcomes) else None
+        if o.returncode and not (nxt is not None and nxt.cmd.strip() == "echo $?"):
+            new.append(f"[exit {o.returncode}]")
+        start = c.line - 1 + c.span            # 0-based index of the first output line
+        lines[start:start + len(c.expected)] = [(c.indent + ln) if ln else "" for ln in new]
+    return "\n".join(lines), left
+
+
 def main(argv=None) -> int:
     import tempfile
 
@@ -321,6 +357,8 @@ def main(argv=None) -> int:
     ap.add_argument("pages", nargs="+", type=Path)
     ap.add_argument("--show", action="store_true", help="print the real output of every command that differs")
     ap.add_argument("--keep", action="store_true", help="keep the temporary folders (their paths are printed)")
+    ap.add_argument("--rewrite", action="store_true", help="write the real output into the page for every "
+                    "differing command whose output is not trimmed with … (check the diff before committing)")
     args = ap.parse_args(argv)
     bad = 0
     for page in args.pages:
@@ -330,6 +368,11 @@ def main(argv=None) -> int:
             bad += not o.ok
             print(f"{page}:{o.describe(args.show)}", flush=True)
         print(f"{page}: {sum(o.cpu for o in outcomes):.1f} s CPU" + (f", kept in {tmp}" if args.keep else ""))
+        if args.rewrite:
+            text, left = rewrite(page.read_text(encoding="utf-8"), outcomes)
+            page.write_text(text, encoding="utf-8")
+            for msg in left:
+                print(f"{page}:{msg}")
         if not args.keep:
             import shutil
 

@@ -38,18 +38,23 @@ def test_trims_order_and_numbers():
     assert output_differs(["σ0 = 1.24, RMSE 0.05 mm", "…"], real) != ""              # a number moved
     assert output_differs(["head", "…", "tail 4"], real) != ""
     assert output_differs(["…", "[exit 3]", "tail 3"], real) == ""
+    assert output_differs(["fleet — 7 robots (2 workers, 26.2 s)"], "fleet — 7 robots (2 workers, 9.4 s)\n") == ""
+    assert output_differs(["fleet — 7 robots (2 workers, 26.2 s)"], "fleet — 6 robots (2 workers, 26.2 s)\n") != ""
 
 
-def test_blocks_exits_and_no_run(tmp_path):
-    page = ("text\n```console\n$ printf 'a 1\\nb 2\\n'\na 1\nb 2\n$ false\n[exit 1]\n$ echo $?\n1\n```\n"
-            "```console no-run: needs a cluster\n$ exit 7\n```\n```console\n$ echo more \\\n  words\nmore words\n```\n")
+def test_blocks_exits_heredocs_and_no_run(tmp_path):
+    page = ("text\n```console\n$ printf 'a 1\\nb 2\\n'\na 1\nb 2\n$ false\n$ echo $?\n1\n$ (exit 4)\n[exit 4]\n```\n"
+            "```console no-run: needs a cluster\n$ exit 7\n```\n"
+            "```console\n$ echo more \\\n  words\nmore words\n$ cat > f.txt << 'EOF'\nkept $HOME\nEOF\n$ cat f.txt\nkept $HOME\n```\n")
     cmds = console_commands(page)
-    assert [c.cmd for c in cmds] == ["printf 'a 1\\nb 2\\n'", "false", "echo $?", "echo more words"]
-    assert [c.exit_code for c in cmds] == [0, 1, 0, 0]
+    assert [c.cmd for c in cmds] == ["printf 'a 1\\nb 2\\n'", "false", "echo $?", "(exit 4)", "echo more words",
+                                     "cat > f.txt << 'EOF'\nkept $HOME\nEOF", "cat f.txt"]
+    assert [c.exit_code for c in cmds] == [0, 1, 0, 4, 0, 0, 0]
     outcomes = run_page(page, docs_layout(tmp_path))
     assert all(o.ok for o in outcomes), [o.describe() for o in outcomes]
-    bad = run_page(page.replace("b 2\n$ false", "b 3\n$ false"), docs_layout(tmp_path / "again"))
-    assert [o.ok for o in bad] == [False, True, True, True]
+    bad = run_page(page.replace("b 2\n$ false", "b 3\n$ false").replace("[exit 4]", "[exit 3]"),
+                   docs_layout(tmp_path / "again"))
+    assert [o.ok for o in bad] == [False, True, True, False, True, True, True]
 
 
 def test_blocks_with_commands_are_console_blocks():
