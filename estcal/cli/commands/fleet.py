@@ -57,6 +57,8 @@ def _title(summary, diagnose: bool) -> str:
     head = f"estcal fleet — {summary.n_ok:,} of {n:,} robots {done}"
     if summary.n_skipped:
         head += f" ({summary.n_skipped:,} skipped: done earlier, in {summary.results}/)"
+    if not new:
+        return head + "; nothing left to run"
     return head + f"; {new:,} run on {summary.scheduler}, {summary.n_workers} worker(s), {summary.wall_s:.1f} s"
 
 
