@@ -67,9 +67,11 @@ class ResultFolder:
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise InputError(f"--results {self.folder}: cannot create the results folder ({exc.strerror})") from None
+            raise InputError(f"--results {self.folder}: cannot create the results folder ({exc.strerror}); "
+                             f"name a writable one with --results DIR") from None
         if not os.access(self.folder, os.W_OK):
-            raise InputError(f"--results {self.folder}: the results folder is not writable")
+            raise InputError(f"--results {self.folder}: the results folder is not writable; name a writable one "
+                             f"with --results DIR")
         self._pool = None
         self._pending: dict = {}
 
