@@ -5,7 +5,7 @@ The cluster run (default) starts ``dask scheduler`` and ``--workers`` (2) ``dask
 and runs the commands a user types, each in its own process, on fleets generated on demand
 (``estcal simulate --fleet N --on-demand``, 50 + 50 poses per robot):
 
-* ``serial``: ``estcal fleet`` on ``--serial-robots`` (1,000) robots without Dask, then the same
+* ``serial``: ``estcal fleet`` on ``--serial-robots`` (2,000) robots without Dask, then the same
   robots on the cluster: the speed-up (wall time of the commands, and of the runs alone), the
   rows checked identical;
 * ``big``: ``--robots`` (10,000) robots on the cluster — wall time; every process's CPU (workers,
@@ -361,8 +361,10 @@ def bench_cluster(robots: int, serial_robots: int, workers: int, noop: int, tmp:
             _, tn, _, ln = timed(run_tasks, noop, range(noop), scheduler=client, chunksize=1, progress=False)
         out["noop_ms_per_task"], out["noop_load"] = 1e3 * tn / noop, ln
     bb = out["big"]
+    out["speedup_throughput"] = (out["serial"]["run_s"] / serial_robots) / (bb["run_s"] / robots)
     print(f"cluster, {robots:,} robots x 50 poses ({n_tasks} tasks of {ROBOTS_PER_TASK}): {b['wall_s']:.1f} s "
-          f"(load {b['load']}); {robots / b['wall_s']:.1f} robots/s\n  {bb['line']}")
+          f"(load {b['load']}); {robots / b['wall_s']:.1f} robots/s: {out['speedup_throughput']:.2f}x the serial "
+          f"run's robots/s\n  {bb['line']}")
     print(f"  workers: CPU {bb['worker_cpu_ms_per_robot']:.1f} ms per robot (serial {out['serial']['cpu_ms_per_robot']:.1f} "
           f"ms: CPU efficiency {out['serial']['cpu_ms_per_robot'] / bb['worker_cpu_ms_per_robot']:.2f}); peak RSS {', '.join(f'{v:.0f}' for v in bb['worker_peak_rss_mb'].values())} MB (idle after start "
           f"{', '.join(f'{v:.0f}' for v in out['worker_rss_idle_mb'].values())} MB, after the warm-up "
@@ -459,10 +461,26 @@ def print_projection(p: dict) -> None:
           f"{p['client_rss_mb']:.0f} MB; results {p['results_disk_mb']:.0f} MB on disk")
 
 
+def print_targets(c: dict, p: dict) -> None:
+    """The figures the cluster benchmark is judged on, in one place, with the load they were measured at."""
+    b = c["big"]
+    rss = max(b["worker_peak_rss_mb"].values())
+    print(f"figures (load average {c['cluster_small']['load']} during the speed-up, {b['load']} during the "
+          f"{c['robots']:,}-robot run; wall-clock speed-ups only mean something on an idle machine):")
+    print(f"  speed-up {c['workers']} workers vs serial, {c['serial_robots']:,} robots: {c['speedup']:.2f}x (commands), "
+          f"{c['speedup_run']:.2f}x (runs alone); {c['speedup_throughput']:.2f}x from the {c['robots']:,}-robot run's "
+          f"robots/s — target >= 1.8x")
+    print(f"  peak RSS per worker: {rss:.0f} MB — target <= 150 MB: {'met' if rss <= 150 else 'NOT met'}")
+    print(f"  scheduler overhead per task ({c['robots_per_task']} robots): {b['scheduler_cpu_ms_per_task']:.2f} ms "
+          f"of scheduler CPU; round trip of an empty task {c['noop_ms_per_task']:.2f} ms")
+    print(f"  wall time for {c['robots']:,} robots: {b['wall_s']:.1f} s; projected {p['robots']:,} robots: "
+          + ", ".join(f"{r['workers']} workers {r['wall_s']:.0f} s ({r['bound_by']})" for r in p["rows"]))
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robots", type=int, default=10_000, help="robots of the cluster run (50 poses each)")
-    ap.add_argument("--serial-robots", type=int, default=1_000,
+    ap.add_argument("--serial-robots", type=int, default=2_000,
                     help="robots run serially and on the cluster for the speed-up")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--noop", type=int, default=1000, help="empty tasks for the overhead figure")
@@ -491,6 +509,7 @@ def main(argv=None) -> dict:
         shutil.rmtree(tmp, ignore_errors=True)
     out["projection"] = p = projection_measured(out["cluster"], robots=args.project)
     print_projection(p)
+    print_targets(out["cluster"], p)
     if args.local:
         run_local(args, out)
     out["environment"]["load_end"] = list(os.getloadavg())
