@@ -203,9 +203,9 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
         each result as it arrives.
 
     A Dask worker lost during the run (killed, out of memory) is Dask's business: the scheduler
-    reruns its tasks on the other workers (``distributed.scheduler.allowed-failures`` times,
-    default 3), and their result arrives once; a chunk that still fails (a task that kills every
-    worker it runs on: ``KilledWorker``) reports its tasks as failures, "not run (…)".
+    reruns its tasks on the other workers, and their result arrives once; a chunk during which more
+    than ``distributed.scheduler.allowed-failures`` workers (default 3) died (``KilledWorker``: a
+    task that kills every worker it runs on) reports its tasks as failures, "not run (…)".
     """
     check_scheduler(scheduler)
     tasks = list(tasks)
