@@ -37,7 +37,7 @@ from scipy.linalg import null_space, orth
 from scipy.optimize import minimize, minimize_scalar
 from scipy.stats import chi2
 
-from estcal.estimate.sparse import log_evidence_ard, sparse_bayes
+from estcal.estimate.sparse import log_evidence_ard, shared_precision, sparse_bayes
 
 LOG2PI = np.log(2 * np.pi)
 
@@ -391,3 +391,31 @@ def test_fixed_noise_is_kept():
     act = fit.active
     assert fit.alpha[act] == pytest.approx((s ** 2 / (q ** 2 - s))[act], rel=1e-3)
     assert fit.log_evidence == pytest.approx(dense_evidence(Phi, y, fit.alpha, 0.2, F), abs=1e-8)
+
+
+@pytest.mark.parametrize("with_f", [False, True])
+def test_shared_precision_maximises_the_evidence(with_f):
+    """One shared precision (ridge width) and the noise by MacKay's fixed point equal the direct maximum of the
+    (restricted) marginal likelihood over (log α, log σ²), computed here from the dense covariance in an
+    orthonormal basis of the complement of F."""
+    rng = np.random.default_rng(5)
+    N, M = 60, 8
+    Phi = rng.normal(size=(N, M)) * rng.uniform(0.5, 3.0, M)
+    F = rng.normal(size=(N, 3)) if with_f else None
+    y = Phi @ rng.normal(0, 0.7, M) + 0.3 * rng.normal(size=N) + (F @ [1.0, -2.0, 0.5] if with_f else 0.0)
+    alpha, s2 = shared_precision(Phi, y, F)
+
+    Pn = Phi / np.linalg.norm(Phi, axis=0)
+    B = null_space(F.T) if with_f else np.eye(N)  # orthonormal basis of the complement of F
+    P, z = B.T @ Pn, B.T @ y
+    n = len(z)
+
+    def nll(x):
+        C = np.exp(x[1]) * np.eye(n) + P @ P.T / np.exp(x[0])
+        sign, logdet = np.linalg.slogdet(C)
+        return 0.5 * (logdet + z @ np.linalg.solve(C, z))
+
+    best = minimize(nll, [0.0, np.log(np.var(z))], method="Nelder-Mead",
+                    options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 20000})
+    assert np.isclose(alpha, np.exp(best.x[0]), rtol=1e-4), (alpha, np.exp(best.x[0]))
+    assert np.isclose(s2, np.exp(best.x[1]), rtol=1e-4), (s2, np.exp(best.x[1]))

@@ -417,7 +417,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
 
         assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
                               sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
-                              exclude=exclude)
+                              exclude=exclude, priors=bool((options or {}).get("prior_std")))
         if assessment.refusals:
             raise NumericalRefusal("\n".join(assessment.refusals))
     est = get_estimator(estimator)
