@@ -345,7 +345,7 @@ def _frame_columns(system: System, s) -> np.ndarray:
 
 
 def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20, max_rounds: int = 6,
-                  system0=None, rigid: bool = True) -> RelevanceFit:
+                  system0=None, rigid: bool = True, ridge_start: bool = True) -> RelevanceFit:
     """The relevance model of ``terms`` on ``data`` (module docstring) by MacKay's alternation (1992): at fixed
     hyperparameters (the precisions and the noise) Gauss–Newton on the MAP estimate until no parameter moves by
     ``GN_TOL`` of its standard deviation; then the hyperparameters by the evidence at that estimate (a warm
@@ -356,7 +356,8 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
     every Gauss–Newton step instead oscillates between near-equal optima of the evidence: the whitened
     problem's posterior is sharp and a relinearisation moves the estimate by several of its standard
     deviations. ``include``: the penalised columns allowed (None: all); ``system0``: a fit of the same rows
-    to start from (its whitening kept); ``rigid=False``: independent rows (no rigid error per posture)."""
+    to start from (its whitening kept); ``rigid=False``: independent rows (no rigid error per posture);
+    ``ridge_start=False``: the search grows from the single best column (every column out)."""
     theta = terms.theta0.copy() if system0 is None else system0.theta.copy()
     frames = {} if system0 is None else dict(system0.frames)
     psi, s2 = (None, None) if system0 is None else (system0.psi, system0.s2)
@@ -395,7 +396,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         return bool(np.all(moved[sd > 0] <= GN_TOL * sd[sd > 0]))
 
     whiten = psi is None and system0 is None and rigid
-    if start is None and system0 is None:
+    if start is None and system0 is None and ridge_start:
         start = _geometric_start(terms, linearise(terms, data, noise, theta, frames), include)
     rnd = 0
     while rnd < max_rounds:
