@@ -63,7 +63,7 @@ def _estimator_and_measure(estimator, measure, method):
                      f"measurement ({', '.join(sorted(METHODS))}) — use estimator= or measure=")
 
 
-def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None, free=None, level: str = "full",
+def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None, free=None, level: str | None = None,
               selection: str | None = None, validate=(), noise=None, known_noise: bool = False, regularize=None,
               points: int | None = None, root: str | None = None, tip: str | None = None, checks: bool = True,
               allow_ill_conditioned: bool = False, drop_flagged: bool = True, method: str | None = None, **options):
@@ -79,7 +79,10 @@ def calibrate(robot, data, estimator: str = "lm", *, measure: str | None = None,
     measure : what was measured (``position``, ``pose``, ``points``, ``point-link`` …; default: from
         the data's columns).
     free : parameter names or shell patterns to estimate (default: the identifiable set of ``level``).
-    level : ``registration`` | ``joint_offset`` | ``full``.
+    level : ``registration`` | ``joint_offset`` | ``full``; None (the default, as ``estcal calibrate``'s): ``full``,
+        and when its fit is refused for its conditioning (no convergence, a condition number above the limit) the
+        identifiable geometric parameters under relevance priors instead (``result.extra["default_model"]`` says
+        so; docs/calibration.md, "When the full level is refused").
     selection : ``structural`` (default) | ``aic`` | ``bic``.
     validate : datasets or paths scored before/after (never used for the fit).
     noise : measurement noise — see :func:`as_noise` (number = position std in m).
@@ -186,25 +189,37 @@ class api_words:
 
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None,
-             root: str | None = None, tip: str | None = None, urdf_chain_masses: bool = True, **kw):
-    """What the geometric model gets wrong, and which effect explains it — ``estcal diagnose``.
+             root: str | None = None, tip: str | None = None, folds: int = 5, geometric: str = "sparse",
+             budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = False,
+             column_map=None, drop_flagged: bool = True, report=None):
+    """How accurate the robot's model is at new postures, which physical causes it names, what stays
+    unexplained — ``estcal diagnose`` (docs/discrepancy.md; the defaults are the command's).
 
     Parameters
     ----------
-    robot, data, validate, points, root, tip : as in :func:`calibrate`.
-    effects : effect names to try (default: every registered effect, docs/effects.md).
-    noise : the known measurement noise, in the forms of :func:`as_noise` (a number is the position
-        std in m), taken as known (likelihood-ratio tests, noise-floor test); None: unknown (F tests).
-    urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
-    **kw : options of :func:`estcal.discrepancy.diagnose` (``k_folds``, ``alpha``, ``max_effects``,
-        ``geometric``, ``approach_from_order``, ``report`` …).
+    robot, data, validate, points, root, tip : as in :func:`calibrate`; ``data`` may be a list of sessions
+        (each session's measuring frame registered); each validation file is scored at its new postures,
+        its frame registered on its rows at postures the training measured.
+    effects : effect names to consider (default: every registered effect, docs/effects.md).
+    noise : the measurement noise in the forms of :func:`as_noise` (the rows' relative weights; the model
+        fits its scale).
+    folds : cross-validation folds (by posture; by session too with several sessions); seed : their seed.
+    geometric : ``"sparse"`` (every identifiable geometric parameter under a relevance prior), ``"full"``
+        (unpenalised) or ``"joint_offset"``.
+    budget : the error budget (nested and time-blocked cross-validation, the 95 % region).
+    drop_flagged : leave out the rows the data screening flags (the default, as :func:`calibrate`'s; named in
+        ``result.data["left_out"]`` and in the text); False fits every row.
+    urdf_chain_masses, approach_from_order, column_map, report : as ``estcal diagnose``.
 
     Returns
     -------
-    DiagnosisResult — ``causes``, ``verdict``, ``rmse_mm``, ``robot`` (extended), ``save_model(path)``.
+    DiagnosisResult — ``answer`` (expected error at new postures and its 95 % bound), ``causes``,
+    ``accuracy`` (one validation figure per file), ``robot`` (the model), ``save_model(path)``.
     """
     from estcal.workflows.diagnose import diagnose as run
 
     nm = None if noise is None else as_noise(noise, known=True)
     return run(robot, data, validate=list(validate), effects=effects, noise=nm, points=points, root=root, tip=tip,
-               urdf_chain_masses=urdf_chain_masses, **kw)
+               folds=folds, geometric=geometric, budget=budget, seed=seed, urdf_chain_masses=urdf_chain_masses,
+               approach_from_order=approach_from_order, column_map=column_map, drop_flagged=drop_flagged,
+               report=report)

@@ -12,9 +12,10 @@ units of the measurement noise at the tool:
 The data are simulated (random geometric errors, 50 poses, Gaussian noise σ
 per coordinate) and `diagnose` receives only the data, the nominal robot and σ.
 Reported per robot and magnitude: the rate at which the hidden effect is named
-with the right joint as the first cause ("detected"), the rate of a wrong
-first name ("misnamed"), and the false-positive rate on clean data (any cause
-named), with 95 % Clopper–Pearson intervals.
+with the right joint ("detected"), the rate of a further, wrong name ("misnamed"),
+and the false-positive rate on clean data (any cause named), with 95 %
+Clopper–Pearson intervals. The diagnosis runs without its error budget (naming
+does not use it).
 
 Run::
 
@@ -85,14 +86,17 @@ def trial(args):
         opts = {"orders": [int(rng.integers(1, 4))]} if e == "gear_harmonic" else {}
         hidden = [(e, [j], float(magnitude), opts)]
     sim, truth = simulate_hidden(robot, hidden, SIGMA, n_poses=n_poses, seed=seed, **kw)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, budget=False)
     named = [(c.effect, list(c.joints)) for c in res.causes]
+    gains = {(c.effect, tuple(c.joints)): c.gain_mm for c in res.causes}
     out = {"robot": robot_name, "magnitude": magnitude, "seed": seed, "named": named,
            "hidden": [(h[0], h[1], h[3] if len(h) > 3 else {}) for h in hidden],
-           "cv_gain_mm": res.rmse_mm["geometric"]["cv"] - res.rmse_mm["extended"]["cv"]}
+           "cv_gain_mm": float(sum(gains.values()))}
     if hidden:
-        out["detected"] = bool(named and named[0] == (hidden[0][0], hidden[0][1]) and out["cv_gain_mm"] > 0)
-        out["misnamed"] = bool(named and named[0] != (hidden[0][0], hidden[0][1]))
+        key = (hidden[0][0], tuple(hidden[0][1]))
+        # detected: the hidden effect is named (every named cause lowers the cross-validated error by definition)
+        out["detected"] = key in gains
+        out["misnamed"] = any(k != key for k in gains)
     return out
 
 
@@ -127,7 +131,7 @@ def main(argv=None) -> dict:
     results = run.values()
     power = []
     print(f"Detection of one hidden library effect (σ = {SIGMA * 1e3:.2f} mm per coordinate, {args.poses} poses, "
-          f"random effect/joint/seed; 'detected' = right effect and joint named first and CV RMSE lowered)")
+          f"random effect/joint/seed; 'detected' = the right effect and joint named; 'misnamed' = another named too)")
     print(f"{'robot':<10}{'magnitude (σ)':>14}{'n':>5}{'detected':>10}{'rate':>7}  {'95% CI':<16}{'misnamed':>9}")
     for r in robots:
         for m in mags:
@@ -149,7 +153,7 @@ def main(argv=None) -> dict:
     allfp = sum(v["named"] for v in fp.values())
     alln = sum(v["n"] for v in fp.values())
     print(f"  all robots {allfp}/{alln} = {allfp / max(alln, 1):.3f} "
-          f"(design: family-wise α = 1 % per step, Bonferroni over the candidates)")
+          "(the naming rules set no nominal level: ln B ≥ 5, most folds, a CV gain beyond one standard error)")
     mis = [x for x in results if x.get("misnamed")]
     if mis:
         print("\nMisnamed cases (hidden -> named):")

@@ -15,3 +15,11 @@ def tiago_dir() -> Path:
     if not (TIAGO_DIR / "tiago_48_schunk.urdf").exists():
         pytest.skip(f"TIAGo data not found at {TIAGO_DIR} (it lives in ../shared next to the repository)")
     return TIAGO_DIR
+
+
+@pytest.fixture
+def talos_dir() -> Path:
+    folder = SHARED / "data" / "talos"
+    if not (folder / "talos_reduced.urdf").exists():
+        pytest.skip(f"TALOS data not found at {folder} (it lives in ../shared next to the repository)")
+    return folder

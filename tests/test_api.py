@@ -97,7 +97,7 @@ def test_diagnose_from_python_and_save(tmp_path):
     sim = simulate(robot, n_poses=30, measure="position", noise={"position": 5e-5}, seed=3,
                    effects=[{"effect": "joint_compliance", "joints": ["j3"], "params": {"compliance_j3": 3e-5}}])
     path = write_dataset(tmp_path / "d.csv", sim.dataset)
-    diag = estcal.diagnose(robot, path, noise=5e-5, effects=["joint_compliance"], k_folds=3)
+    diag = estcal.diagnose(robot, path, noise=5e-5, effects=["joint_compliance"], folds=3)
     assert [(c.effect, c.joints) for c in diag.causes] == [("joint_compliance", ["j3"])]
     model = estcal.load_robot(diag.save_model(tmp_path / "diag.yaml"))
     kin = model.kinematics(sim.dataset.readings, jacobian=False)

@@ -85,6 +85,8 @@ def built(tmp_path_factory):
     on = json.loads((d / "on.json").read_text())
     cal = estcal.OnlineCalibrator("puma560")
     cal.update(str(f))
+    r = runner.invoke(app, ["diagnose", str(f), "-r", "puma560", "--json", str(d / "diag.json")])
+    assert r.exit_code == 0, r.output
     robot = estcal.load_robot("puma560")
     return {"file": f, "robot": robot, "data": estcal.load_dataset(f, robot),
             ("calibrate", "cli"): json.loads((d / "cal.json").read_text()),
@@ -92,7 +94,9 @@ def built(tmp_path_factory):
             ("online", "cli"): {"names": list(on["parameters"]), "filter": on["filter"],
                                 "options": json.loads((d / "state.json").read_text())["options"]},
             ("online", "api"): {"names": list(cal.names), "filter": cal.flt.kind, "options": cal.options,
-                                "noise": cal.noise}}
+                                "noise": cal.noise},
+            ("diagnose", "cli"): json.loads((d / "diag.json").read_text()),
+            ("diagnose", "api"): estcal.diagnose("puma560", str(f)).to_dict()}
 
 
 def _calibrate_free(b, got):
@@ -135,6 +139,11 @@ READERS = {
     ("prior width", "online"): _online_option("prior-std (SI)", lambda v: f"{v:g} SI"),
     ("process noise", "online"): _online_option("q (SI)", lambda v: f"{v:g} SI"),
     ("filter", "online"): lambda b, got: got["filter"],
+    ("geometric model", "diagnose"): lambda b, got: got["model"]["geometric_level"],
+    ("folds", "diagnose"): lambda b, got: str(got["data"]["k_folds"]),
+    ("error budget", "diagnose"): lambda b, got: str(got["budget"] is not None),
+    ("noise", "diagnose"): lambda b, got: _noise_mm(got["noise"]["position"], got["noise"]["orientation"]),
+    ("rows the screening flags", "diagnose"): lambda b, got: "left out" if got["data"]["drop_flagged"] else "kept",
 }
 
 

@@ -164,3 +164,21 @@ def test_plan_report_serialises():
     json.dumps(plan.to_dict())
     json.dumps(rep.to_dict())
     assert "plan" in str(plan) and set(rep.param_std) == set(model.free)
+
+
+def test_baseline_percentiles_of_singular_plans_are_infinite_without_warnings():
+    """The random-plan baseline's percentiles equal numpy's linear ones; where both neighbours are a singular
+    plan's infinite criterion the percentile is infinite (numpy gives NaN with a RuntimeWarning)."""
+    import warnings
+
+    from estcal.design.plans import _percentile
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        v = rng.normal(size=int(rng.integers(1, 40)))
+        p = float(rng.uniform(0, 100))
+        assert np.isclose(_percentile(v, p), np.percentile(v, p))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _percentile([1.0, np.inf, np.inf], 90) == np.inf
+        assert _percentile([1.0, 2.0, np.inf], 25) == 1.5

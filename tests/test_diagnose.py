@@ -1,9 +1,11 @@
-"""Issue 6: `diagnose` must find effects hidden in simulated data, and only those.
+"""`diagnose` must name the effects hidden in simulated data, and only those (docs/discrepancy.md, "Naming").
 
-The hidden effects are drawn by the test (effect, joint, magnitude in units of
-the measurement noise at the tool, seed) from the library; `diagnose` gets only
-the data, the nominal robot and the noise level. Magnitudes here are 6–12 σ
-(the detection-power experiment maps smaller ones).
+The hidden effects are drawn by the test (effect, joint, magnitude in units of the measurement noise at the
+tool, seed) from the library; `diagnose` gets only the data, the nominal robot and the noise level. Magnitudes
+are 6–12 σ (the detection-power experiment maps smaller ones); a link tilt, mostly absorbed by the geometry,
+20 σ. Beside them: clean data (nothing named), a drift over the acquisition order of a file without a time
+column, a rigid offset of the measuring frame between two sessions (registered, never named as an effect),
+an error outside the library.
 """
 from __future__ import annotations
 
@@ -12,12 +14,11 @@ import json
 import numpy as np
 import pytest
 
-from estcal.discrepancy import Candidate, default_candidates, diagnose, partial_joint_residuals
+from estcal.discrepancy import default_candidates, diagnose, partial_joint_residuals
 from estcal.discrepancy.hidden import cartesian_distortion, eligible_joints, simulate_hidden
 from estcal.io.robotfile import load_robot
 from estcal.identify import DATA_TOL, select_identifiable
 from estcal.methods import NoiseModel, Problem
-from estcal.report.diagnose import diagnose_report
 
 SIGMA = 5e-5  # 0.05 mm per coordinate, a laser tracker / good mocap
 EFFECTS = ["joint_compliance", "backlash", "encoder_gain", "gear_harmonic"]
@@ -38,57 +39,235 @@ def _draw(robot, seed):
     return e, j, m, opts
 
 
+def _recovered(res, truth):
+    """Every hidden parameter within 5 standard deviations (plus 2 % for the neglected second-order dependence of
+    a correction on the geometry) of the truth."""
+    est = {n: v for c in res.causes for n, v in c.parameters.items()}
+    for t in truth:
+        for name, v in t["params"].items():
+            assert abs(est[name]["estimate"] - v) < 5 * est[name]["std"] + 0.02 * abs(v), (name, est[name], v)
+
+
 @pytest.mark.parametrize("seed", [11, 12, 13, 14, 15, 16, 17, 18, 21, 24, 26, 36])
 def test_hidden_effect_is_named(puma, seed):
     e, j, m, opts = _draw(puma, seed)
     sim, truth = simulate_hidden(puma, [(e, [j], m, opts)], SIGMA, n_poses=50, measure="points", seed=seed)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed)
-    assert res.named[:1] == [(e, (j,))], (e, j, m, opts, res.verdict)
-    assert res.rmse_mm["extended"]["cv"] < res.rmse_mm["geometric"]["cv"]
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, budget=False)
+    assert res.named == [(e, (j,))], (e, j, m, opts, res.terms["tested"])
     c = res.causes[0]
-    # the estimate agrees with the truth within 5 standard deviations (plus 2 % for the
-    # neglected second-order dependence of the correction on the geometry)
-    for name, v in truth[0]["params"].items():
-        est, sd = c.parameters[name]["estimate"], c.parameters[name]["std"]
-        assert abs(est - v) < 5 * sd + 0.02 * abs(v), (name, est, sd, v)
+    assert c.ln_bf >= 5 and c.folds > c.k_folds / 2 and c.gain_mm > 0
+    # the one hidden cause is most of what the geometry leaves (the rest: the noise)
+    assert 0.5 < c.explained_fraction <= 1.0, c.explained_fraction
+    _recovered(res, truth)
     d = res.to_dict()
-    assert {"causes", "verdict", "rmse_mm"} <= set(d)
-    assert {"effect", "joints", "parameters", "delta_bic", "explained_fraction"} <= set(d["causes"][0])
-    assert set(d["rmse_mm"]["geometric"]) == {"train", "cv", "validation"}
+    assert {"answer", "causes", "accuracy", "model", "terms"} <= set(d)
+    assert {"effect", "joints", "parameters", "ln_bf", "gain_mm", "explained_fraction"} <= set(d["causes"][0])
     json.dumps(d)
 
 
 def test_two_hidden_effects(puma):
     hidden = [("joint_compliance", ["j3"], 8.0), ("gear_harmonic", ["j5"], 8.0, {"orders": [1]})]
     sim, truth = simulate_hidden(puma, hidden, SIGMA, n_poses=50, measure="points", seed=3)
-    val, _ = simulate_hidden(puma, hidden, SIGMA, n_poses=30, measure="points", seed=3)
     res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
     assert sorted(res.named) == [("gear_harmonic", ("j5",)), ("joint_compliance", ("j3",))]
-    assert res.rmse_mm["extended"]["cv"] < res.rmse_mm["geometric"]["cv"]
-    # the extended model reaches the noise floor (χ² test at the 0.1 % level)
-    assert res.analysis["noise_floor_extended"]["p_value"] > 1e-3
+    _recovered(res, truth)
+    # the model reaches the noise: its expected error at new postures is that of the noise on a point (√3 σ)
+    assert res.answer["expected_mm"] < 2.5 * np.sqrt(3) * SIGMA * 1e3
+    assert res.budget["model_mm"] < res.budget["geometry_mm"]
 
 
 @pytest.mark.parametrize("seed", [21, 22, 23, 24])
 def test_clean_data_names_nothing(puma, seed):
     sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=50, measure="points", seed=seed)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, budget=False)
     assert res.causes == []
     assert "no cause named" in res.verdict
-    assert res.rmse_mm["extended"] == res.rmse_mm["geometric"]
-    # χ² of the geometric fit ~ χ²_dof with the true noise: fails with probability 1e-4
-    assert res.analysis["noise_floor"]["p_value"] > 1e-4
 
 
 def test_out_of_library_distortion_is_not_misnamed(puma):
-    """A smooth distortion of the measuring system (not a robot effect) of 20 σ: the
-    verdict must say that the residual is not explained, and name nothing."""
+    """A smooth distortion of the measuring system (not a robot effect) of 20 σ: nothing is named and the error at
+    new postures stays far above the noise (what stays unexplained)."""
     sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=50, measure="points", seed=5)
-    data = cartesian_distortion(sim.dataset, 20 * SIGMA)
-    res = diagnose(sim.nominal_robot, data, noise=SIGMA)
+    res = diagnose(sim.nominal_robot, cartesian_distortion(sim.dataset, 20 * SIGMA), noise=SIGMA)
     assert res.causes == []
-    assert "not explained" in res.verdict
-    assert not res.analysis["noise_floor"]["at_noise_floor"]
+    assert res.answer["expected_mm"] > 4 * np.sqrt(3) * SIGMA * 1e3
+
+
+@pytest.mark.parametrize("hidden, kw, expect", [
+    (("thermal_expansion", None, 8.0), {"temperature": (20.0, 35.0)}, ("thermal_expansion", ())),
+    (("drift", ["j2"], 6.0), {"dt": 30.0}, ("drift", ("j2",))),
+    (("backlash", ["j1"], 6.0), {"record_approach": True}, ("backlash", ("j1",))),
+])
+def test_context_driven_effects(puma, hidden, kw, expect):
+    """Effects driven by recorded columns: temperature, time, approach direction (j1's axis is vertical, so its
+    backlash is only visible through the approach column)."""
+    sim, truth = simulate_hidden(puma, [hidden], SIGMA, n_poses=50, measure="points", seed=8, **kw)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert res.named == [expect]
+    _recovered(res, truth)
+
+
+@pytest.mark.parametrize("scope, measure", [("arm", "position"), ("links", "position"), ("links", "pose")])
+def test_thermal_found_on_tool_data(puma, scope, measure):
+    """Thermal expansion hidden in tool-position / full-pose data (no markers) is named, in the right one of its
+    two forms (whole arm vs links only: a 0.3 m tool tells them apart)."""
+    robot = puma.copy()
+    robot.params["tool_tz"] = 0.3
+    sim, truth = simulate_hidden(robot, [("thermal_expansion", None, 10.0, {"scope": scope})], SIGMA, n_poses=50,
+                                 measure=measure, seed=8, temperature=(20.0, 35.0))
+    assert sim.nominal_robot.n_markers == 0
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert res.named == [("thermal_expansion", ())]
+    assert res.causes[0].options.get("scope", "arm") == scope
+    _recovered(res, truth)
+
+
+@pytest.mark.parametrize("joint", ["j2", "j3"])
+def test_link_tilt_under_gravity_is_named(puma, joint):
+    """A joint's bearing tilting under the gravity moment across its axis (a load term, screened by default)."""
+    sim, truth = simulate_hidden(puma, [("link_tilt", [joint], 20.0)], SIGMA, n_poses=50, measure="points", seed=4)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert res.named == [("link_tilt", (joint,))]
+    _recovered(res, truth)
+
+
+@pytest.mark.parametrize("seed", [8, 9])
+def test_drift_over_row_order_without_time_column_is_named(puma, seed):
+    """A joint drifting over the campaign, in a file with no time column: the rows are taken in acquisition order
+    (said in the output), the drift is named on the row order (its unit: per row) and the time-blocked CV is
+    reported beside the posture-grouped one."""
+    sim, truth = simulate_hidden(puma, [("drift", ["j2"], 8.0)], SIGMA, n_poses=60, measure="points", seed=seed,
+                                 dt=30.0)
+    data = sim.dataset.subset(slice(None))
+    data.context.pop("t")
+    res = diagnose(sim.nominal_robot, data, noise=SIGMA)
+    assert res.named == [("drift", ("j2",))]
+    assert res.data["time_source"] == "row order"
+    p = res.causes[0].parameters["drift_j2"]
+    assert p["unit"] == "mrad/row"
+    # the truth in rad per row: its rad/s times the 30 s between rows
+    assert abs(p["estimate"] - truth[0]["params"]["drift_j2"] * 30.0) < 5 * p["std"] + 0.02 * abs(p["estimate"])
+    text = str(res)
+    assert "row order (no t column: rows taken as acquired in file order)" in text
+    assert res.answer["time"]["source"] == "row order"
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_rigid_frame_offset_between_sessions_is_registered_not_named(puma, seed):
+    """Two sessions of one robot whose measuring frames differ by a rigid motion (5, −2, 3 mrad; 2, −1, 1.5 mm):
+    nothing is named, the second session's frame is registered with that rotation, and the cross-validation is
+    by posture and session."""
+    from estcal.kinematics.transforms import rpy_to_matrix
+
+    sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=40, measure="points", seed=seed)
+    d1, d2 = sim.dataset.subset(np.arange(0, 40, 2)), sim.dataset.subset(np.arange(1, 40, 2))
+    rpy = np.array([0.005, -0.002, 0.003])
+    d2.points = d2.points @ rpy_to_matrix(rpy).T + np.array([0.002, -0.001, 0.0015])
+    res = diagnose(sim.nominal_robot, [d1, d2], noise=SIGMA, rng=seed)
+    assert res.causes == []
+    frames = res.model["session_frames"]
+    assert len(frames) == 1
+    rot = next(iter(frames.values()))["rotation_mrad"]
+    assert rot == pytest.approx(np.linalg.norm(rpy) * 1e3, rel=0.02)
+    assert res.data["folds"] == "session" and res.budget["folds"] == "session"
+    assert res.answer["expected_mm"] < 2.5 * np.sqrt(3) * SIGMA * 1e3
+
+
+class _Quadratic:
+    """A user effect outside the library: δq_j = a_j (r_j − c_j)², c_j the middle of the range."""
+
+    @staticmethod
+    def make():
+        from estcal.effects import JointEffect
+
+        class Quadratic(JointEffect):
+            """Quadratic joint error δq_j = a_j (r_j − c_j)²."""
+
+            name = "quadratic_error"
+            prefixes = ("quad",)
+
+            def features(self, robot, readings, q, theta, context):
+                c = robot.limits[self.joint_index].mean(1)
+                return ((readings[:, self.joint_index] - c) ** 2)[:, None, :]
+
+        return Quadratic
+
+
+@pytest.fixture
+def quadratic_effect():
+    from estcal.effects import EFFECTS, register_effect
+
+    register_effect("quadratic_error", _Quadratic.make())
+    yield "quadratic_error"
+    EFFECTS.pop("quadratic_error", None)
+
+
+def test_an_effect_outside_the_library_is_named_once_registered(puma, quadratic_effect):
+    """A quadratic joint error is outside the library: with the library only, no named term is on another joint
+    (the closest library term of j3 may stand in for it); once the user registers the effect, it is named and
+    recovered."""
+    sim, truth = simulate_hidden(puma, [(quadratic_effect, ["j3"], 10.0)], SIGMA, n_poses=50, measure="points",
+                                 seed=0)
+    library = ["joint_compliance", "backlash", "gear_harmonic", "encoder_gain"]
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, effects=library, budget=False)
+    assert all(j == ("j3",) for _, j in res.named)
+    res2 = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert res2.named == [("quadratic_error", ("j3",))]
+    _recovered(res2, truth)
+
+
+def test_candidates_of_every_kind_and_families(puma):
+    """Every registered effect on every joint it applies to (harmonic orders apart; link tilt by default), and
+    with ``families`` each joint effect once more over all its joints."""
+    from estcal.simulate import simulate
+
+    sim0 = simulate(puma, n_poses=10, measure="points", seed=0)
+    labels = [c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset)]
+    assert "encoder_gain(j3)" in labels and "link_tilt(j2)" in labels and "gear_harmonic[orders=[2]](j6)" in labels
+    assert not any("," in lb for lb in labels)
+    fam = [c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset, families=True)]
+    assert "encoder_gain(j1,j2,j3,j4,j5,j6)" in fam
+
+
+def test_report_folder_and_plots(puma, tmp_path):
+    from estcal.report.diagnose import diagnose_report
+
+    sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=40, measure="points", seed=7)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
+    diagnose_report(tmp_path / "rep", res)
+    assert res.named == [("encoder_gain", ("j2",))]
+    for f in ("partial_residuals.png", "vs_gravity_torque.png", "residual_norm.png", "spectrum.png",
+              "diagnosis.json", "summary.txt", "partial_residuals_extended.png", "budget.png"):
+        assert (tmp_path / "rep" / f).stat().st_size > 0, f
+    d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    assert d["causes"][0]["joints"] == ["j2"]
+
+
+def test_validation_file_of_another_session_is_registered_on_its_seen_postures(puma):
+    """A validation file measured in another session — its frame moved by a rigid motion — is registered on its
+    rows at postures the training measured and scored at its new ones: one figure, the RMSE of the model there,
+    recomputed here from the registered model; the frame's move is reported."""
+    from estcal.estimate.result import pose_errors
+    from estcal.kinematics.transforms import rpy_to_matrix
+
+    sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=80, measure="points", seed=7)
+    train, valid = sim.dataset.subset(np.arange(50)), sim.dataset.subset(np.arange(30, 80))
+    R = rpy_to_matrix(np.array([0.004, 0.001, -0.002]))
+    valid.points = valid.points @ R.T + np.array([0.001, 0.002, 0.0])
+    res = diagnose(sim.nominal_robot, train, validate=[valid], noise=SIGMA)
+    v = res.accuracy["validation"][0]
+    assert (v["n_seen"], v["n_new"], v["registered"]) == (20, 30, True)
+    assert v["frame_moved"]["rotation_mrad"] == pytest.approx(np.linalg.norm([4, 1, 2]), rel=0.05)
+    # the figure recomputed: the base frame refitted on the seen rows with the model held, the new rows scored
+    from estcal.estimate import calibrate_lsq
+
+    base = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
+    reg = calibrate_lsq(Problem(res.robot, [(None, valid.subset(np.arange(20)), NoiseModel(known=False))]), "lm",
+                        free=base, check=False)
+    pos, _ = pose_errors(res.robot, reg.theta, valid.subset(np.arange(20, 50)))
+    assert v["rmse_mm"] == pytest.approx(np.sqrt(np.mean(pos ** 2)) * 1e3, rel=1e-6)
+    assert v["rmse_mm"] < 3 * np.sqrt(3) * SIGMA * 1e3
+    assert "registered on its 20 rows at seen postures" in str(res)
 
 
 def _data_level(A, names, tol=DATA_TOL):
@@ -125,24 +304,6 @@ def test_partial_joint_residual_recovers_an_offset(puma):
     np.testing.assert_allclose(dq[:, 2], delta, rtol=1e-3)
 
 
-def test_report_folder_and_plots(puma, tmp_path):
-    sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=40, measure="points", seed=7)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
-    diagnose_report(tmp_path / "rep", res)
-    assert res.named == [("encoder_gain", ("j2",))]
-    for f in ("partial_residuals.png", "vs_gravity_torque.png", "residual_norm.png", "spectrum.png",
-              "diagnosis.json", "summary.txt", "partial_residuals_extended.png"):
-        assert (tmp_path / "rep" / f).stat().st_size > 0, f
-    d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
-    assert d["causes"][0]["joints"] == ["j2"]
-    # the linearised screen (projection orthogonal to the geometric columns) predicts the
-    # residual of the nonlinear refit of every parameter: the effect is linear in its parameter
-    # and the geometry barely moves
-    e = next(x for x in d["steps"][0]["table"] if x["candidate"] == "encoder_gain(j2)")
-    assert e["rss_linear"] == pytest.approx(e["rss"], rel=0.02)
-    assert e["rss"] < 0.05 * d["steps"][0]["rss_before"]
-
-
 def test_data_level_subset_agrees_with_identify_module(puma):
     """Same priority-ordered base set as estcal.identify.identifiable (GECARO App. III) on a
     PUMA points problem, when both use the same numerical zero."""
@@ -158,69 +319,6 @@ def test_data_level_subset_agrees_with_identify_module(puma):
     keep, _ = _data_level(A, names, tol=1e-8)
     ref = identifiable(A, names, tau_floor=1e-8)
     assert keep == ref.identifiable
-
-
-@pytest.mark.parametrize("hidden, kw, expect", [
-    (("thermal_expansion", None, 8.0), {"temperature": (20.0, 35.0)}, ("thermal_expansion", ())),
-    (("drift", ["j2"], 6.0), {"dt": 30.0}, ("drift", ("j2",))),
-    (("backlash", ["j1"], 6.0), {"record_approach": True}, ("backlash", ("j1",))),
-])
-def test_context_driven_effects(puma, hidden, kw, expect):
-    """Effects driven by recorded columns: temperature, time, approach direction (j1's axis is
-    vertical, so its backlash is only visible through the approach column)."""
-    sim, truth = simulate_hidden(puma, [hidden], SIGMA, n_poses=50, measure="points", seed=8, **kw)
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
-    assert res.named == [expect]
-    for name, v in truth[0]["params"].items():
-        p = res.causes[0].parameters[name]
-        assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * abs(v)
-
-
-class _Quadratic:
-    """A user effect outside the library: δq_j = a_j (r_j − c_j)², c_j the middle of the range."""
-
-    @staticmethod
-    def make():
-        from estcal.effects import JointEffect
-
-        class Quadratic(JointEffect):
-            """Quadratic joint error δq_j = a_j (r_j − c_j)²."""
-
-            name = "quadratic_error"
-            prefixes = ("quad",)
-
-            def features(self, robot, readings, q, theta, context):
-                c = robot.limits[self.joint_index].mean(1)
-                return ((readings[:, self.joint_index] - c) ** 2)[:, None, :]
-
-        return Quadratic
-
-
-@pytest.fixture
-def quadratic_effect():
-    from estcal.effects import EFFECTS, register_effect
-
-    register_effect("quadratic_error", _Quadratic.make())
-    yield "quadratic_error"
-    EFFECTS.pop("quadratic_error", None)
-
-
-def test_quadratic_joint_error_located_not_misnamed(puma, quadratic_effect):
-    """A quadratic joint error is outside the library: the harmonics fit it only as a series of
-    several orders, so the joint is *located* but no mechanism is named ("not explained");
-    once the user registers the effect, it is named."""
-    sim, truth = simulate_hidden(puma, [(quadratic_effect, ["j3"], 10.0)], SIGMA, n_poses=50, measure="points",
-                                 seed=0)
-    library = ["joint_compliance", "backlash", "gear_harmonic", "encoder_gain"]
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, candidates=library)
-    assert res.causes == []
-    assert "not explained" in res.verdict
-    assert [d["joints"] for d in res.located] == [["j3"]]
-    # the user's own effect joins the candidates through the registry
-    res2 = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
-    assert res2.named == [("quadratic_error", ("j3",))]
-    p = res2.causes[0].parameters["quad_j3"]
-    assert abs(p["estimate"] - truth[0]["params"]["quad_j3"]) < 5 * p["std"]
 
 
 def test_gravity_ready_lumped_masses_and_measurement_frame():
@@ -247,101 +345,59 @@ def test_gravity_ready_lumped_masses_and_measurement_frame():
     assert not l2 and [lk.mass for lk in r2.links] == [lk.mass for lk in puma_masses.links]
 
 
-@pytest.mark.parametrize("scope, measure", [("arm", "position"), ("links", "position"), ("links", "pose")])
-def test_thermal_found_on_tool_data(puma, scope, measure):
-    """Thermal expansion hidden in tool-position / full-pose data (no markers) is named, in the
-    right one of its two forms (whole arm vs links only: a 0.3 m tool tells them apart)."""
-    robot = puma.copy()
-    robot.params["tool_tz"] = 0.3
-    sim, truth = simulate_hidden(robot, [("thermal_expansion", None, 10.0, {"scope": scope})], SIGMA, n_poses=50,
-                                 measure=measure, seed=8, temperature=(20.0, 35.0))
-    assert sim.nominal_robot.n_markers == 0
-    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA)
-    assert res.named[:1] == [("thermal_expansion", ())]
-    assert res.causes[0].options.get("scope", "arm") == scope
-    p = res.causes[0].parameters["thermal_alpha"]
-    v = truth[0]["params"]["thermal_alpha"]
-    assert abs(p["estimate"] - v) < 5 * p["std"] + 0.02 * abs(v)
+def test_compliance_past_a_dead_zone_reads_together(puma):
+    """A joint that gives only past a torque threshold τf (friction or a preload) is, beyond it, a compliance plus
+    a negative backlash by the load's side: c·τ − c·τf·sign τ. Simulated so (c = 3e-5 rad/(N·m), τf = 4 N·m on
+    j3), both are named and the answer reads them together, the threshold |b|/c within three standard
+    deviations (propagated from the two estimates) of τf."""
+    from estcal.simulate import NoiseModel as SimNoise, simulate
+
+    c, tf = 3e-5, 4.0
+    sim = simulate(puma, n_poses=60, measure="points", errors="random",
+                   error_std={"angle": 5e-4, "length": 5e-4, "offset": 1e-3}, seed=3, noise=SimNoise(SIGMA, SIGMA),
+                   effects=[{"effect": "joint_compliance", "joints": ["j3"], "params": {"compliance_j3": c}},
+                            {"effect": "backlash", "joints": ["j3"], "params": {"backlash_j3": -c * tf}}])
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False)
+    assert sorted(res.named) == [("backlash", ("j3",)), ("joint_compliance", ("j3",))]
+    p = {n: v for cz in res.causes for n, v in cz.parameters.items()}
+    cv, bv = p["compliance_j3"], p["backlash_j3"]
+    ratio = -bv["estimate"] / cv["estimate"]
+    sd = ratio * np.hypot(bv["std"] / bv["estimate"], cv["std"] / cv["estimate"])
+    assert abs(ratio - tf) < 3 * sd
+    (note,) = res.terms["together"]
+    assert note.startswith("j3:") and f"{ratio:.2g} N·m" in note
+    assert any(line.startswith("  together, j3") for line in res.answer_lines())
 
 
-def test_family_candidates():
-    """Each joint effect is also a candidate over all its joints; a compound effect of weak per-joint
-    terms (encoder gain on every joint, each at a noncentrality ≈ 7, below the single-joint
-    threshold) is named whole with families and only in part without."""
-    from estcal.simulate import NoiseModel as SimNoise
-    from estcal.simulate import simulate
-
-    puma = load_robot("puma560_masses")
-    sim0 = simulate(puma, n_poses=10, measure="points", seed=0)
-    labels = [c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset)]
-    assert "encoder_gain(j1,j2,j3,j4,j5,j6)" in labels and "encoder_gain(j3)" in labels
-    assert not any("," in lb for lb in (c.label for c in default_candidates(sim0.nominal_robot, sim0.dataset,
-                                                                             families=False)))
-    js = ["j1", "j2", "j3", "j4", "j5", "j6"]
-    kw = dict(n_poses=50, measure="points", errors="random", seed=3,
-              error_std={"angle": 5e-4, "length": 5e-4, "offset": 1e-3},
-              effects=[{"effect": "encoder_gain", "joints": js}])
-    # per-joint noncentrality λ_j of a unit gain, from noise-free data: χ² gain of that column alone
-    lam = {}
-    for j in js:
-        sim = simulate(puma, effect_params={f"encgain_{k}": (1e-4 if k == j else 0.0) for k in js},
-                       noise=SimNoise(position=0.0, orientation=0.0), **kw)
-        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, max_effects=1, n_refit=0,
-                       candidates=[Candidate("encoder_gain", [j])])
-        row = res.steps[0]["table"][0]
-        lam[j] = res.steps[0]["rss_before"] - row["rss_linear"]
-    gains = {f"encgain_{j}": 1e-4 * np.sqrt(7.0 / lam[j]) for j in js}
-    sim = simulate(puma, effect_params=gains, noise=SimNoise(position=SIGMA, orientation=SIGMA), **kw)
-    named = {}
-    for fam in (False, True):
-        res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, families=fam)
-        named[fam] = {j for e, jj in res.named if e == "encoder_gain" for j in jj}
-        assert {e for e, _ in res.named} <= {"encoder_gain"}
-    # without families the weak single-joint terms are marginal: at most a part, and none that most
-    # posture-grouped folds name (the stability rule)
-    assert named[True] == set(js) and len(named[False]) < 3
+@pytest.mark.parametrize("seed", [2, 6])
+def test_large_geometric_errors_measured_by_one_point_reach_the_noise(puma, seed):
+    """Geometric errors of 1 mm / 1 mrad (≈ 60 noise σ at the tool) and no effect, one point per posture: the
+    model keeps the geometry the data need, as least squares does, and predicts new postures at the noise of a
+    point (√3 σ). Grown from an empty model, the evidence search stopped with 9 of the 18 identifiable
+    parameters on seed 6 (0.59 mm at new postures) and named a gear harmonic on seed 2 (0.93 mm)."""
+    sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=50, measure="position", seed=seed,
+                             error_std={"angle": 1e-3, "length": 1e-3, "offset": 1e-3})
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, budget=False)
+    assert res.causes == [], res.named
+    assert res.answer["expected_mm"] < 1.3 * np.sqrt(3) * SIGMA * 1e3, res.answer
 
 
-def test_validation_split_into_seen_and_new_postures(puma):
-    """diagnose --validate reports the rows at postures it was fitted on apart from the new ones
-    (docs/real-data.md): the rows are built so that which is which is known independently."""
-    import warnings
+def test_rigid_error_per_posture_does_not_absorb_a_geometric_error(tmp_path):
+    """Fleet robot 4 of seed 1 (pose data, 0.05 mm / 0.5 mrad, no effect; a −1.8 mm error of d_4): when the rigid
+    error per posture was estimated from the first round's fit — before the evidence search had kept ``offset_3``,
+    which carries that error — it absorbed the error (1.2 mm, 1 mrad per posture), the whitened search never took
+    the parameter back, and the model scored 1.3 mm on the robot's validation poses with a thermal expansion
+    named. Estimated from the converged fit, the model reaches the noise and names nothing."""
+    from estcal.simulate.fleet import FleetSpec
 
-    from estcal.base.errors import EstcalWarning
-    from estcal.estimate.result import pose_errors
-
-    sim, _ = simulate_hidden(puma, [("encoder_gain", ["j2"], 10.0)], SIGMA, n_poses=80, measure="points", seed=7)
-    train, valid = sim.dataset.subset(np.arange(50)), sim.dataset.subset(np.arange(30, 80))
-    res = diagnose(sim.nominal_robot, train, validate=[valid], noise=SIGMA, budget=False)
-    vp = res.rmse_mm["validation_postures"]
-    assert (vp["seen"]["n_rows"], vp["new"]["n_rows"], vp["only_seen"]) == (20, 30, False)
-    for part, rows in (("seen", np.arange(20)), ("new", np.arange(20, 50))):
-        for label, robot in (("geometric", res.geometric_robot), ("extended", res.robot)):
-            pos, _ = pose_errors(robot, robot.params.values, valid.subset(rows))
-            assert vp[part][label] == pytest.approx(np.sqrt(np.mean(pos ** 2)) * 1e3, rel=1e-9)
-    assert "valid at new postures (30 rows)" in str(res)
-    json.dumps(res.to_dict())
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
-        res = diagnose(sim.nominal_robot, train, validate=[train.subset(np.arange(10, 30))], noise=SIGMA,
-                       budget=False)
-    assert res.rmse_mm["validation_postures"]["only_seen"]
-    assert any(issubclass(x.category, EstcalWarning) and "memory" in str(x.message) for x in w)
-
-
-def test_the_table_cv_and_the_nested_cv_are_told_apart():
-    """The table's extended CV refits causes chosen on all rows (optimistic by that choice); the budget's nested
-    CV replays the choice per fold. When causes are named the text says which is which, and says plainly when
-    the nested figure is no better than the geometric model's."""
-    from types import SimpleNamespace
-
-    from estcal.discrepancy.diagnose import DiagnosisResult
-
-    note = lambda **kw: DiagnosisResult._cv_note(SimpleNamespace(**kw))  # noqa: E731
-    b = {"nested": True, "named_mm": 4.838, "geometric_mm": 4.718}
-    line = " ".join(note(causes=["c"], budget=b))
-    assert "4.838 mm against 4.718 mm geometric" in line and "does not lower the error at new postures" in line
-    better = " ".join(note(causes=["c"], budget=dict(b, named_mm=3.9)))
-    assert "3.900 mm" in better and "does not lower" not in better
-    assert note(causes=[], budget=b) == [] and note(causes=["c"], budget=None) == []
-    assert note(causes=["c"], budget=dict(b, nested=False)) == []
+    spec = FleetSpec(robots=8, robot="puma560_masses", poses=50, validation_poses=50, measure="pose",
+                     noise_pos=5e-5, noise_rot=5e-4, p_effect=0.5,
+                     effects=("gear_harmonic", "encoder_gain", "joint_compliance"), seed=1)
+    g = spec.generate(4)
+    assert not g.effects
+    res = diagnose(g.nominal, g.dataset, validate=[g.validation], noise=NoiseModel(position=5e-5, orientation=5e-4),
+                   rng=0, budget=False)
+    assert res.causes == [], res.named
+    floor = np.sqrt(3) * 0.05
+    assert res.answer["expected_mm"] < 1.3 * floor, res.answer
+    assert res.accuracy["validation"][0]["rmse_mm"] < 1.3 * floor, res.accuracy["validation"]

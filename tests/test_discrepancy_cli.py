@@ -38,11 +38,12 @@ def test_cli_diagnose_names_the_hidden_effect(hidden_case, tmp_path):
                                  "--json", str(out), "--report", str(tmp_path / "rep"),
                                  "--validate", str(held)])
     assert r.exit_code == 0, r.output
-    assert "joint_compliance" in r.output
+    assert "joint compliance of j3:" in r.output
     d = json.loads(out.read_text())
     assert [(c["effect"], c["joints"]) for c in d["causes"]] == [("joint_compliance", ["j3"])]
-    assert d["rmse_mm"]["extended"]["cv"] < d["rmse_mm"]["geometric"]["cv"]
-    assert d["rmse_mm"]["extended"]["validation"] is not None
+    assert d["budget"]["model_mm"] < d["budget"]["geometry_mm"]
+    v = d["accuracy"]["validation"]
+    assert len(v) == 1 and v[0]["n_new"] == 8 and v[0]["rmse_mm"] < 3 * d["answer"]["expected_mm"]
     assert (tmp_path / "rep" / "partial_residuals.png").exists()
     v = truth[0]["params"]["compliance_j3"]
     p = d["causes"][0]["parameters"]["compliance_j3"]
@@ -100,3 +101,21 @@ def test_detection_power_quick(tmp_path):
     d = json.loads(out.read_text())
     assert {"power", "false_positive", "config"} <= set(d)
     assert all(0 <= x["rate"] <= 1 for x in d["power"])
+
+
+def test_cli_diagnose_effects_none_is_the_geometry_alone(hidden_case, tmp_path):
+    """``--effects none``: no effect term is a candidate, the model is the geometry and the budget's model line equals
+    its geometry line; the hidden compliance stays in what is unexplained (far above the default's answer)."""
+    sim, _ = hidden_case
+    csv = write_dataset(tmp_path / "data.csv", sim.dataset)
+    outs = {}
+    for name, extra in (("none", ["--effects", "none"]), ("default", [])):
+        out = tmp_path / f"{name}.json"
+        r = CliRunner().invoke(app, ["diagnose", str(csv), "--robot", "puma560_masses", "--noise-pos-mm",
+                                     str(SIGMA * 1e3), "--known-noise", "--json", str(out), *extra])
+        assert r.exit_code == 0, r.output
+        outs[name] = (r.output, json.loads(out.read_text()))
+    text, d = outs["none"]
+    assert "none considered" in text and d["causes"] == [] and d["terms"]["effects_considered"] == 0
+    assert d["budget"]["model_mm"] == pytest.approx(d["budget"]["geometry_mm"], rel=1e-9)
+    assert d["answer"]["expected_mm"] > 3 * outs["default"][1]["answer"]["expected_mm"]

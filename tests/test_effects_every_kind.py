@@ -42,7 +42,7 @@ def test_thermal_reaches_every_measurement_kind(kind, scope):
     ds.context["temperature"] = np.random.default_rng(4).uniform(25.0, 45.0, ds.n)
     prob = Problem(robot, [(_method(kind), ds)])
     theta = prob.params.values.copy()
-    ia = prob.params.index("thermal_alpha")
+    ia = prob.params.index(robot.effects[-1].param_names[0])  # thermal_alpha, or thermal_alpha_links
     theta[ia] = 2e-4  # large, so the O(αΔT) terms would show
     rows = prob.evaluate(theta)
     h = 1e-7
@@ -75,7 +75,7 @@ def test_thermal_scopes_closed_form():
     rigid = base.kinematics(q, jacobian=False)
     for scope in ("arm", "links"):
         robot = base.add_effect(make_effect("thermal_expansion", base, scope=scope))
-        robot.params["thermal_alpha"] = alpha
+        robot.params[robot.effects[-1].param_names[0]] = alpha
         k = robot.kinematics(q, context={"temperature": temp}, jacobian=False)
         np.testing.assert_allclose(k.R, rigid.R, atol=1e-15)
         for i in range(8):

@@ -103,17 +103,18 @@ def test_a_simulated_tilt_is_recovered_where_joint_compliance_and_geometry_canno
     assert fit(no_tilt).sigma0 > 3
 
 
-def test_diagnosis_screens_link_tilt_only_when_asked_and_only_on_loaded_joints():
-    """``default_candidates`` leaves ``link_tilt`` out of the default screening (docs/effects.md says why) and,
-    asked for it, offers it on every joint with a moment across its axis — not on a joint that carries no
-    mass (the PUMA's wrist with the payload and the last links massless)."""
+def test_diagnosis_screens_link_tilt_only_on_loaded_joints():
+    """``default_candidates`` offers ``link_tilt`` (a load term of the diagnosis, screened by default) on every
+    joint with a moment across its axis — not on a joint that carries no mass (the PUMA's wrist with the payload
+    and the last links massless)."""
     from estcal.discrepancy.diagnose import default_candidates
     from estcal.io.dataset import Dataset
 
     base = _heavy_puma()
     q = base.random_readings(20, np.random.default_rng(3))
     data = Dataset(list(base.joint_names), q, "points", points=base.kinematics(q, jacobian=False).points)
-    assert not any(c.effect == "link_tilt" for c in default_candidates(base, data))
+    assert [c.joints for c in default_candidates(base, data) if c.effect == "link_tilt"] == \
+        [[j] for j in base.joint_names]
     asked = default_candidates(base, data, effects=["link_tilt"], families=False)
     assert [c.joints for c in asked] == [[j] for j in base.joint_names]
     light = robot_to_dict(base)

@@ -53,13 +53,13 @@ def test_the_api_and_the_diagnosis_read_a_number_alike(monkeypatch):
     class Stop(Exception):
         pass
 
-    def spy(robot, data, noise, **kw):  # the first fit of the diagnosis
+    def spy(robot, data, noise, **kw):  # the candidates of the diagnosis, its first use of the noise
         seen["noise"] = noise
         raise Stop
 
     import importlib
 
-    monkeypatch.setattr(importlib.import_module("estcal.discrepancy.diagnose"), "fit_geometric", spy)
+    monkeypatch.setattr(importlib.import_module("estcal.discrepancy.diagnose"), "build_terms", spy)
     sim = estcal.simulate.simulate("puma560", n_poses=20, measure="pose", noise=(5e-5, 5e-4), seed=3)
     with pytest.raises(Stop):
         diag_mod(sim.nominal_robot, sim.dataset, noise=5e-5)

@@ -126,9 +126,8 @@ def test_prediction_at_target_postures_beyond_the_training_ones_matches_monte_ca
     # zero and used at 100 postures within ±0.7π: the nested CV's average error is that of postures like
     # the training ones and is optimistic there; the prediction from the targets' readings is not. The
     # truth: the mean squared error at the targets over refits on 8 noise draws (+ the targets' own noise).
-    from estcal.discrepancy.budget import error_budget, measured_points, predicted_at
+    from estcal.discrepancy import diagnose
     from estcal.kinematics.robots import puma560
-    from estcal.methods import NoiseModel
     from estcal.simulate import simulate
 
     sigma = 2e-4
@@ -140,14 +139,13 @@ def test_prediction_at_target_postures_beyond_the_training_ones_matches_monte_ca
     for draw in range(8):
         data = sim.dataset.subset(slice(None))
         data.points = sim.dataset.points + sigma * np.random.default_rng(100 + draw).standard_normal(data.points.shape)
-        b = error_budget(sim.nominal_robot, data, NoiseModel(position=sigma, known=True), level="full", k_folds=5,
-                         spaces=())
-        e = measured_points(targets) - b.extra["fitted"].predict(targets)
-        truth.append(np.mean(np.sum(e ** 2, -1)) + 3 * sigma ** 2)
-        no_measurement = targets.subset(slice(None))
-        no_measurement.points = np.full_like(targets.points, np.nan)  # readings only
-        at.append(predicted_at(b, no_measurement))
-        cv.append(b.predicted_validation_mm)
+        res = diagnose(sim.nominal_robot, data, validate=[targets], noise=sigma, effects=(), geometric="full",
+                       time_blocks=False)
+        v = res.accuracy["validation"][0]
+        assert v["n_new"] == targets.n and not v["registered"]
+        truth.append((v["rmse_mm"] * 1e-3) ** 2 + 3 * sigma ** 2)
+        at.append(v["predicted_mm"])
+        cv.append(res.answer["expected_mm"])
     truth_mm = np.sqrt(np.mean(truth)) * 1e3
     assert np.mean(at) == pytest.approx(truth_mm, rel=0.3), (np.mean(at), truth_mm)
     assert np.mean(cv) < 0.75 * truth_mm, (np.mean(cv), truth_mm)
@@ -162,13 +160,12 @@ def test_region_and_prediction_cover_a_misspecified_model_used_beyond_its_joint_
     import sys
     from pathlib import Path
 
-    from estcal.discrepancy.budget import error_budget, predicted_at, region_at
+    from estcal.discrepancy import diagnose
     from estcal.kinematics.robots import puma560
-    from estcal.methods import NoiseModel
     from estcal.simulate import simulate
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_residual_budget import SIGMA, _noisy, _tilted
+    from test_residual_budget import _noisy, _tilted
 
     cover, pred_sq, meas_sq, beyond = [], [], [], []
     for draw in range(8):
@@ -178,12 +175,8 @@ def test_region_and_prediction_cover_a_misspecified_model_used_beyond_its_joint_
         sim = simulate(puma560(), readings=np.r_[Q, Qt], measure="points", errors="random", n_points=2, seed=draw)
         data = _noisy(sim, _tilted(sim, 3, 3e-3), 100 + draw)
         train, targets = data.subset(np.arange(20)), data.subset(np.arange(20, 60))
-        b = error_budget(sim.nominal_robot, train, NoiseModel(position=SIGMA, known=False), level="full", k_folds=5,
-                         spaces=())
-        r = region_at(b, targets)
-        readings_only = targets.subset(slice(None))
-        readings_only.points = np.full_like(targets.points, np.nan)
-        assert predicted_at(b, readings_only) == pytest.approx(r["predicted_mm"], rel=1e-12)
+        res = diagnose(sim.nominal_robot, train, validate=[targets], effects=(), geometric="full", time_blocks=False)
+        r = res.accuracy["validation"][0]
         cover.append(r["coverage"])
         pred_sq.append(r["predicted_mm"] ** 2)
         meas_sq.append(r["rmse_mm"] ** 2)
@@ -224,12 +217,11 @@ def test_slope_upper_is_the_profile_likelihood_bound_and_covers():
 
 
 def test_validation_rows_extrapolating_farther_than_the_nested_cv_are_flagged():
-    """``reach_at``: joint 2 of a PUMA trained on [0, 0.3π]; targets inside the range are not flagged, targets at
-    −0.6π (twice the range beyond it, farther than any held-out posture of the nested CV went beyond its fold's
-    range) are, with the joint named — the distance recomputed here from the readings."""
-    from estcal.discrepancy.budget import budget_lines, error_budget, reach_at, region_at
+    """``reach_at``: joint 2 of a PUMA trained on [0, 0.3π]; targets at −0.6π (twice the range beyond it, farther
+    than any held-out posture of the nested CV went beyond its fold's range) are flagged, with the joint named —
+    the distance recomputed here from the readings — and the text says the prediction is untested there."""
+    from estcal.discrepancy import diagnose
     from estcal.kinematics.robots import puma560
-    from estcal.methods import NoiseModel
     from estcal.simulate import simulate
 
     rng = np.random.default_rng(3)
@@ -240,26 +232,19 @@ def test_validation_rows_extrapolating_farther_than_the_nested_cv_are_flagged():
     sim = simulate(puma560(), readings=np.r_[Q, far], measure="position", errors="random", seed=3,
                    noise={"position": 1e-4})
     train, targets = sim.dataset.subset(np.arange(24)), sim.dataset.subset(np.arange(24, 30))
-    b = error_budget(sim.nominal_robot, train, NoiseModel(position=1e-4, known=False), level="full", k_folds=4,
-                     spaces=())
-    cv = b.extra["extrapolation"]["cv_reach_max"]
+    res = diagnose(sim.nominal_robot, train, validate=[targets], effects=(), geometric="full", k_folds=4,
+                   time_blocks=False)
+    cv = res.budget["extrapolation"]["cv_reach_max"]
     assert 0.0 < cv < 2.0  # the folds' held-out postures do extrapolate, but not that far
-    inside = reach_at(b, Q[:5])
-    assert inside["reach_max"] == 0.0 and inside["beyond_cv_reach"] == 0.0
-    r = region_at(b, targets)
+    r = res.accuracy["validation"][0]
     lo, hi = Q[:, 1].min(), Q[:, 1].max()
     assert r["reach_joint"] == sim.nominal_robot.joint_names[1]
     assert r["reach_max"] == pytest.approx((lo + 0.6 * np.pi) / (hi - lo), rel=1e-12)
     assert r["beyond_cv_reach"] == 1.0
-    d = b.to_dict()
-    d["validation"] = [dict(r, path="far.csv")]
-    text = "\n".join(budget_lines(d))
-    assert "extrapolate farther than the CV tried" in text and sim.nominal_robot.joint_names[1] in text
-    assert "untested" in text
-    assert "fitted_readings" not in d
-    # one training session: the text says the region has no session-to-session term; with two it does not
-    assert d["training_sessions"] == 1 and "one training session" in text
-    two = error_budget(sim.nominal_robot, train, NoiseModel(position=1e-4, known=False), level="full", k_folds=4,
-                       spaces=(), sessions=np.arange(24) % 2)
-    d2 = dict(two.to_dict(), validation=[dict(region_at(two, targets), path="far.csv")])
-    assert d2["training_sessions"] == 2 and "one training session" not in "\n".join(budget_lines(d2))
+    text = str(res)
+    assert "extrapolate farther than the cross-validation tried" in text and "untested" in text
+    # readings inside the training ranges are not flagged
+    from estcal.discrepancy.budget import reach_at
+
+    inside = reach_at(res.budget, Q, Q[:5], sim.nominal_robot.joint_names)
+    assert inside["reach_max"] == 0.0 and inside["beyond_cv_reach"] == 0.0

@@ -382,16 +382,18 @@ def test_next_pose_report(data, calib, captured):
 
 # ------------------------------------------------------------------ diagnose
 def test_diagnose_report(tmp_path, captured):
+    from estcal.discrepancy import diagnose, partial_joint_residuals
     from estcal.discrepancy.hidden import simulate_hidden
     from estcal.io.robotfile import load_robot
+    from estcal.methods import NoiseModel, Problem
 
     sigma = 5e-5
     sim, _ = simulate_hidden(load_robot("puma560_masses"), [("joint_compliance", ["j3"], 10.0)], sigma,
                              n_poses=30, measure="position", seed=4)
     csv = write_dataset(tmp_path / "data.csv", sim.dataset)
     folder = tmp_path / "rep"
-    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3), "--effects",
-             "joint_compliance,encoder_gain", "--folds", "3", "--max-effects", "1", "--json", str(tmp_path / "d.json"),
+    _invoke(["diagnose", str(csv), "-r", "puma560_masses", "--noise-pos-mm", str(sigma * 1e3), "--known-noise",
+             "--effects", "joint_compliance,encoder_gain", "--folds", "3", "--json", str(tmp_path / "d.json"),
              "--report", str(folder)])
     js = json.loads((tmp_path / "d.json").read_text())
     page = _check_folder(folder)
@@ -400,16 +402,21 @@ def test_diagnose_report(tmp_path, captured):
     assert [(r[0], r[1]) for r in rows] == [("joint_compliance", "j3")]
     c = js["causes"][0]
     v = c["parameters"][rows[0][2]]
-    np.testing.assert_allclose([_num(rows[0][3]), _num(rows[0][4]), _num(rows[0][5])],
-                               [v["estimate"], v["std"], c["delta_bic"]], rtol=1e-5)
-    rm = {r[0]: r for r in _body(page, "rmse")}
-    for k in ("geometric", "extended"):
-        assert _num(rm[k][1]) == pytest.approx(js["rmse_mm"][k]["train"], rel=1e-5)
-        assert _num(rm[k][2]) == pytest.approx(js["rmse_mm"][k]["cv"], rel=1e-5)
-    # partial residuals: per joint, x = the joint readings, y = δq̂ (mrad) of the JSON analysis
-    dq = np.array(js["analysis"]["partial_joint_residuals_rad"])
+    np.testing.assert_allclose([_num(rows[0][3]), _num(rows[0][4]), _num(rows[0][6])],
+                               [v["display"][0], v["display"][1], c["ln_bf"]], rtol=1e-5)
+    acc = {r[0]: r for r in _body(page, "accuracy")}
+    assert _num(acc["expected at new postures"][1]) == pytest.approx(js["answer"]["expected_mm"], rel=1e-5)
+    assert _num(acc["95 % of points within"][1]) == pytest.approx(js["answer"]["bound95_mm"], rel=1e-5)
+    # partial residuals: per joint, x = the joint readings, y = δq̂ (mrad) of the model's geometry alone (its effects
+    # at zero), computed here by the analysis function on the model the same diagnosis returns
+    res = diagnose(load_robot("puma560_masses"), sim.dataset, noise=sigma, effects=["joint_compliance", "encoder_gain"],
+                   k_folds=3)
+    rb = res.robot
+    geo = np.where(np.array([k == "effect" for k in rb.params.kinds]), 0.0, rb.params.values)
+    dq, _ = partial_joint_residuals(Problem(rb, [(None, res.fit_data, NoiseModel.parse(sigma, known=True))]), geo)
     axes = [ax for ax in captured["partial_residuals.png"].axes if ax.get_lines()]
+    assert len(axes) == dq.shape[1]
     for j, ax in enumerate(axes):
         ln = ax.get_lines()[0]
         np.testing.assert_allclose(ln.get_xdata(), sim.dataset.readings[:, j], rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(ln.get_ydata(), dq[:, j] * 1e3, rtol=1e-12)
+        np.testing.assert_allclose(ln.get_ydata(), dq[:, j] * 1e3, rtol=1e-9, atol=1e-9)

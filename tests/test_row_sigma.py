@@ -100,13 +100,18 @@ def test_calibrate_and_diagnose_print_and_write_the_noise_per_axis(tmp_path):
     path = tmp_path / "hetero.csv"
     write_dataset(path, d)
     runner = CliRunner()
-    for cmd in (["calibrate", str(path), "--robot", "puma560", "--level", "joint_offset"],
-                ["diagnose", str(path), "--robot", "puma560", "--max-effects", "1", "--no-budget", "--folds", "3"]):
+    for cmd in (["calibrate", str(path), "--robot", "puma560", "--level", "joint_offset"],):
         out = tmp_path / f"{cmd[0]}.json"
         r = runner.invoke(app, cmd + ["--row-sigma-mm", "sig_mm", "--json", str(out)])
         assert r.exit_code == 0, r.output
         assert "measurement noise (REML, per axis of the measuring frame): position x" in r.output
         mn = json.loads(out.read_text())["measurement_noise"]
         assert {"position_x_mm", "position_y_mm", "position_z_mm"} <= set(mn) and "REML" in mn["estimated"]
+    # diagnose weighs the rows by the column too (its noise is the rows' weights; the scale is fitted)
+    out = tmp_path / "diagnose.json"
+    r = runner.invoke(app, ["diagnose", str(path), "--robot", "puma560", "--no-budget", "--folds", "3",
+                            "--row-sigma-mm", "sig_mm", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.read_text())["noise"]["row_sigma"] == "sig_mm"
     r = runner.invoke(app, ["calibrate", str(path), "--robot", "puma560", "--row-sigma-mm", "nope"])
     assert r.exit_code == 2 and "no column 'nope'" in r.output

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 
 import numpy as np
@@ -186,3 +187,110 @@ def test_design_restarts_identical_on_dask(client):
     b = optimise_continuous(model, 3, "test-pose", n_starts=4, rng=0, q_test=q0, scheduler=client)
     np.testing.assert_array_equal(a.readings, b.readings)
     assert a.info == b.info and a.value == b.value and not a.info["failed_starts"]
+
+
+def test_on_done_sees_every_task_once_as_it_arrives(client):
+    tasks = [4.0, -1.0, 9.0, 16.0, 25.0, -4.0, 36.0]
+    for sched in ("serial", client):
+        seen = []
+        out = run_tasks(math.sqrt, tasks, scheduler=sched, chunksize=2, on_done=lambda *a: seen.append(a))
+        assert sorted(i for i, _, _ in seen) == list(range(len(tasks)))
+        for i, value, failure in seen:
+            assert (value, failure) == ((out.results[i], None) if i not in out.failed else
+                                        (None, out.failures[[f.index for f in out.failures].index(i)]))
+        assert {i for i, _, f in seen if f is not None} == {1, 5}
+
+
+# ------------------------------------------------------------ fleets generated on demand, resumed runs
+def test_generated_fleet_is_the_folder_fleet_without_files(tmp_path):
+    """The same seed gives the same robots generated in memory as written to folders (up to the CSV's
+    15 digits), and the same calibrations."""
+    from estcal.io import load_dataset
+    from estcal.io.robotfile import load_robot
+    from estcal.simulate.fleet import FleetSpec, simulate_fleet
+    from estcal.workflows.fleet import discover_fleet, run_fleet
+
+    simulate_fleet(3, tmp_path / "files", n_poses=20, n_validate=10, seed=4, p_effect=1.0, progress=False)
+    spec = simulate_fleet(3, tmp_path / "gen", n_poses=20, n_validate=10, seed=4, p_effect=1.0, on_demand=True)
+    assert sorted(p.name for p in (tmp_path / "gen").iterdir()) == ["fleet.yaml", "robot.yaml"]
+    assert FleetSpec.read(tmp_path / "gen" / "fleet.yaml") == spec
+    rob = load_robot(tmp_path / "files" / "robot.yaml")
+    for i in range(3):
+        g, folder = spec.generate(i), tmp_path / "files" / spec.name(i)
+        for name, ds in (("data.csv", g.dataset), ("validate.csv", g.validation)):
+            ref = load_dataset(folder / name, rob)
+            assert ds.n == ref.n
+            np.testing.assert_allclose(ds.readings, ref.readings, rtol=0, atol=1e-13)
+            np.testing.assert_allclose(ds.p, ref.p, rtol=0, atol=1e-13)
+            np.testing.assert_allclose(ds.R, ref.R, rtol=0, atol=1e-13)
+        assert g.effects == json.loads((folder / "truth.json").read_text())["fleet"]["effects"]
+    assert [j.name for j in discover_fleet(tmp_path / "gen")] == [j.name for j in discover_fleet(tmp_path / "files")]
+    a, b = run_fleet(tmp_path / "files", progress=False), run_fleet(tmp_path / "gen", progress=False)
+    assert b.n_ok == 3
+    for ra, rb in zip(a.rows, b.rows):
+        assert ra["robot"] == rb["robot"] and ra["n_parameters"] == rb["n_parameters"]
+        for k in ("rmse_before_mm", "rmse_after_mm", "validation_rmse_mm"):
+            assert rb[k] == pytest.approx(ra[k], rel=1e-7), k
+
+
+def test_fleet_description_errors(tmp_path):
+    from estcal.base.errors import InputError
+    from estcal.simulate.fleet import simulate_fleet
+    from estcal.workflows.fleet import discover_fleet
+
+    simulate_fleet(2, tmp_path, on_demand=True)
+    spec_file = tmp_path / "fleet.yaml"
+    good = spec_file.read_text()
+    for text, message in ((good.replace("poses: 50", "pozes: 50", 1), "unknown key.*pozes"),
+                          (good.replace("p_effect: 0.5", "p_effect: 2"), "p_effect = 2.0 is out of range"),
+                          (good.replace("robots: 2", "robots: many"), "fleet.yaml: simulated_fleet"),
+                          ("robots: 3\n", "expected a 'simulated_fleet:' mapping")):
+        spec_file.write_text(text)
+        with pytest.raises(InputError, match=message):
+            discover_fleet(tmp_path)
+    spec_file.write_text(good)
+    (tmp_path / "robot_0000").mkdir()
+    with pytest.raises(InputError, match="both fleet.yaml .*and robot folders"):
+        discover_fleet(tmp_path)
+
+
+def test_fleet_rerun_skips_only_what_is_done_with_the_same_options_and_inputs(fleet, tmp_path):
+    from estcal.workflows.fleet import FleetOptions, run_fleet
+
+    res = tmp_path / "results"
+    first = run_fleet(fleet, results=res, progress=False)
+    assert (first.n_ok, first.n_skipped, [f["robot"] for f in first.failures]) == (3, 0, ["robot_0002"])
+    assert sorted(p.name for p in res.iterdir()) == ["robot_0000.json", "robot_0001.json", "robot_0003.json"]
+    again = run_fleet(fleet, results=res, progress=False)
+    assert (again.n_ok, again.n_skipped) == (3, 3) and again.rows == first.rows
+    assert [f["robot"] for f in again.failures] == ["robot_0002"]  # a failed robot is tried again
+    other = run_fleet(fleet, FleetOptions(level="joint_offset"), results=res, progress=False)
+    assert (other.n_ok, other.n_skipped) == (3, 0)  # other options: nothing reused
+    assert other.rows[0]["n_parameters"] < first.rows[0]["n_parameters"]
+    # changed data, and an unreadable saved row, are redone; the others are skipped
+    data = fleet / "robot_0001" / "data.csv"
+    text = data.read_text()
+    try:
+        run_fleet(fleet, results=res, progress=False)  # the default options' rows again
+        os.utime(data, ns=(data.stat().st_atime_ns, data.stat().st_mtime_ns + 10 ** 9))  # as if rewritten
+        (res / "robot_0003.json").write_text('{"robot": "robot_0003", "key": ')
+        third = run_fleet(fleet, results=res, progress=False)
+        assert (third.n_ok, third.n_skipped) == (3, 1) and third.rows == first.rows
+    finally:
+        data.write_text(text)
+
+
+def test_fleet_cli_says_how_many_it_skipped(tmp_path):
+    from typer.testing import CliRunner
+
+    from estcal.cli.main import app
+
+    gen = tmp_path / "gen"
+    res = CliRunner().invoke(app, ["simulate", "--fleet", "3", "--on-demand", "--out", str(gen), "--n", "15"])
+    assert res.exit_code == 0 and "fleet of 3 robots described in" in res.output, res.output
+    res = CliRunner().invoke(app, ["fleet", str(gen)])
+    assert res.exit_code == 0 and "3 of 3 robots calibrated; 3 run on serial" in res.output, res.output
+    assert sorted(p.name for p in (gen / "_results").iterdir()) == [f"robot_000{i}.json" for i in range(3)]
+    res = CliRunner().invoke(app, ["fleet", str(gen)])
+    assert res.exit_code == 0 and "3 of 3 robots calibrated (3 skipped: done earlier" in res.output, res.output
+    assert CliRunner().invoke(app, ["simulate", "--on-demand"]).exit_code == 2

@@ -231,7 +231,7 @@ def test_diagnose_takes_several_sessions(tmp_path):
 
     robot = puma560()
     ds, _ = simulate_sessions(robot, 2, 15, {}, noise=5e-5, seed=6, error_std=2e-4)
-    res = diagnose(robot, ds, noise=5e-5, approach_from_order=True, k_folds=3, max_effects=1)
+    res = diagnose(robot, ds, noise=5e-5, approach_from_order=True, k_folds=3, budget=False)
     assert isinstance(res.train_data, list) and len(res.train_data) == 2
     files = []
     for i, d in enumerate(ds):

@@ -180,7 +180,7 @@ def test_diagnose_noise_rot_and_known_noise(tmp_path):
     r = runner.invoke(app, ["simulate", "-r", "puma560_masses", "--n", "60", "--measure", "pose", "--noise-pos-mm",
                             "0.05", "--noise-rot-mrad", "0.5", "--seed", "4", "-o", str(data)])
     assert r.exit_code == 0, r.output
-    common = ["diagnose", str(data), "-r", "puma560_masses", "--folds", "3", "--max-effects", "1"]
+    common = ["diagnose", str(data), "-r", "puma560_masses", "--folds", "3", "--no-budget"]
     r = runner.invoke(app, [*common, "--noise-pos-mm", "0.05", "--noise-rot-mrad", "0.5", "--known-noise",
                             "--json", str(tmp_path / "k.json")])
     assert r.exit_code == 0, r.output
@@ -196,6 +196,10 @@ def test_diagnose_noise_rot_and_known_noise(tmp_path):
     assert d["noise"]["known"] and d["noise"]["orientation"] == pytest.approx(5e-5)
     r = runner.invoke(app, [*common, "--json", str(tmp_path / "u.json")])
     assert r.exit_code == 0 and not json.loads((tmp_path / "u.json").read_text())["noise"]["known"]
+    # an option of the former diagnosis is refused with what replaced it, not silently ignored
+    for former in (["--max-effects", "1"], ["--geometric", "prior"], ["--alpha", "0.05"]):
+        r = runner.invoke(app, [*common, *former])
+        assert r.exit_code == 2 and "docs/discrepancy.md" in r.stderr, (former, r.output)
 
 
 def test_design_and_next_pose_write_a_plan_in_the_dataset_layout(tmp_path):

@@ -38,7 +38,7 @@ _NOISE = ("--noise-pos-mm", "--noise-rot-mrad", "--noise-joint-mrad", "--noise-l
 _ERRORS = ("--error-angle-mrad", "--error-length-mm", "--error-offset-mrad", "--error-gain", "--error-angle",
            "--error-length", "--error-offset")
 NUMBER_RULES: list[tuple[tuple, tuple | None, tuple]] = [
-    (("--n", "--n-poses", "--n-candidates", "--restarts", "--random-plans", "--every", "--max-effects", "--points",
+    (("--n", "--n-poses", "--n-candidates", "--restarts", "--random-plans", "--every", "--points",
       "--workers", "--max-iter", "--fleet", "--checkpoint-every"), None, ("int", 1)),
     (("--folds",), None, ("int", 2)),
     (("--show", "--map", "--accuracy-map", "--seed", "--recalibrate"), None, ("int", 0)),

@@ -41,7 +41,6 @@ DIMENSIONLESS = {
     "--points": "number of measured / simulated points",
     "--seed": "random seed",
     "--folds": "cross-validation folds",
-    "--max-effects": "number of effects",
     "--every": "rows between status lines",
     "--show": "number of parameters shown",
     "--model": "Gough model size (42 / 36 parameters)",

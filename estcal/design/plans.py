@@ -546,6 +546,17 @@ def replicate(plan: Plan, k: int, model: DesignModel | None = None, q_test=None,
                 {"base_plan_m": plan.m, "replications": k})
 
 
+def _percentile(v, p) -> float:
+    """``numpy.percentile(v, p)`` (linear interpolation) where a singular plan's criterion is infinite: two
+    infinite neighbours give the infinity, not ``inf − inf`` (NaN and a RuntimeWarning)."""
+    s = np.sort(np.asarray(v, float))
+    k = (len(s) - 1) * float(p) / 100.0
+    lo, hi = int(np.floor(k)), int(np.ceil(k))
+    if s[lo] == s[hi]:
+        return float(s[lo])
+    return float(s[lo] + (s[hi] - s[lo]) * (k - lo))
+
+
 def random_baseline(model: DesignModel, m: int, criterion: str = "D", n_plans: int = 1000, rng=None,
                     q_test=None, J_test=None, replicate: int = 1, chunk: int | None = None,
                     percentiles=(1, 5, 25, 50, 75, 95, 99), keep_values: bool = False,
@@ -574,7 +585,7 @@ def random_baseline(model: DesignModel, m: int, criterion: str = "D", n_plans: i
     v = np.concatenate(vals)
     bad = ~np.isfinite(v) | ((v <= 0) if larger_is_better(crit) else np.zeros(v.shape, bool))
     vf = v[np.isfinite(v)]
-    pct = {int(p) if float(p).is_integer() else p: float(np.percentile(v, p)) for p in percentiles}
+    pct = {int(p) if float(p).is_integer() else p: _percentile(v, p) for p in percentiles}
     return BaselineStats(crit, m, int(n_plans), int(replicate), float(np.min(v)),
                          float(np.mean(vf)) if vf.size else math.inf, float(np.max(v)), pct, int(bad.sum()),
                          v if keep_values else None)

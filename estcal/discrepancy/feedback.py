@@ -223,7 +223,9 @@ def residual_comparison(fit, measured, simulated, robot=None, noise=None) -> dic
                                 if k in ("position", "orientation", "scalar", "known")})
     out = {}
     for label, data in (("measured", measured), ("simulated", simulated)):
-        problem, res, free, _ = fit_geometric(nominal, data, nm, level=d["model"].get("geometric_level", "full"))
+        # the diagnosis's relevance-prior geometry ("sparse") has no unpenalised twin: the full level for both
+        level = d["model"].get("geometric_level", "full")
+        problem, res, free, _ = fit_geometric(nominal, data, nm, level="full" if level == "sparse" else level)
         dq, _ = partial_joint_residuals(problem, res.theta)
         r, mx = _scores(problem.robot, res.theta, [data])
         out[label] = {"rmse_mm": r, "max_mm": mx, "chi2_per_dof": float(res.chi2 / max(res.dof, 1)),

@@ -1,37 +1,9 @@
-"""An honest prediction at new postures: the whole procedure replayed in every outer fold.
+"""A prediction at new postures, and its 95 % region, from the nested cross-validation's held-out errors.
 
-A cross-validation that *chooses* (the geometric level, the causes, the residual GP) and then
-*scores* what it chose is optimistic: the minimum of several noisy CV figures is biased low
-(selection bias; Varma & Simon 2006, Cawley & Talbot 2010). The expected error of the model a
-procedure recommends is the error of the *procedure*: nested cross-validation. Every outer fold
-(posture-grouped) runs the procedure on its training rows only — its own inner CV chooses — and
-scores the model it chose at the held-out postures. :class:`Procedure` says what is chosen;
-:func:`estcal.discrepancy.budget.error_budget` runs the outer folds.
-
-The decisions
--------------
-* **Level** (``level="auto"``): ``joint_offset``, ``aic`` or ``full`` by posture-grouped CV with
-  the one-standard-error rule (Breiman et al. 1984; Hastie, Tibshirani & Friedman, *ESL* §7.10):
-  the simplest level whose CV mean squared error is within one standard error (over the folds)
-  of the lowest. On tens of postures the CV figures of the richer levels scatter by a factor of
-  two from split to split (docs/real-data.md); the rule does not follow that scatter. With
-  ``prior_fit`` the MAP prior model (:mod:`estcal.discrepancy.prior_model`) is one more candidate, and
-  the preferred one: a level replaces it only when its CV error is lower by more than one standard
-  error. The prior model makes no discrete choice of its own (no level, no cause: every term is kept
-  and shrunk by widths the evidence sets), so on the training rows of a fold it is the same model as
-  on all rows, where a level and its causes change from fold to fold; ranked last, as the most
-  complex, it lost the inner choice of most folds on 25 TIAGo postures while winning on 31, and the
-  nested prediction (4.45 mm) described a procedure other than the one the final fit ran (2.99 at
-  new postures); ranked first, every fold chose it and predicted 2.91 (docs/real-data.md). A
-  procedure that chooses it fits it instead of a level and named causes.
-* **Causes**: the diagnosis's selection with its stability rule (``select_effects``: a callable
-  ``(training rows, geometric free set) → effects``; :mod:`estcal.discrepancy.stability`).
-* **Residual GP** (``gp``): ``"never"``; ``"always"`` (the user asked for it: the space whose GP
-  lowers the held-out error most); ``"cv"`` — used only when it lowers the posture-grouped CV
-  RMSE by ≥ 5 % and by more than one standard error over the folds. In an outer fold the inner CV refits the named model and the GP on every inner
-  training part (a GP whose hyperparameters saw the held-out rows, or that is judged on the
-  model's in-sample residual, looks better than it is at new postures: on TIAGo it was chosen in
-  every fold and raised the error from 4.9 to 5.5 mm).
+The error budget (:mod:`estcal.discrepancy.budget`) holds every outer fold's postures out of the whole
+procedure of the diagnosis — its choices included (Varma & Simon 2006; Cawley & Talbot 2010: a CV that
+chooses and then scores its own choice is optimistic) — and keeps each held-out point's error with the
+fold model's prediction covariance there. This module turns them into a prediction and a region.
 
 The prediction region
 ---------------------
@@ -77,121 +49,12 @@ not an expectation.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from estcal.discrepancy.stages import fit_stage_sessions, measured_points
 from estcal.estimate.robust import chi2_ppf  # scipy.stats.chi2.ppf's value without importing scipy.stats (~0.3 s)
-from estcal.validation import grouped_folds
 
-__all__ = ["LEVELS", "PRIOR", "Procedure", "choose_level", "one_se_choice", "region_scores", "conformal_threshold",
-           "region_coverage", "GP_GAIN", "variance_model", "slope_upper", "predicted_rmse_at", "region_sigma",
-           "beyond_leverage"]
-
-#: geometric levels, simplest first (the order of the one-standard-error rule)
-LEVELS = ("joint_offset", "aic", "full")
-#: the name of the MAP prior model as a candidate of the level choice (``Procedure.prior_fit``)
-PRIOR = "prior"
-#: the residual GP is used (``gp="cv"``) when it lowers the held-out RMSE by at least 5 %
-GP_GAIN = 0.95
-
-
-@dataclass
-class Procedure:
-    """What the tool decides from the data — replayed on every outer fold by the nested CV.
-
-    level : a geometric level, or ``"auto"`` (:func:`choose_level` on the rows, one-SE rule).
-    effects : the named effects ``(name, joints, options)`` when ``select_effects`` is None.
-    select_effects : ``f(train_rows, geometric_free) -> effects`` — the diagnosis's cause selection
-        (and stability rule) on those rows only; None: ``effects`` in every fold.
-    gp : ``"never"``, ``"always"`` or ``"cv"`` (module docstring).
-    k_inner : folds of the inner CV.
-    fit : ``f(robot, rows) -> FittedStage`` — the recommended model's own fit, replayed on every outer
-        fold's training rows in place of ``level`` + effects (``level`` then only sets the budget's
-        geometric stage), with every decision it makes inside (e.g. the MAP group-prior model, widths
-        by the evidence: :mod:`estcal.discrepancy.prior_model`); what it decided on a fold is read from
-        ``fitted.result.extra["fold_decision"]`` when present. None: level + effects.
-    label : the recommended model's name in the budget (default ``named`` / ``geometric``).
-    prior_fit : with ``level="auto"``, a further candidate of the level choice, ``"prior"`` — the MAP prior
-        model's fit (:func:`estcal.discrepancy.prior_model.prior_fit`), ranked before the levels by the
-        one-standard-error rule (preferred: module docstring); where it is chosen it is fitted instead of the
-        level and the effects.
-    """
-
-    level: str = "full"
-    effects: tuple = ()
-    select_effects: object = None
-    gp: str = "never"
-    k_inner: int = 5
-    fit: object = None
-    label: str | None = None
-    prior_fit: object = None
-
-    def __post_init__(self):
-        if self.level != "auto" and self.level not in LEVELS:
-            raise ValueError(f"unknown level {self.level!r}; choose auto or one of {LEVELS}")
-        if self.prior_fit is not None and (self.level != "auto" or self.fit is not None):
-            raise ValueError("prior_fit is a candidate of the level choice: give it with level='auto' and no fit")
-        if self.gp not in ("never", "always", "cv"):
-            raise ValueError(f"gp must be never, always or cv, got {self.gp!r}")
-        if self.fit is not None and (self.effects or self.select_effects is not None):
-            raise ValueError("a Procedure with its own fit names no effects: give fit, or effects / select_effects")
-
-    def candidates(self) -> dict:
-        """The further candidates of the level choice (``{"prior": prior_fit}`` or empty)."""
-        return {PRIOR: self.prior_fit} if self.prior_fit is not None else {}
-
-    def effects_for(self, train_rows, free) -> list:
-        if self.select_effects is None:
-            return [tuple(e) for e in self.effects]
-        return [tuple(e) for e in self.select_effects(np.asarray(train_rows), list(free))]
-
-
-def choose_level(robot, data, noise, groups, k: int = 5, rng=0, per_session=None, levels=LEVELS,
-                 max_iter: int = 60, extra=None, fits=None) -> tuple[str, dict]:
-    """The geometric level of ``data`` by posture-grouped CV and the one-standard-error rule.
-
-    Returns ``(level, {level: {"cv_mm": pooled CV RMSE, "se_mm": its standard error}})``; the
-    standard error is that of the fold mean squared errors, carried to the RMSE (δ-method).
-    ``fits``: ``{name: fit(robot, rows) -> FittedStage}`` of further candidates (e.g. ``{"prior":
-    prior_fit(noise)}``, the MAP prior model), fitted on the same folds and ranked *before* the levels: a level
-    replaces such a candidate only when its CV is lower by more than one standard error (module docstring).
-    ``extra``: ``{name: (N, k) squared held-out point errors}`` of candidates held out on the same folds
-    (``grouped_folds(groups, k, rng)``) elsewhere, ranked after the levels (the most complex).
-    """
-    folds = grouped_folds(groups, k, rng)
-    meas = measured_points(data)
-    sqs = {}
-    for lv in list(fits or {}) + list(levels):
-        sq = np.zeros(meas.shape[:2])
-        for test in folds:
-            train = np.setdiff1d(np.arange(data.n), test)
-            if lv in (fits or {}):
-                fs = fit_stage_sessions(robot, data.subset(train), noise, "named", "full", per_session=per_session,
-                                        max_iter=max_iter, fit=fits[lv])
-            else:
-                fs = fit_stage_sessions(robot, data.subset(train), noise, "geometric", lv, per_session=per_session,
-                                        max_iter=max_iter)
-            sq[test] = np.sum((meas[test] - fs.predict(data.subset(test))) ** 2, axis=-1)
-        sqs[lv] = sq
-    sqs.update(extra or {})
-    out = {}
-    for c, sq in sqs.items():
-        fold_mse = np.array([sq[f].mean() for f in folds])
-        rm = np.sqrt(float(sq.mean()))
-        out[c] = {"cv_mm": float(rm * 1e3), "se_mm": float(fold_mse.std(ddof=1) / np.sqrt(len(folds)) / (2 * rm) * 1e3)}
-    return one_se_choice(out), out
-
-
-def one_se_choice(cv: dict) -> str:
-    """The one-standard-error rule on ``{candidate: {"cv_mm", "se_mm"}}`` (:func:`choose_level`'s figures, in
-    the order of preference): the first candidate whose CV mean squared error is within one standard error of
-    the lowest (the standard error of the fold MSEs, ``se_mm`` being its δ-method image on the RMSE)."""
-    mse = {c: (v["cv_mm"] * 1e-3) ** 2 for c, v in cv.items()}
-    best = min(mse, key=mse.get)
-    se_best = 2.0 * cv[best]["cv_mm"] * cv[best]["se_mm"] * 1e-6
-    return next(c for c in cv if mse[c] <= mse[best] + se_best)
+__all__ = ["region_scores", "conformal_threshold", "region_coverage", "variance_model", "slope_upper",
+           "predicted_rmse_at", "region_sigma", "beyond_leverage"]
 
 
 def region_scores(e, S, tau2: float) -> np.ndarray:

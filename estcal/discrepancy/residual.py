@@ -1,5 +1,10 @@
 """Structure no library effect explains: a Gaussian-process model of the residual.
 
+Not a layer of the diagnosis any more: fitted on the training sessions' residuals, it learned those sessions
+and did not carry to another day (docs/discrepancy.md, "What stays unexplained"). It is kept so that a saved
+model carrying such a layer (``calibration.residual_model``) still predicts in ``fk``, ``compensate`` and
+``export``; the description below is of that layer.
+
 After the geometric model and the named effects, what is left of the measured point
 errors is either noise (unstructured) or a smooth function of where the robot is that
 no effect of the library describes — a bearing wobble whose axis tilt follows its own
@@ -631,7 +636,7 @@ def _joint_gp_blocks_objective(Q, Hs, Y, joint_of, active, m: int):
 NLL_FTOL = 1e-6
 
 #: correction pairs L-BFGS-B keeps (scipy's default 10): at least the 2·(active joints) + 1 dimensions of a
-#: 7–8-joint arm. ``python experiments/gp_memory.py``, every joint GP fit of the budget on the published data
+#: 7–8-joint arm. Measured when this GP was the error budget's last layer (that experiment went with the layer): every joint GP fit of the budget on the published data
 #: and the simulated two-optima cases (50 fits): 7.7 % fewer likelihood evaluations (10.7 % of their cost),
 #: none ending more than half a nat worse than with 10 pairs, from the same start
 LBFGS_MEMORY = 20
@@ -655,7 +660,7 @@ def _restarts(nll, bounds, restarts, gen, maxiter, x0):
     leaves its length scale without gradient — or the box truncating the optimum). The random draws are
     taken only when a restart runs, so a suspect fit sees the same draws as before.
 
-    Evidence for the gate (``python experiments/gp_restarts.py``: every joint GP fit of ``estcal diagnose``'s
+    Evidence for the gate (measured when this GP was ``estcal diagnose``'s last layer, the experiment removed with it: every joint GP fit of the
     error budget on the published data — TIAGo 11-26, 11-30 and both, the three TALOS sessions, UR10; the
     fit on all rows and its five posture-grouped folds — and 36 fits of a simulated likelihood with two
     optima, a short-scale wobble of one wrist joint against "all noise"; each first run repeated, then five

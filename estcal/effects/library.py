@@ -9,7 +9,7 @@ gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic
                                                                  ``harmonic<k>_cos_<j>``
 encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
 thermal_expansion   δx = α · ΔT · (x − o_base)   (every point)    ``thermal_alpha``       1/K
-                    or α · ΔT · (flange − o_base) (links only)
+                    or α · ΔT · (flange − o_base) (links only)    ``thermal_alpha_links``
 drift               δq_j = v_j · (t − t0)                         ``drift_<joint>``       rad/s, m/s
 link_tilt           δx = Σ_j t_j · M⊥_j × (x − o_j) (every point) ``tilt_<joint>``        rad/(N·m)
 ==================  ===========================================  ======================  ===========
@@ -74,22 +74,30 @@ class Backlash(JointEffect):
     When the dataset has a column ``approach_<joint>`` (the sign of the joint
     velocity just before the pose was reached: +1 / −1 / 0), the link lags the
     motor: ``δq_j = −b_j · sign(approach_j)``; this column takes precedence.
+    A context column ``load_side_<joint>`` (±1) fixes the load's side instead of
+    evaluating it at the current parameters: a fit that moves the geometry would
+    otherwise flip it at a posture whose load is near zero, and the residual steps
+    there (``estcal diagnose`` fixes it at the registration fit, then once more at
+    the fitted model).
     """
 
     name = "backlash"
     prefixes = ("backlash",)
 
     def context_keys(self):
-        return ["payload"] + [f"approach_{j}" for j in self.joints]
+        return ["payload"] + [f"approach_{j}" for j in self.joints] + [f"load_side_{j}" for j in self.joints]
 
     def features(self, robot, readings, q, theta, context):
         N = q.shape[0]
         keys = [_ctx(context, f"approach_{j}", N) for j in self.joints]
+        sides = [_ctx(context, f"load_side_{j}", N) for j in self.joints]
         S = np.empty((N, 1, len(self.joints)))
         tau = None
-        for i, (j, a) in enumerate(zip(self.joint_index, keys)):
+        for i, (j, a, side) in enumerate(zip(self.joint_index, keys, sides)):
             if a is not None:
                 S[:, 0, i] = -np.sign(a)
+            elif side is not None:
+                S[:, 0, i] = np.sign(side)
             else:
                 if tau is None:
                     tau = robot.gravity_torques(readings, theta, context)
@@ -196,7 +204,8 @@ class ThermalExpansion(Effect):
     (the flange) does, and the tool and markers, often on a separate
     thermally stable fixture, keep their size: every point moves by the flange's
     displacement ``αΔT (f − o)``. ``ΔT = temperature − T_ref``
-    (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``)
+    (°C, ``T_ref`` = ``reference``, default 20 °C) and ``α`` (``thermal_alpha``; ``thermal_alpha_links``
+    for the links only)
     is in 1/K (steel ≈ 1.2e-5, aluminium ≈ 2.3e-5). Without a ``temperature``
     column the effect falls back to ``ΔT = t − t_reference`` (warm-up proxy; α
     then in 1/s); with neither it is zero.
@@ -232,7 +241,8 @@ class ThermalExpansion(Effect):
 
     @property
     def param_names(self):
-        return ["thermal_alpha"]
+        # one name per form, so that both forms can be candidates of one model (the diagnosis's)
+        return ["thermal_alpha"] if self.scope == "arm" else ["thermal_alpha_links"]
 
     @property
     def param_frames(self):
@@ -334,10 +344,6 @@ class LinkTilt(Effect):
 
     name = "link_tilt"
     prefixes = ("tilt",)
-    #: not among the causes ``estcal diagnose`` screens unless asked (``--effects link_tilt``): on one TIAGo
-    #: session the family is named on all rows but in 1 of 5 posture-grouped folds, and screening it costs
-    #: 1.7 s; the MAP prior model keeps it (docs/effects.md; docs/real-data.md, "A prior instead of a level")
-    screened_by_default = False
 
     def context_keys(self):
         return ["payload"]

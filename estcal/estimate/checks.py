@@ -252,8 +252,10 @@ def generic_identifiable(problem, level, theta, exclude=(), groups=None, exact: 
 
 
 def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bool = False,
-             exclude=()) -> Assessment:
-    """Checks before estimating ``free`` (see module docstring)."""
+             exclude=(), priors: bool = False) -> Assessment:
+    """Checks before estimating ``free`` (see module docstring). ``priors``: every free parameter that is not
+    registration has a proper prior (a MAP fit): a pair that regroups is then determined by the priors, not
+    refused (the conditioning is checked on the fit with its prior rows)."""
     out = Assessment()
     pv = problem.params
     t = problem.terms[0]
@@ -285,7 +287,7 @@ def precheck(problem, free, *, sel=None, level="full", allow_ill_conditioned: bo
     gen = None
     if sel is not None:
         gen = generic_identifiable(problem, level, np.asarray(theta, float), exclude=exclude)
-    elif data.kind in ("position", "points", "pose"):
+    elif data.kind in ("position", "points", "pose") and not priors:
         gen = generic_identifiable(problem, level, np.asarray(theta, float), groups=[list(free)])
         here = select_free(problem, groups=[list(free)], theta=theta, refine_registration=False)
         if gen is not None and len(here.identifiable) < len(gen.identifiable):
@@ -341,6 +343,12 @@ def postcheck(problem, res, *, allow_ill_conditioned: bool = False) -> Assessmen
             A = reduce_system(problem, res.theta, fidx, ck)[0]
         else:
             A, _ = weighted(problem.evaluate(res.theta), fidx)
+        prior_rows = (res.extra.get("prior") or {}).get("std", {})
+        if prior_rows:  # a MAP fit: its prior rows are equations too (the conditioning of AᵀA + diag(1/τ²))
+            P = np.zeros((len(prior_rows), A.shape[1]))
+            for k, (n, sd) in enumerate(prior_rows.items()):
+                P[k, list(res.names).index(n)] = 1.0 / sd
+            A = np.vstack([A, P])
         cond = scaled_condition(A)
     except (ValueError, np.linalg.LinAlgError):
         cond = float("nan")

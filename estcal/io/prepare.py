@@ -54,13 +54,16 @@ def prepare_data(robot, data, preparation: dict | None = None):
     diagnosed model): ``approach_from_order`` — approach columns from the posture order;
     ``session_time`` — ``t`` measured from the first pose of the file, or from its mean time when
     it is ``"centred"`` (a model fitted on several sessions; the absolute time stays in
-    ``columns["t_abs"]``). Effect columns (``approach_<joint>``) are moved into the
-    context in every case.
+    ``columns["t_abs"]``); ``time_source`` — ``"row order"`` when the model's time was the row order
+    of files without a time column (then ``t`` is the row index here too). Effect columns
+    (``approach_<joint>``) are moved into the context in every case.
     """
     if preparation is None:
         preparation = (robot.meta.get("calibration") or {}).get("data_preparation") or {}
     d = derive_approach(data) if preparation.get("approach_from_order") else data
     d = with_effect_context(robot, d)
+    if preparation.get("time_source") == "row order":
+        d.context["t"] = np.arange(d.n, dtype=float)
     if preparation.get("session_time") and "t" in d.context:
         d.columns["t_abs"] = d.context["t"].copy()
         t = d.context["t"]

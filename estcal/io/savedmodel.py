@@ -213,40 +213,33 @@ def robot_covariance(result) -> tuple[list, np.ndarray, dict]:
 
 
 def save_diagnosis(result, path, provenance: dict | None = None) -> Path:
-    """Write a :class:`~estcal.discrepancy.diagnose.DiagnosisResult` as a saved model
-    (the extended robot: geometry + named effects, at the joint estimate)."""
+    """Write a :class:`~estcal.discrepancy.result.DiagnosisResult` as a saved model: the diagnosis's model (the
+    geometry and the effects it keeps, at the estimate) with its accuracy — the one figure of each question."""
     if result.robot is None:
         raise ValueError("this DiagnosisResult has no robot (it was rebuilt from JSON); run diagnose again")
     m = result.model
-    rm = {"train": {"geometric": result.rmse_mm["geometric"]["train"],
-                    "extended": result.rmse_mm["extended"]["train"]},
-          "cv": {"geometric": result.rmse_mm["geometric"]["cv"], "extended": result.rmse_mm["extended"]["cv"]}}
-    if result.rmse_mm["geometric"].get("validation") is not None:
-        rm["validation"] = {"geometric": result.rmse_mm["geometric"]["validation"],
-                            "extended": result.rmse_mm["extended"]["validation"]}
+    acc = result.accuracy
+    rm = {"train": acc.get("train_mm"), "new_postures": {"expected": result.answer.get("expected_mm"),
+                                                        "bound95": result.answer.get("bound95_mm"),
+                                                        "basis": result.answer.get("basis")}}
+    if acc.get("validation"):
+        rm["validation"] = [{"file": v["path"], "new_postures": v["rmse_mm"], "n_rows": v["n_new"],
+                             "registered": v["registered"]} for v in acc["validation"]]
+    prep = m.get("data_preparation") or {}
     extra = {"level": m.get("geometric_level"),
              "causes": [{"effect": c.effect, "joints": list(c.joints),
                          "parameters": {n: {"estimate": v["estimate"], "std": v["std"]}
                                         for n, v in c.parameters.items()},
-                         "delta_bic": c.delta_bic, "p_value": c.p_value} for c in result.causes],
+                         "ln_bf": c.ln_bf, "gain_mm": c.gain_mm} for c in result.causes],
              "verdict": result.verdict,
              "lumped_masses": bool(result.lumped_masses),
-             "data_preparation": {"session_time": (m.get("session_time") if m.get("session_time") == "centred"
-                                                   else bool(m.get("session_time"))),
-                                  "approach_from_order": bool(m.get("approach_from_order"))}}
-    if result.located:
-        extra["located"] = [{"joints": d["joints"], "shape": d["shape"]} for d in result.located]
-    if getattr(result, "residual_model", None) is not None:
-        # the residual GP layer as plain data (docs/real-data.md); its cost if dropped is the budget's
-        # structured-unnamed RMSE
-        extra["residual_model"] = dict(result.residual_model.to_dict(),
-                                       cost_mm=(result.budget or {}).get("structured_unnamed_mm"))
+             "data_preparation": {"session_time": prep.get("session_time"),
+                                  "approach_from_order": bool(prep.get("approach_from_order")),
+                                  "time_source": prep.get("time_source", "t column")}}
     extra.update(provenance or {})
-    cov = result.covariance
-    free = result.covariance_names
-    block = calibration_block(estimator="lm (diagnose: geometric + named effects)", train=result.train_data or [],
-                              validation=result.validation_data, free=free, covariance=cov,
-                              noise=result.noise, sigma0=result.sigma0, rmse_mm=rm, **extra)
+    block = calibration_block(estimator="sparse Bayes (diagnose: geometry + the effects the model keeps)",
+                              train=result.train_data if isinstance(result.train_data, list) else
+                              [result.train_data], validation=result.validation_data,
+                              free=result.covariance_names, covariance=result.covariance, noise=result.noise,
+                              sigma0=result.sigma0, rmse_mm=rm, **extra)
     return write_saved_model(result.robot, block, path)
-
-

@@ -1,4 +1,4 @@
-"""Report of ``estcal diagnose``: verdict, named causes, RMSE table and the residual figures.
+"""Report of ``estcal diagnose``: the answer, the named causes, the accuracy table and the figures.
 
 :func:`diagnose_report` writes the residual figures of a diagnosis
 (:meth:`estcal.discrepancy.diagnose.DiagnosisResult.figures`), ``diagnosis.json``,
@@ -18,18 +18,18 @@ from .html import Report
 __all__ = ["diagnose_report"]
 
 _CAPTIONS = {
-    "partial_residuals.png": "Partial joint residuals δq̂_j of the geometric fit against each joint reading: the "
-                             "joint-angle error that would explain the residual (trends: gain / compliance; "
-                             "periodic: gear harmonics).",
+    "partial_residuals.png": "Partial joint residuals δq̂_j of the model's geometry alone (its effects set to "
+                             "zero) against each joint reading: the joint-angle error that would explain the "
+                             "residual (trends: gain / compliance; periodic: gear harmonics).",
     "vs_gravity_torque.png": "The same partial residuals against the gravity torque of each joint (a line: "
                              "joint compliance).",
-    "partial_residuals_extended.png": "Partial joint residuals after adding the named effect(s).",
-    "residual_norm.png": "Per-pose RMS residual of the geometric fit against time and tool position (drift, "
+    "partial_residuals_extended.png": "Partial joint residuals of the model, its effects included.",
+    "residual_norm.png": "Per-pose RMS residual of the geometry alone against time and tool position (drift, "
                          "thermal, workspace-dependent effects).",
     "spectrum.png": "Amplitude of the harmonics of the partial joint residuals per joint.",
-    "budget.png": "Error budget by posture-grouped cross-validation: registration only, the geometric level, the "
-                  "named effects and what is left after the residual Gaussian process, with the repeatability "
-                  "floor and the predicted RMSE at new postures (docs/real-data.md).",
+    "budget.png": "The error at new postures by cross-validation: registration only, with the geometry, the "
+                  "model (nested) and the model by time-blocked folds, with the expected error and the "
+                  "repeatability floor (docs/discrepancy.md).",
 }
 
 
@@ -51,25 +51,28 @@ def diagnose_report(folder, result, title: str = "estcal diagnose", plots: bool 
     atomic_write_text(folder / "summary.txt", str(result) + "\n")
     d = result.to_dict()
     rep = Report(folder, title, subtitle=d["verdict"])
+    rep.heading("How accurate")
+    a = d["answer"]
+    rows = [["expected at new postures", a["expected_mm"], a["basis"]],
+            ["95 % of points within", a["bound95_mm"], ""]]
+    rows += [[f"validation {v['path']}", v["rmse_mm"], f"{v['n_new']} new-posture rows"
+              + (f"; frame registered on {v['n_seen']} rows" if v["registered"] else "")]
+             for v in d["accuracy"].get("validation", [])]
+    rep.table(Table("accuracy", "position error at new postures (mm): one figure per question",
+                    ["figure", "RMSE (mm)", "basis"], rows))
     rep.heading("Named causes")
     rows = []
     for c in d["causes"]:
         for n, v in c["parameters"].items():
-            rows.append([c["effect"], ", ".join(c["joints"]) or "whole arm", n, v["estimate"], v["std"],
-                         c["delta_bic"], c["p_value"], c["explained_fraction"]])
+            rows.append([c["effect"], ", ".join(c["joints"]) or "whole arm", n, v["display"][0], v["display"][1],
+                         v["display"][2], c["ln_bf"], f"{c['folds']}/{c['k_folds']}", c["gain_mm"],
+                         c["explained_fraction"]])
     if rows:
-        rep.table(Table("causes", "named causes (parameter values in SI units)",
-                        ["effect", "joints", "parameter", "estimate", "± std", "ΔBIC", "p-value",
-                         "explained fraction"], rows))
+        rep.table(Table("causes", "named causes",
+                        ["effect", "joints", "parameter", "estimate", "± std", "unit", "ln B", "folds",
+                         "gain at new postures (mm)", "explained fraction"], rows))
     else:
         rep.text("No cause named.")
-    rep.heading("Geometric vs extended model")
-    rm, mx = d["rmse_mm"], d["max_mm"]
-    rep.table(Table("rmse", "position error (mm): RMSE on the calibration data, by cross-validation and on the "
-                            "validation files; max on calibration / validation",
-                    ["model", "RMSE train", "RMSE CV", "RMSE validation", "max train", "max validation"],
-                    [[k, rm[k]["train"], rm[k]["cv"], rm[k]["validation"], mx[k]["train"], mx[k]["validation"]]
-                     for k in ("geometric", "extended")]))
     rep.text(str(result), pre=True)
     pngs = [f for f in result.report_files if f.endswith(".png")]
     if pngs:

@@ -180,7 +180,8 @@ def _default_workers(scheduler) -> int:
 
 
 def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n_workers: int | None = None,
-              chunksize: int | None = None, progress="auto", desc: str | None = None) -> RunResult:
+              chunksize: int | None = None, max_chunksize: int | None = None, progress="auto",
+              desc: str | None = None, on_done: Callable | None = None) -> RunResult:
     """Run ``fn`` on every task; a failing task is reported, not raised.
 
     Parameters
@@ -193,7 +194,18 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
         ``SeedSequence(seed).spawn(len(tasks))[i]``.
     n_workers : workers of the pool or LocalCluster (default: the CPU count; 2 for ``local``).
     chunksize : tasks per submitted job (default ``ceil(n / (8 · workers))``; 1 = one job per task).
+    max_chunksize : upper bound of the default ``chunksize`` (results then arrive, and a lost worker's
+        work is redone, in pieces of at most this many tasks).
     progress : ``"auto"`` (a tqdm bar on a terminal's stderr only), True or False.
+    on_done : ``on_done(index, value, failure)`` called in this process for every task as its chunk
+        arrives (in completion order, each task once): ``value`` is the task's value and ``failure``
+        ``None``, or ``value`` is ``None`` and ``failure`` its :class:`TaskFailure` — e.g. to save
+        each result as it arrives.
+
+    A Dask worker lost during the run (killed, out of memory) is Dask's business: the scheduler
+    reruns its tasks on the other workers, and their result arrives once; a chunk during which more
+    than ``distributed.scheduler.allowed-failures`` workers (default 3) died (``KilledWorker``: a
+    task that kills every worker it runs on) reports its tasks as failures, "not run (…)".
     """
     check_scheduler(scheduler)
     tasks = list(tasks)
@@ -210,6 +222,8 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
                 results[i] = v
             else:
                 failures[i] = v
+            if on_done is not None:
+                on_done(i, v if ok else None, None if ok else v)
 
     label = scheduler if isinstance(scheduler, str) else type(scheduler).__name__
     if scheduler in (None, "serial") or n == 0:
@@ -240,7 +254,7 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
         else:
             executor = scheduler
             workers = n_workers or getattr(scheduler, "_max_workers", None) or os.cpu_count() or 1
-        cs = chunksize or max(1, math.ceil(n / (8 * workers)))
+        cs = chunksize or max(1, min(math.ceil(n / (8 * workers)), max_chunksize or n))
         chunks = [items[k:k + cs] for k in range(0, n, cs)]
         bar = _progress(n, desc, progress)
         if client is not None:
@@ -252,13 +266,14 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
             futs = {executor.submit(_run_chunk, fn, c): c for c in chunks}
             done_iter = as_completed(list(futs))
         for f in done_iter:
-            chunk = futs[f]
+            chunk = futs.pop(f)  # released as it arrives: a worker keeps no result it has delivered
             try:
-                collect(f.result())
+                out = f.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker or unpicklable task fails its chunk only
                 msg = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
-                for i, t, _ in chunk:
-                    failures[i] = TaskFailure(i, short_repr(t), f"not run ({msg})", "")
+                out = [(i, False, TaskFailure(i, short_repr(t), f"not run ({msg})", "")) for i, t, _ in chunk]
+            del f
+            collect(out)
             if bar is not None:
                 bar.update(len(chunk))
         if bar is not None:
@@ -293,8 +308,9 @@ def _dask_client(scheduler: str, n_workers):
 
         # one thread per process: the work is GIL-bound Python + small numpy calls; no
         # statistical profiler (a thread sampling the task's stack every 10 ms, half of
-        # an idle worker's CPU — docs/scaling.md)
-        with dask.config.set({"distributed.worker.profile.enabled": False}):
+        # an idle worker's CPU), and the event loop's health check every second rather than
+        # every 20 ms (each check takes the GIL from the running task) — docs/scaling.md
+        with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s"}):
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
         client = Client(cluster)

@@ -137,7 +137,7 @@ def extrapolation_distance(train_readings, readings) -> np.ndarray:
     """(M, n) how far each joint reading of ``readings`` lies beyond the range the training rows span on that
     joint, in units of that range: ``max(0, q − max_A q, min_A q − q) / (max_A q − min_A q)`` (0 inside; a
     joint the training rows never move counts its distance in its own units). A model's error grows with it
-    (docs/real-data.md, "Where the error at new postures comes from"); :func:`inside_ranges` is ``all(d == 0)``."""
+    (docs/real-data.md); :func:`inside_ranges` is ``all(d == 0)``."""
     A = np.asarray(train_readings, float)
     B = np.asarray(readings, float)
     lo, hi = A.min(0), A.max(0)

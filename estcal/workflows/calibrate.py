@@ -170,8 +170,14 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
         with input_errors():
             ds = stack_sessions(parts)
     warn_datasets(parts + vals)
-    res, sel, problem = _run(rob, ds, robot, estimator, measure, free, level, selection, vals, noise, options,
-                             regularize, checks, allow_ill_conditioned)
+    try:
+        res, sel, problem = _run(rob, ds, robot, estimator, measure, free, level, selection, vals, noise, options,
+                                 regularize, checks, allow_ill_conditioned)
+    except NumericalRefusal as exc:
+        if not (getattr(exc, "kind", None) == "ill-conditioned" and level is None and free is None and regularize is None
+                and robust is None and estimator in ("lm", "gauss-newton", "iterated-lls") and not options):
+            raise
+        res, sel, problem = _relevance_default(rob, ds, robot, estimator, measure, vals, noise, selection, exc)
     _seen_new(res, problem, ds, vals, tuple(posture_tol))
     if left:
         _report_left_out(res, left, originals, ds, problem, rob, vals, noise,
@@ -184,6 +190,36 @@ def calibrate(robot, data, *, estimator: str = "lm", measure: str | None = None,
                      noise=problem.terms[0].noise.to_dict(), points=n_markers)
     res.extra["robot"] = str(res.extra["robot"])
     return out
+
+
+def _relevance_default(rob, ds, spec, estimator, measure, vals, noise, selection, refusal):
+    """The default calibration when the full level is refused for its conditioning (non-convergence, a condition
+    number above the limit) — data that a regularised model supports: the identifiable geometric parameters under
+    the diagnosis's relevance priors (:func:`estcal.discrepancy.relevance.fit_relevance` without effects, rows
+    independent), the pruned ones held at their nominal values, then the chosen least-squares estimator with
+    those priors (MAP). The refusal stays for data that support nothing: this fit is checked like any other,
+    its conditioning with the priors. ``res.extra["default_model"]`` says why and what."""
+    from estcal.discrepancy.relevance import fit_relevance
+    from estcal.discrepancy.terms import build_terms
+    from estcal.methods import NoiseModel
+
+    nm = noise or NoiseModel()
+    terms = build_terms(rob, ds, nm, effects=(), geometric="sparse")
+    # grown from the best column: on data this ill-conditioned the full geometric start keeps near-collinear pairs
+    # under wide priors (a PUMA in a tenth of its joint ranges: beta_3 +82 and offset_3 −98 mrad, σ0 0.47 — an
+    # overfit), where the growing search keeps the parameters the data determine
+    fit = fit_relevance(terms, ds, nm, rigid=False, ridge_start=False)
+    sp = fit.sparse
+    kept = [n for n, a in zip(terms.penalised, sp.active) if a]
+    # the MAP of ‖b − Ax‖²/σ² + Σ α_j x_j² in calibrate_lsq's form: prior std 1/√(α_j σ²) of rows weighted by σ
+    std = {n: float(1.0 / np.sqrt(a * sp.noise_var)) for n, a in zip(terms.penalised, sp.alpha) if np.isfinite(a)}
+    res, sel, problem = _run(rob, ds, spec, estimator, measure, list(terms.free) + kept, None, None, vals, noise,
+                             {"prior_std": std}, None, True, False)
+    res.extra["default_model"] = {
+        "reason": f"the full level was refused: {refusal}".split(". The numbers")[0],
+        "model": "relevance priors (docs/calibration.md, 'When the full level is refused')",
+        "kept": kept, "considered": list(terms.geometric), "prior_std": std}
+    return res, sel, problem
 
 
 def _report_left_out(res, left, originals, kept, problem, rob, vals, noise, choices) -> None:
@@ -384,7 +420,7 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
 
         assessment = precheck(problem if sel is None else start, list(problem.with_free(free).params.free_names),
                               sel=sel, level=level or "full", allow_ill_conditioned=allow_ill_conditioned,
-                              exclude=exclude)
+                              exclude=exclude, priors=bool((options or {}).get("prior_std")))
         if assessment.refusals:
             raise NumericalRefusal("\n".join(assessment.refusals))
     est = get_estimator(estimator)
@@ -410,7 +446,9 @@ def run_calibration(robot, data, *, measure: str | None = None, estimator: str =
         assessment = assessment.merge(postcheck(problem, res, allow_ill_conditioned=allow_ill_conditioned))
         res.extra["reliability"] = assessment.to_dict()
         if assessment.refusals:
-            raise NumericalRefusal("\n".join(assessment.refusals))
+            exc = NumericalRefusal("\n".join(assessment.refusals))
+            exc.kind = "ill-conditioned"  # the fit ran; its conditioning or convergence is what failed
+            raise exc
     res.extra["initial_guess"] = "nominal + base registration (Kabsch)" if (register and base_free and
                                                                            data.kind != "none") else "nominal"
     res.inputs = tuple(p for p in [getattr(data, "path", None), *(getattr(v, "path", None) for v in validate),

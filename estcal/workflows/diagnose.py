@@ -18,7 +18,10 @@ __all__ = ["diagnose", "check_effects"]
 
 
 def check_effects(effects) -> list[str] | None:
-    """Effect names (a list or comma-separated text) checked against the registered effects."""
+    """Effect names (a list or comma-separated text) checked against the registered effects; ``"none"`` (or an
+    empty list) for none: the geometric model alone, scored like the model with effects."""
+    if isinstance(effects, str) and effects.strip().lower() == "none":
+        return []
     names = split_names(effects, "--effects")
     if names is None:
         return None
@@ -30,68 +33,54 @@ def check_effects(effects) -> list[str] | None:
     return names
 
 
+#: former ``--geometric`` choices and what replaced them
+_FORMER_GEOMETRIC = {
+    "prior": "the default model (sparse: every term under a relevance prior) replaces it",
+    "auto": "the default model (sparse) replaces the choice among levels",
+    "aic": "the default model (sparse) keeps the geometric parameters the evidence supports",
+}
+#: the choices of ``geometric``
+GEOMETRIC = ("sparse", "full", "joint_offset")
+
+
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
-             urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = False, k_folds: int = 5, **kw):
-    """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose``.
+             urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
+             geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = False,
+             posture_tol=(1e-3, 1e-3), robot_spec=None, report=None):
+    """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
 
     Parameters
     ----------
     robot : SerialRobot, built-in name, robot file or URDF; data : a dataset (path or Dataset) or
-        a list of them, one per session (fitted together; approach and time per session).
-    validate : datasets scored with both models, never used for a decision.
-    effects : effect names to try (default: every registered effect, docs/effects.md).
-    noise : a :class:`~estcal.methods.NoiseModel` (known: likelihood-ratio and noise-floor tests)
-        or None (unknown: F tests).
+        a list of them, one per session (fitted together, each session's measuring frame registered).
+    validate : datasets scored at their new postures (their frame registered on their rows at seen postures),
+        never used for a decision.
+    effects : effect names to consider (default: every registered effect, docs/effects.md).
+    noise : a :class:`~estcal.methods.NoiseModel` (the rows' relative weights; its scale is fitted either way).
     urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
-    column_map, drop_flagged : the data's column map; leave out the rows the screening flags
-        (:func:`estcal.workflows.check.screen`; their findings are warned either way).
-    k_folds, **kw : options of :func:`estcal.discrepancy.diagnose` (``alpha``, ``max_effects``,
-        ``geometric``, ``approach_from_order``, ``rng``, ``report`` …); ``geometric="prior"`` runs
-        :func:`estcal.discrepancy.prior_model.diagnose_prior` instead (the MAP group-prior model, no
-        effect selection; ``effects`` refused); ``geometric="auto"`` runs
-        :func:`estcal.discrepancy.prior_model.diagnose_auto` (the level chosen by posture-grouped CV among
-        the prior model, preferred, and the levels; with ``effects``, among the levels only).
+    column_map, drop_flagged : the data's column map; leave out the rows the data screening flags (the
+        default, as ``estcal calibrate``'s: readings beyond the limits, outliers after a robust fit, swapped or
+        ghost markers, copies — named in the output by file and line; ``False``: every row is fitted).
+    folds : cross-validation folds (by posture, and by session with several sessions); seed : their seed.
+    geometric : ``sparse`` (default), ``full`` or ``joint_offset`` (:func:`estcal.discrepancy.diagnose`).
+    budget : the error budget (nested CV, time-blocked CV, the 95 % region); without it the expected error is
+        the model's CV with its all-rows choices (optimistic, said in the answer).
+    approach_from_order : backlash by approach direction, inferred from the posture order.
+    posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
+    report : a folder for the report (figures, diagnosis.json, summary.txt, index.html).
 
-    Returns a :class:`~estcal.discrepancy.diagnose.DiagnosisResult`.
+    Returns a :class:`~estcal.discrepancy.result.DiagnosisResult`.
     """
     from estcal.discrepancy import diagnose as _diagnose
     from estcal.identify.select import UnidentifiableError
 
-    from estcal.discrepancy.residual import RESIDUAL_MODELS
-
-    if kw.get("residual_model") not in (None, *RESIDUAL_MODELS):
-        raise InputError(f"--residual-model: unknown {kw['residual_model']!r}; choose one of "
-                         f"{', '.join(RESIDUAL_MODELS)}")
-    mode = kw.get("geometric", "full")
-    mode = "auto+prior" if mode == "auto" and effects is None else mode
-    # the prior model's options, and where they apply (with --effects, auto chooses among the levels only)
-    for key, flag, where in (("widths", "--prior-widths", ("prior", "auto+prior")),
-                             ("criterion", "--prior-criterion", ("prior", "auto+prior")),
-                             ("session_frames", "--session-frames", ("prior",))):
-        if key in kw and mode not in where:
-            raise InputError(f"{flag}: only with --geometric {' or '.join(w.split('+')[0] for w in where)} (without "
-                             f"--effects); got --geometric {kw.get('geometric', 'full')}"
-                             + (" with --effects" if effects is not None else ""))
-    if mode in ("prior", "auto+prior"):  # the MAP group-prior model: loaded only when asked for
-        from estcal.discrepancy.prior_model import EFFECTS as PRIOR_EFFECTS
-        from estcal.discrepancy.prior_model import SESSION_FRAMES, WIDTH_CHOICES
-
-        if mode == "prior" and effects is not None:
-            raise InputError(f"--effects: --geometric prior keeps every {', '.join(PRIOR_EFFECTS)} term the data "
-                             "can excite under its prior and selects no effect, so there is nothing to choose "
-                             "from; drop --effects, or choose another --geometric (docs/real-data.md, 'A prior "
-                             "instead of a level')")
-        for key, flag, choices in (("widths", "--prior-widths", WIDTH_CHOICES),
-                                   ("criterion", "--prior-criterion", ("evidence+cv", "evidence")),
-                                   ("session_frames", "--session-frames", SESSION_FRAMES)):
-            if kw.get(key, choices[0]) not in choices:
-                raise InputError(f"{flag}: {kw[key]!r} is not a choice; give {' or '.join(choices)}")
-        if mode == "prior":
-            from estcal.discrepancy.prior_model import diagnose_prior as _diagnose
-        else:  # the level choice with the prior model as its preferred candidate
-            from estcal.discrepancy.prior_model import diagnose_auto as _diagnose
-
-            kw.pop("geometric")
+    if geometric in _FORMER_GEOMETRIC:
+        raise InputError(f"geometric={geometric!r}: {_FORMER_GEOMETRIC[geometric]}; choose one of "
+                         f"{', '.join(GEOMETRIC)} (docs/discrepancy.md)")
+    if geometric not in GEOMETRIC:
+        raise InputError(f"geometric={geometric!r} is not a choice; choose one of {', '.join(GEOMETRIC)}")
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise InputError(f"folds must be an integer ≥ 2, got {folds!r}")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     check_input_files([*items, *validate])
     rob, n_markers = robot_for_data(robot, items[0], points, root, tip, column_map)
@@ -102,30 +91,32 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     sessions = load_datasets(items, rob, n_markers, column_map)
     vals = load_datasets(validate, rob, n_markers, column_map)
     warn_datasets(sessions + vals)
-    cands = check_effects(effects)
+    names = check_effects(effects)
     for d in sessions:
         check_distinct_poses(d)
-    from estcal.workflows.check import screen
+    from estcal.workflows.check import screen_rows
 
-    sessions = screen(sessions, rob, drop_flagged)
+    sessions, left = screen_rows(sessions, rob, drop_flagged, warn_dropped=False)
     check_held_out(sessions, [], "session")
     check_held_out(sessions, vals)
-    spec = str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None
-    kw.setdefault("robot_spec", spec)
+    spec = robot_spec or (str(robot) if isinstance(robot, (str, Path)) and not (root or tip) else None)
     ds = sessions[0] if len(sessions) == 1 else sessions
-    report = kw.pop("report", None)
     try:
         with input_errors():
-            res = _diagnose(rob, ds, validate=vals, candidates=cands, noise=noise, k_folds=k_folds, **kw)
+            res = _diagnose(rob, ds, validate=vals, effects=names, noise=noise, k_folds=folds, rng=seed,
+                            geometric=geometric, budget=budget, approach_from_order=approach_from_order,
+                            posture_tol=posture_tol, robot_spec=spec)
     except UnidentifiableError as exc:
         where = ", ".join(str(getattr(d, "where", d)) for d in sessions)
-        raise NumericalRefusal(f"{where}: {exc} (the geometric fit on {sum(d.n for d in sessions)} poses, and each "
-                               f"cross-validation fold of --folds {k_folds}, needs more equations than "
+        raise NumericalRefusal(f"{where}: {exc} (the fit on {sum(d.n for d in sessions)} poses, and each "
+                               f"cross-validation fold of folds={folds}, needs more equations than "
                                f"parameters)") from exc
     if isinstance(robot, (str, Path)):
         res.model["robot_spec"] = str(robot)
     res.model["root"], res.model["tip"] = root, tip
     res.model["urdf_chain_masses"] = bool(urdf_chain_masses and rob.meta.get("urdf"))
+    res.data["left_out"] = [{k: r[k] for k in ("file", "line", "kind", "reason")} for r in left]
+    res.data["drop_flagged"] = bool(drop_flagged)
     if report is not None:  # the analysis writes no file: figures, diagnosis.json, summary.txt, index.html
         from estcal.report.diagnose import diagnose_report
 

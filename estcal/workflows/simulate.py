@@ -172,9 +172,10 @@ def simulate(robot, n: int = 50, *, strategy: str = "S4", measure: str = "positi
 
 def simulate_fleet(n_robots: int, out, *, robot: str = "puma560", n: int = 50, measure: str = "position",
                    noise_pos: float | None = None, noise_rot: float | None = None, seed: int = 0,
-                   scheduler: str = "serial"):
+                   scheduler: str = "serial", on_demand: bool = False):
     """A fleet folder of ``n_robots`` simulated robots (:func:`estcal.simulate.fleet.simulate_fleet`):
-    measured as full poses unless asked otherwise; noise defaults 0.05 mm / 0.5 mrad (SI here)."""
+    measured as full poses unless asked otherwise; noise defaults 0.05 mm / 0.5 mrad (SI here).
+    ``on_demand``: only the description ``fleet.yaml`` (returned, a :class:`~estcal.simulate.fleet.FleetSpec`)."""
     from estcal.simulate.fleet import simulate_fleet as _fleet
     from estcal.workflows.fleet import check_scheduler
 
@@ -183,9 +184,11 @@ def simulate_fleet(n_robots: int, out, *, robot: str = "puma560", n: int = 50, m
     if n_robots < 1:
         raise InputError(f"--fleet: the number of robots must be ≥ 1, got {n_robots}")
     check_scheduler(scheduler)
-    check_memory(n * n_robots)
+    if not on_demand:
+        check_memory(n * n_robots)
     if measure in ("position", "location"):  # a fleet is measured as full poses unless asked otherwise
         measure = "pose"
     with input_errors():
         return _fleet(n_robots, out, robot=robot, n_poses=n, n_validate=n, measure=measure,
-                      noise_pos=noise_pos or 5e-5, noise_rot=noise_rot or 5e-4, seed=seed, scheduler=scheduler)
+                      noise_pos=noise_pos or 5e-5, noise_rot=noise_rot or 5e-4, seed=seed, scheduler=scheduler,
+                      on_demand=on_demand)

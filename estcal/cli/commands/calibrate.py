@@ -70,6 +70,11 @@ def _print_report(console, cal) -> None:
         if sel.rejected:
             msg += f"\n  identifiable but not supported by AIC (kept nominal): {', '.join(sel.rejected)}"
         console.print(msg)
+    elif res.extra.get("default_model"):
+        dm = res.extra["default_model"]
+        console.print(f"selection: {dm['reason']} — so the default is the relevance-prior model: {len(dm['kept'])} of "
+                      f"{len(dm['considered'])} identifiable geometric parameters kept by the evidence, each under its "
+                      f"own prior (MAP; docs/calibration.md, 'When the full level is refused')")
     elif (res.extra.get("selection") or {}).get("source"):
         s = res.extra["selection"]
         console.print(f"selection: level {s['level']}, criterion {s['criterion']}: {s['source']} "

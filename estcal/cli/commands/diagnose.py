@@ -1,18 +1,14 @@
-"""``estcal diagnose``: what the geometric model gets wrong on measured data, and which effect explains it.
+"""``estcal diagnose``: how accurate the robot's model is at new postures, which physical causes it names, and
+what stays unexplained.
 
-Runs :func:`estcal.workflows.diagnose.diagnose` (geometric fit, residual analysis, forward
-selection of library effects by BIC / significance test / cross-validation, identifiability by
-QR) and prints the named cause(s), the verdict and the RMSE of the geometric and extended models
-(train, CV, validation). Robot and data options are those of ``estcal calibrate``; the noise is
-unknown (F tests) unless ``--known-noise`` is given (likelihood-ratio and noise-floor tests).
+Runs :func:`estcal.workflows.diagnose.diagnose` (one sparse Bayesian model of the geometry and every effect
+of the library, the causes named by evidence, folds and cross-validation; docs/discrepancy.md) and prints
+the answer first — the expected error at new postures with its 95 % bound, the named causes with their
+gains, what stays unexplained, one figure per validation file — then the details.
 
-JSON (``--json PATH``): ``causes`` (list of {``effect``, ``joints``,
-``parameters`` {name: {estimate, std}}, ``delta_bic``, ``explained_fraction``,
-``test``, ``p_value``, …}), ``verdict``, ``rmse_mm`` and ``max_mm``
-({``geometric``, ``extended``} × {``train``, ``cv``, ``validation``}),
-``analysis`` (noise floor, feature R², spectrum), ``steps`` (selection log),
-``model`` (the identified robot: every parameter value, effects, gravity — the
-input of ``estcal simulate --from-fit``).
+JSON (``--json PATH``): ``answer``, ``causes``, ``accuracy`` (``validation``: one entry per file), ``terms``,
+``budget``, ``data``, ``model`` (every parameter value, the effects, gravity — the input of ``estcal simulate
+--from-fit``).
 """
 from __future__ import annotations
 
@@ -70,71 +66,55 @@ def diagnose(
     points: Optional[int] = points_option(),
     validate: list[Path] = validate_option(),
     column_map: Optional[Path] = map_option(),
-    drop_flagged: bool = drop_flagged_option(),
-    effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to try "
-                                                                  "(default: every registered effect)."),
+    drop_flagged: bool = drop_flagged_option(True),
+    effects: Optional[str] = typer.Option(None, "--effects", help="Comma-separated effect names to consider "
+                                                                  "(default: every registered effect); 'none': the "
+                                                                  "geometric model alone."),
     noise_pos_mm: Optional[float] = typer.Option(None, "--noise-pos-mm", help="Position noise std per "
-                                                 "coordinate (mm; default 0.1 with --known-noise)."),
+                                                 "coordinate (mm; default 0.1 with --known-noise): the rows' weights."),
     noise_rot_mrad: Optional[float] = typer.Option(None, "--noise-rot-mrad", help="Orientation noise std (mrad; "
                                                    "default 1 with --known-noise)."),
-    known_noise: bool = known_noise_option("The noise is known (likelihood-ratio tests, noise-floor test); "
-                                           "default unknown (F tests)."),
+    known_noise: bool = known_noise_option("The noise figures are the instrument's (the rows' weights); the "
+                                           "model fits the residual's scale either way."),
     old_noise_pos: Optional[float] = deprecated_option("--noise-pos"),
     row_sigma_mm: Optional[str] = row_sigma_option(),
-    k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds."),
-    alpha: float = typer.Option(0.01, "--alpha", help="Family-wise significance level per selection step."),
-    max_effects: int = typer.Option(3, "--max-effects", help="Most effects named."),
+    k_folds: int = typer.Option(5, "--folds", help="Cross-validation folds (by posture; by session too with "
+                                                   "several sessions)."),
     urdf_masses: bool = typer.Option(True, "--urdf-chain-masses/--no-urdf-chain-masses",
                                      help="For URDF robots, count the links after the last actuated "
                                           "joint (tool, sensor, gripper) in its mass."),
-    geometric: str = typer.Option("full", "--geometric", help="Geometric model: full (every identifiable "
-                                  "parameter) | aic (those Akaike's criterion supports) | joint_offset | "
-                                  "auto (by posture-grouped CV among prior, preferred, and the three levels) | "
-                                  "prior (no selection: the full set and "
-                                  "every excitable joint compliance, backlash and link tilt, each under a "
-                                  "nominal-centred prior whose width the evidence chooses; docs/real-data.md)."),
-    prior_widths: Optional[str] = typer.Option(None, "--prior-widths", help="With --geometric prior or auto: parameter (one "
-                                               "width per parameter, automatic relevance determination; the "
-                                               "default) | group (one per kind of parameter); docs/real-data.md."),
-    session_frames: Optional[str] = typer.Option(None, "--session-frames", help="With --geometric prior and "
-                                                 "several sessions: per-session (each further session's measuring "
-                                                 "frame registered by the fit; the default) | one (one frame for "
-                                                 "all); docs/real-data.md."),
-    prior_criterion: Optional[str] = typer.Option(None, "--prior-criterion", help="With --geometric prior or auto: "
-                                                  "evidence+cv (the evidence's widths times one multiplier by "
-                                                  "leave-one-posture-out CV; the default) | evidence."),
+    geometric: str = typer.Option("sparse", "--geometric", help="Geometric parameters: sparse (every identifiable "
+                                  "one under a relevance prior; the default) | full (all of them, unpenalised) | "
+                                  "joint_offset (the offsets only)."),
     approach_from_order: bool = typer.Option(False, "--approach-from-order",
                                              help="Infer approach_<joint> columns from the posture order "
                                                   "(backlash by approach direction)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
     posture_tol_mrad: float = posture_tol_mrad_option(),
     posture_tol_mm: float = posture_tol_mm_option(),
-    budget: bool = typer.Option(True, "--budget/--no-budget", help="Error budget by posture-grouped CV: nominal, "
-                                "geometric, named, structured-unnamed (residual GP) and unstructured RMSE, the "
-                                "repeatability floor and the predicted RMSE at new postures (docs/real-data.md)."),
-    residual_model: Optional[str] = typer.Option(None, "--residual-model", help="gp: keep the residual Gaussian "
-                                                 "process as a compensation layer of the recommended model, in the "
-                                                 "space whose GP lowers the held-out error most; gp-joints / "
-                                                 "gp-cartesian: in that space."),
+    budget: bool = typer.Option(True, "--budget/--no-budget", help="Error budget: nested and time-blocked "
+                                "cross-validation, the repeatability floor, the 95 % region (docs/discrepancy.md)."),
     json_path: Optional[Path] = json_option("Write the diagnosis as JSON."),
     report: Optional[Path] = report_option("Folder for a report: residual figures (PNG), diagnosis.json, "
                                            "summary.txt and index.html with the tables."),
-    save_model: Optional[Path] = save_model_option("Write the identified robot (geometry + named effects) as a "
-                                                   "robot file (.yaml) with a 'calibration:' block; reload it "
-                                                   "with --robot."),
+    save_model: Optional[Path] = save_model_option("Write the model (geometry + the effects it keeps) as a robot "
+                                                   "file (.yaml) with a 'calibration:' block; reload it with --robot."),
+    former: Optional[str] = typer.Option(None, "--alpha", "--max-effects", "--prior-widths", "--session-frames",
+                                         "--prior-criterion", "--residual-model", hidden=True),
 ) -> None:
-    """Name the non-geometric cause of the residual of a geometric calibration and measure the gain."""
+    """How accurate the model is at new postures, which physical causes it names, what stays unexplained."""
+    from estcal.base.errors import InputError
     from estcal.workflows.diagnose import diagnose as run
 
+    if former is not None:
+        raise InputError("this option belonged to the former diagnosis (forward selection, the prior model, the "
+                         "residual GP): the default model now keeps every term under a relevance prior and names "
+                         "causes by evidence, folds and cross-validation; drop the option (docs/discrepancy.md)")
     noise = with_row_sigma(_noise(noise_pos_mm, noise_rot_mrad, known_noise, old_noise_pos), row_sigma_mm)
     res = run(robot, list(data), validate=list(validate), effects=effects, noise=noise, points=points, root=root,
-              tip=tip, urdf_chain_masses=urdf_masses, k_folds=k_folds, alpha=alpha, max_effects=max_effects,
-              report=report, rng=seed, geometric=geometric, approach_from_order=approach_from_order,
-              posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm), budget=budget,
-              residual_model=residual_model, column_map=column_map, drop_flagged=drop_flagged,
-              **({"widths": prior_widths} if prior_widths is not None else {}),
-              **({"session_frames": session_frames} if session_frames is not None else {}),
-              **({"criterion": prior_criterion} if prior_criterion is not None else {}))
+              tip=tip, urdf_chain_masses=urdf_masses, folds=k_folds, report=report, seed=seed, geometric=geometric,
+              approach_from_order=approach_from_order, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
+              budget=budget, column_map=column_map, drop_flagged=drop_flagged)
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")

@@ -73,6 +73,9 @@ def simulate(
                               "random errors and, for half of them, one random effect. Noise defaults to "
                               "0.05 mm / 0.5 mrad. Input of estcal fleet."),
     out: Optional[Path] = typer.Option(None, "--out", help="Fleet folder to write (with --fleet)."),
+    on_demand: bool = typer.Option(False, "--on-demand", help="With --fleet: write only the fleet's "
+                                   "description (--out DIR/fleet.yaml + robot.yaml); estcal fleet simulates "
+                                   "robot i from the seed and i in the task that calibrates it, no file per robot."),
     scheduler: str = typer.Option("serial", "--scheduler", help="With --fleet: serial | processes | local | "
                                                                 "tcp://host:8786."),
     ) -> None:
@@ -101,9 +104,17 @@ def simulate(
                            "rad or m", 1.0, 1.0)
     if true_model is not None and true_model.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--true-model {true_model}: a robot file must end in .yaml or .yml")
+    if on_demand and fleet is None:
+        raise InputError("--on-demand describes a fleet: give --fleet N --out DIR")
     if fleet is not None:
         rr = wf.simulate_fleet(fleet, out, robot=robot, n=n, measure=measure, noise_pos=noise_pos,
-                               noise_rot=noise_rot, seed=seed, scheduler=scheduler)
+                               noise_rot=noise_rot, seed=seed, scheduler=scheduler, on_demand=on_demand)
+        if on_demand:
+            typer.echo(f"fleet of {rr.robots:,} robots described in {out}/fleet.yaml ({rr.poses} calibration + "
+                       f"{rr.validation_poses} validation poses each, {rr.measure}, noise {1e3 * rr.noise_pos:.3g} mm / "
+                       f"{1e3 * rr.noise_rot:.3g} mrad, seed {rr.seed}); each robot is simulated by the task that "
+                       f"calibrates it: estcal fleet {out}")
+            return
         _print_fleet(rr, out, n, measure, noise_pos, noise_rot, json_path)
         return
     noise = NoiseModel(position=noise_pos, orientation=noise_rot, joint=noise_joint, resolution=resolution,

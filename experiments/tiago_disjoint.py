@@ -1,0 +1,113 @@
+"""TIAGo at new postures of another session: the default ``estcal diagnose`` on a posture- and session-disjoint
+protocol, fixed before the model was scored (docs/discrepancy.md, "How accurate, on the real robots").
+
+Protocol (``../shared/data/tiago``, never copied):
+
+* both sessions, 11-30 (37 rows) and 11-26 (62 rows); a posture is every row whose joint readings agree within
+  1e-3 rad / 1e-3 m, over both sessions: 62 postures;
+* a halving with seed ``s``: ``numpy.random.default_rng(s).permutation(postures)[: 62 // 2]`` is half A;
+* direction 1: train on 11-30's rows at half A; the validation file is all of 11-26 — its rows at half A
+  register its measuring frame (the diagnosis does it: docs/discrepancy.md), its rows at half B are the
+  score. Direction 2: the sessions swapped;
+* development seeds 0–5 (the model was developed on them); confirmation seeds 20, 21, 22, fixed before any of
+  them was scored and looked at once.
+
+Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
+budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
+coverage, the named causes, the CPU time. ``--json PATH`` writes everything.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from estcal.base.jsonio import write_json  # noqa: E402
+from estcal.kinematics.robots import shared_dir  # noqa: E402
+
+DEVELOPMENT = (0, 1, 2, 3, 4, 5)
+CONFIRMATION = (20, 21, 22)
+FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
+
+
+def load():
+    """The TIAGo robot (the built-in ``tiago``, URDF masses as ``estcal diagnose`` loads them) and both sessions."""
+    from estcal.discrepancy.masses import with_urdf_masses
+    from estcal.io import load_dataset
+    from estcal.kinematics import tiago
+
+    robot = with_urdf_masses(tiago(n_markers=4))
+    folder = shared_dir() / "data" / "tiago"
+    return robot, {k: load_dataset(folder / f, robot) for k, f in FILES.items()}
+
+
+def halvings(robot, sessions, seeds):
+    """``[(seed, train session, training rows (Dataset), validation Dataset)]`` of the protocol."""
+    from estcal.validation import posture_groups
+
+    a, b = sessions["11-30"], sessions["11-26"]
+    g = posture_groups(np.vstack([a.readings, b.readings]), robot.joint_types)
+    lab = {"11-30": g[: a.n], "11-26": g[a.n:]}
+    out = []
+    for s in seeds:
+        half = np.random.default_rng(s).permutation(np.unique(g))[: len(np.unique(g)) // 2]
+        for tr, va in (("11-30", "11-26"), ("11-26", "11-30")):
+            out.append((s, tr, sessions[tr].subset(np.flatnonzero(np.isin(lab[tr], half))), sessions[va]))
+    return out
+
+
+def run(seeds, folds=5):
+    from estcal.workflows.diagnose import diagnose
+
+    robot, sessions = load()
+    rows = []
+    for s, tr, T, V in halvings(robot, sessions, seeds):
+        t0 = time.process_time()
+        res = diagnose(robot, T, validate=[V], folds=folds)
+        cpu = time.process_time() - t0
+        v = res.accuracy["validation"][0]
+        r = {"seed": s, "train": tr, "n_train": T.n, "new_mm": v["rmse_mm"], "n_new": v["n_new"],
+             "registered_on": v["n_seen"], "expected_mm": res.answer["expected_mm"],
+             "predicted_at_mm": v["predicted_mm"], "coverage": v["coverage"],
+             "ratio_expected": res.answer["expected_mm"] / v["rmse_mm"],
+             "ratio_at": (v["predicted_mm"] or np.nan) / v["rmse_mm"],
+             "named": [c.label for c in res.causes], "cpu_s": cpu}
+        rows.append(r)
+        print(f"seed {s:2d} train {tr} ({T.n:2d} rows): new postures {r['new_mm']:.2f} mm ({r['n_new']} rows); "
+              f"expected {r['expected_mm']:.2f} (ratio {r['ratio_expected']:.2f}), at its postures "
+              f"{r['predicted_at_mm']:.2f} (ratio {r['ratio_at']:.2f}); coverage {r['coverage']:.2f}; "
+              f"named {r['named']}; {cpu:.1f} s CPU", flush=True)
+    new = np.array([r["new_mm"] for r in rows])
+    print(f"mean at new postures {new.mean():.2f} mm (median {np.median(new):.2f}); within 30 %: expected "
+          f"{sum(0.7 <= r['ratio_expected'] <= 1.3 for r in rows)}/{len(rows)}, at its postures "
+          f"{sum(0.7 <= r['ratio_at'] <= 1.3 for r in rows)}/{len(rows)}")
+    return {"rows": rows, "mean_new_mm": float(new.mean())}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22) or a list")
+    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    if not (shared_dir() / "data" / "tiago").is_dir():
+        print(f"shared data not found at {shared_dir() / 'data'}")
+        return {"skipped": True}
+    seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION}.get(args.seeds)
+    seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
+    out = {"protocol": __doc__, "seeds": list(seeds), **run(seeds, args.folds)}
+    if args.json:
+        write_json(args.json, out, announce=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
