@@ -248,3 +248,15 @@ def test_validation_rows_extrapolating_farther_than_the_nested_cv_are_flagged():
 
     inside = reach_at(res.budget, Q, Q[:5], sim.nominal_robot.joint_names)
     assert inside["reach_max"] == 0.0 and inside["beyond_cv_reach"] == 0.0
+
+
+def test_budget_says_when_the_geometry_alone_predicts_better():
+    """The budget's hint: the geometry alone scoring lower than the model at new postures (the nested CV's figures,
+    known before any validation file is read) points at `--effects none`; otherwise nothing."""
+    from estcal.discrepancy.budget import budget_lines
+
+    b = {"folds": "posture", "k_folds": 5, "n_postures": 16, "n_rows": 16, "nominal_mm": 9.0,
+         "geometry_mm": 3.77, "model_mm": 4.09, "model_se_mm": 0.2, "repeatability_mm": None, "time": {}}
+    assert any("--effects none" in line for line in budget_lines(b))
+    assert any("(3.770 against 4.090 ± 0.200 mm)" in line for line in budget_lines(b))
+    assert not any("--effects none" in line for line in budget_lines(dict(b, geometry_mm=5.0)))
