@@ -238,7 +238,22 @@ def run(cmd: str, cwd, timeout: float = 300, merge: bool = False, status: int = 
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
             raise
+    SESSIONS.append(proc.pid)
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, errs)
+
+
+#: the process groups of the commands run so far: a command's background children (``cmd &``: a Dask scheduler,
+#: workers) may serve the page's later commands, so they are ended when the page is done (``end_sessions``)
+SESSIONS: list[int] = []
+
+
+def end_sessions() -> None:
+    """Kill what is left of the process groups of the commands run so far (their background children)."""
+    while SESSIONS:
+        try:
+            os.killpg(SESSIONS.pop(), signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
 
 
 # the built-in robots read from ../shared (estcal.kinematics.robots)
@@ -314,18 +329,22 @@ def run_page(text: str, work: Path, timeout: float = 300) -> list[Outcome]:
         blocks.setdefault(c.block, []).append(c)
     have_shared = (work.parent / "shared").is_dir()
     out, status = [], 0
-    for c in commands:
-        if not have_shared and needs_shared(blocks[c.block]):
-            out.append(Outcome(c, None))
-            continue
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        try:
-            p = run(c.cmd, work, timeout=timeout, merge=True, status=status)
-            output, status = p.stdout, p.returncode
-        except subprocess.TimeoutExpired:
-            output, status = f"(killed after {timeout:.0f} s)\n", -9
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        out.append(Outcome(c, output, status, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)))
+    try:
+        for c in commands:
+            if not have_shared and needs_shared(blocks[c.block]):
+                out.append(Outcome(c, None))
+                continue
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            try:
+                p = run(c.cmd, work, timeout=timeout, merge=True, status=status)
+                output, status = p.stdout, p.returncode
+            except subprocess.TimeoutExpired:
+                output, status = f"(killed after {timeout:.0f} s)\n", -9
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            out.append(Outcome(c, output, status,
+                               (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)))
+    finally:
+        end_sessions()  # a background process a command started (`dask scheduler … &`) ends with its page
     return out
 
 

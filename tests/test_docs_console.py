@@ -80,3 +80,24 @@ def test_console_blocks_print_what_the_page_shows(page, tmp_path):
     assert not failures, (f"{page.relative_to(REPO)}: {len(failures)} of {len(outcomes)} commands differ from the page "
                           f"(regenerate with `python tests/console_runner.py {page.relative_to(REPO)} --show`):\n"
                           + "\n".join(failures))
+
+
+def test_background_processes_end_with_their_page(tmp_path):
+    """A command's background child (``cmd &``, a Dask scheduler) serves the page's later commands and is ended
+    when the page is done — a documentation run leaves no process behind."""
+    import time
+
+    page = "```console\n$ sleep 300 > /dev/null 2>&1 & echo $! > pid\n$ kill -0 $(cat pid) && echo alive\nalive\n```\n"
+    work = docs_layout(tmp_path)
+    outcomes = run_page(page, work)
+    assert all(o.ok for o in outcomes), [o.describe() for o in outcomes]
+    pid = int((work / "pid").read_text())
+    for _ in range(100):  # killed: gone, or a zombie until init reaps it
+        stat = Path(f"/proc/{pid}/stat")
+        try:
+            if stat.read_text().split(") ")[1][0] in "ZX":
+                return
+        except (FileNotFoundError, ProcessLookupError):
+            return
+        time.sleep(0.02)
+    pytest.fail(f"the page's background process {pid} outlived its page")
