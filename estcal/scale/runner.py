@@ -309,8 +309,10 @@ def _dask_client(scheduler: str, n_workers):
         # one thread per process: the work is GIL-bound Python + small numpy calls; no
         # statistical profiler (a thread sampling the task's stack every 10 ms, half of
         # an idle worker's CPU), and the event loop's health check every second rather than
-        # every 20 ms (each check takes the GIL from the running task) — docs/scaling.md
-        with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s"}):
+        # every 20 ms (each check takes the GIL from the running task), the nannies' memory monitor every second
+        # rather than every 100 ms — docs/scaling.md
+        with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
+                              "distributed.worker.memory.monitor-interval": "1s"}):
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
         client = Client(cluster)
