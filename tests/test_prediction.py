@@ -78,6 +78,13 @@ def test_predicted_rmse_at_is_the_root_mean_of_the_line():
     a, b = 3e-6, 2.0
     by_hand = np.sqrt(np.mean([a + b * (S[i, 0, 0] + S[i, 1, 1] + S[i, 2, 2]) for i in range(50)]))
     assert predicted_rmse_at(a, b, S) == pytest.approx(by_hand, rel=1e-12)
+    # beyond the largest leverage the line was fitted on, a point is held at it
+    tr = np.array([np.trace(S[i]) for i in range(50)])
+    cap = float(np.median(tr))
+    held = np.sqrt(np.mean([a + b * min(t, cap) for t in tr]))
+    assert predicted_rmse_at(a, b, S, leverage_max=cap) == pytest.approx(held, rel=1e-12)
+    assert predicted_rmse_at(a, b, S, leverage_max=cap) < predicted_rmse_at(a, b, S)
+    assert predicted_rmse_at(a, b, S, leverage_max=tr.max()) == pytest.approx(by_hand, rel=1e-12)
     # Monte Carlo: errors drawn with covariance b S + a/3 I have that RMSE
     region = {"tau_mm": np.sqrt(a / 3) * 1e3, "scale": b}
     Sig = region_sigma(region, S)

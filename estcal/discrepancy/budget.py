@@ -207,7 +207,7 @@ def _time_cv(system, groups, include, k, start, model_mm, model_se) -> dict:
 def predicted_at(budget: Budget, S) -> float:
     """Expected RMSE (mm) at points whose leverage (N·J C Jᵀ, m²) is ``S`` (n, 3, 3): √mean(a + b·tr S)."""
     vm = budget.region["variance_model"]
-    return predicted_rmse_at(vm["a_mm2"] * 1e-6, vm["b"], S) * 1e3
+    return predicted_rmse_at(vm["a_mm2"] * 1e-6, vm["b"], S, budget.region.get("leverage_max_m2")) * 1e3
 
 
 def coverage_at(budget: Budget, e, S) -> dict:
