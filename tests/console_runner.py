@@ -217,12 +217,15 @@ def _first_difference(exp: list[str], act: list[str], rtol: float) -> str:
     return f"the real output goes on (line {len(exp) + 1}: {act[len(exp)].strip()[:160]!r}); end the block with … if that is meant"
 
 
-def run(cmd: str, cwd, timeout: float = 300, merge: bool = False, status: int = 0) -> subprocess.CompletedProcess:
+def run(cmd: str, cwd, timeout: float = 300, merge: bool = False, status: int = 0,
+        sessions: list | None = None) -> subprocess.CompletedProcess:
     """``cmd`` through bash in ``cwd``, with this interpreter's folder (the venv's ``estcal``) first
     on PATH and an 80-column, colourless terminal (the width the docs were pasted at).
 
     ``merge``: stderr into stdout, unbuffered, in the order a terminal shows them. ``status``: the
-    value of ``$?`` the command starts with (the previous command's, as in one shell session)."""
+    value of ``$?`` the command starts with (the previous command's, as in one shell session).
+    ``sessions``: a list the command's process group is added to (its background children may serve later
+    commands; ``end_sessions`` ends them)."""
     env = dict(os.environ, COLUMNS="80", NO_COLOR="1", TERM="dumb", MPLBACKEND="Agg", PYTHONUNBUFFERED="1",
                PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
     env.pop("FORCE_COLOR", None)
@@ -238,20 +241,16 @@ def run(cmd: str, cwd, timeout: float = 300, merge: bool = False, status: int = 
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
             raise
-    SESSIONS.append(proc.pid)
+    if sessions is not None:
+        sessions.append(proc.pid)
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, errs)
 
 
-#: the process groups of the commands run so far: a command's background children (``cmd &``: a Dask scheduler,
-#: workers) may serve the page's later commands, so they are ended when the page is done (``end_sessions``)
-SESSIONS: list[int] = []
-
-
-def end_sessions() -> None:
-    """Kill what is left of the process groups of the commands run so far (their background children)."""
-    while SESSIONS:
+def end_sessions(sessions: list) -> None:
+    """Kill what is left of these process groups (the background children of a page's commands)."""
+    while sessions:
         try:
-            os.killpg(SESSIONS.pop(), signal.SIGKILL)
+            os.killpg(sessions.pop(), signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
 
@@ -328,7 +327,7 @@ def run_page(text: str, work: Path, timeout: float = 300) -> list[Outcome]:
     for c in commands:
         blocks.setdefault(c.block, []).append(c)
     have_shared = (work.parent / "shared").is_dir()
-    out, status = [], 0
+    out, status, sessions = [], 0, []
     try:
         for c in commands:
             if not have_shared and needs_shared(blocks[c.block]):
@@ -336,7 +335,7 @@ def run_page(text: str, work: Path, timeout: float = 300) -> list[Outcome]:
                 continue
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
             try:
-                p = run(c.cmd, work, timeout=timeout, merge=True, status=status)
+                p = run(c.cmd, work, timeout=timeout, merge=True, status=status, sessions=sessions)
                 output, status = p.stdout, p.returncode
             except subprocess.TimeoutExpired:
                 output, status = f"(killed after {timeout:.0f} s)\n", -9
@@ -344,7 +343,7 @@ def run_page(text: str, work: Path, timeout: float = 300) -> list[Outcome]:
             out.append(Outcome(c, output, status,
                                (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)))
     finally:
-        end_sessions()  # a background process a command started (`dask scheduler … &`) ends with its page
+        end_sessions(sessions)  # a background process a command started (`dask scheduler … &`) ends with its page
     return out
 
 

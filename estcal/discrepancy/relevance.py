@@ -396,11 +396,13 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         return bool(np.all(moved[sd > 0] <= GN_TOL * sd[sd > 0]))
 
     whiten = psi is None and system0 is None and rigid
+    fresh = linearise(terms, data, noise, theta, frames, psi, s2)  # the first round's system (and the start's)
     if start is None and system0 is None and ridge_start:
-        start = _geometric_start(terms, linearise(terms, data, noise, theta, frames), include)
+        start = _geometric_start(terms, fresh, include)
     rnd = 0
     while rnd < max_rounds:
-        sysm = linearise(terms, data, noise, theta, frames, psi, s2)
+        sysm = fresh if fresh is not None else linearise(terms, data, noise, theta, frames, psi, s2)
+        fresh = None
         fit = refit(sysm, include=include, start=start if hyper is None else hyper[0])
         same = hyper is not None and _same_hyper(hyper[0], fit.alpha)
         hyper, start = (fit.alpha, fit.noise_var), fit.alpha

@@ -62,6 +62,11 @@ def _title(summary, diagnose: bool) -> str:
     return head + f"; {new:,} run on {summary.scheduler}, {summary.n_workers} worker(s), {summary.wall_s:.1f} s"
 
 
+def _labels(diagnose: bool) -> tuple[str, str]:
+    """The two figures of a row: a diagnosis's registration alone and its model, a calibration's before and after."""
+    return ("registration", "model") if diagnose else ("before", "after")
+
+
 def _medians(rows, before: str, after: str) -> str:
     import statistics
 
@@ -78,7 +83,7 @@ def _table(summary, diagnose: bool):
     from rich.table import Table
 
     t = Table()
-    before, after = ("registration", "model") if diagnose else ("before", "after")
+    before, after = _labels(diagnose)
     for c, j in (("robot", "left"), ("poses", "right"), (f"RMSE {before} mm", "right"),
                  (f"RMSE {after} mm", "right"), (f"valid. {before} mm", "right"), (f"valid. {after} mm", "right"),
                  ("causes", "left"), ("warnings", "left")):
@@ -156,7 +161,7 @@ def fleet(
     console.print(_title(summary, diagnose), soft_wrap=True)
     console.print(_table(summary, diagnose))
     if len(summary.rows) > TABLE_ROWS:
-        b, a = ("registration", "model") if diagnose else ("before", "after")
+        b, a = _labels(diagnose)
         console.print(_medians(summary.rows, b, a))
     if summary.results:
         console.print(f"results: {summary.results}/ (one <robot>.json per robot; a rerun skips them)")
