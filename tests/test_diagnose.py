@@ -401,3 +401,35 @@ def test_rigid_error_per_posture_does_not_absorb_a_geometric_error(tmp_path):
     floor = np.sqrt(3) * 0.05
     assert res.answer["expected_mm"] < 1.3 * floor, res.answer
     assert res.accuracy["validation"][0]["rmse_mm"] < 1.3 * floor, res.accuracy["validation"]
+
+
+def test_diagnosis_runs_one_blas_thread_whatever_the_caller_set(puma, monkeypatch):
+    """The diagnosis runs its linear algebra on one BLAS thread, as the commands do, even when the caller's
+    process runs more (a threaded reduction changes the last bits of the evidence search's sums, enough to flip a
+    marginal term on a few dozen rows): the thread count seen inside the evidence search is 1, and restored after."""
+    from estcal.base.blas import _blas_thread_setters
+    from estcal.estimate import sparse
+
+    pairs = _blas_thread_setters()
+    if not pairs:
+        pytest.skip("no OpenBLAS thread setter in this numpy build")
+    seen = []
+    search = sparse._search
+
+    def spy(*a, **k):
+        seen.append([int(get()) for get, _ in pairs])
+        return search(*a, **k)
+
+    monkeypatch.setattr(sparse, "_search", spy)
+    before = [int(get()) for get, _ in pairs]
+    for _, set_ in pairs:
+        set_(2)
+    try:
+        sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=20, measure="points", seed=2)
+        diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False, effects=["joint_compliance"])
+        after = [int(get()) for get, _ in pairs]
+    finally:
+        for (_, set_), n in zip(pairs, before):
+            set_(n)
+    assert seen and all(c == [1] * len(pairs) for c in seen), seen[:3]
+    assert after == [2] * len(pairs)
