@@ -280,6 +280,40 @@ def test_fleet_rerun_skips_only_what_is_done_with_the_same_options_and_inputs(fl
         data.write_text(text)
 
 
+def test_fleet_rows_cut_by_a_crash_are_redone_and_a_failed_write_is_named(fleet, tmp_path, monkeypatch):
+    """The rows are renamed into place without an fsync each: what a power failure can leave under a row's
+    name — an empty file, or one cut anywhere — is done again by the rerun, never read as a result; a row that
+    cannot be written is listed as a failure with the file, and the rerun does that robot again."""
+    from estcal.workflows import fleet_results
+    from estcal.workflows.fleet import run_fleet
+
+    res = tmp_path / "results"
+    first = run_fleet(fleet, results=res, progress=False)
+    full = (res / "robot_0003.json").read_text()
+    for cut in ("", full[: len(full) // 2], full[:-3]):
+        (res / "robot_0003.json").write_text(cut)
+        again = run_fleet(fleet, results=res, progress=False)
+        assert (again.n_ok, again.n_skipped) == (3, 2) and again.rows == first.rows
+        assert (res / "robot_0003.json").read_text() == full
+    real = os.replace
+
+    def refuse(src, dst):
+        if str(dst).endswith("robot_0001.json"):
+            raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    (res / "robot_0001.json").unlink()
+    monkeypatch.setattr(fleet_results.os, "replace", refuse)
+    lost = run_fleet(fleet, results=res, progress=False)
+    monkeypatch.undo()
+    assert [r["robot"] for r in lost.rows] == ["robot_0000", "robot_0003"]
+    msg = {f["robot"]: f["error"] for f in lost.failures}["robot_0001"]
+    assert "result not saved to" in msg and "robot_0001.json" in msg and "No space left" in msg, msg
+    assert not [p for p in res.iterdir() if p.name.startswith(".")]  # no temporary file left behind
+    final = run_fleet(fleet, results=res, progress=False)
+    assert (final.n_ok, final.n_skipped) == (3, 2) and final.rows == first.rows
+
+
 def test_fleet_cli_says_how_many_it_skipped(tmp_path):
     from typer.testing import CliRunner
 
