@@ -55,6 +55,9 @@ __all__ = ["SCHEDULERS", "TaskFailure", "TaskError", "RunResult", "run_tasks", "
 
 SCHEDULERS = ("serial", "processes", "local")
 
+#: glibc's ``MALLOC_TRIM_THRESHOLD_`` for the workers of a LocalCluster (bytes; docs/scaling.md)
+TRIM_THRESHOLD = 32 * 2 ** 20
+
 
 def short_repr(x, limit: int = 80) -> str:
     """A one-line repr of a task's inputs, cut to ``limit`` characters."""
@@ -310,9 +313,12 @@ def _dask_client(scheduler: str, n_workers):
         # statistical profiler (a thread sampling the task's stack every 10 ms, half of
         # an idle worker's CPU), and the event loop's health check every second rather than
         # every 20 ms (each check takes the GIL from the running task), the nannies' memory monitor every second
-        # rather than every 100 ms — docs/scaling.md
+        # rather than every 100 ms; glibc's trim threshold at 32 MiB instead of the 64 kB the nannies set (at 64 kB
+        # every robot hands its freed arrays back to the system and faults them in again: 8–14 % more CPU per
+        # robot) — docs/scaling.md
         with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
-                              "distributed.worker.memory.monitor-interval": "1s"}):
+                              "distributed.worker.memory.monitor-interval": "1s",
+                              "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": TRIM_THRESHOLD}):
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
         client = Client(cluster)
