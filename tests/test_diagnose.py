@@ -433,3 +433,29 @@ def test_diagnosis_runs_one_blas_thread_whatever_the_caller_set(puma, monkeypatc
             set_(n)
     assert seen and all(c == [1] * len(pairs) for c in seen), seen[:3]
     assert after == [2] * len(pairs)
+
+
+def test_unpenalised_geometry_that_runs_away_is_refused_with_its_conditioning(talos_dir):
+    """``geometric="full"`` on 40 TALOS postures measured by one point: the 30 geometric parameters without a
+    prior are nearly collinear and the Gauss–Newton steps overflow. The diagnosis refuses with the condition
+    number and the way out (the default sparse geometry), not numpy's "array must not contain infs or NaNs"; the
+    default on the same rows gives its answer."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from estcal.base.errors import NumericalRefusal
+    from estcal.io import load_dataset
+    from estcal.validation import posture_groups
+    from estcal.workflows.diagnose import diagnose as diagnose_cmd
+
+    maps = Path(__file__).resolve().parents[1] / "docs" / "maps" / "talos.yaml"
+    robot = load_robot(talos_dir / "talos_reduced.urdf", root="base_link", tip="arm_left_7_link", n_markers=1)
+    data = load_dataset(talos_dir / "talos_feb_arm_02_10_contact.csv", robot, column_map=maps)
+    g = posture_groups(data.readings, robot.joint_types)
+    train = data.subset(np.flatnonzero(np.isin(g, np.random.default_rng(1).permutation(np.unique(g))[:40])))
+    with pytest.raises(NumericalRefusal, match=r"geometric='full'.*condition number \d\.\de\+0[4-9].*--geometric "
+                                               r"sparse"):
+        diagnose_cmd(robot, train, geometric="full", budget=False)
+    res = diagnose_cmd(robot, train, budget=False)
+    assert np.isfinite(res.answer["expected_mm"]) and res.answer["expected_mm"] < 2.0

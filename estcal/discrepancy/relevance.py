@@ -377,18 +377,30 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         d_frames = {s: fit.free[cols] for s, cols in sysm.frame_of.items()}
         sd = np.sqrt(np.maximum(np.r_[np.diag(fit.free_cov)[:nf], np.diag(fit.cov)], 0.0))
         scale, base = 1.0, None
-        for _ in range(6 if search else 1):
+
+        def at(scale):
             new = theta.copy()
             new[ifree] += scale * d_free
             new[ipen] += scale * d_pen
-            new_frames = {s: frames.get(s, np.zeros(6)) + scale * d_frames.get(s, 0.0)
-                          for s in set(frames) | set(d_frames)}
-            if not search:
-                break
-            base = _map_objective(terms, data, noise, theta, frames, sysm, hyper) if base is None else base
-            if _map_objective(terms, data, noise, new, new_frames, sysm, hyper) <= base:
-                break
-            scale *= 0.5
+            return new, {s: frames.get(s, np.zeros(6)) + scale * d_frames.get(s, 0.0)
+                         for s in set(frames) | set(d_frames)}
+
+        new, new_frames = at(scale)
+        if not search and not np.isfinite(_map_objective(terms, data, noise, new, new_frames, sysm, hyper)):
+            search = True  # a step into overflow (an unpenalised near-collinear set: geometric="full"): searched
+        if search:
+            base = _map_objective(terms, data, noise, theta, frames, sysm, hyper)
+            for k in range(6):
+                if k:
+                    new, new_frames = at(scale)
+                with np.errstate(all="ignore"):
+                    obj = _map_objective(terms, data, noise, new, new_frames, sysm, hyper)
+                if obj <= base:
+                    break
+                scale *= 0.5
+            with np.errstate(all="ignore"):
+                if not np.isfinite(_map_objective(terms, data, noise, new, new_frames, sysm, hyper)):
+                    return True  # still overflowing at 1/64 of the step: stay where the objective is finite
         moved = scale * np.abs(np.r_[d_free, d_pen])
         theta = new
         frames.clear()
@@ -396,19 +408,27 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         return bool(np.all(moved[sd > 0] <= GN_TOL * sd[sd > 0]))
 
     whiten = psi is None and system0 is None and rigid
-    fresh = linearise(terms, data, noise, theta, frames, psi, s2)  # the first round's system (and the start's)
+    first = None
+
+    def lin():
+        sysm = linearise(terms, data, noise, theta, frames, psi, s2)
+        if not (np.isfinite(sysm.Xw).all() and np.isfinite(sysm.tw).all()):
+            raise _diverged(terms, first, n_gn)
+        return sysm
+
+    fresh = first = lin()  # the first round's system (and the start's)
     if start is None and system0 is None and ridge_start:
         start = _geometric_start(terms, fresh, include)
     rnd = 0
     while rnd < max_rounds:
-        sysm = fresh if fresh is not None else linearise(terms, data, noise, theta, frames, psi, s2)
+        sysm = fresh if fresh is not None else lin()
         fresh = None
         fit = refit(sysm, include=include, start=start if hyper is None else hyper[0])
         same = hyper is not None and _same_hyper(hyper[0], fit.alpha)
         hyper, start = (fit.alpha, fit.noise_var), fit.alpha
         step(sysm, fit)
         for _ in range(max_gn):
-            sysm = linearise(terms, data, noise, theta, frames, psi, s2)
+            sysm = lin()
             fit = refit(sysm, include=include, hyper=hyper)
             n_gn += 1
             if step(sysm, fit, search=True):
@@ -424,11 +444,29 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         if same:
             converged = True
             break
-    sysm = linearise(terms, data, noise, theta, frames, psi, s2)
+    sysm = lin()
     fit = refit(sysm, include=include, hyper=hyper)
     step(sysm, fit)
     return RelevanceFit(theta, frames, fit, sysm, np.ones(len(ipen), bool) if include is None
                         else np.asarray(include, bool), n_gn, converged)
+
+
+def _diverged(terms, first, n_gn: int):
+    """The refusal of a fit whose residuals overflowed (its Gauss–Newton steps left every plausible robot):
+    names the model and, for the unpenalised geometry, the conditioning that let it run away."""
+    from estcal.base.errors import NumericalRefusal
+
+    msg = f"the fit diverged after {n_gn} Gauss–Newton step(s): the residuals overflowed"
+    if terms.geometric_mode == "full":
+        F = first.X[:, : first.n_free] if first is not None else None
+        cond = float(np.linalg.cond(F / np.maximum(np.linalg.norm(F, axis=0), 1e-300))) if F is not None else np.nan
+        msg += (f". With geometric='full' the {len(terms.geometric)} geometric parameters have no prior, and on these "
+                f"data they are nearly collinear (condition number {cond:.1e} of their scaled columns): the default "
+                f"geometric='sparse' (`--geometric sparse`) holds the directions the data do not determine near their "
+                f"nominal values")
+    else:
+        msg += "; check the data for a mislabelled joint or unit (estcal check) before a diagnosis"
+    return NumericalRefusal(msg)
 
 
 def _geometric_start(terms, sysm: System, include=None) -> np.ndarray:
