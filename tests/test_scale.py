@@ -338,8 +338,21 @@ def test_local_cluster_workers_run_with_the_documented_settings():
 
     from estcal.scale.runner import TRIM_THRESHOLD
 
-    env = run_tasks(os.getenv, ["MALLOC_TRIM_THRESHOLD_"], scheduler="local", n_workers=1, progress=False)
-    assert env.values() == [str(TRIM_THRESHOLD)] and TRIM_THRESHOLD == 32 * 2 ** 20
+    before = os.environ.get("MALLOC_TRIM_THRESHOLD_")
+    # as after a LocalCluster of Dask's defaults in this process (its nanny writes its value into our environment)
+    os.environ["MALLOC_TRIM_THRESHOLD_"] = "65536"
+    try:
+        env = run_tasks(os.getenv, ["MALLOC_TRIM_THRESHOLD_"], scheduler="local", n_workers=1, progress=False)
+        assert env.values() == [str(TRIM_THRESHOLD)] and TRIM_THRESHOLD == 32 * 2 ** 20
+        assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's environment as it was
+        os.environ["MALLOC_TRIM_THRESHOLD_"] = "1048576"  # a user's own choice is kept
+        env = run_tasks(os.getenv, ["MALLOC_TRIM_THRESHOLD_"], scheduler="local", n_workers=1, progress=False)
+        assert env.values() == ["1048576"]
+    finally:
+        if before is None:
+            os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+        else:
+            os.environ["MALLOC_TRIM_THRESHOLD_"] = before
     keys = ["distributed.worker.profile.enabled", "distributed.admin.tick.interval",
             "distributed.worker.memory.monitor-interval"]
     cfg = run_tasks(dask.config.get, keys, scheduler="local", n_workers=1, progress=False).values()

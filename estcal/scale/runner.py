@@ -36,6 +36,7 @@ function, or a :func:`functools.partial` of one).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -288,6 +289,29 @@ def run_tasks(fn: Callable, tasks: Sequence, *, scheduler="serial", seed=None, n
                      time.perf_counter() - t0)
 
 
+@contextlib.contextmanager
+def _trim_threshold():
+    """glibc's trim threshold for the workers a nanny is about to start (docs/scaling.md).
+
+    A nanny passes ``MALLOC_TRIM_THRESHOLD_`` from its own process's environment before Dask's configuration,
+    and writes Dask's value (65536) into that environment when it starts a worker — so after any LocalCluster
+    of Dask's defaults in this process the configuration alone no longer reaches the workers. Here the
+    variable is set for the start unless the user chose another value than Dask's, then restored."""
+    var = "MALLOC_TRIM_THRESHOLD_"
+    old = os.environ.get(var)
+    if old not in (None, "65536"):  # the user's own choice
+        yield
+        return
+    os.environ[var] = str(TRIM_THRESHOLD)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(var, None)
+        else:
+            os.environ[var] = old
+
+
 class _OwnCluster:
     """A LocalCluster and its Client, closed together."""
 
@@ -317,8 +341,7 @@ def _dask_client(scheduler: str, n_workers):
         # every robot hands its freed arrays back to the system and faults them in again: 8–14 % more CPU per
         # robot) — docs/scaling.md
         with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
-                              "distributed.worker.memory.monitor-interval": "1s",
-                              "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": TRIM_THRESHOLD}):
+                              "distributed.worker.memory.monitor-interval": "1s"}), _trim_threshold():
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
         client = Client(cluster)
