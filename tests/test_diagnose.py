@@ -459,3 +459,25 @@ def test_unpenalised_geometry_that_runs_away_is_refused_with_its_conditioning(ta
         diagnose_cmd(robot, train, geometric="full", budget=False)
     res = diagnose_cmd(robot, train, budget=False)
     assert np.isfinite(res.answer["expected_mm"]) and res.answer["expected_mm"] < 2.0
+
+
+def test_rows_that_load_a_kept_compliance_on_an_unseen_side_are_flagged(puma):
+    """Trained where j2's gravity torque has one sign, validated where it has both: the validation figure names
+    j2 and the share of its rows loaded on the side no training row had (the compliance is carried across zero
+    load there, untested); validated on the training side only, nothing is flagged."""
+    from estcal.discrepancy.result import _validation_line
+
+    sim, _ = simulate_hidden(puma, [("joint_compliance", ["j2"], 12.0)], SIGMA, n_poses=120, measure="points",
+                             seed=4)
+    d = sim.dataset
+    tau = sim.nominal_robot.gravity_torques(d.readings, context=d.context)[:, 1]
+    pos, neg = np.flatnonzero(tau > 0), np.flatnonzero(tau < 0)
+    assert len(pos) > 40 and len(neg) > 20
+    train, same_side, both = d.subset(pos[:40]), d.subset(pos[40:]), d.subset(np.r_[pos[40:], neg])
+    res = diagnose(sim.nominal_robot, train, validate=[same_side, both], noise=SIGMA, budget=False)
+    assert ("joint_compliance", ("j2",)) in res.named
+    v_same, v_both = res.accuracy["validation"]
+    assert v_same["load_side_unseen"] == 0.0 and v_same["load_side_joints"] == []
+    assert v_both["load_side_joints"] == ["j2"]
+    assert v_both["load_side_unseen"] == pytest.approx(len(neg) / (len(pos) - 40 + len(neg)))
+    assert "load j2 on the side of zero no training row did" in _validation_line(v_both)

@@ -325,7 +325,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     train_mm = _scores(final, final.params.values, [data])[0] if data.kind in ("position", "points", "pose") else None
     b = budget.to_dict() if budget is not None else None
     names, C = _covariance(terms, fit)
-    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C)) for d in validate]
+    load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash") for j in t.joints})
+    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), load_joints) for d in validate]
     answer = {"expected_mm": b["expected_mm"] if b else cv_all_rows,
               "bound95_mm": b["bound95_mm"] if b else None,
               "basis": b["expected_basis"] if b else "CV of the model chosen on all rows (no budget: optimistic)",
@@ -404,10 +405,11 @@ def _covariance(terms, fit):
     return names, C
 
 
-def _validation(final, data, d, joint_types, budget, cov) -> dict:
+def _validation(final, data, d, joint_types, budget, cov, load_joints=()) -> dict:
     """One validation file's figure: the model's RMSE at its new-posture rows, its measuring frame registered on
     its rows at postures the training measured (six parameters of the base frame, the model held), with the
-    prediction at its postures and the region's coverage when the budget ran."""
+    prediction at its postures and the region's coverage when the budget ran, and the share of its rows that
+    load a kept compliance or backlash on the side of zero no training row did (``load_joints``)."""
     from estcal.estimate import calibrate_lsq
     from estcal.methods import Problem
     from estcal.validation import seen_postures
@@ -437,7 +439,7 @@ def _validation(final, data, d, joint_types, budget, cov) -> dict:
     err = pose_errors(final, theta, dn)[0]
     out = {"path": str(d.where), "rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3), "n_new": int(new.sum()),
            "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "predicted_mm": None,
-           "coverage": None}
+           "coverage": None, **_unseen_load_sides(final, data, dn, load_joints)}
     if budget is not None:
         from .budget import coverage_at, predicted_at, reach_at
 
@@ -446,6 +448,28 @@ def _validation(final, data, d, joint_types, budget, cov) -> dict:
         out.update(coverage_at(budget, e, S))
         out.update(reach_at(budget, data.readings, dn.readings, final.joint_names))
     return out
+
+
+def _unseen_load_sides(final, data, dn, joints) -> dict:
+    """``{"load_side_unseen": share of the rows of dn, "load_side_joints": [...]}``: the rows whose gravity torque
+    on a joint of ``joints`` (kept compliance or backlash) has the sign no training row had. There the model
+    carries a deflection learnt on one side of zero load across it — a dead zone, or a backlash that was not a
+    candidate because the training load never changed sign — untested by any cross-validation."""
+    if not joints or not dn.n:
+        return {"load_side_unseen": 0.0, "load_side_joints": []}
+    th = final.params.values
+    ji = [final.joint_names.index(j) for j in joints]
+    tt = final.gravity_torques(data.readings, th, data.context)[:, ji]
+    tv = final.gravity_torques(dn.readings, th, dn.context)[:, ji]
+    eps = 1e-9 * np.maximum(np.abs(tt).max(0), 1e-300)  # a numerically zero torque has no side
+    unseen = np.zeros(dn.n, bool)
+    which = []
+    for k, j in enumerate(joints):
+        m = ((tv[:, k] > eps[k]) & ~(tt[:, k] > eps[k]).any()) | ((tv[:, k] < -eps[k]) & ~(tt[:, k] < -eps[k]).any())
+        if m.any():
+            unseen |= m
+            which.append(j)
+    return {"load_side_unseen": float(unseen.mean()), "load_side_joints": which}
 
 
 def _model_points(final, theta, d, cov, n_train):

@@ -263,6 +263,9 @@ def _validation_line(v: dict) -> str:
         s += f"; predicted {v['predicted_mm']:.2f}"
     if v.get("coverage") is not None:
         s += f", {100 * v['coverage']:.0f} % inside the 95 % region"
+    if v.get("load_side_unseen"):
+        s += (f" — {100 * v['load_side_unseen']:.0f} % of its rows load {', '.join(v['load_side_joints'])} on the side "
+              f"of zero no training row did: the model carries its load terms across zero load there, untested")
     if v.get("beyond_cv_reach"):
         s += (f" — {100 * v['beyond_cv_reach']:.0f} % of its rows extrapolate farther than the cross-validation tried "
               f"({v['reach_joint']}: {v['reach_max']:.2g}× its training range): the prediction is untested there")
