@@ -481,3 +481,18 @@ def test_rows_that_load_a_kept_compliance_on_an_unseen_side_are_flagged(puma):
     assert v_both["load_side_joints"] == ["j2"]
     assert v_both["load_side_unseen"] == pytest.approx(len(neg) / (len(pos) - 40 + len(neg)))
     assert "load j2 on the side of zero no training row did" in _validation_line(v_both)
+
+
+@pytest.mark.parametrize("seed", [101, 102, 103])
+def test_a_cause_named_first_and_explained_by_later_ones_is_withdrawn(puma, seed):
+    """Two compliances (j2, j3) on 25 postures: from the geometry alone a link tilt takes part of both and is
+    named first; once both compliances are named it explains nothing, and the backward check withdraws it — the
+    record says so and names what explained it. (Forward naming alone named a link tilt on these three draws.)"""
+    hidden = [("joint_compliance", ["j2"], 10.0), ("joint_compliance", ["j3"], 10.0)]
+    sim, truth = simulate_hidden(puma, hidden, SIGMA, n_poses=25, measure="points", seed=seed)
+    res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed - 100, budget=False)
+    assert sorted(res.named) == [("joint_compliance", ("j2",)), ("joint_compliance", ("j3",))], res.named
+    withdrawn = [r for r in res.terms["tested"] if r["reason"].startswith("named first, then explained")]
+    assert [r["effect"] for r in withdrawn] == ["link_tilt"], withdrawn
+    assert "joint_compliance(j2)" in withdrawn[0]["reason"] and "joint_compliance(j3)" in withdrawn[0]["reason"]
+    _recovered(res, truth)

@@ -606,6 +606,8 @@ def select_terms(terms, system: System, folds, rows=None, start=None, name_load:
         chain = chain | (tidx == i)
         named.append(i)
         pool.remove(i)
+    if len(named) > 1:
+        chain, cur, named = _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, records, tidx)
     tested = {r["term"] for r in records}
     for i in pool:  # candidates never scored past the stopping point: their last Bayes factor
         if terms.terms[i].label not in tested:
@@ -617,6 +619,40 @@ def select_terms(terms, system: System, folds, rows=None, start=None, name_load:
     fit = refit(system, rows, include, start)
     cv = cross_validate(system, folds, include, start) if final_cv else None
     return Selection(include, _last_records(records), named, fit, cv)
+
+
+def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, records, tidx):
+    """Each named cause tested again against the others (Efroymson's stepwise selection: a forward step, then
+    the backward check): a term named early can stand in for causes named after it — from the geometry alone
+    a link tilt takes part of two joints' compliances, and once both are named it explains nothing — so every
+    cause must still pass the naming tests against the model of the other causes (its Bayes factor, kept in most
+    folds, a lower CV error). The one failing with the lowest Bayes factor leaves the causes and the model, and
+    the others are tested again, until every one passes. Returns ``(chain, fit, named)``; the failed ones'
+    records say what explained them."""
+    if cur_cv is None:
+        cur_cv = cross_validate(system, folds, chain, start)
+    while len(named) > 1:
+        fails = []
+        for i in named:
+            m = tidx == i
+            without = chain & ~m
+            f = refit(system, rows, without, start)
+            rec = _term_record(terms.terms[i], cur.log_evidence - f.log_evidence, cur.active[m].any())
+            if not rec["reason"]:
+                _fold_tests(rec, cur_cv, cross_validate(system, folds, without, start), m, len(folds))
+            if not rec["named"]:
+                fails.append((rec["ln_bf"], i, f, rec))
+        if not fails:
+            break
+        _, i, cur, rec = min(fails, key=lambda x: x[0])
+        others = ", ".join(terms.terms[j].label for j in named if j != i)
+        rec.update(named=False, reason=f"named first, then explained by the causes named after it ({others}): "
+                                       f"{rec['reason']}")
+        records.append(rec)
+        chain = chain & ~(tidx == i)
+        named = [j for j in named if j != i]
+        cur_cv = cross_validate(system, folds, chain, start)
+    return chain, cur, named
 
 
 def _last_records(records) -> list:
