@@ -11,7 +11,8 @@ Protocol (``../shared/data/tiago``, never copied):
   score. Direction 2: the sessions swapped;
 * development seeds 0–5 (the model was developed on them); confirmation seeds 20, 21, 22, fixed before any of
   them was scored; a second confirmation set 40, 41, 42, declared before it was scored when 20–22 had been run
-  with two versions of the model (``--seeds confirmation2``).
+  with two versions of the model (``--seeds confirmation2``); a third, 60, 61, 62, declared before the last
+  version's changes and run once with it (``--seeds confirmation3``).
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
@@ -37,6 +38,8 @@ DEVELOPMENT = (0, 1, 2, 3, 4, 5)
 CONFIRMATION = (20, 21, 22)
 #: declared before they were scored, to confirm a change after 20–22 had been run twice
 CONFIRMATION2 = (40, 41, 42)
+#: declared before the backward naming step was written, run once with it
+CONFIRMATION3 = (60, 61, 62)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -96,7 +99,8 @@ def run(seeds, folds=5):
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 (40–42) or a list")
+    ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
+                    "(40–42), confirmation3 (60–62) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -104,7 +108,8 @@ def main(argv=None) -> dict:
     if not (shared_dir() / "data" / "tiago").is_dir():
         print(f"shared data not found at {shared_dir() / 'data'}")
         return {"skipped": True}
-    seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2}.get(args.seeds)
+    seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
+             "confirmation3": CONFIRMATION3}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
     out = {"protocol": __doc__, "seeds": list(seeds), **run(seeds, args.folds)}
     if args.json:
