@@ -631,9 +631,12 @@ def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, reco
     records say what explained them."""
     if cur_cv is None:
         cur_cv = cross_validate(system, folds, chain, start)
+    last = named[-1]  # against the others it meets its own forward step's model: it passes again
     while len(named) > 1:
         fails = []
         for i in named:
+            if i == last:
+                continue
             m = tidx == i
             without = chain & ~m
             f = refit(system, rows, without, start)
@@ -652,6 +655,7 @@ def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, reco
         chain = chain & ~(tidx == i)
         named = [j for j in named if j != i]
         cur_cv = cross_validate(system, folds, chain, start)
+        last = None
     return chain, cur, named
 
 
