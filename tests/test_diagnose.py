@@ -492,7 +492,7 @@ def test_a_cause_named_first_and_explained_by_later_ones_is_withdrawn(puma, seed
     sim, truth = simulate_hidden(puma, hidden, SIGMA, n_poses=25, measure="points", seed=seed)
     res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed - 100, budget=False)
     assert sorted(res.named) == [("joint_compliance", ("j2",)), ("joint_compliance", ("j3",))], res.named
-    withdrawn = [r for r in res.terms["tested"] if r["reason"].startswith("named first, then explained")]
+    withdrawn = [r for r in res.terms["tested"] if r["reason"].startswith("withdrawn after naming: explained by")]
     assert [r["effect"] for r in withdrawn] == ["link_tilt"], withdrawn
     assert "joint_compliance(j2)" in withdrawn[0]["reason"] and "joint_compliance(j3)" in withdrawn[0]["reason"]
     _recovered(res, truth)

@@ -649,7 +649,7 @@ def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, reco
             break
         _, i, cur, rec = min(fails, key=lambda x: x[0])
         others = ", ".join(terms.terms[j].label for j in named if j != i)
-        rec.update(named=False, reason=f"named first, then explained by the causes named after it ({others}): "
+        rec.update(named=False, reason=f"withdrawn after naming: explained by the other named causes ({others}): "
                                        f"{rec['reason']}")
         records.append(rec)
         chain = chain & ~(tidx == i)
