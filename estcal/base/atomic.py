@@ -56,19 +56,25 @@ def _final_mode(path: Path) -> int:
 
 
 @contextlib.contextmanager
-def atomic_path(path):
+def atomic_path(path, durable: bool = True):
     """Context manager yielding the path of a temporary file beside ``path`` that replaces
     ``path`` on success (fsync'ed, then renamed), for writers that open the file themselves
     (h5py, a copy to edit). On an exception the temporary file is removed and ``path`` is
-    left untouched. Its parent folders are created."""
+    left untouched. Its parent folders are created.
+
+    ``durable=False``: renamed without the fsync — still whole or absent after a killed process,
+    but a power failure may leave it empty or cut under its final name. Only for files a later
+    reader checks before it trusts them (a fleet's result rows: the fsync was most of the
+    command's CPU per robot, docs/scaling.md)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
+        if durable:
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
         os.chmod(tmp, _final_mode(path))
         os.replace(tmp, path)
     except BaseException:
@@ -78,7 +84,8 @@ def atomic_path(path):
 
 
 @contextlib.contextmanager
-def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline: str | None = None):
+def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline: str | None = None,
+                 durable: bool = True):
     """Context manager yielding a file object whose content replaces ``path`` on success.
 
     Parameters
@@ -88,6 +95,7 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
     mode : {'w', 'wb'}
         Text or binary.
     encoding, newline : passed to :func:`open` in text mode.
+    durable : fsync before the rename (:func:`atomic_path`).
 
     On an exception inside the ``with`` block the temporary file is removed and
     ``path`` is left untouched (:func:`atomic_path`).
@@ -95,13 +103,28 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write: mode must be 'w' or 'wb', got {mode!r}")
     kw = {} if "b" in mode else {"encoding": encoding, "newline": newline}
-    with atomic_path(path) as tmp, open(tmp, mode, **kw) as fh:
-        yield fh
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        # written through the temporary file's own descriptor, fsync'ed before it is closed (atomic_path,
+        # for writers that open the file themselves, has to reopen it)
+        with os.fdopen(fd, mode, **kw) as fh:
+            yield fh
+            if durable:
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.chmod(tmp, _final_mode(path))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
-def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
-    """Write ``text`` to ``path`` atomically; returns the path."""
-    with atomic_write(path, "w", encoding=encoding) as fh:
+def atomic_write_text(path, text: str, encoding: str = "utf-8", durable: bool = True) -> Path:
+    """Write ``text`` to ``path`` atomically; returns the path (``durable``: :func:`atomic_path`)."""
+    with atomic_write(path, "w", encoding=encoding, durable=durable) as fh:
         fh.write(text)
     return Path(path)
 

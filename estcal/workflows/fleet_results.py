@@ -13,7 +13,7 @@ the one thing a power failure can leave — an empty or cut file under its final
 again, never taken for a result. The fsync was most of the command's CPU per robot (0.15 of
 0.3 ms a row on this machine's disk, in the one process that receives every row of a fleet:
 docs/scaling.md); the command's own outputs (the summary JSON, the saved models) keep theirs
-(:mod:`estcal.base.atomic`).
+(:mod:`estcal.base.atomic`, ``durable=False`` here).
 
 ``key`` is a digest of everything the row depends on: the options (level,
 estimator, noise, ``--save-models`` folder, column map …) and the robot's inputs —
@@ -28,15 +28,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 
+from estcal.base.atomic import atomic_write_text
 from estcal.base.errors import InputError
 from estcal.base.jsonio import dumps
 
 __all__ = ["ResultFolder", "job_key"]
-
-_MODE = 0o666 & ~os.umask(os.umask(0))  # a new file's usual permissions (mkstemp creates 0o600)
 
 
 def _stat(path) -> list:
@@ -47,18 +45,10 @@ def _stat(path) -> list:
         return [str(path), None, None]
 
 
-def job_key(job, options: dict, fleet_keys: dict | None = None) -> str:
-    """Digest of the options and of the robot's inputs (see the module docstring). ``fleet_keys``: a cache
-    ``{id(spec): spec.key()}`` for the robots of one generated fleet (the fleet's key reads and hashes its
-    robot file: once per command, not once per robot)."""
+def job_key(job, options: dict) -> str:
+    """Digest of the options and of the robot's inputs (see the module docstring)."""
     if job.spec is not None:
-        if fleet_keys is None:
-            fk = job.spec.key()
-        else:
-            fk = fleet_keys.get(id(job.spec))
-            if fk is None:
-                fk = fleet_keys[id(job.spec)] = job.spec.key()
-        inputs = {"fleet": fk, "index": job.index}
+        inputs = {"fleet": job.spec.key(), "index": job.index}
     else:
         inputs = {"files": [_stat(f) for f in (job.data, *job.validate, job.robot) if f]}
     text = json.dumps({"options": options, "robot": job.name, **inputs}, sort_keys=True, default=str)
@@ -84,7 +74,6 @@ class ResultFolder:
             raise InputError(f"--results {self.folder}: the results folder is not writable; name a writable one "
                              f"with --results DIR")
         self._errors: dict = {}
-        self._fleet_keys: dict = {}
 
     def path(self, name: str) -> Path:
         return self.folder / f"{name}.json"
@@ -98,7 +87,7 @@ class ResultFolder:
                 rec = json.loads(p.read_text(encoding="utf-8"))
             except (OSError, ValueError):  # absent, or unreadable: the robot is done again
                 continue
-            if not isinstance(rec, dict) or rec.get("key") != job_key(job, self.options, self._fleet_keys):
+            if not isinstance(rec, dict) or rec.get("key") != job_key(job, self.options):
                 continue
             row = rec.get("row")
             if not isinstance(row, dict) or (row.get("model") and not Path(row["model"]).is_file()):
@@ -113,27 +102,13 @@ class ResultFolder:
         """Write ``job``'s row atomically (temporary file, rename; module docstring); a failed write is
         recorded for :meth:`errors`, not raised."""
         # one line: an indented dump goes through json's pure-Python encoder (19 against 11 µs a row)
-        text = dumps({"robot": job.name, "key": job_key(job, self.options, self._fleet_keys), "row": row}) + "\n"
+        text = dumps({"robot": job.name, "key": job_key(job, self.options), "row": row}) + "\n"
         path = self.path(job.name)
-        tmp = None
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.folder)
-            try:
-                data = memoryview(text.encode("utf-8"))
-                while data:  # a regular file takes it at once; a short write is only allowed, not seen
-                    data = data[os.write(fd, data):]
-                os.fchmod(fd, _MODE)
-            finally:
-                os.close(fd)
-            os.replace(tmp, path)
+            atomic_write_text(path, text, durable=False)
             self._errors.pop(job.name, None)
         except OSError as exc:
             self._errors[job.name] = f"result not saved to {path}: {type(exc).__name__}: {exc}"
-            if tmp is not None:
-                try:
-                    os.unlink(tmp)
-                except OSError:
-                    pass
 
     def errors(self) -> dict:
         """``{robot: message}`` of the rows whose write failed."""
