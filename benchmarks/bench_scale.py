@@ -44,6 +44,7 @@ sys.path.insert(0, str(REPO / "tests"))  # dask_cluster: the scheduler and worke
 from bench_calibration import puma_problem  # noqa: E402
 from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.scale import run_tasks  # noqa: E402
+from estcal.scale.runner import TRIM_THRESHOLD, WORKER_CONFIG  # noqa: E402  (the LocalCluster's own settings)
 
 def load() -> float:
     return round(os.getloadavg()[0], 2)
@@ -235,8 +236,8 @@ class Sampler:
 #: 1.03 → 0.54 s of CPU in 30 s), and glibc's trim threshold at 32 MiB instead of the 64 kB a nanny gives its
 #: worker (at 64 kB a robot's freed arrays go back to the system and are faulted in again: 8–14 % more CPU per
 #: robot, measured in one process with and without it; the nanny takes the variable from its environment)
-WORKER_ENV = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False", "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "1s",
-              "DASK_DISTRIBUTED__WORKER__MEMORY__MONITOR_INTERVAL": "1s", "MALLOC_TRIM_THRESHOLD_": str(32 * 2 ** 20)}
+WORKER_ENV = {**{"DASK_" + k.upper().replace(".", "__").replace("-", "_"): str(v) for k, v in WORKER_CONFIG.items()},
+              "MALLOC_TRIM_THRESHOLD_": str(TRIM_THRESHOLD)}
 
 
 def estcal_cmd(*args, out: Path, sample: dict | None = None) -> dict:

@@ -43,6 +43,11 @@ CONFIRMATION3 = (60, 61, 62)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
+def missing() -> str | None:
+    """Why the study cannot run here (the shared TIAGo data are absent), else None."""
+    return None if (shared_dir() / "data" / "tiago").is_dir() else f"shared data not found at {shared_dir() / 'data'}"
+
+
 def load():
     """The TIAGo robot (the built-in ``tiago``, URDF masses as ``estcal diagnose`` loads them) and both sessions."""
     from estcal.discrepancy.masses import with_urdf_masses
@@ -105,8 +110,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
-    if not (shared_dir() / "data" / "tiago").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    if missing():
+        print(missing())
         return {"skipped": True}
     seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
              "confirmation3": CONFIRMATION3}.get(args.seeds)

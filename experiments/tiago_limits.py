@@ -101,11 +101,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     from estcal.base.blas import single_thread_blas
-    from estcal.kinematics.robots import shared_dir
 
     warnings.filterwarnings("ignore")
-    if not (shared_dir() / "data" / "tiago").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    if td.missing():
+        print(td.missing())
         return {"skipped": True}
     robot, sessions = td.load()
     t0 = time.process_time()

@@ -376,7 +376,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         d_free, d_pen = fit.free[:nf], terms.nominal[ipen] + fit.mean - theta[ipen]
         d_frames = {s: fit.free[cols] for s, cols in sysm.frame_of.items()}
         sd = np.sqrt(np.maximum(np.r_[np.diag(fit.free_cov)[:nf], np.diag(fit.cov)], 0.0))
-        scale, base = 1.0, None
+        scale = 1.0
 
         def at(scale):
             new = theta.copy()
@@ -385,22 +385,27 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             return new, {s: frames.get(s, np.zeros(6)) + scale * d_frames.get(s, 0.0)
                          for s in set(frames) | set(d_frames)}
 
+        def objective(new, new_frames):
+            with np.errstate(all="ignore"):
+                return _map_objective(terms, data, noise, new, new_frames, sysm, hyper)
+
         new, new_frames = at(scale)
-        if not search and not np.isfinite(_map_objective(terms, data, noise, new, new_frames, sysm, hyper)):
-            search = True  # a step into overflow (an unpenalised near-collinear set: geometric="full"): searched
+        obj = None
+        if not search:
+            obj = objective(new, new_frames)
+            search = not np.isfinite(obj)  # a step into overflow (geometric="full", near-collinear): searched
         if search:
             base = _map_objective(terms, data, noise, theta, frames, sysm, hyper)
-            for k in range(6):
-                if k:
-                    new, new_frames = at(scale)
-                with np.errstate(all="ignore"):
-                    obj = _map_objective(terms, data, noise, new, new_frames, sysm, hyper)
+            obj = objective(new, new_frames) if obj is None else obj
+            for k in range(6):  # the step, then 1/2 … 1/32 of it
                 if obj <= base:
                     break
                 scale *= 0.5
-            with np.errstate(all="ignore"):
-                if not np.isfinite(_map_objective(terms, data, noise, new, new_frames, sysm, hyper)):
-                    return True  # still overflowing at 1/64 of the step: stay where the objective is finite
+                if k < 5:
+                    new, new_frames = at(scale)
+                    obj = objective(new, new_frames)
+            if not np.isfinite(obj):
+                return True  # still overflowing at 1/64 of the step: stay where the objective is finite
         moved = scale * np.abs(np.r_[d_free, d_pen])
         theta = new
         frames.clear()
@@ -629,8 +634,6 @@ def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, reco
     folds, a lower CV error). The one failing with the lowest Bayes factor leaves the causes and the model, and
     the others are tested again, until every one passes. Returns ``(chain, fit, named)``; the failed ones'
     records say what explained them."""
-    if cur_cv is None:
-        cur_cv = cross_validate(system, folds, chain, start)
     last = named[-1]  # against the others it meets its own forward step's model: it passes again
     while len(named) > 1:
         fails = []

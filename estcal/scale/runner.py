@@ -58,6 +58,10 @@ SCHEDULERS = ("serial", "processes", "local")
 
 #: glibc's ``MALLOC_TRIM_THRESHOLD_`` for the workers of a LocalCluster (bytes; docs/scaling.md)
 TRIM_THRESHOLD = 32 * 2 ** 20
+#: the Dask settings of a LocalCluster's processes (docs/scaling.md; the benchmark's cluster takes them as
+#: ``DASK_…`` environment variables)
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
+                 "distributed.worker.memory.monitor-interval": "1s"}
 
 
 def short_repr(x, limit: int = 80) -> str:
@@ -340,8 +344,7 @@ def _dask_client(scheduler: str, n_workers):
         # rather than every 100 ms; glibc's trim threshold at 32 MiB instead of the 64 kB the nannies set (at 64 kB
         # every robot hands its freed arrays back to the system and faults them in again: 8–14 % more CPU per
         # robot) — docs/scaling.md
-        with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
-                              "distributed.worker.memory.monitor-interval": "1s"}), _trim_threshold():
+        with dask.config.set(WORKER_CONFIG), _trim_threshold():
             cluster = LocalCluster(n_workers=n_workers or _default_workers("local"), threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
         client = Client(cluster)
