@@ -190,7 +190,7 @@ class api_words:
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None,
              root: str | None = None, tip: str | None = None, folds: int = 5, geometric: str = "sparse",
-             budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = False,
+             budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = True,
              column_map=None, drop_flagged: bool = True, report=None):
     """How accurate the robot's model is at new postures, which physical causes it names, what stays
     unexplained — ``estcal diagnose`` (docs/discrepancy.md; the defaults are the command's).

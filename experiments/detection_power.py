@@ -87,8 +87,11 @@ def trial(args):
         hidden = [(e, [j], float(magnitude), opts)]
     sim, truth = simulate_hidden(robot, hidden, SIGMA, n_poses=n_poses, seed=seed, **kw)
     res = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, rng=seed, budget=False)
-    named = [(c.effect, list(c.joints)) for c in res.causes]
-    gains = {(c.effect, tuple(c.joints)): c.gain_mm for c in res.causes}
+    # a backlash named by the approach direction is another mechanism than the hidden one (by the load's side:
+    # the simulation records no approach; the diagnosis derives directions from the row order)
+    eff = [c.effect + ("[by=approach]" if c.options.get("by") == "approach" else "") for c in res.causes]
+    named = [(e, list(c.joints)) for e, c in zip(eff, res.causes)]
+    gains = {(e, tuple(c.joints)): c.gain_mm for e, c in zip(eff, res.causes)}
     out = {"robot": robot_name, "magnitude": magnitude, "seed": seed, "named": named,
            "hidden": [(h[0], h[1], h[3] if len(h) > 3 else {}) for h in hidden],
            "cv_gain_mm": float(sum(gains.values()))}

@@ -7,6 +7,7 @@ postures (1e-3 rad) shuffled by ``numpy.random.default_rng(seed)``; the first 40
 rows) validate — new postures of the same session, so the measuring frame is not re-registered. Seeds: 0 (the
 split of the comparison), 1 and 2 (further splits, reported beside it). The diagnosis leaves out, by default, the
 training rows the data screening flags (here line 2, a residual 95× the median's, when it falls in training).
+Every row carries the approach directions of the session's acquisition (from the whole file's time order).
 """
 from __future__ import annotations
 
@@ -30,12 +31,15 @@ N_TRAIN = 40
 
 def load():
     from estcal.io import load_dataset
+    from estcal.io.prepare import derive_approach
     from estcal.io.robotfile import load_robot
 
     folder = shared_dir() / "data" / "talos"
     robot = load_robot(folder / "talos_reduced.urdf", root="base_link", tip="arm_left_7_link", n_markers=1)
     data = load_dataset(folder / "talos_feb_arm_02_10_contact.csv", robot, column_map=REPO / "docs" / "maps" / "talos.yaml")
-    return robot, data
+    # each row keeps the approach directions of the session's acquisition (what estcal diagnose derives from the
+    # whole file): a split must not invent moves between postures the robot never went between
+    return robot, derive_approach(data)
 
 
 def split(robot, data, seed):

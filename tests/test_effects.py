@@ -115,6 +115,38 @@ def test_backlash_signs():
     np.testing.assert_allclose(k2.q[:, 1] - q[:, 1], np.sign(tau[:, 1]) * 1e-3, atol=1e-15)
 
 
+
+def test_backlash_by_load_and_by_approach_side_by_side():
+    """``by="load"`` ignores an approach column, ``by="approach"`` reads only it (0 without it: either side as
+    likely), and both act on one joint at once with their own parameters; their columns match finite
+    differences."""
+    base = heavy_puma()
+    robot = base.add_effect(make_effect("backlash", base, joints=["j2"], by="load"))
+    robot = robot.add_effect(make_effect("backlash", robot, joints=["j2"], by="approach"))
+    assert robot.params.select("backlash*") == ["backlash_j2", "backlash_approach_j2"]
+    robot.params["backlash_j2"], robot.params["backlash_approach_j2"] = 1e-3, 3e-3
+    rng = np.random.default_rng(4)
+    q = robot.random_readings(25, rng)
+    tau = base.gravity_torques(q)
+    appr = rng.choice([-1.0, 0.0, 1.0], 25)
+    k = _rigid(robot, q, {"approach_j2": appr})
+    np.testing.assert_allclose(k.q[:, 1] - q[:, 1], np.sign(tau[:, 1]) * 1e-3 - appr * 3e-3, atol=1e-15)
+    k0 = _rigid(robot, q)
+    np.testing.assert_allclose(k0.q[:, 1] - q[:, 1], np.sign(tau[:, 1]) * 1e-3, atol=1e-15)
+    theta = robot.params.values.copy()
+    eidx = np.array(robot.params.indices(["backlash_j2", "backlash_approach_j2"]))
+    ctx = {"approach_j2": appr}
+    kk = robot.kinematics(q, theta, ctx)
+    Jp, _ = fd_columns(robot, q, theta, ctx, eidx, eps=1e-7)
+    np.testing.assert_allclose(kk.J[..., eidx], Jp, rtol=0, atol=1e-6 * np.abs(Jp).max())
+    with pytest.raises(ValueError, match="by must be one of auto, load, approach"):
+        make_effect("backlash", base, joints=["j2"], by="gravity")
+    # the option survives the robot file (a diagnosed model's backlash keeps its meaning)
+    d = [e.to_dict() for e in robot.effects]
+    assert [x.get("options") for x in d] == [{"by": "load"}, {"by": "approach"}]
+    again = robot_from_dict(robot_to_dict(robot))
+    np.testing.assert_array_equal(_rigid(again, q, {"approach_j2": appr}).q, k.q)
+
 def test_harmonic_gain_drift_closed_forms():
     base = puma560()
     base.meta["gear_ratio"] = {"j1": 100.0}

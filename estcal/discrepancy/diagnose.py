@@ -147,7 +147,7 @@ def _scores(robot, theta, datasets):
 
 # ------------------------------------------------------------------ main
 def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
-             geometric: str = "sparse", session_time: bool = True, approach_from_order: bool = False,
+             geometric: str = "sparse", session_time: bool = True, approach_from_order: bool = True,
              posture_tol=(1e-3, 1e-3), budget: bool = True, time_blocks: bool = True, ident_tol: float = 1e-4,
              regroup_tol: float = 1e-3) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data`` (module docstring).
@@ -167,7 +167,8 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     geometric : ``"sparse"`` (every identifiable geometric parameter under a relevance prior, the default),
         ``"full"`` (unpenalised) or ``"joint_offset"`` (the offsets only).
     session_time : measure ``t`` from each dataset's first pose (from its mean with several sessions).
-    approach_from_order : infer ``approach_<joint>`` columns from the posture order (backlash by approach).
+    approach_from_order : infer ``approach_<joint>`` columns from the acquisition order (``t``, else the rows;
+        recorded columns are kept), so that backlash by approach is a candidate beside backlash by the load.
     posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
     budget : compute the error budget (nested CV, time-blocked CV, region); without it the answer is the
         cross-validation of the model with the all-rows choices (said in ``answer["basis"]``).
@@ -191,8 +192,11 @@ def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, g
 
     from .relevance import cv_rmse_mm, fit_relevance, select_terms
 
+    parts = data if isinstance(data, (list, tuple)) else [data]
+    recorded = any(k.startswith("approach_") for d in parts for k in (*d.columns, *d.context))
     robot, robot_spec, data, validate, sessions, time_source = _prepare_data(
         robot, data, validate, robot_spec, approach_from_order, session_time)
+    approach_source = "recorded" if recorded else (time_source if approach_from_order else None)
     nm = NoiseModel(known=False) if noise is None else NoiseModel.parse(noise, known=True)
     terms = build_terms(robot, data, nm, effects=effects, geometric=geometric, ident_tol=ident_tol,
                         regroup_tol=regroup_tol)
@@ -219,7 +223,7 @@ def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, g
 
         b = error_budget(terms, fit, data, groups, sel, k_folds, rng, time_blocks)
     return _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, groups, b, time_source,
-                   approach_from_order, session_time, cv_rmse_mm(sel.cv))
+                   approach_from_order, session_time, cv_rmse_mm(sel.cv), approach_source)
 
 
 def _check_folds(system, folds, k) -> None:
@@ -271,11 +275,11 @@ def _together(causes, data) -> list[str]:
     a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play."""
     by = {}
     for c in causes:
-        if len(c.joints) == 1:
+        if len(c.joints) == 1 and c.options.get("by", "load") == "load":
             by.setdefault(c.joints[0], {})[c.effect] = c
     out = []
     for j, e in by.items():
-        if {"joint_compliance", "backlash"} <= set(e) and f"approach_{j}" not in data.context:
+        if {"joint_compliance", "backlash"} <= set(e):
             cv = e["joint_compliance"].parameters[f"compliance_{j}"]["estimate"]
             bv = e["backlash"].parameters[f"backlash_{j}"]["estimate"]
             if cv > 0 > bv:
@@ -299,7 +303,7 @@ def _cause(term, rec, fit, robot, system_names, explained, time_unit) -> Cause:
 
 
 def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, groups, budget, time_source,
-            approach_from_order, session_time, cv_all_rows) -> DiagnosisResult:
+            approach_from_order, session_time, cv_all_rows, approach_source=None) -> DiagnosisResult:
     """The :class:`DiagnosisResult` of the fit: the answer, the causes, one validation figure per file."""
     from .relevance import refit
 
@@ -325,7 +329,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     train_mm = _scores(final, final.params.values, [data])[0] if data.kind in ("position", "points", "pose") else None
     b = budget.to_dict() if budget is not None else None
     names, C = _covariance(terms, fit)
-    load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash") for j in t.joints})
+    load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
+                          and t.options.get("by") != "approach" for j in t.joints})
     vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), load_joints) for d in validate]
     answer = {"expected_mm": b["expected_mm"] if b else cv_all_rows,
               "bound95_mm": b["bound95_mm"] if b else None,
@@ -371,7 +376,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     res = DiagnosisResult(answer, causes, {"train_mm": train_mm, "cv_mm": b["model_mm"] if b else cv_all_rows,
                                            "validation": vals}, terms_d, b,
                           {"n_rows": data.n, "n_postures": groups.n_postures, "n_sessions": len(groups.sessions),
-                           "time_source": time_source, "folds": "session" if len(groups.sessions) > 1 else "posture",
+                           "time_source": time_source, "approach_source": approach_source, "folds": "session" if len(groups.sessions) > 1 else "posture",
                            "k_folds": len(sel.cv["sq"])},
                           model, nm.to_dict(), re_, verdict, terms.lumped, robot=final, covariance=C,
                           covariance_names=names, sigma0=float(np.sqrt(fit.sparse.noise_var)),

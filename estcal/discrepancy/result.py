@@ -65,8 +65,9 @@ class Cause:
     @property
     def label(self) -> str:
         j = ", ".join(self.joints) if self.joints else "the arm"
-        order = self.options.get("orders")
-        name = self.effect.replace("_", " ") + (f" (order {', '.join(map(str, order))})" if order else "")
+        order, by = self.options.get("orders"), self.options.get("by")
+        name = self.effect.replace("_", " ") + (f" (order {', '.join(map(str, order))})" if order else "") + \
+            (f" (by {by})" if by and by != "auto" else "")
         return f"{name} of {j}"
 
     def to_dict(self) -> dict:
@@ -201,6 +202,13 @@ class DiagnosisResult:
             out.append("Named causes (value ± std; evidence; gain at new postures; share of the geometric residual):")
             out += [f"  {c.describe()}" for c in self.causes]
             out += [f"  together, {n}" for n in self.terms.get("together", [])]
+            src = d.get("approach_source")
+            if src and any(c.options.get("by") == "approach" for c in self.causes):
+                out.append("  approach: the side each joint moved from into its posture, " + (
+                    "as recorded in the approach_<joint> columns" if src == "recorded" else
+                    "from the order of the t column" if src == "t column" else
+                    "from the row order (no t column: rows taken as acquired in file order)")
+                    + " (--no-approach-from-order leaves backlash by approach out)")
         elif not self.terms.get("effects_considered"):
             out.append("Named causes: none considered — no effect term is a candidate (--effects none, or none "
                        "excitable on these data): the geometric model alone")

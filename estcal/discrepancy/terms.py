@@ -56,7 +56,7 @@ class Candidate:
     @property
     def label(self) -> str:
         j = ",".join(self.joints) if self.joints else "arm"
-        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope"))
+        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope", "by"))
         return f"{self.effect}{o}({j})"
 
     def make(self, robot):
@@ -85,7 +85,8 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     (harmonic orders as separate candidates), once for whole-arm effects (thermal expansion in both forms,
     whole arm and links only); time effects only when the data have a time (``t`` in the context),
     gravity effects only on joints the data load (a torque that is numerically zero, or of one sign for
-    backlash without approach columns, gives a column that is noise or an offset). ``families``: also every
+    backlash by the load, gives a column that is noise or an offset); backlash by approach on joints whose
+    ``approach_<joint>`` column the data carry (not all zero). ``families``: also every
     joint effect once over all its eligible joints. ``effects=None``: every registered effect."""
     names = list(EFFECTS) if effects is None else list(effects)
     unknown = [e for e in names if e not in EFFECTS]
@@ -120,21 +121,30 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
             continue
         else:
             opts = {}
-        variants = [dict(opts, orders=[k]) for k in harmonic_orders] if name == "gear_harmonic" else [opts]
+        if name == "gear_harmonic":
+            variants = [dict(opts, orders=[k]) for k in harmonic_orders]
+        elif name == "backlash":
+            # the link rests on the side its load pushes it to, or where the motor left it (Backlash): both are
+            # candidates when the data record the approach
+            variants = [dict(opts, by="load"), dict(opts, by="approach")]
+        else:
+            variants = [opts]
         per_joint = []
         for ji, j in enumerate(robot.joint_names):
-            if name == "backlash" and "approach_" + j in ctx:
-                if not np.any(ctx["approach_" + j]):
-                    continue
-            elif name in ("joint_compliance", "backlash") and tau is not None:
+            ok = variants
+            if name in ("joint_compliance", "backlash") and tau is not None:
                 t = tau[:, ji]
                 if np.abs(t).max() <= 1e-9 * big:
-                    continue
-                if name == "backlash" and "approach_" + j not in ctx and (np.all(t > 0) or np.all(t < 0)):
-                    continue
+                    ok = [o for o in ok if o.get("by") == "approach"]
+                elif name == "backlash" and (np.all(t > 0) or np.all(t < 0)):
+                    ok = [o for o in ok if o.get("by") == "approach"]
+            if name == "backlash":
+                a = ctx.get("approach_" + j)
+                if a is None or not np.any(a):
+                    ok = [o for o in ok if o.get("by") != "approach"]
             elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
                 continue  # no moment across this axis (no mass beyond it, or no gravity)
-            for o in variants:
+            for o in ok:
                 try:
                     Candidate(name, [j], o).make(robot)
                 except (ValueError, TypeError):
@@ -170,7 +180,7 @@ class Term:
     @property
     def label(self) -> str:
         j = ",".join(self.joints) if self.joints else "arm"
-        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope"))
+        o = "".join(f"[{k}={v}]" for k, v in self.options.items() if k in ("orders", "scope", "by"))
         return f"{self.effect}{o}({j})"
 
     def to_dict(self) -> dict:
@@ -220,15 +230,13 @@ class Terms:
 
 def set_load_sides(robot, data, theta) -> int:
     """Set the context columns ``load_side_<joint>`` (±1, the sign of the joint's gravity torque at the
-    parameters ``theta``) of ``data`` in place, for every joint without recorded approach directions; returns
+    parameters ``theta``) of ``data`` in place, for every joint (backlash by the load reads them); returns
     the number of (row, joint) sides that changed. A posture whose load is near zero takes the side of the
     model it is evaluated with: at the registration fit the nominal geometry's, which the fitted geometry can
     contradict (a 7 mrad backlash on the wrong side at 2 of 50 postures doubles the residual)."""
     tau = robot.gravity_torques(data.readings, theta, data.context)
     changed = 0
     for ji, j in enumerate(robot.joint_names):
-        if f"approach_{j}" in data.context:
-            continue
         side = np.where(tau[:, ji] >= 0, 1.0, -1.0)
         old = data.context.get(f"load_side_{j}")
         changed += int(len(side) if old is None else np.sum(old != side))

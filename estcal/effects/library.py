@@ -4,7 +4,8 @@
 registry name       correction                                   parameters              units
 ==================  ===========================================  ======================  ===========
 joint_compliance    δq_j = c_j · τ_j (gravity torque)            ``compliance_<joint>``  rad/(N·m), m/N
-backlash            δq_j = b_j · sign(τ_j)  or  −b_j · sign(a_j)  ``backlash_<joint>``    rad, m
+backlash            δq_j = b_j · sign(τ_j)  (by load)             ``backlash_<joint>``    rad, m
+                    or −b_j · sign(a_j)     (by approach)         ``backlash_approach_<j>``
 gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic<k>_sin_<j>`` rad
                                                                  ``harmonic<k>_cos_<j>``
 encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
@@ -67,35 +68,58 @@ class JointCompliance(JointEffect):
 
 
 class Backlash(JointEffect):
-    """Backlash (half free-play) ``b_j`` (``backlash_<joint>``, rad or m, ≥ 0 physically).
+    """Backlash (half free-play) ``b_j`` (rad or m, ≥ 0 physically).
 
-    Without an approach record the link rests against the side its gravity load
-    pushes it to: ``δq_j = b_j · sign(τ_j)`` (τ as in :class:`JointCompliance`).
-    When the dataset has a column ``approach_<joint>`` (the sign of the joint
-    velocity just before the pose was reached: +1 / −1 / 0), the link lags the
-    motor: ``δq_j = −b_j · sign(approach_j)``; this column takes precedence.
-    A context column ``load_side_<joint>`` (±1) fixes the load's side instead of
-    evaluating it at the current parameters: a fit that moves the geometry would
-    otherwise flip it at a posture whose load is near zero, and the residual steps
-    there (``estcal diagnose`` fixes it at the registration fit, then once more at
-    the fitted model).
+    Which flank of the gear the link rests against decides the sign of ``δq_j = ±b_j``; ``by`` says which
+    record decides it:
+
+    * ``"load"`` — the side its gravity load pushes it to: ``δq_j = b_j · sign(τ_j)`` (τ as in
+      :class:`JointCompliance`); parameter ``backlash_<joint>``. A context column ``load_side_<joint>`` (±1)
+      fixes the load's side instead of evaluating it at the current parameters: a fit that moves the geometry
+      would otherwise flip it at a posture whose load is near zero, and the residual steps there
+      (``estcal diagnose`` fixes it at the registration fit, then once more at the fitted model).
+    * ``"approach"`` — the side the motor last moved from, where the load is too small to push the link across
+      its free play (or transmission friction holds it): the link lags the motor,
+      ``δq_j = −b_j · sign(approach_j)``, with the context column ``approach_<joint>`` (the sign of the joint
+      velocity just before the pose was reached: +1 / −1 / 0); parameter ``backlash_approach_<joint>``.
+      A Coulomb friction in the transmission gives the same lag. Without the column the correction is 0 (either
+      side as likely: the midpoint, uncertain by ±b_j).
+    * ``"auto"`` (default, as before ``by`` existed) — the approach column when the data have one, else the load.
+
+    ``estcal diagnose`` offers both ``"load"`` and ``"approach"`` as candidates when the data carry approach
+    directions (docs/effects.md): a joint may show either, or both (a heavy link on its load side, a light one
+    left where the motor put it).
     """
 
     name = "backlash"
-    prefixes = ("backlash",)
+    BY = ("auto", "load", "approach")
+
+    def __init__(self, robot, joints: Sequence[str] | None = None, by: str = "auto"):
+        if by not in self.BY:
+            raise ValueError(f"effect 'backlash': by must be one of {', '.join(self.BY)}, got {by!r}")
+        self.by = by
+        self.prefixes = ("backlash_approach",) if by == "approach" else ("backlash",)
+        super().__init__(robot, joints)
+
+    def options(self):
+        return {} if self.by == "auto" else {"by": self.by}
 
     def context_keys(self):
-        return ["payload"] + [f"approach_{j}" for j in self.joints] + [f"load_side_{j}" for j in self.joints]
+        keys = [] if self.by == "load" else [f"approach_{j}" for j in self.joints]
+        return keys if self.by == "approach" else ["payload"] + keys + [f"load_side_{j}" for j in self.joints]
 
     def features(self, robot, readings, q, theta, context):
         N = q.shape[0]
-        keys = [_ctx(context, f"approach_{j}", N) for j in self.joints]
+        keys = [None if self.by == "load" else _ctx(context, f"approach_{j}", N) for j in self.joints]
         sides = [_ctx(context, f"load_side_{j}", N) for j in self.joints]
         S = np.empty((N, 1, len(self.joints)))
         tau = None
         for i, (j, a, side) in enumerate(zip(self.joint_index, keys, sides)):
             if a is not None:
                 S[:, 0, i] = -np.sign(a)
+            elif self.by == "approach":
+                # no record of the approach: either side is as likely, the expected correction is zero (±b_j)
+                S[:, 0, i] = 0.0
             elif side is not None:
                 S[:, 0, i] = np.sign(side)
             else:

@@ -398,11 +398,11 @@ def _context(true, specs, names, r_true, t, dt, temperature, payload, record_app
                 "payload": _profile(payload, N, times, "payload", r_ctx)}
     context = {k: v for k, v in profiles.items() if v is not None}
     columns: dict[str, np.ndarray] = {}
-    if record_approach:
-        for s, eff in zip(specs, [e for e in true.effects]):
-            if s["effect"] == "backlash":
-                for j in eff.joints:
-                    columns[f"approach_{j}"] = r_ctx.choice([-1.0, 1.0], N)
+    for s, eff in zip(specs, [e for e in true.effects]):
+        # a backlash by approach cannot act without the directions: draw them as record_approach does
+        if s["effect"] == "backlash" and (record_approach or getattr(eff, "by", "auto") == "approach"):
+            for j in eff.joints:
+                columns[f"approach_{j}"] = r_ctx.choice([-1.0, 1.0], N)
     if any(n in ("joint_compliance", "backlash") for n in names):
         tau = true.gravity_torques(r_true, context=context)
         if not np.any(tau):

@@ -85,9 +85,13 @@ def _context_notes(robot, ctx) -> list[str]:
                          "origin is compensated without it")
         elif name == "thermal_expansion" and "temperature" not in ctx and "t" not in ctx:
             notes.append("thermal_expansion: no temperature column, ΔT = 0 (the reference temperature)")
-        if name == "backlash":
+        by = getattr(eff, "by", "auto")
+        if name == "backlash" and by != "load":
             miss = [j for j in eff.joints if f"approach_{j}" not in ctx]
-            if miss:
+            if miss and by == "approach":
+                notes.append(f"backlash by approach: no approach_<joint> column for {', '.join(miss)}; its "
+                             "correction is 0 there (either side as likely: uncertain by ± the backlash)")
+            elif miss:
                 notes.append(f"backlash: no approach_<joint> column for {', '.join(miss)}; the gravity side "
                              f"sign(τ) is used")
         if name == "joint_compliance" and "payload" not in ctx:

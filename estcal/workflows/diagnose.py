@@ -45,7 +45,7 @@ GEOMETRIC = ("sparse", "full", "joint_offset")
 
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
              urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
-             geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = False,
+             geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = True,
              posture_tol=(1e-3, 1e-3), robot_spec=None, report=None):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
 
@@ -65,7 +65,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     geometric : ``sparse`` (default), ``full`` or ``joint_offset`` (:func:`estcal.discrepancy.diagnose`).
     budget : the error budget (nested CV, time-blocked CV, the 95 % region); without it the expected error is
         the model's CV with its all-rows choices (optimistic, said in the answer).
-    approach_from_order : backlash by approach direction, inferred from the posture order.
+    approach_from_order : approach directions from the acquisition order (default; backlash by approach
+        is then a candidate beside backlash by the load).
     posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
     report : a folder for the report (figures, diagnosis.json, summary.txt, index.html).
 

@@ -86,9 +86,12 @@ def diagnose(
     geometric: str = typer.Option("sparse", "--geometric", help="Geometric parameters: sparse (every identifiable "
                                   "one under a relevance prior; the default) | full (all of them, unpenalised) | "
                                   "joint_offset (the offsets only)."),
-    approach_from_order: bool = typer.Option(False, "--approach-from-order",
-                                             help="Infer approach_<joint> columns from the posture order "
-                                                  "(backlash by approach direction)."),
+    approach_from_order: bool = typer.Option(True, "--approach-from-order/--no-approach-from-order",
+                                             help="Infer approach_<joint> columns (the side each joint moved "
+                                                  "from into the posture) from the acquisition order — the t "
+                                                  "column, else the row order — so that backlash by approach "
+                                                  "is a candidate beside backlash by the load. Recorded "
+                                                  "approach_<joint> columns are kept."),
     seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
     posture_tol_mrad: float = posture_tol_mrad_option(),
     posture_tol_mm: float = posture_tol_mm_option(),
