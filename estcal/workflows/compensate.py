@@ -77,7 +77,7 @@ def _check_header(targets, header, robot) -> None:
 
 def _context_notes(robot, ctx) -> list[str]:
     """Say which effect inputs fall back to their defaults (so the user knows what was assumed)."""
-    notes = []
+    notes, unknown_approach = [], []
     for eff in robot.effects:
         name = getattr(eff, "name", type(eff).__name__)
         if name == "thermal_expansion" and not robot.n_markers:
@@ -89,13 +89,15 @@ def _context_notes(robot, ctx) -> list[str]:
         if name == "backlash" and by != "load":
             miss = [j for j in eff.joints if f"approach_{j}" not in ctx]
             if miss and by == "approach":
-                notes.append(f"backlash by approach: no approach_<joint> column for {', '.join(miss)}; its "
-                             "correction is 0 there (either side as likely: uncertain by ± the backlash)")
+                unknown_approach += miss
             elif miss:
                 notes.append(f"backlash: no approach_<joint> column for {', '.join(miss)}; the gravity side "
                              f"sign(τ) is used")
         if name == "joint_compliance" and "payload" not in ctx:
             notes.append(f"joint_compliance: payload {robot.payload_mass:g} kg from the robot file")
+    if unknown_approach:
+        notes.append(f"backlash by approach of {', '.join(dict.fromkeys(unknown_approach))}: no approach_<joint> "
+                     "column, correction 0 (either side as likely)")
     return list(dict.fromkeys(notes))  # one note per kind (an effect may be added once per joint)
 
 
