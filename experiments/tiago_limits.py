@@ -57,12 +57,13 @@ def where_the_error_is(robot, sessions, seeds) -> list[dict]:
                      "beyond_mm": v[2]["rmse_mm"] if n_out else None, "n_beyond": n_out,
                      "beyond_share_of_sq": sq_out / (v[0]["rmse_mm"] ** 2 * v[0]["n_new"]),
                      # a load-side backlash is a candidate only where the joint's gravity torque changes sign
+                     # (a backlash by approach wherever the joint moved)
                      "backlash_candidates": sorted(j for c in res.terms["candidates"] if c["effect"] == "backlash"
-                                                   for j in c["joints"])})
+                                                   and c["options"].get("by") == "load" for j in c["joints"])})
         r = rows[-1]
         print(f"seed {s} train {tr} ({T.n} rows): new postures {r['new_mm']:.2f} mm ({r['n_new']} rows); inside the "
               f"training ranges {_f(r['inside_mm'])} ({n_in}), beyond {_f(r['beyond_mm'])} ({n_out}: "
-              f"{100 * r['beyond_share_of_sq']:.0f} % of the squared error); backlash candidates "
+              f"{100 * r['beyond_share_of_sq']:.0f} % of the squared error); backlash-by-load candidates "
               f"{', '.join(j.replace('_joint', '') for j in r['backlash_candidates']) or 'none'}", flush=True)
     return rows
 

@@ -321,7 +321,7 @@ def _studentised_q(J, e, blocks, Ai, predicted) -> np.ndarray:
         poses = np.flatnonzero(dims == m)
         rr = order[starts[poses][:, None] + np.arange(m)]  # (poses, m) rows of each pose
         Jg, eg = J[rr], e[rr]
-        h = np.einsum("gip,pq,gjq->gij", Jg, Ai, Jg)
+        h = (Jg @ Ai) @ np.swapaxes(Jg, 1, 2)  # J_g A⁻¹ J_gᵀ per pose, two batched products
         sign = np.where(predicted[poses], 1.0, -1.0)[:, None, None]
         M = np.eye(m) + sign * h
         q[poses] = np.einsum("gi,gi->g", eg, np.linalg.solve(M, eg[..., None])[..., 0])
