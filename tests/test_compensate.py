@@ -360,3 +360,38 @@ def test_cli_context_columns_reach_the_effects(tmp_path, effect, column, value):
     reached = k.points[:, 0] if model.n_markers else k.p
     assert np.abs(reached - p).max() < 1e-9
     assert np.abs(outs[0] - outs[1]).max() > 1e-5  # the column was used
+
+
+@pytest.mark.parametrize("from_order", [True, False])
+def test_backlash_by_approach_takes_the_program_order_when_the_model_was_diagnosed_so(tmp_path, from_order):
+    """A model with a backlash by approach, diagnosed with directions from the acquisition order (its
+    ``data_preparation``): targets without ``approach_<joint>`` columns get them from the rows' order — the
+    program's order of motion — and the commands reach the targets under those directions, said in a note.
+    Without that preparation the correction is 0 (either side as likely), said too."""
+    from estcal.io.prepare import derive_approach
+    from estcal.io.dataset import dataset_from_arrays
+
+    nominal = load_robot("puma560_masses")
+    base = true_puma()
+    model = base.add_effect(make_effect("backlash", base, joints=["j2", "j3"], by="approach"))
+    model.params["backlash_approach_j2"], model.params["backlash_approach_j3"] = 2e-3, 1e-3
+    model.meta["calibration"] = {"data_preparation": {"approach_from_order": from_order}}
+    save_robot(model, tmp_path / "m.yaml")
+    r0, kin = planned(nominal, 20, seed=8)
+    keep = well_conditioned(nominal, r0, kin)
+    r0, p = r0[keep][:6], kin.p[keep][:6]
+    write_targets(tmp_path / "t.csv", nominal, r0, p)
+    r = runner.invoke(app, ["compensate", str(tmp_path / "t.csv"), "--robot", str(tmp_path / "m.yaml"), "-o",
+                            str(tmp_path / "c.csv")])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader((tmp_path / "c.csv").open()))
+    q = np.array([[float(row[j]) for j in model.joint_names] for row in rows])
+    # the directions a user would write by hand: the sign of each joint's move from the previous target's command
+    d = derive_approach(dataset_from_arrays(model.joint_names, r0, p=p, R=kin.R[keep][:6], path=None))
+    ctx = {f"approach_{j}": d.columns[f"approach_{j}"] for j in ("j2", "j3")} if from_order else {}
+    assert not from_order or np.count_nonzero(ctx["approach_j2"]) == 5  # the first row's is unknown
+    reached = model.kinematics(q, context=ctx, jacobian=False).p
+    assert np.abs(reached - p).max() < 1e-9
+    note = ("directions from the rows' order, the program's order of motion" if from_order
+            else "no approach_<joint> column, correction 0")
+    assert f"backlash by approach of j2, j3: {note}" in " ".join(r.output.split())

@@ -109,6 +109,7 @@ def compensate_file(robot, targets, *, tol_mm: float = 1e-3, tol_mrad: float = 1
     from estcal.compensation import compensate
     from estcal.effects import effect_context
     from estcal.io.dataset import load_dataset
+    from estcal.io.prepare import derive_approach
     from estcal.io.robotfile import load_robot
     from estcal.kinematics.transforms import matrix_to_quat
 
@@ -126,6 +127,9 @@ def compensate_file(robot, targets, *, tol_mm: float = 1e-3, tol_mrad: float = 1
         tgt = np.c_[ds.p, matrix_to_quat(ds.R)]
     else:
         tgt = ds.p if ds.kind == "pose" else ds.points[:, 0]
+    derived = _approach_from_order(rb, ds)
+    if derived:
+        ds = derive_approach(ds)
     ctx = effect_context(rb, ds)
     layer = (rb.meta.get("calibration") or {}).get("residual_model")
     try:
@@ -142,7 +146,22 @@ def compensate_file(robot, targets, *, tol_mm: float = 1e-3, tol_mrad: float = 1
         raise NumericalRefusal(f"{targets}: numerical failure in the solve ({exc})") from exc
     except ValueError as exc:
         raise InputError(f"{targets}: {exc}") from exc
-    return CompensationRun(res, rb, ds, header, raw, _context_notes(rb, ctx))
+    notes = _context_notes(rb, ctx)
+    if derived:
+        notes.insert(0, f"backlash by approach of {', '.join(derived)}: directions from the rows' order, the "
+                        "program's order of motion")
+    return CompensationRun(res, rb, ds, header, raw, notes)
+
+
+def _approach_from_order(robot, ds) -> list[str]:
+    """The joints of a backlash by approach whose directions the targets do not record, when the model was
+    diagnosed with directions from the acquisition order (its ``data_preparation``): the program's rows are
+    then its order of motion, as the measured rows were."""
+    prep = (robot.meta.get("calibration") or {}).get("data_preparation") or {}
+    if not prep.get("approach_from_order"):
+        return []
+    joints = [j for e in robot.effects if getattr(e, "by", None) == "approach" for j in e.joints]
+    return [j for j in dict.fromkeys(joints) if f"approach_{j}" not in ds.columns and f"approach_{j}" not in ds.context]
 
 
 def output_columns(res) -> list[str]:
