@@ -251,6 +251,10 @@ def test_diagnose_takes_several_sessions(tmp_path):
     per = stack_sessions([derive_approach(d) for d in ds])
     first2 = ds[0].n
     assert all(per.columns[c][first2] == 0 for c in per.columns if c.startswith("approach_"))
+    # a file stacked by the caller (its session column) gets each session's own sequence too
+    after = derive_approach(stack_sessions(ds))
+    for c in (c for c in per.columns if c.startswith("approach_")):
+        np.testing.assert_array_equal(after.columns[c], per.columns[c])
 
 
 def test_calibrate_takes_several_sessions(tmp_path):
