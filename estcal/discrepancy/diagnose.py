@@ -262,6 +262,7 @@ def _display(name, robot, time_unit: str) -> tuple[float, str]:
     prismatic = any(name.endswith(j) for j, t in zip(robot.joint_names, robot.joint_types) if t == "prismatic")
     ang = "mm" if prismatic else "mrad"
     table = {"compliance": (1e3, "mm/N" if prismatic else "mrad/(N·m)"), "backlash": (1e3, ang),
+             "hysteresis": (1e3, "mm/N" if prismatic else "mrad/(N·m)"),
              "tilt": (1e3, "mrad/(N·m)"), "encgain": (1e3, "‰"), "drift": (1e3, f"{ang}/{time_unit}"),
              "thermal": (1e6, "ppm/K" if time_unit == "K" else f"ppm/{time_unit}")}
     if head.startswith("harmonic"):
@@ -272,12 +273,23 @@ def _display(name, robot, time_unit: str) -> tuple[float, str]:
 def _together(causes, data) -> list[str]:
     """What two named load causes of one joint mean together: a compliance ``c`` and a backlash by the load's side
     ``b`` of the opposite sign give ``δq = c·τ − |b|·sign τ = c·sign τ·(|τ| − |b|/c)`` beyond ``|τ| = |b|/c`` —
-    a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play."""
+    a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play.
+    A backlash by approach ``b > 0`` and a load hysteresis ``h < 0`` give a lag behind the motor ``b − |h|·|τ|``
+    that the load closes at ``|τ| = b/|h|`` (the load holds the link on one flank beyond it)."""
     by = {}
     for c in causes:
-        if len(c.joints) == 1 and c.options.get("by", "load") == "load":
-            by.setdefault(c.joints[0], {})[c.effect] = c
+        if len(c.joints) == 1:
+            kind = "backlash_approach" if c.options.get("by") == "approach" else c.effect
+            by.setdefault(c.joints[0], {})[kind] = c
     out = []
+    for j, e in by.items():
+        if {"backlash_approach", "load_hysteresis"} <= set(e):
+            bv = e["backlash_approach"].parameters[f"backlash_approach_{j}"]["estimate"]
+            hv = e["load_hysteresis"].parameters[f"hysteresis_{j}"]["estimate"]
+            if bv > 0 > hv:
+                unit = "mm" if e["backlash_approach"].parameters[f"backlash_approach_{j}"]["unit"] == "mm" else "mrad"
+                out.append(f"{j}: a lag behind the motor of {bv * 1e3:.3g} {unit} at no load that its load closes at "
+                           f"|τ| ≈ {bv / abs(hv):.2g} N·m (beyond it the load holds the link on one flank of its play)")
     for j, e in by.items():
         if {"joint_compliance", "backlash"} <= set(e):
             cv = e["joint_compliance"].parameters[f"compliance_{j}"]["estimate"]
@@ -321,9 +333,19 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     ss_geo = ss(geo_only)
     causes = []
     recs = {r["term"]: r for r in sel.records}
+    active = fit.sparse.active & fit.include
+    named = []
     for i in sel.named:
         t = terms.terms[i]
         m = tidx == i
+        if not np.any(active[m]):
+            # the model refitted with every named cause prunes this one: a cause the model does not carry is not
+            # printed with 0 ± 0 (the evidence search is not convex; the forward step's model kept it)
+            others = [terms.terms[k].label for k in sel.named if k != i]
+            recs[t.label].update(named=False, reason="withdrawn after naming: pruned by the evidence of the model "
+                                 f"with the other named causes ({', '.join(others)})")
+            continue
+        named.append(i)
         frac = max(ss_geo - ss(geo_only | m), 0.0) / max(ss_geo, 1e-300)
         causes.append(_cause(t, recs[t.label], fit, terms.robot, system.names, frac, time_unit))
     train_mm = _scores(final, final.params.values, [data])[0] if data.kind in ("position", "points", "pose") else None
@@ -336,9 +358,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
               "bound95_mm": b["bound95_mm"] if b else None,
               "basis": b["expected_basis"] if b else "CV of the model chosen on all rows (no budget: optimistic)",
               "repeatability_mm": b["repeatability_mm"] if b else None, "time": (b or {}).get("time") or {}}
-    active = fit.sparse.active & fit.include
     geo_cols = [n for n, a in zip(terms.penalised, active) if a and n in set(terms.geometric)]
-    kept_unnamed = [t.label for t in kept if t.load and t.label not in {terms.terms[i].label for i in sel.named}]
+    kept_unnamed = [t.label for t in kept if t.load and t.label not in {terms.terms[i].label for i in named}]
     terms_d = {"n_free": len(terms.free), "geometric_mode": terms.geometric_mode,
                "geometric": {"considered": len(terms.geometric),
                              "kept": len(geo_cols) if terms.geometric_mode != "full" else len(terms.geometric)},
