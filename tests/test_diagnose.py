@@ -99,7 +99,6 @@ def test_out_of_library_distortion_is_not_misnamed(puma):
     (("backlash", ["j1"], 6.0, {"by": "approach"}), {"record_approach": True}, ("backlash", ("j1",))),
     (("backlash", ["j2"], 6.0, {"by": "approach"}), {"record_approach": True}, ("backlash", ("j2",))),
     (("backlash", ["j2"], 6.0, {"by": "load"}), {"record_approach": True}, ("backlash", ("j2",))),
-    (("load_hysteresis", ["j2"], 6.0), {}, ("load_hysteresis", ("j2",))),
 ])
 def test_context_driven_effects(puma, hidden, kw, expect):
     """Effects driven by recorded columns: temperature, time, approach direction (j1's axis is vertical, so its
@@ -511,22 +510,3 @@ def test_a_cause_named_first_and_explained_by_later_ones_is_withdrawn(puma, seed
     assert [r["effect"] for r in withdrawn] == ["link_tilt"], withdrawn
     assert "joint_compliance(j2)" in withdrawn[0]["reason"] and "joint_compliance(j3)" in withdrawn[0]["reason"]
     _recovered(res, truth)
-
-
-def test_a_lag_the_load_closes_is_read_from_backlash_by_approach_and_load_hysteresis():
-    """Named together on one joint, a backlash by approach b > 0 and a load hysteresis h < 0 read as one lag
-    behind the motor that the load closes at |τ| = b/|h|; other signs, or other joints, say nothing."""
-    from estcal.discrepancy.diagnose import _together
-    from estcal.discrepancy.result import Cause
-
-    def cause(effect, name, value, by=None):
-        return Cause(effect, ["j6"], {"by": by} if by else {}, {name: {"estimate": value, "std": 0.1 * abs(value),
-                     "unit": "mrad", "display": [value * 1e3, 0.0, "mrad"]}}, 50.0, 5, 5, 1.0, 2.0, 0.3)
-
-    b = cause("backlash", "backlash_approach_j6", 0.027, by="approach")
-    h = cause("load_hysteresis", "hysteresis_j6", -0.0245)
-    out = _together([b, h], None)
-    assert out == ["j6: a lag behind the motor of 27 mrad at no load that its load closes at |τ| ≈ 1.1 N·m "
-                   "(beyond it the load holds the link on one flank of its play)"]
-    assert _together([b, cause("load_hysteresis", "hysteresis_j6", 0.01)], None) == []
-    assert _together([cause("backlash", "backlash_j6", 0.027, by="load"), h], None) == []

@@ -147,28 +147,6 @@ def test_backlash_by_load_and_by_approach_side_by_side():
     again = robot_from_dict(robot_to_dict(robot))
     np.testing.assert_array_equal(_rigid(again, q, {"approach_j2": appr}).q, k.q)
 
-
-def test_load_hysteresis_closed_form_and_columns():
-    """``δq_j = −h_j·|τ_j|·sign(approach_j)`` with τ the gravity torque (closed against the robot's own
-    ``gravity_torques``), 0 without a direction; its column matches central differences."""
-    base = heavy_puma()
-    robot = base.add_effect(make_effect("load_hysteresis", base, joints=["j2", "j3"]))
-    assert robot.params.select("hysteresis*") == ["hysteresis_j2", "hysteresis_j3"]
-    robot.params["hysteresis_j2"], robot.params["hysteresis_j3"] = 4e-5, -2e-5
-    rng = np.random.default_rng(6)
-    q = robot.random_readings(15, rng)
-    tau = base.gravity_torques(q)
-    a2, a3 = rng.choice([-1.0, 0.0, 1.0], 15), rng.choice([-1.0, 1.0], 15)
-    k = _rigid(robot, q, {"approach_j2": a2, "approach_j3": a3})
-    np.testing.assert_allclose(k.q[:, 1], q[:, 1] - 4e-5 * np.abs(tau[:, 1]) * a2, atol=1e-15)
-    np.testing.assert_allclose(k.q[:, 2], q[:, 2] + 2e-5 * np.abs(tau[:, 2]) * a3, atol=1e-15)
-    np.testing.assert_array_equal(_rigid(robot, q).q[:, 1:3], q[:, 1:3])  # no direction: either side, 0
-    theta = robot.params.values.copy()
-    eidx = np.array(robot.params.indices(["hysteresis_j2", "hysteresis_j3"]))
-    ctx = {"approach_j2": a2, "approach_j3": a3}
-    Jp, _ = fd_columns(robot, q, theta, ctx, eidx, eps=1e-7)
-    np.testing.assert_allclose(robot.kinematics(q, theta, ctx).J[..., eidx], Jp, rtol=0, atol=1e-6 * np.abs(Jp).max())
-
 def test_harmonic_gain_drift_closed_forms():
     base = puma560()
     base.meta["gear_ratio"] = {"j1": 100.0}

@@ -262,7 +262,6 @@ def _display(name, robot, time_unit: str) -> tuple[float, str]:
     prismatic = any(name.endswith(j) for j, t in zip(robot.joint_names, robot.joint_types) if t == "prismatic")
     ang = "mm" if prismatic else "mrad"
     table = {"compliance": (1e3, "mm/N" if prismatic else "mrad/(N·m)"), "backlash": (1e3, ang),
-             "hysteresis": (1e3, "mm/N" if prismatic else "mrad/(N·m)"),
              "tilt": (1e3, "mrad/(N·m)"), "encgain": (1e3, "‰"), "drift": (1e3, f"{ang}/{time_unit}"),
              "thermal": (1e6, "ppm/K" if time_unit == "K" else f"ppm/{time_unit}")}
     if head.startswith("harmonic"):
@@ -273,23 +272,12 @@ def _display(name, robot, time_unit: str) -> tuple[float, str]:
 def _together(causes, data) -> list[str]:
     """What two named load causes of one joint mean together: a compliance ``c`` and a backlash by the load's side
     ``b`` of the opposite sign give ``δq = c·τ − |b|·sign τ = c·sign τ·(|τ| − |b|/c)`` beyond ``|τ| = |b|/c`` —
-    a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play.
-    A backlash by approach ``b > 0`` and a load hysteresis ``h < 0`` give a lag behind the motor ``b − |h|·|τ|``
-    that the load closes at ``|τ| = b/|h|`` (the load holds the link on one flank beyond it)."""
+    a compliance that starts past a dead zone (friction or a preload holds the joint below it), not a free play."""
     by = {}
     for c in causes:
-        if len(c.joints) == 1:
-            kind = "backlash_approach" if c.options.get("by") == "approach" else c.effect
-            by.setdefault(c.joints[0], {})[kind] = c
+        if len(c.joints) == 1 and c.options.get("by", "load") == "load":
+            by.setdefault(c.joints[0], {})[c.effect] = c
     out = []
-    for j, e in by.items():
-        if {"backlash_approach", "load_hysteresis"} <= set(e):
-            bv = e["backlash_approach"].parameters[f"backlash_approach_{j}"]["estimate"]
-            hv = e["load_hysteresis"].parameters[f"hysteresis_{j}"]["estimate"]
-            if bv > 0 > hv:
-                unit = "mm" if e["backlash_approach"].parameters[f"backlash_approach_{j}"]["unit"] == "mm" else "mrad"
-                out.append(f"{j}: a lag behind the motor of {bv * 1e3:.3g} {unit} at no load that its load closes at "
-                           f"|τ| ≈ {bv / abs(hv):.2g} N·m (beyond it the load holds the link on one flank of its play)")
     for j, e in by.items():
         if {"joint_compliance", "backlash"} <= set(e):
             cv = e["joint_compliance"].parameters[f"compliance_{j}"]["estimate"]

@@ -57,13 +57,13 @@ def eligible_joints(robot, effect_name, readings, context=None, min_torque=1e-3)
             make_effect(effect_name, robot, joints=[name])
         except (ValueError, TypeError):
             continue
-        if effect_name in ("joint_compliance", "backlash", "load_hysteresis"):
+        if effect_name in ("joint_compliance", "backlash"):
             if tau is None:
                 tau = robot.gravity_torques(readings, context=context)
             t = tau[:, j]
             if np.abs(t).max() <= 1e-9 * max(np.abs(tau).max(), 1e-300):
                 continue  # numerically zero torque (vertical axis): the sign is rounding noise
-            if effect_name in ("joint_compliance", "load_hysteresis") and np.std(t) < min_torque:
+            if effect_name == "joint_compliance" and np.std(t) < min_torque:
                 continue
             if effect_name == "backlash":
                 s = np.sign(t)

@@ -40,7 +40,7 @@ __all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "Candidate", "default_candidates",
            "n_sessions"]
 
 #: the effects whose terms the evidence keeps without naming them (module docstring)
-LOAD_EFFECTS = ("joint_compliance", "backlash", "load_hysteresis", "link_tilt")
+LOAD_EFFECTS = ("joint_compliance", "backlash", "link_tilt")
 #: how the geometric parameters enter the model
 GEOMETRIC_MODES = ("sparse", "full", "joint_offset")
 
@@ -86,7 +86,7 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
     whole arm and links only); time effects only when the data have a time (``t`` in the context),
     gravity effects only on joints the data load (a torque that is numerically zero, or of one sign for
     backlash by the load, gives a column that is noise or an offset); backlash by approach on joints whose
-    ``approach_<joint>`` column the data carry (not all zero), and load hysteresis where both are. ``families``: also every
+    ``approach_<joint>`` column the data carry (not all zero). ``families``: also every
     joint effect once over all its eligible joints. ``effects=None``: every registered effect."""
     names = list(EFFECTS) if effects is None else list(effects)
     unknown = [e for e in names if e not in EFFECTS]
@@ -94,7 +94,7 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
         raise ValueError(f"unknown effect(s) {unknown}; registered: {', '.join(sorted(EFFECTS))} (docs/effects.md)")
     ctx = data.context
     tau = None
-    if any(n in ("joint_compliance", "backlash", "load_hysteresis") for n in names):
+    if any(n in ("joint_compliance", "backlash") for n in names):
         tau = robot.gravity_torques(data.readings, context=ctx)
         big = max(float(np.abs(tau).max()), 1e-300)
     m_across = None
@@ -142,10 +142,6 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
                 a = ctx.get("approach_" + j)
                 if a is None or not np.any(a):
                     ok = [o for o in ok if o.get("by") != "approach"]
-            elif name == "load_hysteresis":
-                a = ctx.get("approach_" + j)
-                if a is None or not np.any(a) or tau is None or np.abs(tau[:, ji]).max() <= 1e-9 * big:
-                    continue  # no direction recorded, or no load on this joint
             elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
                 continue  # no moment across this axis (no mass beyond it, or no gravity)
             for o in ok:

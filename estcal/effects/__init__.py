@@ -1,4 +1,4 @@
-"""Non-geometric effects (joint compliance, backlash, load hysteresis, gear harmonics, encoder gain,
+"""Non-geometric effects (joint compliance, backlash, gear harmonics, encoder gain,
 thermal expansion, drift, link tilt) and the registry for user effects.
 
 >>> from estcal.kinematics import puma560
@@ -11,8 +11,7 @@ thermal expansion, drift, link tilt) and the registry for user effects.
 See ``docs/effects.md`` for the formulas and the protocol for writing your own.
 """
 from .base import EFFECTS, Effect, JointEffect, effect_context, list_effects, make_effect, register_effect
-from .library import (Backlash, Drift, EncoderGain, GearHarmonic, JointCompliance, LinkTilt, LoadHysteresis,
-                      ThermalExpansion)
+from .library import Backlash, Drift, EncoderGain, GearHarmonic, JointCompliance, LinkTilt, ThermalExpansion
 
 __all__ = ["EFFECTS", "Effect", "JointEffect", "make_effect", "register_effect", "effect_context", "list_effects",
-           "JointCompliance", "Backlash", "LoadHysteresis", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt"]
+           "JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt"]

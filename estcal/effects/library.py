@@ -6,7 +6,6 @@ registry name       correction                                   parameters     
 joint_compliance    δq_j = c_j · τ_j (gravity torque)            ``compliance_<joint>``  rad/(N·m), m/N
 backlash            δq_j = b_j · sign(τ_j)  (by load)             ``backlash_<joint>``    rad, m
                     or −b_j · sign(a_j)     (by approach)         ``backlash_approach_<j>``
-load_hysteresis     δq_j = −h_j · |τ_j| · sign(a_j)               ``hysteresis_<joint>``  rad/(N·m), m/N
 gear_harmonic       δq_j = Σ_k a_kj sin(kφ_j) + b_kj cos(kφ_j)    ``harmonic<k>_sin_<j>`` rad
                                                                  ``harmonic<k>_cos_<j>``
 encoder_gain        δq_j = g_j · r_j                             ``encgain_<joint>``     1
@@ -30,7 +29,7 @@ from estcal.kinematics.transforms import cross
 
 from .base import Effect, JointEffect, register_effect
 
-__all__ = ["JointCompliance", "Backlash", "LoadHysteresis", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt",
+__all__ = ["JointCompliance", "Backlash", "GearHarmonic", "EncoderGain", "ThermalExpansion", "Drift", "LinkTilt",
            "across_axis_moments"]
 
 
@@ -127,36 +126,6 @@ class Backlash(JointEffect):
                 if tau is None:
                     tau = robot.gravity_torques(readings, theta, context)
                 S[:, 0, i] = np.sign(tau[:, j])
-        return S
-
-
-class LoadHysteresis(JointEffect):
-    """A lag behind the motor that scales with the joint's load: ``δq_j = −h_j · |τ_j| · sign(approach_j)``
-    (``hysteresis_<joint>``, rad/(N·m), or m/N for a prismatic joint).
-
-    Coulomb friction in a transmission grows with the torque it carries, so the link stops short of the
-    motor by an amount proportional to ``|τ_j|``, on the side it came from (``h_j > 0``). Beside a backlash
-    by approach ``b_j`` (:class:`Backlash`, ``by="approach"``) a negative ``h_j`` is the other regime of a
-    loaded gear: the lag ``b_j + h_j|τ_j|`` the motor leaves shrinks as the load grows, the load pushing the
-    link onto one flank whatever the approach — the lag is gone at ``|τ_j| = b_j/|h_j|``. ``τ_j`` as in
-    :class:`JointCompliance`; ``approach_<joint>`` as in :class:`Backlash` (0 or no column: either side as
-    likely, correction 0).
-    """
-
-    name = "load_hysteresis"
-    prefixes = ("hysteresis",)
-
-    def context_keys(self):
-        return ["payload"] + [f"approach_{j}" for j in self.joints]
-
-    def features(self, robot, readings, q, theta, context):
-        N = q.shape[0]
-        tau = robot.gravity_torques(readings, theta, context)
-        S = np.zeros((N, 1, len(self.joints)))
-        for i, (j, ji) in enumerate(zip(self.joints, self.joint_index)):
-            a = _ctx(context, f"approach_{j}", N)
-            if a is not None:
-                S[:, 0, i] = -np.sign(a) * np.abs(tau[:, ji])
         return S
 
 
@@ -448,6 +417,5 @@ class LinkTilt(Effect):
             J_points[:, k] = (v + cross(phi[:, None, :], v)).transpose(0, 2, 1)
 
 
-for _cls in (JointCompliance, Backlash, LoadHysteresis, GearHarmonic, EncoderGain, ThermalExpansion, Drift,
-             LinkTilt):
+for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift, LinkTilt):
     register_effect(_cls.name, _cls, overwrite=True)

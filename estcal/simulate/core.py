@@ -41,7 +41,6 @@ __all__ = ["ErrorModel", "simulation_noise", "SimulationResult", "SimulationSumm
 DEFAULT_EFFECT_STD = {
     "joint_compliance": 1e-5,   # rad/(N·m): 100 N·m -> 1 mrad
     "backlash": 2e-4,           # rad, half free-play (drawn as |N(0, σ²)|)
-    "load_hysteresis": 5e-6,    # rad/(N·m): 100 N·m -> a 0.5 mrad lag behind the motor
     "gear_harmonic": 1e-4,      # rad per sin/cos coefficient
     "encoder_gain": 1e-3,       # dimensionless
     "thermal_expansion": 1.2e-5,  # 1/K, steel (used as is, not random)
@@ -401,11 +400,10 @@ def _context(true, specs, names, r_true, t, dt, temperature, payload, record_app
     columns: dict[str, np.ndarray] = {}
     for s, eff in zip(specs, [e for e in true.effects]):
         # a backlash by approach cannot act without the directions: draw them as record_approach does
-        if (s["effect"] == "backlash" and (record_approach or getattr(eff, "by", "auto") == "approach")) \
-                or s["effect"] == "load_hysteresis":
+        if s["effect"] == "backlash" and (record_approach or getattr(eff, "by", "auto") == "approach"):
             for j in eff.joints:
                 columns[f"approach_{j}"] = r_ctx.choice([-1.0, 1.0], N)
-    if any(n in ("joint_compliance", "backlash", "load_hysteresis") for n in names):
+    if any(n in ("joint_compliance", "backlash") for n in names):
         tau = true.gravity_torques(r_true, context=context)
         if not np.any(tau):
             notes.append("gravity torques are zero (no link masses or payload): compliance/backlash have "
