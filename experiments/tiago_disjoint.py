@@ -15,7 +15,8 @@ Protocol (``../shared/data/tiago``, never copied):
   them was scored; a second confirmation set 40, 41, 42, declared before it was scored when 20–22 had been run
   with two versions of the model (``--seeds confirmation2``); a third, 60, 61, 62, declared before the last
   version's changes and run once with it (``--seeds confirmation3``); a fourth, 80, 81, 82, declared before
-  backlash by approach became a default candidate, run once with it (``--seeds confirmation4``).
+  backlash by approach became a default candidate, run once with it (``--seeds confirmation4``); a fifth,
+  100, 101, 102, declared before a further candidate was tried and rejected on them (``--seeds confirmation5``).
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
@@ -45,6 +46,8 @@ CONFIRMATION2 = (40, 41, 42)
 CONFIRMATION3 = (60, 61, 62)
 #: declared before backlash by approach (directions from the acquisition order) became a default candidate
 CONFIRMATION4 = (80, 81, 82)
+#: declared before a load-proportional lag was tried as a further candidate (rejected on them)
+CONFIRMATION5 = (100, 101, 102)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -114,7 +117,7 @@ def run(seeds, folds=5):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
-                    "(40–42), confirmation3 (60–62), confirmation4 (80–82) or a list")
+                    "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -123,7 +126,8 @@ def main(argv=None) -> dict:
         print(missing())
         return {"skipped": True}
     seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
-             "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4}.get(args.seeds)
+             "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
+             "confirmation5": CONFIRMATION5}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
     out = {"protocol": __doc__, "seeds": list(seeds), **run(seeds, args.folds)}
     if args.json:
