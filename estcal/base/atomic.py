@@ -56,6 +56,25 @@ def _final_mode(path: Path) -> int:
 
 
 @contextlib.contextmanager
+def _replacing(path):
+    """``(fd, tmp)``: an open temporary file beside ``path`` (its folders created) that replaces ``path``, with
+    the permissions a file written in place would have, when the ``with`` block ends without an exception —
+    and is removed when it raises (``path`` untouched). The one mechanism of :func:`atomic_path` and
+    :func:`atomic_write`; the caller owns ``fd`` (closes it, or writes through it)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        yield fd, Path(tmp)
+        os.chmod(tmp, _final_mode(path))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(path, durable: bool = True):
     """Context manager yielding the path of a temporary file beside ``path`` that replaces
     ``path`` on success (fsync'ed, then renamed), for writers that open the file themselves
@@ -66,21 +85,12 @@ def atomic_path(path, durable: bool = True):
     but a power failure may leave it empty or cut under its final name. Only for files a later
     reader checks before it trusts them (a fleet's result rows: the fsync was most of the
     command's CPU per robot, docs/scaling.md)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
+    with _replacing(path) as (fd, tmp):
+        os.close(fd)
+        yield tmp
         if durable:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
-        os.chmod(tmp, _final_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 @contextlib.contextmanager
@@ -103,10 +113,7 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write: mode must be 'w' or 'wb', got {mode!r}")
     kw = {} if "b" in mode else {"encoding": encoding, "newline": newline}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
+    with _replacing(path) as (fd, tmp):
         # written through the temporary file's own descriptor, fsync'ed before it is closed (atomic_path,
         # for writers that open the file themselves, has to reopen it)
         with os.fdopen(fd, mode, **kw) as fh:
@@ -114,12 +121,6 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
             if durable:
                 fh.flush()
                 os.fsync(fh.fileno())
-        os.chmod(tmp, _final_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def atomic_write_text(path, text: str, encoding: str = "utf-8", durable: bool = True) -> Path:
