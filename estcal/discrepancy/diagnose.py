@@ -341,7 +341,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     names, C = _covariance(terms, fit)
     load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
                           and t.options.get("by") != "approach" for j in t.joints})
-    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), load_joints) for d in validate]
+    sides = _training_load_sides(final, data, load_joints) if validate else {}
+    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), sides) for d in validate]
     answer = {"expected_mm": b["expected_mm"] if b else cv_all_rows,
               "bound95_mm": b["bound95_mm"] if b else None,
               "basis": b["expected_basis"] if b else "CV of the model chosen on all rows (no budget: optimistic)",
@@ -419,11 +420,12 @@ def _covariance(terms, fit):
     return names, C
 
 
-def _validation(final, data, d, joint_types, budget, cov, load_joints=()) -> dict:
+def _validation(final, data, d, joint_types, budget, cov, load_sides=None) -> dict:
     """One validation file's figure: the model's RMSE at its new-posture rows, its measuring frame registered on
     its rows at postures the training measured (six parameters of the base frame, the model held), with the
     prediction at its postures and the region's coverage when the budget ran, and the share of its rows that
-    load a kept compliance or backlash on the side of zero no training row did (``load_joints``)."""
+    load a kept compliance or backlash on the side of zero no training row did (``load_sides``:
+    :func:`_training_load_sides`)."""
     from estcal.estimate import calibrate_lsq
     from estcal.methods import Problem
     from estcal.validation import seen_postures
@@ -453,7 +455,7 @@ def _validation(final, data, d, joint_types, budget, cov, load_joints=()) -> dic
     err = pose_errors(final, theta, dn)[0]
     out = {"path": str(d.where), "rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3), "n_new": int(new.sum()),
            "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "predicted_mm": None,
-           "coverage": None, **_unseen_load_sides(final, data, dn, load_joints)}
+           "coverage": None, **_unseen_load_sides(final, dn, load_sides or {})}
     if budget is not None:
         from .budget import coverage_at, predicted_at, reach_at
 
@@ -464,22 +466,33 @@ def _validation(final, data, d, joint_types, budget, cov, load_joints=()) -> dic
     return out
 
 
-def _unseen_load_sides(final, data, dn, joints) -> dict:
+def _training_load_sides(final, data, joints) -> dict:
+    """``{joint: (a positive load seen, a negative load seen, the zero tolerance)}`` of the training rows, for the
+    joints of a kept compliance or backlash by the load — computed once for every validation file."""
+    if not joints:
+        return {}
+    ji = [final.joint_names.index(j) for j in joints]
+    tt = final.gravity_torques(data.readings, final.params.values, data.context)[:, ji]
+    eps = 1e-9 * np.maximum(np.abs(tt).max(0), 1e-300)  # a numerically zero torque has no side
+    return {j: (bool((tt[:, k] > eps[k]).any()), bool((tt[:, k] < -eps[k]).any()), float(eps[k]))
+            for k, j in enumerate(joints)}
+
+
+def _unseen_load_sides(final, dn, sides) -> dict:
     """``{"load_side_unseen": share of the rows of dn, "load_side_joints": [...]}``: the rows whose gravity torque
-    on a joint of ``joints`` (kept compliance or backlash) has the sign no training row had. There the model
+    on a joint of ``sides`` (:func:`_training_load_sides`) has the sign no training row had. There the model
     carries a deflection learnt on one side of zero load across it — a dead zone, or a backlash that was not a
     candidate because the training load never changed sign — untested by any cross-validation."""
-    if not joints or not dn.n:
+    if not sides or not dn.n:
         return {"load_side_unseen": 0.0, "load_side_joints": []}
-    th = final.params.values
-    ji = [final.joint_names.index(j) for j in joints]
-    tt = final.gravity_torques(data.readings, th, data.context)[:, ji]
-    tv = final.gravity_torques(dn.readings, th, dn.context)[:, ji]
-    eps = 1e-9 * np.maximum(np.abs(tt).max(0), 1e-300)  # a numerically zero torque has no side
+    joints = list(sides)
+    tv = final.gravity_torques(dn.readings, final.params.values, dn.context)[:, [final.joint_names.index(j)
+                                                                               for j in joints]]
     unseen = np.zeros(dn.n, bool)
     which = []
     for k, j in enumerate(joints):
-        m = ((tv[:, k] > eps[k]) & ~(tt[:, k] > eps[k]).any()) | ((tv[:, k] < -eps[k]) & ~(tt[:, k] < -eps[k]).any())
+        pos, neg, eps = sides[j]
+        m = ((tv[:, k] > eps) & (not pos)) | ((tv[:, k] < -eps) & (not neg))
         if m.any():
             unseen |= m
             which.append(j)

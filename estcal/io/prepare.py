@@ -30,16 +30,16 @@ def derive_approach(data, threshold: float = 1e-3):
     the previous one, so joint j approached posture i from the side
     ``sign(q_j(i) − q_j(i−1))`` (time order from ``t`` when present, else the row
     order; each session of a ``session`` column on its own). Moves smaller than ``threshold`` (rad or m),
-    and the first posture, get 0 (unknown). Existing ``approach_*`` columns are kept. The backlash effect then uses
-    the approach direction (``δq = −b·sign(approach)``) instead of the load sign.
+    and the first posture, get 0 (unknown). Existing ``approach_*`` columns are kept. A backlash by approach
+    reads them (``δq = −b·sign(approach)``; ``by="auto"`` prefers them to the load's side).
     """
     d = data.subset(slice(None))
     dq = np.zeros_like(d.readings)
     # sessions stacked in one file (a ``session`` column): each has its own sequence, its first posture 0
     lab = d.columns.get("session")
     groups = [np.arange(d.n)] if lab is None else [np.flatnonzero(lab == s) for s in np.unique(lab)]
+    t = d.context.get("t")
     for rows in groups:
-        t = d.context.get("t")
         order = rows[np.argsort(t[rows], kind="stable")] if t is not None else rows
         dq[order[1:]] = np.diff(d.readings[order], axis=0)
     for j, name in enumerate(d.joint_names):

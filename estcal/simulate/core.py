@@ -398,7 +398,7 @@ def _context(true, specs, names, r_true, t, dt, temperature, payload, record_app
                 "payload": _profile(payload, N, times, "payload", r_ctx)}
     context = {k: v for k, v in profiles.items() if v is not None}
     columns: dict[str, np.ndarray] = {}
-    for s, eff in zip(specs, [e for e in true.effects]):
+    for s, eff in zip(specs, true.effects):
         # a backlash by approach cannot act without the directions: draw them as record_approach does
         if s["effect"] == "backlash" and (record_approach or getattr(eff, "by", "auto") == "approach"):
             for j in eff.joints:
