@@ -163,8 +163,9 @@ def test_drift_over_row_order_without_time_column_is_named(puma, seed):
 @pytest.mark.parametrize("seed", [5, 6])
 def test_rigid_frame_offset_between_sessions_is_registered_not_named(puma, seed):
     """Two sessions of one robot whose measuring frames differ by a rigid motion (5, −2, 3 mrad; 2, −1, 1.5 mm):
-    nothing is named, the second session's frame is registered with that rotation, and the cross-validation is
-    by posture and session."""
+    nothing is named, the second session's frame is registered with that rotation, the training RMSE scores
+    every session at its own frame (the noise's √3 σ per point, not the frames' 2–3 mm difference), and the
+    cross-validation is by posture and session."""
     from estcal.kinematics.transforms import rpy_to_matrix
 
     sim, _ = simulate_hidden(puma, [], SIGMA, n_poses=40, measure="points", seed=seed)
@@ -177,6 +178,9 @@ def test_rigid_frame_offset_between_sessions_is_registered_not_named(puma, seed)
     assert len(frames) == 1
     rot = next(iter(frames.values()))["rotation_mrad"]
     assert rot == pytest.approx(np.linalg.norm(rpy) * 1e3, rel=0.02)
+    noise_mm = np.sqrt(3) * SIGMA * 1e3
+    assert 0.7 * noise_mm < res.accuracy["train_mm"] < 1.15 * noise_mm
+    assert res.model["residual"]["rmse_mm"] == res.accuracy["train_mm"]
     assert res.data["folds"] == "session" and res.budget["folds"] == "session"
     assert res.answer["expected_mm"] < 2.5 * np.sqrt(3) * SIGMA * 1e3
 

@@ -145,6 +145,23 @@ def _scores(robot, theta, datasets):
     return _rmse_max(_errors(robot, theta, datasets))
 
 
+def _train_rmse(final, data, frames) -> float:
+    """The training RMSE (mm) of the point-error norms, every session's rows at its own measuring frame
+    (``frames``: ``{session: (6,) base increment}``; the model's parameters are the first session's frame)."""
+    from .relevance import _BASE, _session_labels
+
+    ibase = final.params.indices([n for n in _BASE if n in final.params.names])
+    if not frames or ibase.size != 6:
+        return _scores(final, final.params.values, [data])[0]
+    lab = _session_labels(data)
+    errors = []
+    for s in dict.fromkeys(lab.tolist()):
+        theta = final.params.values.copy()
+        theta[ibase] += frames.get(s, 0.0)
+        errors.append(pose_errors(final, theta, data.subset(np.flatnonzero(lab == s)))[0])
+    return _rmse_max(errors)[0]
+
+
 # ------------------------------------------------------------------ main
 def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
              geometric: str = "sparse", session_time: bool = True, approach_from_order: bool = True,
@@ -336,7 +353,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
         named.append(i)
         frac = max(ss_geo - ss(geo_only | m), 0.0) / max(ss_geo, 1e-300)
         causes.append(_cause(t, recs[t.label], fit, terms.robot, system.names, frac, time_unit))
-    train_mm = _scores(final, final.params.values, [data])[0] if data.kind in ("position", "points", "pose") else None
+    train_mm = _train_rmse(final, data, fit.frames) if data.kind in ("position", "points", "pose") else None
     b = budget.to_dict() if budget is not None else None
     names, C = _covariance(terms, fit)
     load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
