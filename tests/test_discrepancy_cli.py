@@ -97,6 +97,32 @@ def test_simulate_from_fit_reproduces_the_identified_robot(hidden_case, tmp_path
     assert specs == [] and not geo.effects
 
 
+def test_simulate_like_draws_the_fitted_rigid_error_per_posture():
+    """With the fit's rigid error per posture (Ψ) and no ``noise``, every row's body moves as one: the simulated
+    points minus the prediction are ``δt + δφ × (x − c)`` for one ``(δt, δφ)`` per row, and over many rows their
+    variances are Ψ (Monte Carlo against the values put in)."""
+    robot = load_robot("puma560_masses")
+    sim, _ = simulate_hidden(robot, [], SIGMA, n_poses=30, measure="points", seed=2)
+    d = diagnose(sim.nominal_robot, sim.dataset, noise=SIGMA, budget=False).to_dict()
+    psi = np.array([1e-6, 4e-6, 0.25e-6, 1e-4, 0.5e-4, 2e-4])  # 1, 2, 0.5 mm; 10, 7.1, 14 mrad
+    d["random_effect"] = {"psi_si": psi.tolist(), "sigma_mm": 0.0}
+    rows = sim.dataset.subset(np.tile(np.arange(sim.dataset.n), 60))  # 1800 rows: Monte Carlo to ~3 %
+    pred = simulate_like(d, rows, noise=0.0).points
+    D = simulate_like(d, rows, seed=5).points - pred
+    c = pred.mean(axis=1, keepdims=True)
+    # each row: D_i = δt + δφ × (x_i − c) = δt − [x_i − c]× δφ, six unknowns from the row's 3k coordinates
+    arm = pred - c
+    A = np.zeros(arm.shape[:2] + (3, 6))
+    A[..., :3] = np.eye(3)
+    A[..., 0, 4], A[..., 0, 5] = arm[..., 2], -arm[..., 1]
+    A[..., 1, 3], A[..., 1, 5] = -arm[..., 2], arm[..., 0]
+    A[..., 2, 3], A[..., 2, 4] = arm[..., 1], -arm[..., 0]
+    A = A.reshape(len(rows.points), -1, 6)
+    delta = np.linalg.solve(np.swapaxes(A, 1, 2) @ A, np.swapaxes(A, 1, 2) @ D.reshape(len(A), -1, 1))[..., 0]
+    np.testing.assert_allclose((A @ delta[..., None])[..., 0], D.reshape(len(A), -1), atol=1e-12)  # rigid
+    np.testing.assert_allclose(delta.var(axis=0), psi, rtol=0.12)
+
+
 def test_detection_power_quick(tmp_path):
     out = tmp_path / "dp.json"
     p = subprocess.run([sys.executable, str(REPO / "experiments" / "detection_power.py"), "--quick", "--json",
