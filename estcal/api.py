@@ -191,7 +191,7 @@ class api_words:
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None,
              root: str | None = None, tip: str | None = None, folds: int = 5, geometric: str = "sparse",
              budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = True,
-             column_map=None, drop_flagged: bool = True, report=None):
+             column_map=None, drop_flagged: bool = True, report=None, register_zeros: bool = True):
     """How accurate the robot's model is at new postures, which physical causes it names, what stays
     unexplained — ``estcal diagnose`` (docs/discrepancy.md; the defaults are the command's).
 
@@ -199,7 +199,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     ----------
     robot, data, validate, points, root, tip : as in :func:`calibrate`; ``data`` may be a list of sessions
         (each session's measuring frame registered); each validation file is scored at its new postures,
-        its frame registered on its rows at postures the training measured.
+        its frame registered on its rows at postures the training measured (with ``register_zeros``, the
+        default, also every joint zero those rows show moved since training).
     effects : effect names to consider (default: every registered effect, docs/effects.md).
     noise : the measurement noise in the forms of :func:`as_noise` (the rows' relative weights; the model
         fits its scale).
@@ -222,4 +223,4 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     return run(robot, data, validate=list(validate), effects=effects, noise=nm, points=points, root=root, tip=tip,
                folds=folds, geometric=geometric, budget=budget, seed=seed, urdf_chain_masses=urdf_chain_masses,
                approach_from_order=approach_from_order, column_map=column_map, drop_flagged=drop_flagged,
-               report=report)
+               report=report, register_zeros=register_zeros)

@@ -7,8 +7,9 @@ Protocol (``../shared/data/tiago``, never copied):
   1e-3 rad / 1e-3 m, over both sessions: 62 postures;
 * a halving with seed ``s``: ``numpy.random.default_rng(s).permutation(postures)[: 62 // 2]`` is half A;
 * direction 1: train on 11-30's rows at half A; the validation file is all of 11-26 — its rows at half A
-  register its measuring frame (the diagnosis does it: docs/discrepancy.md), its rows at half B are the
-  score. Direction 2: the sessions swapped;
+  register its measuring frame (the diagnosis does it: docs/discrepancy.md) and, since the sixth confirmation
+  set was declared, any joint zero those rows alone show moved since training (``estcal.discrepancy.zeros``;
+  before, the frame only), its rows at half B are the score. Direction 2: the sessions swapped;
 * every row carries the approach directions of its own session's acquisition (the side each joint moved from
   into the posture, from the whole session's time order — what ``estcal diagnose`` derives from a whole file);
 * development seeds 0–5 (the model was developed on them); confirmation seeds 20, 21, 22, fixed before any of
@@ -16,11 +17,14 @@ Protocol (``../shared/data/tiago``, never copied):
   with two versions of the model (``--seeds confirmation2``); a third, 60, 61, 62, declared before the last
   version's changes and run once with it (``--seeds confirmation3``); a fourth, 80, 81, 82, declared before
   backlash by approach became a default candidate, run once with it (``--seeds confirmation4``); a fifth,
-  100, 101, 102, declared before a further candidate was tried and rejected on them (``--seeds confirmation5``).
+  100, 101, 102, declared before a further candidate was tried and rejected on them (``--seeds confirmation5``);
+  a sixth, 120, 121, 122, declared before the moved joint zeros were registered, run once with it
+  (``--seeds confirmation6``).
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
-coverage, the named causes, the CPU time. ``--json PATH`` writes everything.
+coverage, the named causes, the joint zeros that moved between the sessions, the CPU time. ``--json PATH`` writes
+everything.
 """
 from __future__ import annotations
 
@@ -48,6 +52,8 @@ CONFIRMATION3 = (60, 61, 62)
 CONFIRMATION4 = (80, 81, 82)
 #: declared before a load-proportional lag was tried as a further candidate (rejected on them)
 CONFIRMATION5 = (100, 101, 102)
+#: declared before a validation file's moved joint zeros were registered on its seen rows
+CONFIRMATION6 = (120, 121, 122)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -86,14 +92,14 @@ def halvings(robot, sessions, seeds):
     return out
 
 
-def run(seeds, folds=5):
+def run(seeds, folds=5, register_zeros=True):
     from estcal.workflows.diagnose import diagnose
 
     robot, sessions = load()
     rows = []
     for s, tr, T, V in halvings(robot, sessions, seeds):
         t0 = time.process_time()
-        res = diagnose(robot, T, validate=[V], folds=folds)
+        res = diagnose(robot, T, validate=[V], folds=folds, register_zeros=register_zeros)
         cpu = time.process_time() - t0
         v = res.accuracy["validation"][0]
         r = {"seed": s, "train": tr, "n_train": T.n, "new_mm": v["rmse_mm"], "n_new": v["n_new"],
@@ -101,12 +107,15 @@ def run(seeds, folds=5):
              "predicted_at_mm": v["predicted_mm"], "coverage": v["coverage"],
              "ratio_expected": res.answer["expected_mm"] / v["rmse_mm"],
              "ratio_at": (v["predicted_mm"] or np.nan) / v["rmse_mm"],
-             "named": [c.label for c in res.causes], "cpu_s": cpu}
+             "named": [c.label for c in res.causes], "cpu_s": cpu,
+             "zeros_moved": {z["joint"]: [z["value"], z["std"]] for z in v.get("zeros_moved", [])}}
         rows.append(r)
         print(f"seed {s:2d} train {tr} ({T.n:2d} rows): new postures {r['new_mm']:.2f} mm ({r['n_new']} rows); "
               f"expected {r['expected_mm']:.2f} (ratio {r['ratio_expected']:.2f}), at its postures "
               f"{r['predicted_at_mm']:.2f} (ratio {r['ratio_at']:.2f}); coverage {r['coverage']:.2f}; "
-              f"named {r['named']}; {cpu:.1f} s CPU", flush=True)
+              f"named {r['named']}; zeros moved "
+              f"{', '.join(f'{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}' for j, (x, e) in r['zeros_moved'].items()) or 'none'}; "
+              f"{cpu:.1f} s CPU", flush=True)
     new = np.array([r["new_mm"] for r in rows])
     print(f"mean at new postures {new.mean():.2f} mm (median {np.median(new):.2f}); within 30 %: expected "
           f"{sum(0.7 <= r['ratio_expected'] <= 1.3 for r in rows)}/{len(rows)}, at its postures "
@@ -117,8 +126,11 @@ def run(seeds, folds=5):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
-                    "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102) or a list")
+                    "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
+                    "(120–122) or a list")
     ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
+                    "(the protocol before the sixth confirmation set: no moved joint zero)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -127,9 +139,10 @@ def main(argv=None) -> dict:
         return {"skipped": True}
     seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
              "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
-             "confirmation5": CONFIRMATION5}.get(args.seeds)
+             "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
-    out = {"protocol": __doc__, "seeds": list(seeds), **run(seeds, args.folds)}
+    out = {"protocol": __doc__, "seeds": list(seeds), "frame_only": args.frame_only,
+           **run(seeds, args.folds, not args.frame_only)}
     if args.json:
         write_json(args.json, out, announce=True)
     return out

@@ -144,6 +144,7 @@ READERS = {
     ("error budget", "diagnose"): lambda b, got: str(got["budget"] is not None),
     ("noise", "diagnose"): lambda b, got: _noise_mm(got["noise"]["position"], got["noise"]["orientation"]),
     ("rows the screening flags", "diagnose"): lambda b, got: "left out" if got["data"]["drop_flagged"] else "kept",
+    ("validation registration", "diagnose"): lambda b, got: got["data"]["validation_registers"],
     ("approach directions", "diagnose"): lambda b, got: "from the acquisition order"
     if got["model"]["data_preparation"]["approach_from_order"] else "none",
 }

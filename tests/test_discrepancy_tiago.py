@@ -41,10 +41,16 @@ def test_tiago_arm6_backlash_and_the_other_session(tiago_dir):
     assert "joint_compliance(torso_lift_joint)" in [r["term"] for r in res.terms["regrouped"]]
     v = res.accuracy["validation"][0]
     assert (v["n_seen"], v["n_new"], v["registered"]) == (37, 25, True)
+    # 11-26's rows at the 37 postures 11-30 measured show arm_5's zero moved since 11-30 (FIGAROH suspected an arm_5
+    # encoder issue), by more than ten milliradians; nothing else moved
+    assert [z["joint"] for z in v["zeros_moved"]] == ["arm_5_joint"]
+    z = v["zeros_moved"][0]
+    assert -0.020 < z["value"] < -0.010 and abs(z["value"]) > 10 * z["std"]
     # the former default scored these 25 postures at 5.19 mm, the former prior model at 3.62 mm, with backlash by
-    # approach instead of by the load (no choice between them) 2.83 mm
-    assert v["rmse_mm"] < 2.6
-    # the figure recomputed from the model: the base refitted on the 37 seen rows, the 25 new ones scored
+    # approach instead of by the load (no choice between them) 2.83 mm, with the frame registered alone 2.43 mm
+    assert v["rmse_mm"] < 2.4
+    # the figure recomputed from the model: the base and arm_5's zero refitted on the 37 seen rows, the 25 new
+    # ones scored
     from estcal.estimate import calibrate_lsq
     from estcal.methods import NoiseModel, Problem
     from estcal.validation import seen_postures
@@ -53,7 +59,7 @@ def test_tiago_arm6_backlash_and_the_other_session(tiago_dir):
     seen = seen_postures(train.readings, d.readings, robot.joint_types)
     base = ["base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz"]
     reg = calibrate_lsq(Problem(res.robot, [(None, d.subset(np.flatnonzero(seen)), NoiseModel(known=False))]), "lm",
-                        free=base, check=False)
+                        free=base + ["offset_arm_5_joint"], check=False)
     pos, _ = pose_errors(res.robot, reg.theta, d.subset(np.flatnonzero(~seen)))
     assert v["rmse_mm"] == pytest.approx(np.sqrt(np.mean(pos ** 2)) * 1e3, rel=1e-6)
 

@@ -35,6 +35,7 @@ from estcal.methods import NoiseModel
 
 from .result import Cause, DiagnosisResult
 from .terms import Candidate, build_terms, default_candidates, n_sessions as _n_sessions, set_load_sides
+from .zeros import moved_zeros
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates"]
 
@@ -166,7 +167,7 @@ def _train_rmse(final, data, frames) -> float:
 def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
              geometric: str = "sparse", session_time: bool = True, approach_from_order: bool = True,
              posture_tol=(1e-3, 1e-3), budget: bool = True, time_blocks: bool = True, ident_tol: float = 1e-4,
-             regroup_tol: float = 1e-3) -> DiagnosisResult:
+             regroup_tol: float = 1e-3, register_zeros: bool = True) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data`` (module docstring).
 
     Parameters
@@ -175,7 +176,8 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     data : Dataset (position / points / pose), or a list of datasets — one per session, fitted together, each
         session's measuring frame registered.
     validate : datasets scored with the model at their new postures (never used for a decision); each is
-        another session: its frame is registered on its rows at postures the training measured.
+        another session: its frame is registered on its rows at postures the training measured — and, with
+        ``register_zeros``, every joint zero those rows show moved since training (:mod:`estcal.discrepancy.zeros`).
     effects : registered effect names to consider (default: every registered effect; ``()``: geometry only).
     k_folds : folds of the cross-validation — grouped by posture, and by session with several sessions.
     noise : measurement noise (any form of :meth:`estcal.methods.NoiseModel.parse`); its scale is fitted
@@ -192,6 +194,8 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     time_blocks : the time-blocked CV in the budget.
     ident_tol, regroup_tol : the geometric identifiability tolerance and the relative size below which an
         effect term regroups into geometry.
+    register_zeros : test and register a validation file's moved joint zeros on its seen rows (False: its frame
+        only).
     """
     from estcal.base.blas import single_thread_blas
 
@@ -200,11 +204,13 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     # new postures with two threads) — the same call must give the same diagnosis on every machine
     with single_thread_blas():
         return _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, geometric, session_time,
-                         approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol)
+                         approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol,
+                         register_zeros)
 
 
 def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, geometric, session_time,
-              approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol) -> DiagnosisResult:
+              approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol,
+              register_zeros=True) -> DiagnosisResult:
     from estcal.validation.groups import row_groups
 
     from .relevance import cv_rmse_mm, fit_relevance, select_terms
@@ -240,7 +246,7 @@ def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, g
 
         b = error_budget(terms, fit, data, groups, sel, k_folds, rng, time_blocks)
     return _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, groups, b, time_source,
-                   approach_from_order, session_time, cv_rmse_mm(sel.cv), approach_source)
+                   approach_from_order, session_time, cv_rmse_mm(sel.cv), approach_source, register_zeros)
 
 
 def _check_folds(system, folds, k) -> None:
@@ -320,7 +326,8 @@ def _cause(term, rec, fit, robot, system_names, explained, time_unit) -> Cause:
 
 
 def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, groups, budget, time_source,
-            approach_from_order, session_time, cv_all_rows, approach_source=None) -> DiagnosisResult:
+            approach_from_order, session_time, cv_all_rows, approach_source=None,
+            register_zeros: bool = True) -> DiagnosisResult:
     """The :class:`DiagnosisResult` of the fit: the answer, the causes, one validation figure per file."""
     from .relevance import refit
 
@@ -359,7 +366,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
                           and t.options.get("by") != "approach" for j in t.joints})
     sides = _training_load_sides(final, data, load_joints) if validate else {}
-    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), sides) for d in validate]
+    vals = [_validation(final, data, d, robot.joint_types, budget, (names, C), sides, register_zeros)
+            for d in validate]
     answer = {"expected_mm": b["expected_mm"] if b else cv_all_rows,
               "bound95_mm": b["bound95_mm"] if b else None,
               "basis": b["expected_basis"] if b else "CV of the model chosen on all rows (no budget: optimistic)",
@@ -404,6 +412,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
                                            "validation": vals}, terms_d, b,
                           {"n_rows": data.n, "n_postures": groups.n_postures, "n_sessions": len(groups.sessions),
                            "time_source": time_source, "approach_source": approach_source, "folds": "session" if len(groups.sessions) > 1 else "posture",
+                           "validation_registers": "frame and moved joint zeros" if register_zeros else "frame",
                            "k_folds": len(sel.cv["sq"])},
                           model, nm.to_dict(), re_, verdict, terms.lumped, robot=final, covariance=C,
                           covariance_names=names, sigma0=float(np.sqrt(fit.sparse.noise_var)),
@@ -437,7 +446,7 @@ def _covariance(terms, fit):
     return names, C
 
 
-def _validation(final, data, d, joint_types, budget, cov, load_sides=None) -> dict:
+def _validation(final, data, d, joint_types, budget, cov, load_sides=None, register_zeros: bool = True) -> dict:
     """One validation file's figure: the model's RMSE at its new-posture rows, its measuring frame registered on
     its rows at postures the training measured (six parameters of the base frame, the model held), with the
     prediction at its postures and the region's coverage when the budget ran, and the share of its rows that
@@ -455,9 +464,19 @@ def _validation(final, data, d, joint_types, budget, cov, load_sides=None) -> di
     moved = {"rotation_mrad": 0.0, "translation_mm": 0.0}
     pts = measured_points(d)
     min_rows = 1 if pts.shape[1] >= 3 or d.kind == "pose" else 3
+    zeros = []
     if seen.sum() >= min_rows and all(n in final.params.names for n in _BASE) and (~seen).any():
-        prob = Problem(final, [(None, d.subset(np.flatnonzero(seen)), NoiseModel(known=False))])
+        ds = d.subset(np.flatnonzero(seen))
+        prob = Problem(final, [(None, ds, NoiseModel(known=False))])
         res = calibrate_lsq(prob, "lm", free=list(_BASE), check=False)
+        zeros = moved_zeros(final, res.theta, ds, _BASE) if register_zeros else []
+        if zeros:
+            res = calibrate_lsq(prob, "lm", free=list(_BASE) + [z["parameter"] for z in zeros], check=False)
+            for z in zeros:
+                k = final.params.index(z["parameter"])
+                z["value"] = float(res.theta[k] - final.params.values[k])
+                unit = "mm" if joint_types[final.joint_names.index(z["joint"])] == "prismatic" else "mrad"
+                z["display"] = [z["value"] * 1e3, z["std"] * 1e3, unit]
         ib = final.params.indices(list(_BASE))
         delta = res.theta[ib] - theta[ib]
         theta = res.theta
@@ -471,7 +490,8 @@ def _validation(final, data, d, joint_types, budget, cov, load_sides=None) -> di
     dn = d.subset(np.flatnonzero(new))
     err = pose_errors(final, theta, dn)[0]
     out = {"path": str(d.where), "rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3), "n_new": int(new.sum()),
-           "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "predicted_mm": None,
+           "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "zeros_moved": zeros,
+           "predicted_mm": None,
            "coverage": None, **_unseen_load_sides(final, dn, load_sides or {})}
     if budget is not None:
         from .budget import coverage_at, predicted_at, reach_at

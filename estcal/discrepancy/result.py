@@ -262,7 +262,12 @@ def _validation_line(v: dict) -> str:
     if v.get("registered"):
         fm = v["frame_moved"]
         s += (f" (measuring frame registered on its {v['n_seen']} rows at seen postures: moved {fm['rotation_mrad']:.2f} "
-              f"mrad, {fm['translation_mm']:.2f} mm)")
+              f"mrad, {fm['translation_mm']:.2f} mm")
+        zs = v.get("zeros_moved") or []
+        if zs:
+            s += "; " + ", ".join(f"{z['joint']}'s zero moved by {z['display'][0]:+.1f} ± {z['display'][1]:.1f} "
+                                  f"{z['display'][2]}" for z in zs) + " since training, registered there too"
+        s += ")"
     elif v["n_seen"]:
         s += f" ({v['n_seen']} rows at seen postures, too few to register the frame: scored in the training frame)"
     else:

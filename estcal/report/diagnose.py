@@ -56,7 +56,9 @@ def diagnose_report(folder, result, title: str = "estcal diagnose", plots: bool 
     rows = [["expected at new postures", a["expected_mm"], a["basis"]],
             ["95 % of points within", a["bound95_mm"], ""]]
     rows += [[f"validation {v['path']}", v["rmse_mm"], f"{v['n_new']} new-posture rows"
-              + (f"; frame registered on {v['n_seen']} rows" if v["registered"] else "")]
+              + (f"; frame registered on {v['n_seen']} rows" if v["registered"] else "")
+              + "".join(f"; {z['joint']}'s zero moved {z['display'][0]:+.1f} ± {z['display'][1]:.1f} {z['display'][2]}"
+                        for z in v.get("zeros_moved") or [])]
              for v in d["accuracy"].get("validation", [])]
     rep.table(Table("accuracy", "position error at new postures (mm): one figure per question",
                     ["figure", "RMSE (mm)", "basis"], rows))

@@ -46,15 +46,15 @@ GEOMETRIC = ("sparse", "full", "joint_offset")
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
              urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
              geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = True,
-             posture_tol=(1e-3, 1e-3), robot_spec=None, report=None):
+             posture_tol=(1e-3, 1e-3), robot_spec=None, report=None, register_zeros: bool = True):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
 
     Parameters
     ----------
     robot : SerialRobot, built-in name, robot file or URDF; data : a dataset (path or Dataset) or
         a list of them, one per session (fitted together, each session's measuring frame registered).
-    validate : datasets scored at their new postures (their frame registered on their rows at seen postures),
-        never used for a decision.
+    validate : datasets scored at their new postures (their frame registered on their rows at seen postures,
+        and the joint zeros those rows show moved since training), never used for a decision.
     effects : effect names to consider (default: every registered effect, docs/effects.md).
     noise : a :class:`~estcal.methods.NoiseModel` (the rows' relative weights; its scale is fitted either way).
     urdf_chain_masses : for URDF robots, count the links after the last actuated joint in its mass.
@@ -69,6 +69,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         is then a candidate beside backlash by the load).
     posture_tol : ``(tol_rad, tol_m)`` of the posture grouping.
     report : a folder for the report (figures, diagnosis.json, summary.txt, index.html).
+    register_zeros : register a validation file's moved joint zeros on its seen rows (default; False: its
+        measuring frame only).
 
     Returns a :class:`~estcal.discrepancy.result.DiagnosisResult`.
     """
@@ -106,7 +108,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         with input_errors():
             res = _diagnose(rob, ds, validate=vals, effects=names, noise=noise, k_folds=folds, rng=seed,
                             geometric=geometric, budget=budget, approach_from_order=approach_from_order,
-                            posture_tol=posture_tol, robot_spec=spec)
+                            posture_tol=posture_tol, robot_spec=spec, register_zeros=register_zeros)
     except UnidentifiableError as exc:
         where = ", ".join(str(getattr(d, "where", d)) for d in sessions)
         raise NumericalRefusal(f"{where}: {exc} (the fit on {sum(d.n for d in sessions)} poses, and each "

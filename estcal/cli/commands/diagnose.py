@@ -92,6 +92,11 @@ def diagnose(
                                                   "column, else the row order — so that backlash by approach "
                                                   "is a candidate beside backlash by the load. Recorded "
                                                   "approach_<joint> columns are kept."),
+    register_zeros: bool = typer.Option(True, "--register-zeros/--no-register-zeros",
+                                        help="A --validate file's rows at seen postures register its measuring "
+                                             "frame and every joint zero they show moved since training "
+                                             "(posture-grouped CV on those rows alone); --no-register-zeros: the "
+                                             "frame only."),
     seed: int = typer.Option(0, "--seed", help="Seed of the fold assignment."),
     posture_tol_mrad: float = posture_tol_mrad_option(),
     posture_tol_mm: float = posture_tol_mm_option(),
@@ -117,7 +122,7 @@ def diagnose(
     res = run(robot, list(data), validate=list(validate), effects=effects, noise=noise, points=points, root=root,
               tip=tip, urdf_chain_masses=urdf_masses, folds=k_folds, report=report, seed=seed, geometric=geometric,
               approach_from_order=approach_from_order, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
-              budget=budget, column_map=column_map, drop_flagged=drop_flagged)
+              budget=budget, column_map=column_map, drop_flagged=drop_flagged, register_zeros=register_zeros)
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
