@@ -253,8 +253,9 @@ def test_whitening_is_the_block_cholesky(request, case):
     assert plain.psi is None and np.array_equal(plain.Xw, plain.X) and np.array_equal(plain.tw, plain.t)
 
 
-def _weighted_residual(robot, data, theta, frames, nm, pt, ax, pose):
-    """b = (measured − predicted)/σ at every system row, each session at its frame (computed here)."""
+def _weighted_residual(robot, data, theta, frames, nm, pt, ax, pose, zeros=None):
+    """b = (measured − predicted)/σ at every system row, each session at its frame and joint zeros ``zeros``
+    (computed here)."""
     lab = np.asarray(data.columns["session"])
     ib = robot.params.indices(list(BASE))
     pred = np.zeros_like(measured_points(data))
@@ -262,7 +263,9 @@ def _weighted_residual(robot, data, theta, frames, nm, pt, ax, pose):
         m = np.flatnonzero(lab == sv)
         th = np.array(theta, float, copy=True)
         if sv in frames:
-            th[ib] += frames[sv]
+            th[ib] += frames[sv][:6]
+            z = (zeros or {}).get(sv) or []
+            th[robot.params.indices(z)] += frames[sv][6:]
         pred[m] = predicted_points(robot, th, data.subset(m))
     e = (measured_points(data) - pred)[pose, pt, ax]
     return e / SIGMA
@@ -270,7 +273,8 @@ def _weighted_residual(robot, data, theta, frames, nm, pt, ax, pose):
 
 @pytest.mark.parametrize("at, tol", [("no effect", 1e-6), ("fitted", 1e-4)])
 def test_linearise_columns_are_finite_differences(two_sessions, at, tol):
-    """Every column of X (registration, the second session's frame, geometry, effects) is ∂(predicted/σ)/∂θ
+    """Every column of X (registration, the second session's frame and joint zeros, geometry, effects) is
+    ∂(predicted/σ)/∂θ
     = −∂b/∂θ by central differences of the forward model, at the fitted geometry and frames. With the effects
     at zero to 1e-6 (measured 3e-8); at the fitted effects to 1e-4 (measured 1.7e-5, on a_2): the Jacobian of
     a load term neglects its load's own dependence on the geometry (relevance.GN_TOL's comment) — a
@@ -283,27 +287,29 @@ def test_linearise_columns_are_finite_differences(two_sessions, at, tol):
     s = linearise(terms, data, nm, theta, frames)
     assert np.all(s.sigma == SIGMA)
     pt, ax = _row_coordinates(terms, data, nm, fit)
-    b0 = _weighted_residual(robot, data, theta, frames, nm, pt, ax, s.pose)
+    zeros = terms.session_zeros
+    assert zeros and all(len(z) >= 3 for z in zeros.values())  # 24 shared postures: the session's zeros too
+    b0 = _weighted_residual(robot, data, theta, frames, nm, pt, ax, s.pose, zeros)
     h = 1e-6
     worst = 0.0
     for j, name in enumerate(s.names):
-        if ":" in name:  # a session's frame increment
+        if ":" in name:  # a session's frame or joint-zero increment
             sv, base = name.split(":")
             sv = next(k for k in frames if str(k) == sv)
-            i = BASE.index(base)
+            i = BASE.index(base) if base in BASE else 6 + zeros[sv].index(base)
             fp = {k: v.copy() for k, v in frames.items()}
             fm = {k: v.copy() for k, v in frames.items()}
             fp[sv][i] += h
             fm[sv][i] -= h
-            bp = _weighted_residual(robot, data, theta, fp, nm, pt, ax, s.pose)
-            bm = _weighted_residual(robot, data, theta, fm, nm, pt, ax, s.pose)
+            bp = _weighted_residual(robot, data, theta, fp, nm, pt, ax, s.pose, zeros)
+            bm = _weighted_residual(robot, data, theta, fm, nm, pt, ax, s.pose, zeros)
         else:
             i = robot.params.indices([name])[0]
             tp, tm = theta.copy(), theta.copy()
             tp[i] += h
             tm[i] -= h
-            bp = _weighted_residual(robot, data, tp, frames, nm, pt, ax, s.pose)
-            bm = _weighted_residual(robot, data, tm, frames, nm, pt, ax, s.pose)
+            bp = _weighted_residual(robot, data, tp, frames, nm, pt, ax, s.pose, zeros)
+            bm = _weighted_residual(robot, data, tm, frames, nm, pt, ax, s.pose, zeros)
         fd = -(bp - bm) / (2 * h)
         rel = np.linalg.norm(s.X[:, j] - fd) / max(np.linalg.norm(fd), 1e-12)
         assert rel < tol, (name, rel)
@@ -320,8 +326,8 @@ def test_linearise_columns_are_finite_differences(two_sessions, at, tol):
 
 @pytest.mark.parametrize("frames_at", ["fitted", "zero"])
 def test_held_out_errors_register_the_session_frame(two_sessions, puma, frames_at):
-    """Session folds: each held-out session's six frame columns (its own, or the base's for the first session),
-    found by name, fitted by least squares on the linear model's residual at its registration rows and applied
+    """Session folds: each held-out session's frame and joint-zero columns (its own, or the base's and the
+    model's own zero columns for the first session), found by name, fitted by least squares on the linear model's residual at its registration rows and applied
     to its test rows; the result in metres, at the noise's level. Linearised with the second session's frame
     at zero (its 5 mrad turn left for the registration), the unregistered errors are millimetres."""
     data, nm, terms, fit = two_sessions
@@ -335,8 +341,10 @@ def test_held_out_errors_register_the_session_frame(two_sessions, puma, frames_a
         rt, rr = s.rows_of(f.test), s.rows_of(f.register)
         sess = s.session[rt[0]]
         assert np.all(s.session[rt] == sess) and np.all(s.session[rr] == sess)
-        names = [f"{sess}:{n}" for n in BASE] if sess != 0 else list(BASE)
-        cols = [s.names.index(n) for n in names]
+        zeros = terms.session_zeros[1.0]
+        names = [f"{sess}:{n}" for n in (*BASE, *zeros)] if sess != 0 else [*BASE, *zeros]
+        cols = [s.names.index(n) for n in names if n in s.names]
+        assert len(cols) >= 9
         coef = np.r_[sub.free, sub.mean]
         delta = lstsq(s.X[np.ix_(rr, cols)], s.t[rr] - s.X[rr] @ coef)[0]
         expect = (s.t[rt] - s.X[rt] @ coef - s.X[np.ix_(rt, cols)] @ delta) * s.sigma[rt]

@@ -146,9 +146,10 @@ def _scores(robot, theta, datasets):
     return _rmse_max(_errors(robot, theta, datasets))
 
 
-def _train_rmse(final, data, frames) -> float:
-    """The training RMSE (mm) of the point-error norms, every session's rows at its own measuring frame
-    (``frames``: ``{session: (6,) base increment}``; the model's parameters are the first session's frame)."""
+def _train_rmse(final, data, frames, zeros=None) -> float:
+    """The training RMSE (mm) of the point-error norms, every session's rows at its own measuring frame and joint
+    zeros (``frames``: ``{session: (6 + k,) increment of the base and of the zeros ``zeros[session]``}``; the
+    model's parameters are the first session's)."""
     from .relevance import _BASE, _session_labels
 
     ibase = final.params.indices([n for n in _BASE if n in final.params.names])
@@ -158,7 +159,11 @@ def _train_rmse(final, data, frames) -> float:
     errors = []
     for s in dict.fromkeys(lab.tolist()):
         theta = final.params.values.copy()
-        theta[ibase] += frames.get(s, 0.0)
+        if s in frames:
+            theta[ibase] += frames[s][:6]
+            z = (zeros or {}).get(s) or []
+            if z:
+                theta[final.params.indices(z)] += frames[s][6:]
         errors.append(pose_errors(final, theta, data.subset(np.flatnonzero(lab == s)))[0])
     return _rmse_max(errors)[0]
 
@@ -360,7 +365,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
         named.append(i)
         frac = max(ss_geo - ss(geo_only | m), 0.0) / max(ss_geo, 1e-300)
         causes.append(_cause(t, recs[t.label], fit, terms.robot, system.names, frac, time_unit))
-    train_mm = _train_rmse(final, data, fit.frames) if data.kind in ("position", "points", "pose") else None
+    train_mm = _train_rmse(final, data, fit.frames, terms.session_zeros) if data.kind in ("position", "points", "pose") else None
     b = budget.to_dict() if budget is not None else None
     names, C = _covariance(terms, fit)
     load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
@@ -401,7 +406,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
              "data_preparation": {"approach_from_order": bool(approach_from_order),
                                   "session_time": ("centred" if _n_sessions(data) > 1 else True) if session_time
                                   else False, "time_source": time_source},
-             "session_frames": {str(s): _frame_dict(v) for s, v in fit.frames.items()},
+             "session_frames": {str(s): dict(_frame_dict(v, terms.session_zeros.get(s), fit, s, final),
+                                            name=_session_name(sessions, s)) for s, v in fit.frames.items()},
              "residual": {"rmse_mm": train_mm}}
     try:  # the nominal robot itself, so the fit needs no robot file to be simulated again
         model["robot_dict"] = robot_to_dict(robot)
@@ -421,10 +427,32 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     return res
 
 
-def _frame_dict(delta) -> dict:
-    """A session's frame increment (6,) as rotation (mrad) and translation (mm)."""
+def _session_name(sessions, s) -> str:
+    """The name of session label ``s`` (0, 1, … in the order given): its file's stem, else the label."""
+    from estcal.sessions.data import session_name
+
+    try:
+        return session_name(sessions[int(s)], int(s)) if sessions else str(s)
+    except (IndexError, TypeError, ValueError):
+        return str(s)
+
+
+def _frame_dict(delta, zeros=None, fit=None, s=None, final=None) -> dict:
+    """A session's frame increment (6 + k,) as rotation (mrad) and translation (mm), and its joint zeros
+    ``zeros`` (k names) as ``{joint: [value, std, unit]}`` (mrad, or mm for a prismatic joint; the std from the
+    model's covariance of its frame columns)."""
     d = np.asarray(delta, float)
-    return {"translation_mm": (d[:3] * 1e3).tolist(), "rotation_mrad": float(np.linalg.norm(d[3:]) * 1e3)}
+    out = {"translation_mm": (d[:3] * 1e3).tolist(), "rotation_mrad": float(np.linalg.norm(d[3:6]) * 1e3)}
+    if zeros:
+        from .zeros import zero_parameters
+
+        joint_of = {n: j for j, n in zero_parameters(final)}
+        cols = fit.system.frame_of[s][6:]
+        sd = np.sqrt(np.maximum(np.diag(fit.sparse.free_cov)[cols], 0.0))
+        unit = {j: "mm" if t == "prismatic" else "mrad" for j, t in zip(final.joint_names, final.joint_types)}
+        out["zeros"] = {joint_of[n]: [float(v * 1e3), float(e * 1e3), unit[joint_of[n]]]
+                        for n, v, e in zip(zeros, d[6:], sd)}
+    return out
 
 
 def _covariance(terms, fit):

@@ -21,7 +21,10 @@ rigid motion it measures, not for its 12 coordinates — on TIAGo the error at n
 session drops from 3.45 to 3.15 mm, docs/discrepancy.md).
 
 Several sessions. Each session after the first has its own measuring frame: six unpenalised columns — the
-base frame's, restricted to its rows — so a session's rigid offset is registered, never named as an effect.
+base frame's, restricted to its rows — so a session's rigid offset is registered, never named as an effect;
+and its own joint zeros (the ``offset`` columns its rows identify beside the frame,
+:func:`estcal.discrepancy.terms.session_zero_names`): an encoder homed at start-up reads a new session's
+postures with its zero moved, a change of the session that no parameter of the robot can carry.
 
 Naming
 ------
@@ -84,6 +87,7 @@ class System:
     n_free : the number of unpenalised columns; frame_of : {session: column indices of its frame}
     psi : the rigid-motion variances (6,) (m², rad²) of the random-effect covariance, and ``s2`` its σ² scale
         (None: independent rows)
+    zeros : the joint zero parameters the further sessions register with their frames (their union)
     """
 
     theta: np.ndarray
@@ -102,6 +106,7 @@ class System:
     blocks: list
     psi: np.ndarray | None = None
     s2: float | None = None
+    zeros: tuple = ()
 
     @property
     def F(self):
@@ -210,9 +215,9 @@ def random_effect(r, blocks, iters: int = 100, tol: float = 1e-6, s2_min: float 
     return psi, s2
 
 
-def _evaluate(robot, data, noise, theta, frames, jacobian: bool):
+def _evaluate(robot, data, noise, theta, frames, jacobian: bool, zeros=None):
     """``(e, σ, H or None, pose, kind)`` of every row, each session's rows at its own frame (``frames``: ``{session:
-    (6,) base increment}``), in session order."""
+    (6 + k,) increment of the base parameters and of its k joint zeros ``zeros[session]``}``), in session order."""
     ibase = robot.params.indices([n for n in _BASE if n in robot.params.names])
     lab = _session_labels(data)
     parts = []
@@ -220,7 +225,10 @@ def _evaluate(robot, data, noise, theta, frames, jacobian: bool):
         m = np.flatnonzero(lab == s)
         th = np.array(theta, float, copy=True)
         if s in frames:
-            th[ibase] += frames[s]
+            th[ibase] += frames[s][:6]
+            z = (zeros or {}).get(s) or []
+            if z:
+                th[robot.params.indices(z)] += frames[s][6:]
         parts.append((m, Problem(robot, [(None, data.subset(m), noise)]).evaluate(th, jacobian=jacobian)))
     H = np.concatenate([r.H for _, r in parts]) if jacobian else None
     return (np.concatenate([r.e for _, r in parts]), np.concatenate([r.sigma for _, r in parts]), H,
@@ -230,7 +238,7 @@ def _evaluate(robot, data, noise, theta, frames, jacobian: bool):
 def _map_objective(terms, data, noise, theta, frames, sysm, hyper) -> float:
     """The MAP objective the Gauss–Newton steps lower: the whitened residual over the noise variance plus the
     relevance priors, ``‖L⁻¹ b(θ)‖²/σ² + Σ α_j (θ_j − μ_j)²`` — evaluated without a Jacobian (the line search)."""
-    e, sig, _, _, _ = _evaluate(terms.robot, data, noise, theta, frames, False)
+    e, sig, _, _, _ = _evaluate(terms.robot, data, noise, theta, frames, False, terms.session_zeros)
     (bw,) = _whiten(sysm.blocks, sysm.psi, sysm.s2, e / sig) if sysm.psi is not None else (e / sig,)
     alpha = hyper[0]
     ipen = terms.robot.params.indices(terms.penalised)
@@ -241,7 +249,8 @@ def _map_objective(terms, data, noise, theta, frames, sysm, hyper) -> float:
 
 def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     """The :class:`System` of ``terms`` (:class:`~estcal.discrepancy.terms.Terms`) on ``data`` at ``theta``, each
-    session's rows at its own frame (``frames``: ``{session: (6,) base increment}``)."""
+    session's rows at its own frame (``frames``: ``{session: (6 + k,) increment of the base and of its joint
+    zeros}``, :func:`_evaluate`)."""
     robot = terms.robot
     free, pen = list(terms.free), terms.penalised
     names = free + pen
@@ -249,7 +258,8 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     ibase = robot.params.indices([n for n in _BASE if n in robot.params.names])
     lab = _session_labels(data)
     svals = list(dict.fromkeys(lab.tolist()))
-    e, sig, H, pose, kind = _evaluate(robot, data, noise, theta, frames, True)
+    zeros = terms.session_zeros
+    e, sig, H, pose, kind = _evaluate(robot, data, noise, theta, frames, True, zeros)
     session = lab[pose]
     b = e / sig
     A = H[:, idx] / sig[:, None]
@@ -257,9 +267,11 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     if ibase.size == 6:
         Hb = H[:, ibase] / sig[:, None]
         for s in svals[1:]:
-            cols = np.where((session == s)[:, None], Hb, 0.0)
-            frame_of[s] = np.arange(len(free) + len(fnames), len(free) + len(fnames) + 6)
-            fnames += [f"{s}:{n}" for n in _BASE]
+            z = list(zeros.get(s) or [])
+            Hs = np.hstack([Hb, H[:, robot.params.indices(z)] / sig[:, None]]) if z else Hb
+            cols = np.where((session == s)[:, None], Hs, 0.0)
+            frame_of[s] = np.arange(len(free) + len(fnames), len(free) + len(fnames) + 6 + len(z))
+            fnames += [f"{s}:{n}" for n in (*_BASE, *z)]
             extra.append(cols)
     n_free = len(free) + len(fnames)
     X = np.hstack([A[:, : len(free)], *extra, A[:, len(free):]])
@@ -268,7 +280,8 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     blocks = _rigid_blocks(data, pose, kind, sig)
     Xw, tw = _whiten(blocks, psi, s2, X, t) if psi is not None else (X, t)
     return System(np.array(theta, float, copy=True), dict(frames), free + fnames + pen, n_free, X, t, Xw, tw, sig,
-                  pose, kind, session, frame_of, blocks, psi, s2)
+                  pose, kind, session, frame_of, blocks, psi, s2,
+                  tuple(sorted({n for z in zeros.values() for n in z})))
 
 
 # ------------------------------------------------------------------------------------------ fitting
@@ -337,11 +350,13 @@ def held_out_errors(system: System, fit: SparseFit, test, register=()) -> np.nda
 
 
 def _frame_columns(system: System, s) -> np.ndarray:
-    """The columns of session ``s``'s frame: its own (a further session) or, for the first session, the
-    registration's base columns restricted to its rows (they are the base there)."""
+    """The columns of session ``s``'s frame: its own (a further session: the base and its joint zeros) or, for
+    the first session, the registration's base columns and the model's own columns of the joint zeros the
+    further sessions register (restricted to its rows, they are that session's frame and zeros: a fold trained
+    on the further sessions alone has put their zeros in their own columns)."""
     if s in system.frame_of:
         return system.frame_of[s]
-    return np.array([system.names.index(n) for n in _BASE if n in system.names], int)
+    return np.array([system.names.index(n) for n in (*_BASE, *system.zeros) if n in system.names], int)
 
 
 def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20, max_rounds: int = 6,
@@ -382,8 +397,8 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             new = theta.copy()
             new[ifree] += scale * d_free
             new[ipen] += scale * d_pen
-            return new, {s: frames.get(s, np.zeros(6)) + scale * d_frames.get(s, 0.0)
-                         for s in set(frames) | set(d_frames)}
+            return new, {s: frames[s] + scale * d_frames[s] if s in frames and s in d_frames else
+                         (frames[s] if s in frames else scale * d_frames[s]) for s in set(frames) | set(d_frames)}
 
         def objective(new, new_frames):
             with np.errstate(all="ignore"):

@@ -214,6 +214,13 @@ class DiagnosisResult:
                        "excitable on these data): the geometric model alone")
         else:
             out.append("Named causes: none — no term passes every test (docs/discrepancy.md, 'Naming')")
+        for sf in (self.model.get("session_frames") or {}).values():
+            moved = [f"{j} {v[0]:+.1f} ± {v[1]:.1f} {v[2]}" for j, v in (sf.get("zeros") or {}).items()
+                     if abs(v[0]) > 3 * v[1]]
+            if moved:
+                out.append(f"Session {sf.get('name', '')}: joint zeros moved since the first session — "
+                           + ", ".join(moved) + " (registered with its measuring frame, as an encoder homed "
+                           "elsewhere at start-up; the others within three deviations)")
         rep = a.get("repeatability_mm")
         out.append(f"Unexplained: {a['expected_mm']:.2f} mm RMS at new postures remains with this model; "
                    + (f"repeatability floor {rep:.2f} mm" if rep is not None else

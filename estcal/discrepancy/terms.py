@@ -201,6 +201,8 @@ class Terms:
     regrouped : ``[{"term", "orthogonal_fraction"}]`` of the terms that regroup into geometry
     geometric_mode : one of :data:`GEOMETRIC_MODES`; lumped : the robot has no masses (1 kg lumped per link)
     base : the same robot without the candidate effects (the model adds back those it keeps)
+    session_zeros : ``{session: [zero parameter names]}`` — for every session after the first, the joint zeros
+        registered with its frame (:func:`session_zero_names`)
     """
 
     robot: object
@@ -213,6 +215,7 @@ class Terms:
     geometric_mode: str = "sparse"
     lumped: bool = False
     base: object = None
+    session_zeros: dict = field(default_factory=dict)
 
     @property
     def penalised(self) -> list:
@@ -317,5 +320,42 @@ def build_terms(robot, data, noise, effects=None, geometric: str = "sparse", ide
         terms.append(Term(c.effect, list(c.joints or []), dict(c.options), pn, c.effect in LOAD_EFFECTS))
     if geometric == "full":
         free = free + geometric_names
-    return Terms(rb, theta0, nominal, free, geometric_names, terms, regrouped, geometric, lumped, base)
+    zeros = session_zero_names(problem, theta0, data, ident_tol)
+    return Terms(rb, theta0, nominal, free, geometric_names, terms, regrouped, geometric, lumped, base, zeros)
+
+
+def session_zero_names(problem, theta, data, tol: float = 1e-4) -> dict:
+    """``{session: [zero parameter names]}`` of every session after the first that measures at least
+    :data:`~estcal.discrepancy.zeros.MIN_POSTURES` postures another session measured too: the joint zeros its
+    rows identify beside its measuring frame (the six base parameters first, then the joints in chain order, QR
+    at the data tolerance ``tol``) — registered with that frame, since a joint homed at start-up reads a new
+    session's postures with its zero moved (:mod:`estcal.discrepancy.zeros`). The shared postures measure the
+    move whatever the geometry; without them a session's zeros would rest on the model alone. A joint whose
+    axis the frame's own motion reproduces (a vertical first axis: the frame's yaw) is not among them."""
+    from estcal.identify.select import select_identifiable
+    from estcal.validation import posture_groups
+
+    from .geometric import weighted_system
+    from .zeros import MIN_POSTURES, zero_parameters
+
+    lab = data.columns.get("session")
+    zeros = [n for _, n in zero_parameters(problem.robot)]
+    base = [n for n in ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
+            if n in problem.robot.params.names]
+    if lab is None or len(base) < 6 or not zeros:
+        return {}
+    order = base + zeros
+    _, A, rows = weighted_system(problem, theta, order)
+    lab = np.asarray(lab)
+    session = lab[rows.pose]
+    posture = posture_groups(data.readings, problem.robot.joint_types)
+    out = {}
+    for s in list(dict.fromkeys(lab.tolist()))[1:]:
+        shared = np.intersect1d(posture[lab == s], posture[lab != s])
+        if len(shared) < MIN_POSTURES:
+            continue
+        m = session == s
+        ident = select_identifiable(A[m], names=order, tol=tol).identifiable
+        out[s] = [n for n in zeros if n in set(ident)]
+    return out
 
