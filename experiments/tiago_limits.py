@@ -14,6 +14,13 @@ development halvings (seeds 0–5, both directions), no choice of the model made
    share, i.e. 0.96/√3 mm per coordinate), and 0.1 mm — and the same halvings are scored with the default
    diagnosis: the figure the protocol gives when the data hold nothing the model class cannot represent.
 
+3. **What moved between the sessions, without a model.** The 37 postures both sessions measured (the same
+   joint readings within 0.4 mrad): one rigid motion (Kabsch, scipy's ``Rotation.align_vectors``) registers
+   11-26's points onto 11-30's over all of them; then, per posture, the rotation that still separates the two
+   measurements of the hand (its four points) — a change of the measuring frame would leave none, a moved
+   joint zero leaves one that turns with the posture; beside it, the joint zeros the diagnosis of both
+   sessions registers for 11-26 (docs/discrepancy.md, "Sessions, postures and time").
+
 ``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31).
 """
 from __future__ import annotations
@@ -99,6 +106,42 @@ def simulated(robot, sessions, seeds, noise_seeds) -> dict:
     return out
 
 
+def between_sessions(robot, sessions) -> dict:
+    """Part 3 of the module docstring: the hand's rotation between the sessions at their shared postures (mrad:
+    its mean vector and the RMS of its change about that mean, in the measuring frame), the points' RMS
+    difference after the one registration (mm), and the two-session diagnosis's joint zeros of 11-26."""
+    from scipy.spatial.transform import Rotation
+
+    from estcal.validation import posture_groups
+    from estcal.workflows.diagnose import diagnose
+
+    a, b = sessions["11-30"], sessions["11-26"]
+    g = posture_groups(np.vstack([a.readings, b.readings]), robot.joint_types)
+    shared = np.intersect1d(g[: a.n], g[a.n:])
+    ia = np.array([np.flatnonzero(g[: a.n] == p)[0] for p in shared])
+    ib = np.array([np.flatnonzero(g[a.n:] == p)[0] for p in shared])
+    pa, pb = np.asarray(a.points)[ia], np.asarray(b.points)[ib]  # (P, 4, 3)
+    ca, cb = pa.reshape(-1, 3).mean(0), pb.reshape(-1, 3).mean(0)
+    rot, _ = Rotation.align_vectors((pa.reshape(-1, 3) - ca), (pb.reshape(-1, 3) - cb))
+    pb = rot.apply((pb - cb).reshape(-1, 3)).reshape(pb.shape) + ca
+    turn = np.array([Rotation.align_vectors(x - x.mean(0), y - y.mean(0))[0].as_rotvec()
+                     for x, y in zip(pb, pa)]) * 1e3  # the hand of 11-26 onto 11-30's, per posture
+    both = diagnose(robot, [a, b], budget=False)
+    zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
+    out = {"postures": int(len(shared)), "max_reading_difference_mrad": float(np.abs(a.readings[ia] - b.readings[ib]).max() * 1e3),
+           "points_rms_mm": float(np.sqrt(np.mean(np.sum((pb - pa) ** 2, axis=-1))) * 1e3),
+           "hand_turn_mean_mrad": turn.mean(0).tolist(),
+           "hand_turn_spread_mrad": float(np.sqrt(np.mean(np.sum((turn - turn.mean(0)) ** 2, axis=1)))),
+           "two_session_zeros_11_26": zeros}
+    moved = ", ".join(f"{j} {v[0]:+.1f} ± {v[1]:.1f} {v[2]}" for j, v in zeros.items() if abs(v[0]) > 3 * v[1])
+    print(f"between the sessions, {out['postures']} shared postures (readings within "
+          f"{out['max_reading_difference_mrad']:.2f} mrad): after one rigid registration the points differ by "
+          f"{out['points_rms_mm']:.2f} mm RMS; the hand turns by {np.linalg.norm(turn.mean(0)):.1f} mrad on average "
+          f"and by {out['hand_turn_spread_mrad']:.1f} mrad RMS about that, posture to posture; the two sessions "
+          f"diagnosed together move 11-26's zeros: {moved or 'none'}")
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--noise-seeds", default="11,21,31")
@@ -120,6 +163,7 @@ def main(argv=None) -> dict:
         print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges {out['inside_mean_mm']:.2f} "
               f"mm (range {min(ins):.2f}–{max(ins):.2f})")
         out["simulated"] = simulated(robot, sessions, td.DEVELOPMENT, [int(x) for x in args.noise_seeds.split(",")])
+        out["between_sessions"] = between_sessions(robot, sessions)
     out["cpu_s"] = time.process_time() - t0
     if args.json:
         write_json(args.json, out, announce=True)
