@@ -92,6 +92,10 @@ def halvings(robot, sessions, seeds):
     return out
 
 
+def _zeros_text(zeros) -> str:
+    return ", ".join(f"{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}" for j, (x, e) in zeros.items()) or "none"
+
+
 def run(seeds, folds=5, register_zeros=True):
     from estcal.workflows.diagnose import diagnose
 
@@ -113,9 +117,7 @@ def run(seeds, folds=5, register_zeros=True):
         print(f"seed {s:2d} train {tr} ({T.n:2d} rows): new postures {r['new_mm']:.2f} mm ({r['n_new']} rows); "
               f"expected {r['expected_mm']:.2f} (ratio {r['ratio_expected']:.2f}), at its postures "
               f"{r['predicted_at_mm']:.2f} (ratio {r['ratio_at']:.2f}); coverage {r['coverage']:.2f}; "
-              f"named {r['named']}; zeros moved "
-              f"{', '.join(f'{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}' for j, (x, e) in r['zeros_moved'].items()) or 'none'}; "
-              f"{cpu:.1f} s CPU", flush=True)
+              f"named {r['named']}; zeros moved {_zeros_text(r['zeros_moved'])}; {cpu:.1f} s CPU", flush=True)
     new = np.array([r["new_mm"] for r in rows])
     print(f"mean at new postures {new.mean():.2f} mm (median {np.median(new):.2f}); within 30 %: expected "
           f"{sum(0.7 <= r['ratio_expected'] <= 1.3 for r in rows)}/{len(rows)}, at its postures "

@@ -128,7 +128,8 @@ def between_sessions(robot, sessions) -> dict:
                      for x, y in zip(pb, pa)]) * 1e3  # the hand of 11-26 onto 11-30's, per posture
     both = diagnose(robot, [a, b], budget=False)
     zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
-    out = {"postures": int(len(shared)), "max_reading_difference_mrad": float(np.abs(a.readings[ia] - b.readings[ib]).max() * 1e3),
+    out = {"postures": int(len(shared)),
+           "max_reading_difference_mrad": float(np.abs(a.readings[ia] - b.readings[ib]).max() * 1e3),
            "points_rms_mm": float(np.sqrt(np.mean(np.sum((pb - pa) ** 2, axis=-1))) * 1e3),
            "hand_turn_mean_mrad": turn.mean(0).tolist(),
            "hand_turn_spread_mrad": float(np.sqrt(np.mean(np.sum((turn - turn.mean(0)) ** 2, axis=1)))),

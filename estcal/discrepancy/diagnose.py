@@ -365,7 +365,8 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
         named.append(i)
         frac = max(ss_geo - ss(geo_only | m), 0.0) / max(ss_geo, 1e-300)
         causes.append(_cause(t, recs[t.label], fit, terms.robot, system.names, frac, time_unit))
-    train_mm = _train_rmse(final, data, fit.frames, terms.session_zeros) if data.kind in ("position", "points", "pose") else None
+    train_mm = (_train_rmse(final, data, fit.frames, terms.session_zeros)
+                if data.kind in ("position", "points", "pose") else None)
     b = budget.to_dict() if budget is not None else None
     names, C = _covariance(terms, fit)
     load_joints = sorted({j for t in kept if t.effect in ("joint_compliance", "backlash")
