@@ -141,6 +141,42 @@ def test_repeatability_with_a_different_tool_point_per_session(seed):
     assert r1["registered_points_mm"] == pytest.approx(r1["registered_mm"], rel=0.1)
 
 
+@pytest.mark.parametrize("seed", [3, 4])
+def test_repeatability_with_joint_zeros_moved_per_session(seed):
+    # three sessions of 30 postures (three points each), each session rigidly moved and its two joint zeros moved
+    # by a few mrad through the points' derivatives J_g (0.1–0.6 m/rad, different at every posture): after a
+    # rigid registration the spread is the zeros' move, not repeatability; removing each session's zeros too
+    # recovers the floor √3 σ. With no zero moved both figures are the floor.
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    sigma, n_post, k = 1e-4, 30, 3
+    c = rng.uniform(-0.5, 0.5, (n_post, k, 3))
+    J = rng.uniform(0.1, 0.6, (n_post, k, 3, 2)) * rng.choice([-1, 1], (n_post, k, 3, 2))
+
+    def sessions(move):
+        P, g, s, JJ = [], [], [], []
+        for sv in range(3):
+            z = rng.uniform(2e-3, 4e-3, 2) * rng.choice([-1, 1], 2) if (sv and move) else np.zeros(2)
+            Rs = Rotation.from_rotvec(rng.standard_normal(3) * 3e-3).as_matrix() if sv else np.eye(3)
+            ts = rng.standard_normal(3) * 2e-3 if sv else np.zeros(3)
+            P.append((c + J @ z) @ Rs.T + ts + sigma * rng.standard_normal(c.shape))
+            g.append(np.arange(n_post))
+            s.append(np.full(n_post, sv))
+            JJ.append(J)
+        return np.concatenate(P), np.concatenate(g), np.concatenate(s), np.concatenate(JJ)
+
+    P, g, s, JJ = sessions(True)
+    r = repeatability_floor(P, g, s, zero_jacobians=JJ)
+    assert r["registered_mm"] > 5 * np.sqrt(3) * sigma * 1e3
+    assert r["registered_zeros_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.2)
+    assert r["registered_zeros_reason"] is None
+    P0, g0, s0, J0 = sessions(False)
+    r0 = repeatability_floor(P0, g0, s0, zero_jacobians=J0)
+    assert r0["registered_mm"] == pytest.approx(np.sqrt(3) * sigma * 1e3, rel=0.2)
+    assert r0["registered_zeros_mm"] == pytest.approx(r0["registered_mm"], rel=0.1)
+
+
 def test_repeatability_per_session_point_refused_when_the_tool_never_turns():
     # the tool keeps one orientation at every repeated posture: its point cannot be told from the frame
     P, g, s, R = _marker_sessions(2e-4, [(0, 0, 0), (0.03, 0.02, -0.01)])

@@ -177,8 +177,11 @@ def error_budget(terms, fit, data, groups, selection, k: int = 5, rng=0, time_bl
     bound = conformal_threshold(norms, 0.95) * 1e3
     bound = float(bound) if np.isfinite(bound) else None  # too few held-out points for a 95 % bound
     time = _time_cv(system, groups, selection.include, k, start, model_mm, model_se) if time_blocks else {}
-    rep = repeatability_floor(measured_points(data), groups.posture, groups.session)
-    rep_mm = None if rep is None else (rep["registered_mm"] if rep["registered_mm"] is not None else rep["raw_mm"])
+    pts = measured_points(data)
+    rep = repeatability_floor(pts, groups.posture, groups.session,
+                              zero_jacobians=_zero_jacobians(terms, fit, data, pts.shape[1]))
+    rep_mm = None if rep is None else next((rep[key] for key in ("registered_zeros_mm", "registered_mm", "raw_mm")
+                                            if rep.get(key) is not None), None)
     expected, basis = model_mm, f"nested {'session- and ' if kind == 'session' else ''}posture-grouped CV"
     if time.get("disagrees"):
         expected, basis = time["model_mm"], "time-blocked CV (the error grows over the campaign: later use)"
@@ -188,6 +191,23 @@ def error_budget(terms, fit, data, groups, selection, k: int = 5, rng=0, time_bl
                   {"cv_reach_max": float(reach.max()) if reach.size else 0.0,
                    "fraction_outside": float(np.mean(reach > 0)) if reach.size else 0.0},
                   {"held_out": e, "leverage": S, "n_train": groups.n})
+
+
+def _zero_jacobians(terms, fit, data, k: int):
+    """(N, k, 3, z) the derivative of every row's k measured points with respect to the joint zeros the model
+    registers per session (:attr:`~estcal.discrepancy.terms.Terms.session_zeros`), at the fitted parameters; None
+    when it registers none or the rows are not points (the repeatability floor then registers the frames only)."""
+    from estcal.methods import NoiseModel, Problem
+
+    zeros = sorted({n for z in terms.session_zeros.values() for n in z})
+    if not zeros or data.kind not in ("points", "position"):
+        return None
+    ev = Problem(terms.robot, [(None, data, NoiseModel(known=False))]).evaluate(fit.theta, jacobian=True)
+    rows = np.flatnonzero(np.asarray(ev.kind) == 0)
+    rows = rows[np.argsort(ev.pose[rows], kind="stable")]  # by row, then point, then axis
+    if len(rows) != data.n * k * 3:
+        return None
+    return ev.H[np.ix_(rows, terms.robot.params.indices(zeros))].reshape(data.n, k, 3, len(zeros))
 
 
 def _time_cv(system, groups, include, k, start, model_mm, model_se) -> dict:
