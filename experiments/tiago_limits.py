@@ -20,7 +20,10 @@ development halvings (seeds 0–5, both directions), no choice of the model made
    11-26's points onto 11-30's over all of them; then, per posture, the rotation that still separates the two
    measurements of the hand (its four points) — a change of the measuring frame would leave none, a moved
    joint zero leaves one that turns with the posture; beside it, the joint zeros the diagnosis of both
-   sessions registers for 11-26 (docs/discrepancy.md, "Sessions, postures and time").
+   sessions registers for 11-26 (docs/discrepancy.md, "Sessions, postures and time"); and what that model leaves:
+   its residual at the shared postures in both sessions (does the same posture keep the same error?) and,
+   at 11-26's other postures, what the three nearest 11-30 postures' residual predicts of it (is it a smooth
+   function of the joint angles?).
 
 ``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31).
 """
@@ -130,19 +133,54 @@ def between_sessions(robot, sessions) -> dict:
                      for x, y in zip(pb, pa)]) * 1e3  # the hand of 11-26 onto 11-30's, per posture
     both = diagnose(robot, [a, b], budget=False)
     zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
+    ra, rb = _residual(both, a, {}), _residual(both, b, zeros)  # (n, 4, 3) m, each session at its frame and zeros
+    rms = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, axis=-1))) * 1e3)  # noqa: E731
+    new = np.setdiff1d(np.arange(b.n), ib)
+    # the three 11-30 postures nearest in joint space (readings standardised by 11-26's spread) predict 11-26's
+    # residual at its 25 new postures: a smooth error in the joint angles would be predicted
+    q_sd = np.where(b.readings.std(0) > 0, b.readings.std(0), 1.0)
+    dist = np.linalg.norm((b.readings[new, None, :] - a.readings[None, :, :]) / q_sd, axis=-1)
+    near = np.argsort(dist, axis=1)[:, :3]
+    residual = {"shared_correlation": float(np.corrcoef(ra[ia].ravel(), rb[ib].ravel())[0, 1]),
+                "shared_mean_mm": rms((ra[ia] + rb[ib]) / 2), "shared_half_difference_mm": rms((ra[ia] - rb[ib]) / 2),
+                "new_mm": rms(rb[new]), "new_minus_nearest_mm": rms(rb[new] - ra[near].mean(axis=1))}
     out = {"postures": int(len(shared)),
            "max_reading_difference_mrad": float(np.abs(a.readings[ia] - b.readings[ib]).max() * 1e3),
            "points_rms_mm": float(np.sqrt(np.mean(np.sum((pb - pa) ** 2, axis=-1))) * 1e3),
            "hand_turn_mean_mrad": turn.mean(0).tolist(),
            "hand_turn_spread_mrad": float(np.sqrt(np.mean(np.sum((turn - turn.mean(0)) ** 2, axis=1)))),
-           "two_session_zeros_11_26": zeros}
+           "two_session_zeros_11_26": zeros, "two_session_residual": residual}
     moved = ", ".join(f"{j} {v[0]:+.1f} ± {v[1]:.1f} {v[2]}" for j, v in zeros.items() if abs(v[0]) > 3 * v[1])
     print(f"between the sessions, {out['postures']} shared postures (readings within "
           f"{out['max_reading_difference_mrad']:.2f} mrad): after one rigid registration the points differ by "
           f"{out['points_rms_mm']:.2f} mm RMS; the hand turns by {np.linalg.norm(turn.mean(0)):.1f} mrad on average "
           f"and by {out['hand_turn_spread_mrad']:.1f} mrad RMS about that, posture to posture; the two sessions "
           f"diagnosed together move 11-26's zeros: {moved or 'none'}")
+    print(f"that model's residual at the shared postures: correlation {residual['shared_correlation']:.2f} between the "
+          f"sessions, {residual['shared_mean_mm']:.2f} mm RMS in common and {residual['shared_half_difference_mm']:.2f} "
+          f"apart; at 11-26's {len(new)} other postures {residual['new_mm']:.2f} mm, "
+          f"{residual['new_minus_nearest_mm']:.2f} once the three nearest 11-30 postures' residual is subtracted")
     return out
+
+
+def _residual(res, data, zeros):
+    """(n, k, 3) measured minus predicted points (m) of ``data`` with the diagnosis's model, its joint zeros moved by
+    ``zeros`` ({joint: [value (mrad or mm), std, unit]}) and its frame registered by one rigid motion."""
+    from scipy.spatial.transform import Rotation
+
+    from estcal.discrepancy.zeros import zero_parameters
+
+    model = res.robot
+    theta = model.params.values.copy()
+    param = dict(zero_parameters(model))
+    for j, v in zeros.items():
+        theta[model.params.index(param[j])] += v[0] * 1e-3
+    d = res.prepare(data)
+    meas = np.asarray(data.points)
+    pred = model.kinematics(d.readings, theta, context=d.context, jacobian=False).points[:, : meas.shape[1]]
+    cp, cm = pred.reshape(-1, 3).mean(0), meas.reshape(-1, 3).mean(0)
+    rot, _ = Rotation.align_vectors(meas.reshape(-1, 3) - cm, pred.reshape(-1, 3) - cp)
+    return meas - (rot.apply(pred.reshape(-1, 3) - cp).reshape(pred.shape) + cm)
 
 
 def main(argv=None) -> dict:
