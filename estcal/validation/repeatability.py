@@ -89,45 +89,11 @@ def _points_registered(P, g, s, Rg, sess, n_iter: int, rcond: float = 1e-6):
         if sv_[-1] <= rcond * sv_[0]:
             return None, None, 0, (f"session {sv}: the tool's orientation does not vary enough across its repeated "
                                    f"postures to tell its measured point from its frame")
-    keep = np.isin(s, shared)
-    P, g, s, Rg = P[keep], g[keep], s[keep], Rg[keep]
-    dof = 3 * k * (len(g) - len(np.unique(g))) - (6 + 3 * k) * (len(shared) - 1)
-    if dof <= 0:
-        return None, None, dof, "too few repeated postures for a registration and a point per session"
-    par = {sv: (np.eye(3), np.zeros(3), np.zeros((k, 3))) for sv in shared}
-    labels, inv = np.unique(g, return_inverse=True)
-    cnt = np.bincount(inv)[:, None, None]
-
-    def common():  # every measurement mapped into the first session's frame and point, and the consensus
-        U = np.empty_like(P)
-        for sv, (R, t, d) in par.items():
-            m = s == sv
-            U[m] = (P[m] - t) @ R - np.einsum("nij,kj->nki", Rg[m], d)
-        c = np.zeros((len(labels), k, 3))
-        np.add.at(c, inv, U)
-        return U, c / cnt
-
-    for _ in range(n_iter):
-        U, c = common()
-        for sv in shared[1:]:
-            m = s == sv
-            R, t, d = par[sv]
-            for _inner in range(3):
-                R, t = kabsch((c[inv[m]] + np.einsum("nij,kj->nki", Rg[m], d)).reshape(-1, 3), P[m].reshape(-1, 3))
-                # R_sᵀ p − c_g = w + R_g d (w = R_sᵀ t): linear in (w, d)
-                y = (P[m] @ R - c[inv[m]]).reshape(-1)
-                nm = int(m.sum())
-                A = np.zeros((nm, k, 3, 3 + 3 * k))
-                A[..., :3] = np.eye(3)
-                for j in range(k):
-                    A[:, j, :, 3 + 3 * j: 6 + 3 * j] = Rg[m]
-                x = np.linalg.lstsq(A.reshape(-1, 3 + 3 * k), y, rcond=None)[0]
-                t, d = R @ x[:3], x[3:].reshape(k, 3)
-            par[sv] = (R, t, d)
-    U, c = common()
-    ss = float(np.sum((U - c[inv]) ** 2))
-    var_c = ss / dof
-    return float(np.sqrt(3 * var_c)), float(np.sqrt(6 * var_c)), dof, None
+    # point j of a row moves by R_g d_j: the design of d = (d_1 … d_k) is R_g in point j's block
+    D = np.zeros(P.shape + (3 * k,))
+    for j in range(k):
+        D[:, j, :, 3 * j: 3 * j + 3] = Rg
+    return _registered(P, g, s, D, shared, n_iter, "a point")
 
 
 def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_rotations=None,
@@ -223,24 +189,33 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_ro
 def _zeros_registered(P, g, s, J, sess, n_iter: int):
     """(floor m, difference RMS m, dof, None) after per-session registration + joint-zero change (module
     docstring), or (None, None, dof, reason). P (N, k, 3) points, g, s (N,) labels, J (N, k, 3, z)."""
-    k, z = P.shape[1], J.shape[-1]
     shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
     if len(shared) < 2:
         return None, None, 0, "fewer than two sessions share two or more postures"
+    return _registered(P, g, s, J, shared, n_iter, "the zeros")
+
+
+def _registered(P, g, s, D, shared, n_iter: int, what: str):
+    """The floor after every session of ``shared`` (the first the reference) is registered by a rigid motion and
+    a change ``x_s`` (p,) that moves a row's points by ``D x_s`` (D (N, k, 3, p) per row) — the model
+    ``p_sg = R_s (c_g + D_g x_s) + t_s + ε`` (module docstring), fitted by alternation: the consensus c_g; then
+    per session a Kabsch step for R_s, t_s and a linear least-squares step for R_sᵀt_s, x_s. Returns (floor m,
+    difference RMS m, dof, None), or (None, None, dof, reason) when no degree of freedom is left."""
+    k, n_par = P.shape[1], D.shape[-1]
     keep = np.isin(s, shared)
-    P, g, s, J = P[keep], g[keep], s[keep], J[keep]
-    dof = 3 * k * (len(g) - len(np.unique(g))) - (6 + z) * (len(shared) - 1)
+    P, g, s, D = P[keep], g[keep], s[keep], D[keep]
+    dof = 3 * k * (len(g) - len(np.unique(g))) - (6 + n_par) * (len(shared) - 1)
     if dof <= 0:
-        return None, None, dof, "too few repeated postures for a registration and the zeros per session"
-    par = {sv: (np.eye(3), np.zeros(3), np.zeros(z)) for sv in shared}
+        return None, None, dof, f"too few repeated postures for a registration and {what} per session"
+    par = {sv: (np.eye(3), np.zeros(3), np.zeros(n_par)) for sv in shared}
     labels, inv = np.unique(g, return_inverse=True)
     cnt = np.bincount(inv)[:, None, None]
 
-    def common():  # every measurement mapped into the first session's frame and zeros, and the consensus
+    def common():  # every measurement mapped into the first session's frame and change, and the consensus
         U = np.empty_like(P)
-        for sv, (R, t, zz) in par.items():
+        for sv, (R, t, x) in par.items():
             m = s == sv
-            U[m] = (P[m] - t) @ R - J[m] @ zz
+            U[m] = (P[m] - t) @ R - D[m] @ x
         c = np.zeros((len(labels), k, 3))
         np.add.at(c, inv, U)
         return U, c / cnt
@@ -249,16 +224,15 @@ def _zeros_registered(P, g, s, J, sess, n_iter: int):
         U, c = common()
         for sv in shared[1:]:
             m = s == sv
-            R, t, zz = par[sv]
+            R, t, x = par[sv]
             for _inner in range(3):
-                R, t = kabsch((c[inv[m]] + J[m] @ zz).reshape(-1, 3), P[m].reshape(-1, 3))
-                # R_sᵀ p − c_g = w + J_g z (w = R_sᵀ t): linear in (w, z)
+                R, t = kabsch((c[inv[m]] + D[m] @ x).reshape(-1, 3), P[m].reshape(-1, 3))
+                # R_sᵀ p − c_g = w + D_g x (w = R_sᵀ t): linear in (w, x)
                 y = (P[m] @ R - c[inv[m]]).reshape(-1)
-                A = np.concatenate([np.broadcast_to(np.eye(3), (int(m.sum()), k, 3, 3)), J[m]], axis=-1)
-                x = np.linalg.lstsq(A.reshape(-1, 3 + z), y, rcond=None)[0]
-                t, zz = R @ x[:3], x[3:]
-            par[sv] = (R, t, zz)
+                A = np.concatenate([np.broadcast_to(np.eye(3), (int(m.sum()), k, 3, 3)), D[m]], axis=-1)
+                sol = np.linalg.lstsq(A.reshape(-1, 3 + n_par), y, rcond=None)[0]
+                t, x = R @ sol[:3], sol[3:]
+            par[sv] = (R, t, x)
     U, c = common()
-    ss = float(np.sum((U - c[inv]) ** 2))
-    var_c = ss / dof
+    var_c = float(np.sum((U - c[inv]) ** 2)) / dof
     return float(np.sqrt(3 * var_c)), float(np.sqrt(6 * var_c)), dof, None
