@@ -150,20 +150,16 @@ def _train_rmse(final, data, frames, zeros=None) -> float:
     """The training RMSE (mm) of the point-error norms, every session's rows at its own measuring frame and joint
     zeros (``frames``: ``{session: (6 + k,) increment of the base and of the zeros ``zeros[session]``}``; the
     model's parameters are the first session's)."""
-    from .relevance import _BASE, _session_labels
+    from .relevance import _BASE, _session_labels, session_theta
 
-    ibase = final.params.indices([n for n in _BASE if n in final.params.names])
-    if not frames or ibase.size != 6:
+    if not frames or not all(n in final.params.names for n in _BASE):
         return _scores(final, final.params.values, [data])[0]
     lab = _session_labels(data)
     errors = []
     for s in dict.fromkeys(lab.tolist()):
-        theta = final.params.values.copy()
+        theta = final.params.values
         if s in frames:
-            theta[ibase] += frames[s][:6]
-            z = (zeros or {}).get(s) or []
-            if z:
-                theta[final.params.indices(z)] += frames[s][6:]
+            theta = session_theta(final, theta, frames[s], (zeros or {}).get(s) or ())
         errors.append(pose_errors(final, theta, data.subset(np.flatnonzero(lab == s)))[0])
     return _rmse_max(errors)[0]
 
@@ -428,6 +424,11 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     return res
 
 
+def _zero_unit(robot, joint) -> str:
+    """The display unit of a joint zero (values shown ×1e3 from SI): mm for a prismatic joint, else mrad."""
+    return "mm" if robot.joint_types[robot.joint_names.index(joint)] == "prismatic" else "mrad"
+
+
 def _session_name(sessions, s) -> str:
     """The name of session label ``s`` (0, 1, … in the order given): its file's stem, else the label."""
     from estcal.sessions.data import session_name
@@ -450,8 +451,7 @@ def _frame_dict(delta, zeros=None, fit=None, s=None, final=None) -> dict:
         joint_of = {n: j for j, n in zero_parameters(final)}
         cols = fit.system.frame_of[s][6:]
         sd = np.sqrt(np.maximum(np.diag(fit.sparse.free_cov)[cols], 0.0))
-        unit = {j: "mm" if t == "prismatic" else "mrad" for j, t in zip(final.joint_names, final.joint_types)}
-        out["zeros"] = {joint_of[n]: [float(v * 1e3), float(e * 1e3), unit[joint_of[n]]]
+        out["zeros"] = {joint_of[n]: [float(v * 1e3), float(e * 1e3), _zero_unit(final, joint_of[n])]
                         for n, v, e in zip(zeros, d[6:], sd)}
     return out
 
@@ -504,8 +504,7 @@ def _validation(final, data, d, joint_types, budget, cov, load_sides=None, regis
             for z in zeros:
                 k = final.params.index(z["parameter"])
                 z["value"] = float(res.theta[k] - final.params.values[k])
-                unit = "mm" if joint_types[final.joint_names.index(z["joint"])] == "prismatic" else "mrad"
-                z["display"] = [z["value"] * 1e3, z["std"] * 1e3, unit]
+                z["display"] = [z["value"] * 1e3, z["std"] * 1e3, _zero_unit(final, z["joint"])]
         ib = final.params.indices(list(_BASE))
         delta = res.theta[ib] - theta[ib]
         theta = res.theta

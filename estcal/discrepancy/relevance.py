@@ -215,20 +215,24 @@ def random_effect(r, blocks, iters: int = 100, tol: float = 1e-6, s2_min: float 
     return psi, s2
 
 
+def session_theta(robot, theta, frame, zeros=()):
+    """The parameters of one session: ``theta`` (the first session's) with the session's ``frame`` increment
+    ``(6 + k,)`` added to the base parameters and to its ``k`` joint zeros ``zeros`` (names)."""
+    th = np.array(theta, float, copy=True)
+    th[robot.params.indices([n for n in _BASE if n in robot.params.names])] += frame[:6]
+    if len(zeros):
+        th[robot.params.indices(list(zeros))] += frame[6:]
+    return th
+
+
 def _evaluate(robot, data, noise, theta, frames, jacobian: bool, zeros=None):
     """``(e, σ, H or None, pose, kind)`` of every row, each session's rows at its own frame (``frames``: ``{session:
     (6 + k,) increment of the base parameters and of its k joint zeros ``zeros[session]``}``), in session order."""
-    ibase = robot.params.indices([n for n in _BASE if n in robot.params.names])
     lab = _session_labels(data)
     parts = []
     for s in dict.fromkeys(lab.tolist()):
         m = np.flatnonzero(lab == s)
-        th = np.array(theta, float, copy=True)
-        if s in frames:
-            th[ibase] += frames[s][:6]
-            z = (zeros or {}).get(s) or []
-            if z:
-                th[robot.params.indices(z)] += frames[s][6:]
+        th = session_theta(robot, theta, frames[s], (zeros or {}).get(s) or ()) if s in frames else theta
         parts.append((m, Problem(robot, [(None, data.subset(m), noise)]).evaluate(th, jacobian=jacobian)))
     H = np.concatenate([r.H for _, r in parts]) if jacobian else None
     return (np.concatenate([r.e for _, r in parts]), np.concatenate([r.sigma for _, r in parts]), H,
@@ -397,8 +401,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             new = theta.copy()
             new[ifree] += scale * d_free
             new[ipen] += scale * d_pen
-            return new, {s: frames[s] + scale * d_frames[s] if s in frames and s in d_frames else
-                         (frames[s] if s in frames else scale * d_frames[s]) for s in set(frames) | set(d_frames)}
+            return new, {s: frames.get(s, 0.0) + scale * d_frames.get(s, 0.0) for s in set(frames) | set(d_frames)}
 
         def objective(new, new_frames):
             with np.errstate(all="ignore"):
