@@ -19,7 +19,9 @@ Protocol (``../shared/data/tiago``, never copied):
   backlash by approach became a default candidate, run once with it (``--seeds confirmation4``); a fifth,
   100, 101, 102, declared before a further candidate was tried and rejected on them (``--seeds confirmation5``);
   a sixth, 120, 121, 122, declared before the moved joint zeros were registered, run once with it
-  (``--seeds confirmation6``).
+  (``--seeds confirmation6``); a seventh, 140, 141, 142, and an eighth, 160, 161, 162, declared before the
+  link frames' priors were bounded (``--geometric-width-mm 1``, an option, not the default), each run once with
+  the bound (``--seeds confirmation7`` / ``confirmation8``) and with the default.
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
@@ -54,6 +56,10 @@ CONFIRMATION4 = (80, 81, 82)
 CONFIRMATION5 = (100, 101, 102)
 #: declared before a validation file's moved joint zeros were registered on its seen rows
 CONFIRMATION6 = (120, 121, 122)
+#: declared before the link frames' priors were bounded at 1 mm / 1 mrad (``--geometric-width-mm 1``)
+CONFIRMATION7 = (140, 141, 142)
+#: declared before that bound's second confirmation
+CONFIRMATION8 = (160, 161, 162)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -96,14 +102,15 @@ def _zeros_text(zeros) -> str:
     return ", ".join(f"{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}" for j, (x, e) in zeros.items()) or "none"
 
 
-def run(seeds, folds=5, register_zeros=True):
+def run(seeds, folds=5, register_zeros=True, geometric_width=None):
     from estcal.workflows.diagnose import diagnose
 
     robot, sessions = load()
     rows = []
     for s, tr, T, V in halvings(robot, sessions, seeds):
         t0 = time.process_time()
-        res = diagnose(robot, T, validate=[V], folds=folds, register_zeros=register_zeros)
+        res = diagnose(robot, T, validate=[V], folds=folds, register_zeros=register_zeros,
+                       geometric_width=geometric_width)
         cpu = time.process_time() - t0
         v = res.accuracy["validation"][0]
         r = {"seed": s, "train": tr, "n_train": T.n, "new_mm": v["rmse_mm"], "n_new": v["n_new"],
@@ -129,10 +136,12 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
                     "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
-                    "(120–122) or a list")
+                    "(120–122), confirmation7 (140–142), confirmation8 (160–162) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")
+    ap.add_argument("--geometric-width-mm", type=float, default=float("inf"), help="bound the link frames' priors "
+                    "(mm and mrad; `estcal diagnose --geometric-width-mm`); default unbounded, as the diagnosis")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -141,10 +150,12 @@ def main(argv=None) -> dict:
         return {"skipped": True}
     seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
              "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
-             "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6}.get(args.seeds)
+             "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6,
+             "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
     out = {"protocol": __doc__, "seeds": list(seeds), "frame_only": args.frame_only,
-           **run(seeds, args.folds, not args.frame_only)}
+           "geometric_width_mm": None if np.isinf(args.geometric_width_mm) else args.geometric_width_mm,
+           **run(seeds, args.folds, not args.frame_only, args.geometric_width_mm * 1e-3)}
     if args.json:
         write_json(args.json, out, announce=True)
     return out

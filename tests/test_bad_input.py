@@ -642,6 +642,7 @@ OPTION_CASES = {
     "diagnose-folds-1": ("diagnose", ["--folds", "1"], r"--folds 1: must be an integer ≥ 2"),
     "diagnose-alpha": ("diagnose", ["--alpha", "1.5"], r"belonged to the former diagnosis.*drop the option"),
     "diagnose-max-effects": ("diagnose", ["--max-effects", "0"], r"belonged to the former diagnosis.*drop the option"),
+    "diagnose-width-zero": ("diagnose", ["--geometric-width-mm", "0"], r"--geometric-width-mm 0: must be a number > 0"),
     "diagnose-effects": ("diagnose", ["--effects", "magic"], r"--effects: unknown effect\(s\) \['magic'\]"),
     "diagnose-noise-zero": ("diagnose", ["--noise-pos", "0"], r"--noise-pos 0: must be a number > 0"),
     "diagnose-json-folder": ("diagnose", ["--json", "{folder}"], r"--json .*folder: is a folder"),

@@ -287,6 +287,34 @@ def test_alpha_min_is_the_bounded_optimum():
     assert best == pytest.approx(fit.log_evidence, abs=1e-4)
 
 
+def test_alpha_min_bounds_the_moves_not_the_start():
+    """A start wider than ``alpha_min`` (the diagnosis starts link frames from a ridge fit) is kept until a move
+    within the bound raises the evidence: a column started at its own unbounded optimum stays there (every move
+    to the bound lowers ℓ, which is unimodal), and the posterior at the precisions is the dense one,
+    ``(diag α + β ΦᵀΦ)⁻¹`` with F projected out. A column started wide whose optimum lies within the bound moves
+    to it."""
+    Phi, y, F = problem(2)
+    free = sparse_bayes(Phi, y, F, tol=1e-8)
+    j = 2  # the strong column: its unbounded prior std ≈ 5 on a 0.1-norm scale
+    amin = np.full(Phi.shape[1], 1e-6)
+    amin[j] = 0.5  # a prior std of 1.4: the bound would bind from a start within it
+    kept = sparse_bayes(Phi, y, F, tol=1e-8, start=free.alpha, alpha_min=amin)
+    assert kept.alpha[j] == pytest.approx(free.alpha[j], rel=1e-6) and kept.alpha[j] < amin[j]
+    assert kept.log_evidence == pytest.approx(free.log_evidence, abs=1e-6)
+    held = sparse_bayes(Phi, y, F, start=free.alpha, noise_var=free.noise_var, max_iter=0, alpha_min=amin)
+    act = np.flatnonzero(held.active)
+    Q, _ = np.linalg.qr(F)
+    P = Phi[:, act] - Q @ (Q.T @ Phi[:, act])
+    S = np.linalg.inv(np.diag(held.alpha[act]) + P.T @ P / free.noise_var)
+    assert held.cov[np.ix_(act, act)] == pytest.approx(S, rel=1e-8, abs=1e-14)
+    # from the bound's side, the same column is held at the bound (test_alpha_min_is_the_bounded_optimum); from a
+    # start wider than its optimum, it moves to the optimum when that is within the bound
+    loose = np.full(Phi.shape[1], 1e-6)
+    wide = np.where(np.isfinite(free.alpha), free.alpha * 1e-3, np.inf)
+    moved = sparse_bayes(Phi, y, F, tol=1e-8, start=wide, alpha_min=loose)
+    assert moved.alpha[j] == pytest.approx(free.alpha[j], rel=1e-3)
+
+
 def test_warm_start_reaches_the_same_optimum():
     Phi, y, F = problem(3)
     cold = sparse_bayes(Phi, y, F, tol=1e-8)

@@ -200,6 +200,12 @@ def test_diagnose_noise_rot_and_known_noise(tmp_path):
     for former in (["--max-effects", "1"], ["--geometric", "prior"], ["--alpha", "0.05"]):
         r = runner.invoke(app, [*common, *former])
         assert r.exit_code == 2 and "docs/discrepancy.md" in r.stderr, (former, r.output)
+    # the link frames' prior width: a positive width in SI from Python, refused otherwise before any work
+    from estcal.base.errors import InputError
+
+    for bad in (0.0, -1e-3, float("nan"), "1mm", True):
+        with pytest.raises(InputError, match="geometric_width must be a positive width"):
+            estcal.diagnose("puma560", "/nonexistent.csv", geometric_width=bad)
 
 
 def test_design_and_next_pose_write_a_plan_in_the_dataset_layout(tmp_path):

@@ -168,7 +168,8 @@ def _train_rmse(final, data, frames, zeros=None) -> float:
 def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=None, rng=0, robot_spec=None,
              geometric: str = "sparse", session_time: bool = True, approach_from_order: bool = True,
              posture_tol=(1e-3, 1e-3), budget: bool = True, time_blocks: bool = True, ident_tol: float = 1e-4,
-             regroup_tol: float = 1e-3, register_zeros: bool = True) -> DiagnosisResult:
+             regroup_tol: float = 1e-3, register_zeros: bool = True,
+             geometric_width: float | None = None) -> DiagnosisResult:
     """Diagnose what the geometric model of ``robot`` gets wrong on ``data`` (module docstring).
 
     Parameters
@@ -197,6 +198,8 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
         effect term regroups into geometry.
     register_zeros : test and register a validation file's moved joint zeros on its seen rows (False: its frame
         only).
+    geometric_width : the widest prior standard deviation the evidence search moves a link frame's geometric
+        parameter to, m for a length and rad for an angle (None, the default: unbounded; :mod:`estcal.discrepancy.terms`).
     """
     from estcal.base.blas import single_thread_blas
 
@@ -206,12 +209,12 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     with single_thread_blas():
         return _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, geometric, session_time,
                          approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol,
-                         register_zeros)
+                         register_zeros, geometric_width)
 
 
 def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, geometric, session_time,
               approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol,
-              register_zeros=True) -> DiagnosisResult:
+              register_zeros=True, geometric_width=None) -> DiagnosisResult:
     from estcal.validation.groups import row_groups
 
     from .relevance import cv_rmse_mm, fit_relevance, select_terms
@@ -223,7 +226,7 @@ def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, g
     approach_source = "recorded" if recorded else (time_source if approach_from_order else None)
     nm = NoiseModel(known=False) if noise is None else NoiseModel.parse(noise, known=True)
     terms = build_terms(robot, data, nm, effects=effects, geometric=geometric, ident_tol=ident_tol,
-                        regroup_tol=regroup_tol)
+                        regroup_tol=regroup_tol, geometric_width=geometric_width)
     tidx = terms.term_index()
     load = np.array([terms.terms[i].load if i >= 0 else True for i in tidx], bool)
     groups = row_groups(data.readings, robot.joint_types, data.columns.get("session"),
@@ -377,6 +380,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     geo_cols = [n for n, a in zip(terms.penalised, active) if a and n in set(terms.geometric)]
     kept_unnamed = [t.label for t in kept if t.load and t.label not in {terms.terms[i].label for i in named}]
     terms_d = {"n_free": len(terms.free), "geometric_mode": terms.geometric_mode,
+               "geometric_width": terms.geometric_width,
                "geometric": {"considered": len(terms.geometric),
                              "kept": len(geo_cols) if terms.geometric_mode != "full" else len(terms.geometric)},
                "effects_considered": len(terms.terms), "effects_kept": len(kept),
@@ -398,6 +402,7 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
              "free": list(terms.free) + [n for n in terms.penalised if n in set(geo_cols)
                                          or any(n in t.names for t in kept)],
              "noise": nm.to_dict(), "geometric_level": terms.geometric_mode,
+             "geometric_width": terms.geometric_width,
              "approach_from_order": bool(approach_from_order),
              "session_time": ("centred" if _n_sessions(data) > 1 else True) if session_time else False,
              "data_preparation": {"approach_from_order": bool(approach_from_order),

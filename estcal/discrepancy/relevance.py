@@ -88,6 +88,8 @@ class System:
     psi : the rigid-motion variances (6,) (m², rad²) of the random-effect covariance, and ``s2`` its σ² scale
         (None: independent rows)
     zeros : the joint zero parameters the further sessions register with their frames (their union)
+    alpha_min : (len(penalised),) the least prior precision of every penalised column (SI; 0: unbounded —
+        :meth:`estcal.discrepancy.terms.Terms.alpha_min`)
     """
 
     theta: np.ndarray
@@ -107,6 +109,7 @@ class System:
     psi: np.ndarray | None = None
     s2: float | None = None
     zeros: tuple = ()
+    alpha_min: np.ndarray | None = None
 
     @property
     def F(self):
@@ -285,7 +288,7 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     Xw, tw = _whiten(blocks, psi, s2, X, t) if psi is not None else (X, t)
     return System(np.array(theta, float, copy=True), dict(frames), free + fnames + pen, n_free, X, t, Xw, tw, sig,
                   pose, kind, session, frame_of, blocks, psi, s2,
-                  tuple(sorted({n for z in zeros.values() for n in z})))
+                  tuple(sorted({n for z in zeros.values() for n in z})), terms.alpha_min())
 
 
 # ------------------------------------------------------------------------------------------ fitting
@@ -318,10 +321,10 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
     keep = np.any(Fw != 0, axis=0)
     if hyper is not None:
         fit = sparse_bayes(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep], start=hyper[0],
-                           exclude=exclude, noise_var=hyper[1], max_iter=0)
+                           exclude=exclude, noise_var=hyper[1], max_iter=0, alpha_min=system.alpha_min)
     else:
         fit = sparse_bayes(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep], start=start,
-                           exclude=exclude, tol=TOL)
+                           exclude=exclude, tol=TOL, alpha_min=system.alpha_min)
     free = np.zeros(system.n_free)
     free[keep] = fit.free
     free_cov = np.zeros((system.n_free, system.n_free))

@@ -239,7 +239,7 @@ class DiagnosisResult:
         g = t["geometric"]
         out = [f"model: {t['n_free']} registration parameters free; {g['kept']} of {g['considered']} geometric "
                f"parameters and {t['effects_kept']} of {t['effects_considered']} effect terms kept by the "
-               f"evidence ({t['geometric_mode']} geometry); training RMSE {acc['train_mm']:.3f} mm"]
+               f"evidence ({t['geometric_mode']} geometry{_width_text(t)}); training RMSE {acc['train_mm']:.3f} mm"]
         re_ = self.random_effect
         if re_:
             out.append(f"residual within a posture {re_['sigma_mm']:.3f} mm; a posture's rigid error (model error) "
@@ -262,6 +262,13 @@ class DiagnosisResult:
 
             out += budget_lines(self.budget)
         return out
+
+
+def _width_text(t: dict) -> str:
+    w = t.get("geometric_width")
+    if t["geometric_mode"] == "full" or w is None:
+        return ""
+    return f", link frames' priors within {w * 1e3:g} mm / {w * 1e3:g} mrad"
 
 
 def _validation_line(v: dict) -> str:

@@ -265,10 +265,12 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     start : (M,) precisions to start from (a previous fit's ``alpha``: the warm start of a refit on other
         rows or at a new linearisation point); None: from the single best column
     exclude : (M,) bool — columns held out of the model (α = ∞ throughout; for Bayes factors of a term)
-    alpha_min : (M,) least precision of every column (its widest prior, 1/α_min = the largest plausible
-        square deviation; None: unbounded). ℓ(α) is unimodal, so the bounded optimum is the unbounded one
-        clipped: a column the data would let grow without bound (a near-collinear set fitting each other's
-        cancellations) is held at its plausible scale
+    alpha_min : (M,) least precision of every column the search moves to (its widest prior, 1/α_min = the
+        largest plausible square deviation; None: unbounded). ℓ(α) is unimodal, so the bounded optimum is the
+        unbounded one clipped: a column the data would let grow without bound (a near-collinear set fitting each
+        other's cancellations) is held at its plausible scale. It bounds the moves, not the start: a column
+        ``start`` puts below it (a wider prior — the diagnosis starts link frames from a ridge fit's width) keeps
+        that precision until a move within the bound, or its deletion, raises the evidence
 
     Returns
     -------

@@ -46,7 +46,8 @@ GEOMETRIC = ("sparse", "full", "joint_offset")
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
              urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
              geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = True,
-             posture_tol=(1e-3, 1e-3), robot_spec=None, report=None, register_zeros: bool = True):
+             posture_tol=(1e-3, 1e-3), robot_spec=None, report=None, register_zeros: bool = True,
+             geometric_width: float | None = None):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
 
     Parameters
@@ -63,6 +64,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         ghost markers, copies — named in the output by file and line; ``False``: every row is fitted).
     folds : cross-validation folds (by posture, and by session with several sessions); seed : their seed.
     geometric : ``sparse`` (default), ``full`` or ``joint_offset`` (:func:`estcal.discrepancy.diagnose`).
+    geometric_width : the widest prior standard deviation of a link frame's parameter (m / rad; None, the
+        default, or ``inf``: unbounded; 1e-3 for an arm known to 1 mm / 1 mrad — docs/discrepancy.md).
     budget : the error budget (nested CV, time-blocked CV, the 95 % region); without it the expected error is
         the model's CV with its all-rows choices (optimistic, said in the answer).
     approach_from_order : approach directions from the acquisition order (default; backlash by approach
@@ -82,6 +85,11 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
                          f"{', '.join(GEOMETRIC)} (docs/discrepancy.md)")
     if geometric not in GEOMETRIC:
         raise InputError(f"geometric={geometric!r} is not a choice; choose one of {', '.join(GEOMETRIC)}")
+    if geometric_width is not None:
+        if isinstance(geometric_width, bool) or not isinstance(geometric_width, (int, float)) or not geometric_width > 0:
+            raise InputError(f"geometric_width must be a positive width in m / rad (1e-3: 1 mm, 1 mrad) or None for "
+                             f"unbounded priors, got {geometric_width!r}")
+        geometric_width = None if geometric_width == float("inf") else float(geometric_width)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise InputError(f"folds must be an integer ≥ 2, got {folds!r}")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
@@ -108,7 +116,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         with input_errors():
             res = _diagnose(rob, ds, validate=vals, effects=names, noise=noise, k_folds=folds, rng=seed,
                             geometric=geometric, budget=budget, approach_from_order=approach_from_order,
-                            posture_tol=posture_tol, robot_spec=spec, register_zeros=register_zeros)
+                            posture_tol=posture_tol, robot_spec=spec, register_zeros=register_zeros,
+                            geometric_width=geometric_width)
     except UnidentifiableError as exc:
         where = ", ".join(str(getattr(d, "where", d)) for d in sessions)
         raise NumericalRefusal(f"{where}: {exc} (the fit on {sum(d.n for d in sessions)} poses, and each "

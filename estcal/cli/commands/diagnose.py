@@ -86,6 +86,12 @@ def diagnose(
     geometric: str = typer.Option("sparse", "--geometric", help="Geometric parameters: sparse (every identifiable "
                                   "one under a relevance prior; the default) | full (all of them, unpenalised) | "
                                   "joint_offset (the offsets only)."),
+    geometric_width_mm: Optional[float] = typer.Option(None, "--geometric-width-mm", help="Bound the link frames' "
+                                                       "relevance priors: the widest prior the evidence search moves a "
+                                                       "link frame's parameter to, mm for a length and mrad for an angle "
+                                                       "(e.g. 1 for an arm whose nominal geometry is known to 1 mm / 1 "
+                                                       "mrad; joint offsets and the tool stay unbounded). Default: "
+                                                       "unbounded."),
     approach_from_order: bool = typer.Option(True, "--approach-from-order/--no-approach-from-order",
                                              help="Infer approach_<joint> columns (the side each joint moved "
                                                   "from into the posture) from the acquisition order — the t "
@@ -122,7 +128,8 @@ def diagnose(
     res = run(robot, list(data), validate=list(validate), effects=effects, noise=noise, points=points, root=root,
               tip=tip, urdf_chain_masses=urdf_masses, folds=k_folds, report=report, seed=seed, geometric=geometric,
               approach_from_order=approach_from_order, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
-              budget=budget, column_map=column_map, drop_flagged=drop_flagged, register_zeros=register_zeros)
+              budget=budget, column_map=column_map, drop_flagged=drop_flagged, register_zeros=register_zeros,
+              geometric_width=None if geometric_width_mm is None else geometric_width_mm * 1e-3)
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
