@@ -51,7 +51,7 @@ def split(robot, data, seed):
     return data.subset(np.flatnonzero(m)), data.subset(np.flatnonzero(~m))
 
 
-def run(seeds):
+def run(seeds, geometric_width=None):
     from estcal.workflows.diagnose import diagnose
 
     robot, data = load()
@@ -59,7 +59,7 @@ def run(seeds):
     for s in seeds:
         T, V = split(robot, data, s)
         t0 = time.process_time()
-        res = diagnose(robot, T, validate=[V])
+        res = diagnose(robot, T, validate=[V], geometric_width=geometric_width)
         v = res.accuracy["validation"][0]
         r = {"seed": s, "n_train": T.n, "n_valid": V.n, "new_mm": v["rmse_mm"], "expected_mm": res.answer["expected_mm"],
              "predicted_at_mm": v["predicted_mm"], "coverage": v["coverage"], "named": [c.label for c in res.causes],
@@ -74,13 +74,17 @@ def run(seeds):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default=",".join(map(str, SEEDS)))
+    ap.add_argument("--geometric-width-mm", type=float, default=None, help="bound the link frames' priors (mm and "
+                    "mrad; `estcal diagnose --geometric-width-mm`); default unbounded, as the diagnosis")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
     if not (shared_dir() / "data" / "talos").is_dir():
         print(f"shared data not found at {shared_dir() / 'data'}")
         return {"skipped": True}
-    out = {"protocol": __doc__, **run(tuple(int(x) for x in args.seeds.split(",")))}
+    w = None if args.geometric_width_mm is None else args.geometric_width_mm * 1e-3
+    out = {"protocol": __doc__, "geometric_width_mm": args.geometric_width_mm,
+           **run(tuple(int(x) for x in args.seeds.split(",")), w)}
     if args.json:
         write_json(args.json, out, announce=True)
     return out
