@@ -21,7 +21,9 @@ Protocol (``../shared/data/tiago``, never copied):
   a sixth, 120, 121, 122, declared before the moved joint zeros were registered, run once with it
   (``--seeds confirmation6``); a seventh, 140, 141, 142, and an eighth, 160, 161, 162, declared before the
   link frames' priors were bounded (``--geometric-width-mm 1``, an option, not the default), each run once with
-  the bound (``--seeds confirmation7`` / ``confirmation8``) and with the default.
+  the bound (``--seeds confirmation7`` / ``confirmation8``) and with the default; a ninth, 180, 181, 182,
+  declared before a cross-validated choice of that bound was tried, run once with it (it chose the default
+  everywhere; not adopted) and then with the default and the bound (``--seeds confirmation9``).
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
@@ -60,6 +62,8 @@ CONFIRMATION6 = (120, 121, 122)
 CONFIRMATION7 = (140, 141, 142)
 #: declared before that bound's second confirmation
 CONFIRMATION8 = (160, 161, 162)
+#: declared before the bound was chosen by cross-validation (tried, not adopted)
+CONFIRMATION9 = (180, 181, 182)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -136,7 +140,7 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
                     "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
-                    "(120–122), confirmation7 (140–142), confirmation8 (160–162) or a list")
+                    "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")
@@ -151,7 +155,8 @@ def main(argv=None) -> dict:
     seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
              "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
              "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6,
-             "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8}.get(args.seeds)
+             "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
+             "confirmation9": CONFIRMATION9}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
     out = {"protocol": __doc__, "seeds": list(seeds), "frame_only": args.frame_only,
            "geometric_width_mm": None if np.isinf(args.geometric_width_mm) else args.geometric_width_mm,

@@ -12,8 +12,9 @@ on the nominal geometry), then collects
   prunes it; it starts from one ridge width for the whole geometry
   (:func:`estcal.discrepancy.relevance.fit_relevance`), so a link frame ends within the bound, out, or — where
   no prior within the bound explains the data better — at that ridge width. On TIAGo's small halvings (14–31
-  postures, new postures of the other session) it lowers the error from 2.71 to 2.44 mm over 60 halvings
-  (experiments/tiago_disjoint.md); it is not the default because a nominal model off by about the bound or
+  postures, new postures of the other session) it lowers the error from 2.73 to 2.46 mm over 66 halvings
+  (2.42 / 2.59 / 2.58 on three sets it was not developed on; experiments/tiago_disjoint.md); it is not the
+  default because a nominal model off by about the bound or
   more is then fitted badly and its misfit named as causes (simulated PUMA, 1 mm / 1 mrad errors, one point:
   a gear harmonic and a backlash named on clean data, tests/test_diagnose.py). Joint offsets, the tool and the
   registration are never bounded: a zero is wherever the homing put it, a tool wherever it was mounted;
