@@ -199,7 +199,8 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
     register_zeros : test and register a validation file's moved joint zeros on its seen rows (False: its frame
         only).
     geometric_width : the widest prior standard deviation the evidence search moves a link frame's geometric
-        parameter to, m for a length and rad for an angle (None, the default: unbounded; :mod:`estcal.discrepancy.terms`).
+        parameter to, m for a length and rad for an angle (None, the default: unbounded;
+        :mod:`estcal.discrepancy.terms`).
     """
     from estcal.base.blas import single_thread_blas
 

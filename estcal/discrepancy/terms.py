@@ -14,10 +14,10 @@ on the nominal geometry), then collects
   no prior within the bound explains the data better — at that ridge width. On TIAGo's small halvings (14–31
   postures, new postures of the other session) it lowers the error from 2.73 to 2.46 mm over 66 halvings
   (2.42 / 2.59 / 2.58 on three sets it was not developed on; experiments/tiago_disjoint.md); it is not the
-  default because a nominal model off by about the bound or
-  more is then fitted badly and its misfit named as causes (simulated PUMA, 1 mm / 1 mrad errors, one point:
-  a gear harmonic and a backlash named on clean data, tests/test_diagnose.py). Joint offsets, the tool and the
-  registration are never bounded: a zero is wherever the homing put it, a tool wherever it was mounted;
+  default because a nominal model off by about the bound or more is then fitted badly and its misfit named as
+  causes (simulated PUMA, 1 mm / 1 mrad errors, one point: a gear harmonic and a backlash named on clean data,
+  tests/test_diagnose.py). Joint offsets, the tool and the registration are never bounded: a zero is wherever
+  the homing put it, a tool wherever it was mounted;
 * every **effect term** of the library the data excite (:func:`estcal.discrepancy.diagnose.default_candidates`,
   one term per effect and joint; whole-arm effects once): each a group of parameters under
   automatic-relevance priors. A term whose columns lie in the span of the registration and geometric
@@ -46,8 +46,8 @@ import numpy as np
 from estcal.effects import EFFECTS, make_effect
 from estcal.effects.library import across_axis_moments
 
-__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "GEOMETRIC_WIDTH", "Candidate", "default_candidates", "Term", "Terms", "build_terms",
-           "n_sessions"]
+__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "GEOMETRIC_WIDTH", "Candidate", "default_candidates", "Term", "Terms",
+           "build_terms", "n_sessions"]
 
 #: the effects whose terms the evidence keeps without naming them (module docstring)
 LOAD_EFFECTS = ("joint_compliance", "backlash", "link_tilt")

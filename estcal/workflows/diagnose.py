@@ -86,7 +86,8 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     if geometric not in GEOMETRIC:
         raise InputError(f"geometric={geometric!r} is not a choice; choose one of {', '.join(GEOMETRIC)}")
     if geometric_width is not None:
-        if isinstance(geometric_width, bool) or not isinstance(geometric_width, (int, float)) or not geometric_width > 0:
+        w = geometric_width
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not w > 0:
             raise InputError(f"geometric_width must be a positive width in m / rad (1e-3: 1 mm, 1 mrad) or None for "
                              f"unbounded priors, got {geometric_width!r}")
         geometric_width = None if geometric_width == float("inf") else float(geometric_width)

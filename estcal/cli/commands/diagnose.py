@@ -86,12 +86,12 @@ def diagnose(
     geometric: str = typer.Option("sparse", "--geometric", help="Geometric parameters: sparse (every identifiable "
                                   "one under a relevance prior; the default) | full (all of them, unpenalised) | "
                                   "joint_offset (the offsets only)."),
-    geometric_width_mm: Optional[float] = typer.Option(None, "--geometric-width-mm", help="Bound the link frames' "
-                                                       "relevance priors: the widest prior the evidence search moves a "
-                                                       "link frame's parameter to, mm for a length and mrad for an angle "
-                                                       "(e.g. 1 for an arm whose nominal geometry is known to 1 mm / 1 "
-                                                       "mrad; joint offsets and the tool stay unbounded). Default: "
-                                                       "unbounded."),
+    geometric_width_mm: Optional[float] = typer.Option(None, "--geometric-width-mm", help="Bound the link "
+                                                       "frames' relevance priors: the widest prior the evidence search "
+                                                       "moves a link frame's parameter to, mm for a length and mrad "
+                                                       "for an angle (e.g. 1 for an arm whose nominal geometry is "
+                                                       "known to 1 mm / 1 mrad; joint offsets and the tool stay "
+                                                       "unbounded). Default: unbounded."),
     approach_from_order: bool = typer.Option(True, "--approach-from-order/--no-approach-from-order",
                                              help="Infer approach_<joint> columns (the side each joint moved "
                                                   "from into the posture) from the acquisition order — the t "
