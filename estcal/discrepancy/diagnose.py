@@ -381,7 +381,6 @@ def _result(robot, robot_spec, data, validate, sessions, nm, terms, fit, sel, gr
     geo_cols = [n for n, a in zip(terms.penalised, active) if a and n in set(terms.geometric)]
     kept_unnamed = [t.label for t in kept if t.load and t.label not in {terms.terms[i].label for i in named}]
     terms_d = {"n_free": len(terms.free), "geometric_mode": terms.geometric_mode,
-               "geometric_width": terms.geometric_width,
                "geometric": {"considered": len(terms.geometric),
                              "kept": len(geo_cols) if terms.geometric_mode != "full" else len(terms.geometric)},
                "effects_considered": len(terms.terms), "effects_kept": len(kept),

@@ -237,9 +237,10 @@ class DiagnosisResult:
     def detail_lines(self) -> list[str]:
         t, acc = self.terms, self.accuracy
         g = t["geometric"]
+        width = _width_text(t["geometric_mode"], self.model.get("geometric_width"))
         out = [f"model: {t['n_free']} registration parameters free; {g['kept']} of {g['considered']} geometric "
                f"parameters and {t['effects_kept']} of {t['effects_considered']} effect terms kept by the "
-               f"evidence ({t['geometric_mode']} geometry{_width_text(t)}); training RMSE {acc['train_mm']:.3f} mm"]
+               f"evidence ({t['geometric_mode']} geometry{width}); training RMSE {acc['train_mm']:.3f} mm"]
         re_ = self.random_effect
         if re_:
             out.append(f"residual within a posture {re_['sigma_mm']:.3f} mm; a posture's rigid error (model error) "
@@ -264,9 +265,9 @@ class DiagnosisResult:
         return out
 
 
-def _width_text(t: dict) -> str:
-    w = t.get("geometric_width")
-    if t["geometric_mode"] == "full" or w is None:
+def _width_text(mode: str, w) -> str:
+    """The link frames' prior bound on the model line (``model["geometric_width"]``), when one was given."""
+    if mode == "full" or w is None:
         return ""
     return f", link frames' priors within {w * 1e3:g} mm / {w * 1e3:g} mrad"
 

@@ -364,12 +364,12 @@ def session_zero_names(problem, theta, data, tol: float = 1e-4) -> dict:
     from estcal.validation import posture_groups
 
     from .geometric import weighted_system
+    from .relevance import _BASE
     from .zeros import MIN_POSTURES, zero_parameters
 
     lab = data.columns.get("session")
     zeros = [n for _, n in zero_parameters(problem.robot)]
-    base = [n for n in ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
-            if n in problem.robot.params.names]
+    base = [n for n in _BASE if n in problem.robot.params.names]
     if lab is None or len(base) < 6 or not zeros:
         return {}
     order = base + zeros

@@ -75,25 +75,37 @@ def _pooled(P, groups, dof_removed: int):
     return float(np.sqrt(3 * var_c)), float(np.sqrt(6 * var_c)), dof
 
 
-def _points_registered(P, g, s, Rg, sess, n_iter: int, rcond: float = 1e-6):
-    """(floor m, difference RMS m, dof, None) after per-session registration + point change (module
-    docstring), or (None, None, dof, reason). P (N, k, 3) points, g, s (N,) labels, Rg (N, 3, 3)."""
-    k = P.shape[1]
-    shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
-    if len(shared) < 2:
-        return None, None, 0, "fewer than two sessions share two or more postures"
+def _point_design(k: int, Rg, s, shared, rcond: float = 1e-6):
+    """``(D, None)``: the design (N, k, 3, 3k) of a per-session change of the k measured points — point j of a row
+    moves by R_g d_j, so D holds R_g (N, 3, 3), the tool's orientation, in point j's block — or ``(None,
+    reason)`` when a session's tool orientation does not vary enough to tell its point from its frame."""
     for sv in shared[1:]:
         m = s == sv
         A = np.concatenate([np.eye(3)[None].repeat(m.sum(), 0), Rg[m]], axis=2).reshape(-1, 6)
         sv_ = np.linalg.svd(A, compute_uv=False)
         if sv_[-1] <= rcond * sv_[0]:
-            return None, None, 0, (f"session {sv}: the tool's orientation does not vary enough across its repeated "
-                                   f"postures to tell its measured point from its frame")
-    # point j of a row moves by R_g d_j: the design of d = (d_1 … d_k) is R_g in point j's block
-    D = np.zeros(P.shape + (3 * k,))
+            return None, (f"session {sv}: the tool's orientation does not vary enough across its repeated "
+                          f"postures to tell its measured point from its frame")
+    D = np.zeros((len(Rg), k, 3, 3 * k))
     for j in range(k):
         D[:, j, :, 3 * j: 3 * j + 3] = Rg
-    return _registered(P, g, s, D, shared, n_iter, "a point")
+    return D, None
+
+
+def _per_session(P, g, s, sess, X, kind: str, n_iter: int):
+    """(floor m, difference RMS m, reason) after per-session registration and a per-session change (module
+    docstring): ``kind`` ``"points"`` (X (N, 3, 3) the tool's orientation per row) or ``"zeros"`` (X (N, k, 3, z)
+    the points' derivatives with respect to the zeros). P (N, k, 3) points, g, s (N,) labels."""
+    if len(sess) < 2:
+        return None, None, "one session: nothing is per session"
+    shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
+    if len(shared) < 2:
+        return None, None, "fewer than two sessions share two or more postures"
+    D, why = _point_design(P.shape[1], X, s, shared) if kind == "points" else (X, None)
+    if why:
+        return None, None, why
+    fl, fd, _, why = _registered(P, g, s, D, shared, n_iter, "a point" if kind == "points" else "the zeros")
+    return fl, fd, why
 
 
 def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_rotations=None,
@@ -169,30 +181,14 @@ def repeatability_floor(points, groups, sessions=None, n_iter: int = 20, tool_ro
     out["registered_mm"] = None if reg is None else reg * 1e3
     out["difference_rms_mm"] = {"raw": raw_d * 1e3, "registered": None if reg_d is None else reg_d * 1e3}
     out["sessions"] = {str(k): v for k, v in info.items()}
-    if tool_rotations is not None:
-        Rg = np.asarray(tool_rotations, float)[rep]
-        fl, fd, dof, why = (_points_registered(P, g, s, Rg, sess, 5 * n_iter) if len(sess) > 1
-                            else (None, None, 0, "one session: nothing is per session"))
-        out["registered_points_mm"] = None if fl is None else fl * 1e3
-        out["registered_points_reason"] = why
-        out["difference_rms_mm"]["registered_points"] = None if fd is None else fd * 1e3
-    if zero_jacobians is not None:
-        J = np.asarray(zero_jacobians, float)[rep]
-        fl, fd, dof, why = (_zeros_registered(P, g, s, J, sess, 5 * n_iter) if len(sess) > 1
-                            else (None, None, 0, "one session: nothing is per session"))
-        out["registered_zeros_mm"] = None if fl is None else fl * 1e3
-        out["registered_zeros_reason"] = why
-        out["difference_rms_mm"]["registered_zeros"] = None if fd is None else fd * 1e3
+    for kind, per_row in (("points", tool_rotations), ("zeros", zero_jacobians)):
+        if per_row is None:
+            continue
+        fl, fd, why = _per_session(P, g, s, sess, np.asarray(per_row, float)[rep], kind, 5 * n_iter)
+        out[f"registered_{kind}_mm"] = None if fl is None else fl * 1e3
+        out[f"registered_{kind}_reason"] = why
+        out["difference_rms_mm"][f"registered_{kind}"] = None if fd is None else fd * 1e3
     return out
-
-
-def _zeros_registered(P, g, s, J, sess, n_iter: int):
-    """(floor m, difference RMS m, dof, None) after per-session registration + joint-zero change (module
-    docstring), or (None, None, dof, reason). P (N, k, 3) points, g, s (N,) labels, J (N, k, 3, z)."""
-    shared = [sv for sv in sess if len(np.unique(g[s == sv])) >= 2]
-    if len(shared) < 2:
-        return None, None, 0, "fewer than two sessions share two or more postures"
-    return _registered(P, g, s, J, shared, n_iter, "the zeros")
 
 
 def _registered(P, g, s, D, shared, n_iter: int, what: str):
