@@ -192,7 +192,7 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
              root: str | None = None, tip: str | None = None, folds: int = 5, geometric: str = "sparse",
              budget: bool = True, seed: int = 0, urdf_chain_masses: bool = True, approach_from_order: bool = True,
              column_map=None, drop_flagged: bool = True, report=None, register_zeros: bool = True,
-             geometric_width: float | None = None):
+             geometric_width: float | str | None = "auto"):
     """How accurate the robot's model is at new postures, which physical causes it names, what stays
     unexplained — ``estcal diagnose`` (docs/discrepancy.md; the defaults are the command's).
 
@@ -209,8 +209,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
     geometric : ``"sparse"`` (every identifiable geometric parameter under a relevance prior), ``"full"``
         (unpenalised) or ``"joint_offset"``.
     geometric_width : the widest prior standard deviation of a link frame's parameter — m for a length, rad
-        for an angle (None, the default: unbounded; 1e-3 for an arm whose nominal geometry is known to 1 mm /
-        1 mrad). Joint offsets and the tool are not bounded (docs/discrepancy.md).
+        for an angle; ``"auto"`` (the default): 1 mm / 1 mrad unless the unbounded model's cross-validated
+        error is lower by more than one standard error; None: unbounded. Joint offsets and the tool are not
+        bounded (docs/discrepancy.md).
     budget : the error budget (nested and time-blocked cross-validation, the 95 % region).
     drop_flagged : leave out the rows the data screening flags (the default, as :func:`calibrate`'s; named in
         ``result.data["left_out"]`` and in the text); False fits every row.

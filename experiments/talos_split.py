@@ -51,7 +51,7 @@ def split(robot, data, seed):
     return data.subset(np.flatnonzero(m)), data.subset(np.flatnonzero(~m))
 
 
-def run(seeds, geometric_width=None):
+def run(seeds, geometric_width="auto"):
     from estcal.workflows.diagnose import diagnose
 
     robot, data = load()
@@ -74,15 +74,17 @@ def run(seeds, geometric_width=None):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default=",".join(map(str, SEEDS)))
-    ap.add_argument("--geometric-width-mm", type=float, default=None, help="bound the link frames' priors (mm and "
-                    "mrad; `estcal diagnose --geometric-width-mm`); default unbounded, as the diagnosis")
+    ap.add_argument("--geometric-width-mm", default="auto", help="the link frames' priors (`estcal diagnose "
+                    "--geometric-width-mm`): auto (the diagnosis's default), inf (unbounded) or a bound in mm and mrad")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
     if not (shared_dir() / "data" / "talos").is_dir():
         print(f"shared data not found at {shared_dir() / 'data'}")
         return {"skipped": True}
-    w = None if args.geometric_width_mm is None else args.geometric_width_mm * 1e-3
+    from estcal.workflows.diagnose import width_from_text
+
+    w = width_from_text(args.geometric_width_mm)
     out = {"protocol": __doc__, "geometric_width_mm": args.geometric_width_mm,
            **run(tuple(int(x) for x in args.seeds.split(",")), w)}
     if args.json:

@@ -106,7 +106,14 @@ def _zeros_text(zeros) -> str:
     return ", ".join(f"{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}" for j, (x, e) in zeros.items()) or "none"
 
 
-def run(seeds, folds=5, register_zeros=True, geometric_width=None):
+def _width_text(choice, width) -> str:
+    if choice:
+        return (f"{'bounded' if choice['bounded'] else 'unbounded'} (CV {choice['cv_bounded_mm']:.2f} bounded, "
+                f"{choice['cv_unbounded_mm']:.2f} + 1 SE {choice['cv_unbounded_plus_se_mm']:.2f} unbounded)")
+    return "unbounded" if width is None else f"within {width * 1e3:g} mm / mrad"
+
+
+def run(seeds, folds=5, register_zeros=True, geometric_width="auto"):
     from estcal.workflows.diagnose import diagnose
 
     robot, sessions = load()
@@ -123,12 +130,14 @@ def run(seeds, folds=5, register_zeros=True, geometric_width=None):
              "ratio_expected": res.answer["expected_mm"] / v["rmse_mm"],
              "ratio_at": (v["predicted_mm"] or np.nan) / v["rmse_mm"],
              "named": [c.label for c in res.causes], "cpu_s": cpu,
+             "width_choice": res.model.get("geometric_width_choice"),
              "zeros_moved": {z["joint"]: [z["value"], z["std"]] for z in v.get("zeros_moved", [])}}
         rows.append(r)
         print(f"seed {s:2d} train {tr} ({T.n:2d} rows): new postures {r['new_mm']:.2f} mm ({r['n_new']} rows); "
               f"expected {r['expected_mm']:.2f} (ratio {r['ratio_expected']:.2f}), at its postures "
               f"{r['predicted_at_mm']:.2f} (ratio {r['ratio_at']:.2f}); coverage {r['coverage']:.2f}; "
-              f"named {r['named']}; zeros moved {_zeros_text(r['zeros_moved'])}; {cpu:.1f} s CPU", flush=True)
+              f"named {r['named']}; zeros moved {_zeros_text(r['zeros_moved'])}; link frames "
+              f"{_width_text(r['width_choice'], geometric_width)}; {cpu:.1f} s CPU", flush=True)
     new = np.array([r["new_mm"] for r in rows])
     print(f"mean at new postures {new.mean():.2f} mm (median {np.median(new):.2f}); within 30 %: expected "
           f"{sum(0.7 <= r['ratio_expected'] <= 1.3 for r in rows)}/{len(rows)}, at its postures "
@@ -144,8 +153,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")
-    ap.add_argument("--geometric-width-mm", type=float, default=float("inf"), help="bound the link frames' priors "
-                    "(mm and mrad; `estcal diagnose --geometric-width-mm`); default unbounded, as the diagnosis")
+    ap.add_argument("--geometric-width-mm", default="auto", help="the link frames' priors (`estcal diagnose "
+                    "--geometric-width-mm`): auto (the diagnosis's default: 1 mm / 1 mrad unless the unbounded model's "
+                    "CV error is lower by more than one standard error), inf (unbounded) or a bound in mm and mrad")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -158,9 +168,11 @@ def main(argv=None) -> dict:
              "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
              "confirmation9": CONFIRMATION9}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
+    from estcal.workflows.diagnose import width_from_text
+
+    width = width_from_text(args.geometric_width_mm)
     out = {"protocol": __doc__, "seeds": list(seeds), "frame_only": args.frame_only,
-           "geometric_width_mm": None if np.isinf(args.geometric_width_mm) else args.geometric_width_mm,
-           **run(seeds, args.folds, not args.frame_only, args.geometric_width_mm * 1e-3)}
+           "geometric_width_mm": args.geometric_width_mm, **run(seeds, args.folds, not args.frame_only, width)}
     if args.json:
         write_json(args.json, out, announce=True)
     return out

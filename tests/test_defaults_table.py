@@ -140,7 +140,8 @@ READERS = {
     ("process noise", "online"): _online_option("q (SI)", lambda v: f"{v:g} SI"),
     ("filter", "online"): lambda b, got: got["filter"],
     ("geometric model", "diagnose"): lambda b, got: got["model"]["geometric_level"],
-    ("link frames' prior width", "diagnose"): lambda b, got: "unbounded" if got["model"]["geometric_width"] is None
+    ("link frames' prior width", "diagnose"): lambda b, got: "auto" if got["model"]["geometric_width_choice"]
+    else "unbounded" if got["model"]["geometric_width"] is None
     else "{0:g} mm, {0:g} mrad".format(got["model"]["geometric_width"] * 1e3),
     ("folds", "diagnose"): lambda b, got: str(got["data"]["k_folds"]),
     ("error budget", "diagnose"): lambda b, got: str(got["budget"] is not None),

@@ -204,7 +204,7 @@ def test_diagnose_noise_rot_and_known_noise(tmp_path):
     from estcal.base.errors import InputError
 
     for bad in (0.0, -1e-3, float("nan"), "1mm", True):
-        with pytest.raises(InputError, match="geometric_width must be a positive width"):
+        with pytest.raises(InputError, match=r"geometric_width must be 'auto' \(the default\), a positive width"):
             estcal.diagnose("puma560", "/nonexistent.csv", geometric_width=bad)
 
 

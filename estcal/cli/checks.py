@@ -48,7 +48,7 @@ NUMBER_RULES: list[tuple[tuple, tuple | None, tuple]] = [
      ("ge", 0.0)),
     (("--alpha",), None, ("open", 0.0, 1.0)),
     (("--margin",), None, ("halfopen", 0.0, 0.5)),
-    (("--dt", "--tol-mm", "--tol-mrad", "--rot-weight-m", "--geometric-width-mm"), None, ("gt", 0.0)),
+    (("--dt", "--tol-mm", "--tol-mrad", "--rot-weight-m"), None, ("gt", 0.0)),
 ]
 
 # options whose value is a file the command writes (folders such as --report are not checked here)

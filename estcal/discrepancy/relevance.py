@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.estimate.sparse import SparseFit, sparse_bayes
+from estcal.estimate.sparse import SparseFit, prepare, sparse_bayes
 from estcal.methods import Problem
 
 __all__ = ["LN_BF_NAMED", "System", "RelevanceFit", "linearise", "fit_relevance", "refit", "held_out_errors",
@@ -110,6 +110,8 @@ class System:
     s2: float | None = None
     zeros: tuple = ()
     alpha_min: np.ndarray | None = None
+    #: sparse_bayes's row-only work (:func:`estcal.estimate.sparse.prepare`) by training rows, shared by refits
+    prepared: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def F(self):
@@ -199,17 +201,22 @@ def random_effect(r, blocks, iters: int = 100, tol: float = 1e-6, s2_min: float 
     n = sum(len(rows) for rows, _ in blocks)
     s2 = float(np.mean(r ** 2)) if n else 1.0
     psi = np.where(seen, s2 * 1e-2, 0.0)
+    # blocks of one size stacked: each EM step is a few batched products, not a loop over the postures
+    by_size = {}
+    for rows, Z in blocks:
+        by_size.setdefault(len(rows), []).append((rows, Z))
+    stacks = [(np.stack([Z[:, seen] for _, Z in g]), np.stack([r[rows] for rows, _ in g])) for g in by_size.values()]
     for _ in range(iters):
-        E2 = np.zeros(6)
+        E2 = np.zeros(int(seen.sum()))
         res2 = 0.0
-        for rows, Z in blocks:
-            Zs = Z[:, seen]
-            Sp = np.linalg.inv(Zs.T @ Zs / s2 + np.diag(1.0 / psi[seen]))
-            m = Sp @ Zs.T @ r[rows] / s2
-            E2[seen] += m ** 2 + np.diag(Sp)
-            e = r[rows] - Zs @ m
-            res2 += float(e @ e) + float(np.einsum("ij,jk,ik->", Zs, Sp, Zs))
-        new_psi = np.where(seen, np.maximum(E2 / len(blocks), 1e-30), 0.0)
+        for Zs, rb in stacks:  # (B, m, k), (B, m)
+            Sp = np.linalg.inv(np.einsum("bik,bil->bkl", Zs, Zs) / s2 + np.diag(1.0 / psi[seen]))
+            m = np.einsum("bkl,bil,bi->bk", Sp, Zs, rb) / s2
+            E2 += np.sum(m ** 2, axis=0) + np.einsum("bkk->k", Sp)
+            e = rb - np.einsum("bik,bk->bi", Zs, m)
+            res2 += float(np.sum(e ** 2)) + float(np.einsum("bij,bjk,bik->", Zs, Sp, Zs))
+        new_psi = np.zeros(6)
+        new_psi[seen] = np.maximum(E2 / len(blocks), 1e-30)
         new_s2 = max(res2 / n, s2_min, 1e-30)
         done = np.allclose(new_psi, psi, rtol=tol, atol=0) and abs(new_s2 - s2) <= tol * s2
         psi, s2 = new_psi, new_s2
@@ -242,10 +249,11 @@ def _evaluate(robot, data, noise, theta, frames, jacobian: bool, zeros=None):
             np.concatenate([m[r.pose] for m, r in parts]), np.concatenate([r.kind for _, r in parts]))
 
 
-def _map_objective(terms, data, noise, theta, frames, sysm, hyper) -> float:
+def _map_objective(terms, data, noise, theta, frames, sysm, hyper, evaluated=None) -> float:
     """The MAP objective the Gauss–Newton steps lower: the whitened residual over the noise variance plus the
-    relevance priors, ``‖L⁻¹ b(θ)‖²/σ² + Σ α_j (θ_j − μ_j)²`` — evaluated without a Jacobian (the line search)."""
-    e, sig, _, _, _ = _evaluate(terms.robot, data, noise, theta, frames, False, terms.session_zeros)
+    relevance priors, ``‖L⁻¹ b(θ)‖²/σ² + Σ α_j (θ_j − μ_j)²`` — evaluated without a Jacobian (the line search)
+    unless ``evaluated`` (:func:`_evaluate` at ``theta``, ``frames``) is given."""
+    e, sig, _, _, _ = evaluated or _evaluate(terms.robot, data, noise, theta, frames, False, terms.session_zeros)
     (bw,) = _whiten(sysm.blocks, sysm.psi, sysm.s2, e / sig) if sysm.psi is not None else (e / sig,)
     alpha = hyper[0]
     ipen = terms.robot.params.indices(terms.penalised)
@@ -254,10 +262,10 @@ def _map_objective(terms, data, noise, theta, frames, sysm, hyper) -> float:
     return float(bw @ bw / hyper[1] + np.sum(alpha[fin] * d[fin] ** 2))
 
 
-def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
+def linearise(terms, data, noise, theta, frames, psi=None, s2=None, evaluated=None) -> System:
     """The :class:`System` of ``terms`` (:class:`~estcal.discrepancy.terms.Terms`) on ``data`` at ``theta``, each
     session's rows at its own frame (``frames``: ``{session: (6 + k,) increment of the base and of its joint
-    zeros}``, :func:`_evaluate`)."""
+    zeros}``, :func:`_evaluate`; ``evaluated``: that evaluation with its Jacobian, when already made)."""
     robot = terms.robot
     free, pen = list(terms.free), terms.penalised
     names = free + pen
@@ -266,7 +274,7 @@ def linearise(terms, data, noise, theta, frames, psi=None, s2=None) -> System:
     lab = _session_labels(data)
     svals = list(dict.fromkeys(lab.tolist()))
     zeros = terms.session_zeros
-    e, sig, H, pose, kind = _evaluate(robot, data, noise, theta, frames, True, zeros)
+    e, sig, H, pose, kind = evaluated or _evaluate(robot, data, noise, theta, frames, True, zeros)
     session = lab[pose]
     b = e / sig
     A = H[:, idx] / sig[:, None]
@@ -317,14 +325,18 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
     rows = np.arange(len(system.tw)) if train is None else np.asarray(train)
     M = system.X.shape[1] - system.n_free
     exclude = None if include is None else ~np.asarray(include, bool)
-    Fw = system.Xw[rows, : system.n_free]
-    keep = np.any(Fw != 0, axis=0)
+    key = None if train is None else rows.tobytes()
+    if key not in system.prepared:
+        Fw = system.Xw[rows, : system.n_free]
+        keep = np.any(Fw != 0, axis=0)
+        system.prepared[key] = (prepare(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep]), keep)
+    pre, keep = system.prepared[key]
     if hyper is not None:
-        fit = sparse_bayes(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep], start=hyper[0],
-                           exclude=exclude, noise_var=hyper[1], max_iter=0, alpha_min=system.alpha_min)
+        fit = sparse_bayes(None, None, start=hyper[0], exclude=exclude, noise_var=hyper[1], max_iter=0,
+                           alpha_min=system.alpha_min, prepared=pre)
     else:
-        fit = sparse_bayes(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep], start=start,
-                           exclude=exclude, tol=TOL, alpha_min=system.alpha_min)
+        fit = sparse_bayes(None, None, start=start, exclude=exclude, tol=TOL, alpha_min=system.alpha_min,
+                           prepared=pre)
     free = np.zeros(system.n_free)
     free[keep] = fit.free
     free_cov = np.zeros((system.n_free, system.n_free))
@@ -395,6 +407,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         makes the residual step at that posture, and a full Gauss–Newton step can jump back and forth across it).
         Returns whether the step was below ``GN_TOL`` of every standard deviation."""
         nonlocal theta
+        pending.clear()
         d_free, d_pen = fit.free[:nf], terms.nominal[ipen] + fit.mean - theta[ipen]
         d_frames = {s: fit.free[cols] for s, cols in sysm.frame_of.items()}
         sd = np.sqrt(np.maximum(np.r_[np.diag(fit.free_cov)[:nf], np.diag(fit.cov)], 0.0))
@@ -406,9 +419,18 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             new[ipen] += scale * d_pen
             return new, {s: frames.get(s, 0.0) + scale * d_frames.get(s, 0.0) for s in set(frames) | set(d_frames)}
 
+        full = []
+
         def objective(new, new_frames):
+            ev = None
             with np.errstate(all="ignore"):
-                return _map_objective(terms, data, noise, new, new_frames, sysm, hyper)
+                if not full:  # the full step, with its Jacobian: the next linearisation is there when it is taken
+                    try:
+                        ev = _evaluate(terms.robot, data, noise, new, new_frames, True, terms.session_zeros)
+                    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                        ev = None
+                    full.append(ev)
+                return _map_objective(terms, data, noise, new, new_frames, sysm, hyper, ev)
 
         new, new_frames = at(scale)
         obj = None
@@ -416,7 +438,11 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             obj = objective(new, new_frames)
             search = not np.isfinite(obj)  # a step into overflow (geometric="full", near-collinear): searched
         if search:
-            base = _map_objective(terms, data, noise, theta, frames, sysm, hyper)
+            # the objective at θ from the system linearised there (its residual, not a new evaluation)
+            d0 = theta[ipen] - terms.nominal[ipen]
+            bw = sysm.tw - sysm.Xw[:, sysm.n_free:] @ d0
+            fin = np.isfinite(hyper[0])
+            base = float(bw @ bw / hyper[1] + np.sum(hyper[0][fin] * d0[fin] ** 2))
             obj = objective(new, new_frames) if obj is None else obj
             for k in range(6):  # the step, then 1/2 … 1/32 of it
                 if obj <= base:
@@ -431,13 +457,15 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         theta = new
         frames.clear()
         frames.update(new_frames)
+        pending[:] = [full[0]] if scale == 1.0 and full and full[0] is not None else []
         return bool(np.all(moved[sd > 0] <= GN_TOL * sd[sd > 0]))
 
     whiten = psi is None and system0 is None and rigid
     first = None
+    pending = []  # the evaluation at θ (with its Jacobian) when the last step made it: lin() reuses it
 
     def lin():
-        sysm = linearise(terms, data, noise, theta, frames, psi, s2)
+        sysm = linearise(terms, data, noise, theta, frames, psi, s2, pending.pop() if pending else None)
         if not (np.isfinite(sysm.Xw).all() and np.isfinite(sysm.tw).all()):
             raise _diverged(terms, first, n_gn)
         return sysm

@@ -237,7 +237,8 @@ class DiagnosisResult:
     def detail_lines(self) -> list[str]:
         t, acc = self.terms, self.accuracy
         g = t["geometric"]
-        width = _width_text(t["geometric_mode"], self.model.get("geometric_width"))
+        width = _width_text(t["geometric_mode"], self.model.get("geometric_width"),
+                            self.model.get("geometric_width_choice"))
         out = [f"model: {t['n_free']} registration parameters free; {g['kept']} of {g['considered']} geometric "
                f"parameters and {t['effects_kept']} of {t['effects_considered']} effect terms kept by the "
                f"evidence ({t['geometric_mode']} geometry{width}); training RMSE {acc['train_mm']:.3f} mm"]
@@ -265,11 +266,18 @@ class DiagnosisResult:
         return out
 
 
-def _width_text(mode: str, w) -> str:
-    """The link frames' prior bound on the model line (``model["geometric_width"]``), when one was given."""
-    if mode == "full" or w is None:
+def _width_text(mode: str, w, choice=None) -> str:
+    """The link frames' prior bound on the model line (``model["geometric_width"]``) and, when the one-standard-
+    error rule chose it (``model["geometric_width_choice"]``), the two cross-validated errors it compared."""
+    if mode == "full":
         return ""
-    return f", link frames' priors within {w * 1e3:g} mm / {w * 1e3:g} mrad"
+    text = "" if w is None else f", link frames' priors within {w * 1e3:g} mm / {w * 1e3:g} mrad"
+    if choice:
+        b = choice["bound_si"] * 1e3
+        text = (f"{text or ', link frames unbounded'} — by the one-standard-error rule: CV {choice['cv_bounded_mm']:.2f} "
+                f"mm within {b:g} mm / {b:g} mrad, {choice['cv_unbounded_mm']:.2f} unbounded (+1 SE: "
+                f"{choice['cv_unbounded_plus_se_mm']:.2f})")
+    return text
 
 
 def _validation_line(v: dict) -> str:

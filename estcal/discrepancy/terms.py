@@ -7,16 +7,17 @@ on the nominal geometry), then collects
 * the **geometric** parameters the data identify (:func:`estcal.identify.select.select_identifiable` in
   GECARO's priority order, data-level tolerance): each under its own automatic-relevance prior
   (``geometric="sparse"``, the default), unpenalised (``"full"``: the classic calibration), or only the
-  joint offsets (``"joint_offset"``). With ``geometric_width`` (none by default; :data:`GEOMETRIC_WIDTH`,
-  1 mm / 1 mrad, a machined arm's tolerance) the search moves a link frame's prior only to widths within it, or
-  prunes it; it starts from one ridge width for the whole geometry
-  (:func:`estcal.discrepancy.relevance.fit_relevance`), so a link frame ends within the bound, out, or — where
-  no prior within the bound explains the data better — at that ridge width. On TIAGo's small halvings (14–31
-  postures, new postures of the other session) it lowers the error from 2.73 to 2.46 mm over 66 halvings
-  (2.42 / 2.59 / 2.58 on three sets it was not developed on; experiments/tiago_disjoint.md); it is not the
-  default because a nominal model off by about the bound or more is then fitted badly and its misfit named as
-  causes (simulated PUMA, 1 mm / 1 mrad errors, one point: a gear harmonic and a backlash named on clean data,
-  tests/test_diagnose.py). Joint offsets, the tool and the registration are never bounded: a zero is wherever
+  joint offsets (``"joint_offset"``). With ``geometric_width`` (:data:`GEOMETRIC_WIDTH`, 1 mm / 1 mrad, a
+  machined arm's tolerance) the search moves a link frame's prior only to widths within it, or prunes it; it
+  starts from one ridge width for the whole geometry (:func:`estcal.discrepancy.relevance.fit_relevance`), so
+  a link frame ends within the bound, out, or — where no prior within the bound explains the data better — at
+  that ridge width. The diagnosis's default (:data:`WIDTH_AUTO`) fits the model with the bound and without it
+  and keeps the bounded one unless the unbounded one's cross-validated error is lower by more than one
+  standard error (:func:`estcal.discrepancy.diagnose._width_and_terms`): on TIAGo's small halvings (14–31
+  postures, new postures of the other session) the bound lowers the error (2.73 → 2.46 mm over 66 halvings;
+  experiments/tiago_disjoint.md), and a nominal model off by about the bound or more — whose misfit the bound
+  would name as causes (simulated PUMA, 1 mm / 1 mrad errors, one point: a gear harmonic and a backlash on
+  clean data) — shows it in its CV error and keeps the unbounded priors (tests/test_diagnose.py). Joint offsets, the tool and the registration are never bounded: a zero is wherever
   the homing put it, a tool wherever it was mounted;
 * every **effect term** of the library the data excite (:func:`estcal.discrepancy.diagnose.default_candidates`,
   one term per effect and joint; whole-arm effects once): each a group of parameters under
@@ -46,16 +47,19 @@ import numpy as np
 from estcal.effects import EFFECTS, make_effect
 from estcal.effects.library import across_axis_moments
 
-__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "GEOMETRIC_WIDTH", "Candidate", "default_candidates", "Term", "Terms",
+__all__ = ["LOAD_EFFECTS", "GEOMETRIC_MODES", "GEOMETRIC_WIDTH", "WIDTH_AUTO", "Candidate", "default_candidates", "Term", "Terms",
            "build_terms", "n_sessions"]
 
 #: the effects whose terms the evidence keeps without naming them (module docstring)
 LOAD_EFFECTS = ("joint_compliance", "backlash", "link_tilt")
 #: how the geometric parameters enter the model
 GEOMETRIC_MODES = ("sparse", "full", "joint_offset")
-#: a machined arm's link-frame tolerance (m for a length, rad for an angle): the ``geometric_width`` to try when
-#: the nominal geometry is known that well (none by default: module docstring)
+#: a machined arm's link-frame tolerance (m for a length, rad for an angle): the bound the diagnosis tries by
+#: default (:data:`WIDTH_AUTO`; module docstring)
 GEOMETRIC_WIDTH = 1e-3
+#: ``geometric_width`` of the diagnosis by default: :data:`GEOMETRIC_WIDTH` or unbounded, by the one-standard-error
+#: rule on the cross-validated error (:func:`estcal.discrepancy.diagnose._width_and_terms`)
+WIDTH_AUTO = "auto"
 
 
 @dataclass

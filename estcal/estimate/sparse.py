@@ -252,7 +252,7 @@ def shared_precision(Phi, y, F=None, iters: int = 200, tol: float = 1e-8) -> tup
 
 
 def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = None, noise_var: float | None = None,
-                 start=None, exclude=None, alpha_min=None) -> SparseFit:
+                 start=None, exclude=None, alpha_min=None, prepared=None) -> SparseFit:
     """Sparse Bayesian regression of ``y`` on the penalised columns ``Phi`` and the unpenalised ``F``.
 
     Parameters
@@ -271,27 +271,21 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         other's cancellations) is held at its plausible scale. It bounds the moves, not the start: a column
         ``start`` puts below it (a wider prior — the diagnosis starts link frames from a ridge fit's width) keeps
         that precision until a move within the bound, or its deletion, raises the evidence
+    prepared : :func:`prepare` of these ``Phi, y, F`` (then not read again): the column scaling, the projection
+        off ``F`` and the Gram matrix, which depend on the rows only — a caller refitting one system with other
+        columns excluded or other precisions (a cross-validation fold's candidates) computes them once
 
     Returns
     -------
     :class:`SparseFit`
     """
-    Phi = np.asarray(Phi, float)
-    y = np.asarray(y, float)
-    N, M = Phi.shape
-    F = None if F is None else np.asarray(F, float).reshape(N, -1)
-    nrm = np.linalg.norm(Phi, axis=0)
+    pre = prepared if prepared is not None else prepare(Phi, y, F)
+    Phi, y, F, N, M = pre.Phi, pre.y, pre.F, pre.N, pre.M
+    nrm, nrm_s, Pn, Q, G, h, yt = pre.nrm, pre.nrm_s, pre.Pn, pre.Q, pre.G, pre.h, pre.yt
     usable = nrm > 0
     if exclude is not None:
         usable &= ~np.asarray(exclude, bool)
-    nrm_s = np.where(nrm > 0, nrm, 1.0)
-    Pn = Phi / nrm_s
-    (Pt, yt), rank_f, Q = _project(F, Pn, y)
-    n = N - rank_f
-    if n <= 0:
-        raise ValueError(f"sparse_bayes: {N} rows and {rank_f} unpenalised columns leave no degree of freedom")
-    G = Pt.T @ Pt
-    h = Pt.T @ yt
+    n = pre.n
     st = _State(G, h, float(yt @ yt), n)
     # a column whose part orthogonal to the unpenalised ones is below 1e-6 of its norm regroups into them: never
     # a candidate (a sliver of rounding would otherwise get a prior as wide as it wants)
@@ -310,7 +304,7 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     max_iter = 20 * M + 50 if max_iter is None else int(max_iter)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         st, A, Sig, mu, it, converged = _search(st, usable, amin, tol, max_iter, fixed, start is not None, M)
-        fit = _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged)
+        fit = _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged, pre)
         # what adding each column alone would gain (the held-out ones included): ℓ at its optimal precision — the
         # log Bayes factor of that column against this model with every other precision held (a cheap screen)
         s, q = st.sq(A, Sig, mu)
@@ -319,6 +313,42 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         best = np.where(theta > 0, np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
         fit.extra["add_gain"] = np.where(out & (theta > 0), _ell(best, s, q), 0.0)
     return fit
+
+
+class Prepared:
+    """What :func:`sparse_bayes` computes from its rows alone (:func:`prepare`)."""
+
+    def __init__(self, Phi, y, F):
+        self.Phi = np.asarray(Phi, float)
+        self.y = np.asarray(y, float)
+        self.N, self.M = self.Phi.shape
+        self.F = None if F is None else np.asarray(F, float).reshape(self.N, -1)
+        self.nrm = np.linalg.norm(self.Phi, axis=0)
+        self.nrm_s = np.where(self.nrm > 0, self.nrm, 1.0)
+        self.Pn = self.Phi / self.nrm_s
+        (Pt, self.yt), rank_f, self.Q = _project(self.F, self.Pn, self.y)
+        self.n = self.N - rank_f
+        if self.n <= 0:
+            raise ValueError(f"sparse_bayes: {self.N} rows and {rank_f} unpenalised columns leave no degree of "
+                             f"freedom")
+        self.G = Pt.T @ Pt
+        self.h = Pt.T @ self.yt
+        self._Fp = None
+
+    def F_pinv(self):
+        """``F⁺`` on the independent columns of ``F`` (the pivoted QR of :func:`_project`; the others get 0)."""
+        if self._Fp is None:
+            Qf, Rf, cols, fn = self.Q
+            Fp = np.zeros((self.F.shape[1], self.F.shape[0]))
+            Fp[cols] = np.linalg.solve(Rf, Qf.T) / fn[cols, None]
+            self._Fp = Fp
+        return self._Fp
+
+
+def prepare(Phi, y, F=None) -> Prepared:
+    """The row-only part of :func:`sparse_bayes` (``prepared=``): column norms, the projection off ``F``, the Gram
+    matrix and ``Φᵀy`` of the projected unit-norm columns."""
+    return Prepared(Phi, y, F)
 
 
 def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
@@ -381,7 +411,7 @@ def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
     return st, A, Sig, mu, it, converged
 
 
-def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged) -> SparseFit:
+def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged, pre) -> SparseFit:
     M = len(nrm_s)
     alpha = np.full(M, np.inf)
     alpha[A] = st.alpha[A] * nrm_s[A] ** 2
@@ -395,9 +425,7 @@ def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged) -> SparseFit:
     if F is not None and F.shape[1]:
         # c given w: least squares of y − Φw on F (the pivoted QR of _project; a column F's others span gets 0);
         # its covariance adds the penalised part's through F⁺Φ
-        Qf, Rf, cols, fn = Q
-        Fp = np.zeros((F.shape[1], F.shape[0]))
-        Fp[cols] = np.linalg.solve(Rf, Qf.T) / fn[cols, None]
+        Fp = pre.F_pinv()
         free = Fp @ (y - Pn[:, A] @ mu)
         P = Fp @ Pn[:, A]
         free_cov = Fp @ Fp.T / st.beta + P @ Sig @ P.T

@@ -43,11 +43,27 @@ _FORMER_GEOMETRIC = {
 GEOMETRIC = ("sparse", "full", "joint_offset")
 
 
+def width_from_text(text: str):
+    """``--geometric-width-mm``'s value as ``geometric_width``: ``auto`` (kept), ``inf`` (None: unbounded) or a
+    positive number of mm / mrad (to m / rad); anything else an :class:`InputError` naming the option."""
+    t = str(text).strip().lower()
+    if t == "auto":
+        return "auto"
+    try:
+        w = float(t)
+    except ValueError:
+        w = float("nan")
+    if not w > 0:
+        raise InputError(f"--geometric-width-mm {text}: give auto (the default), inf (unbounded) or a number > 0 "
+                         f"(mm for a length, mrad for an angle; e.g. 1)")
+    return None if w == float("inf") else w * 1e-3
+
+
 def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int | None = None, root=None, tip=None,
              urdf_chain_masses: bool = True, column_map=None, drop_flagged: bool = True, folds: int = 5,
              geometric: str = "sparse", budget: bool = True, seed: int = 0, approach_from_order: bool = True,
              posture_tol=(1e-3, 1e-3), robot_spec=None, report=None, register_zeros: bool = True,
-             geometric_width: float | None = None):
+             geometric_width: float | str | None = "auto"):
     """Diagnose ``robot`` on ``data`` — the job of ``estcal diagnose`` and ``estcal.diagnose``.
 
     Parameters
@@ -64,8 +80,9 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
         ghost markers, copies — named in the output by file and line; ``False``: every row is fitted).
     folds : cross-validation folds (by posture, and by session with several sessions); seed : their seed.
     geometric : ``sparse`` (default), ``full`` or ``joint_offset`` (:func:`estcal.discrepancy.diagnose`).
-    geometric_width : the widest prior standard deviation of a link frame's parameter (m / rad; None, the
-        default, or ``inf``: unbounded; 1e-3 for an arm known to 1 mm / 1 mrad — docs/discrepancy.md).
+    geometric_width : the widest prior standard deviation of a link frame's parameter (m / rad): ``"auto"``
+        (the default) 1 mm / 1 mrad unless the unbounded model's cross-validated error is lower by more than one
+        standard error; None or ``inf``: unbounded; a number: that bound (docs/discrepancy.md).
     budget : the error budget (nested CV, time-blocked CV, the 95 % region); without it the expected error is
         the model's CV with its all-rows choices (optimistic, said in the answer).
     approach_from_order : approach directions from the acquisition order (default; backlash by approach
@@ -85,11 +102,11 @@ def diagnose(robot, data, *, validate=(), effects=None, noise=None, points: int 
                          f"{', '.join(GEOMETRIC)} (docs/discrepancy.md)")
     if geometric not in GEOMETRIC:
         raise InputError(f"geometric={geometric!r} is not a choice; choose one of {', '.join(GEOMETRIC)}")
-    if geometric_width is not None:
+    if geometric_width is not None and geometric_width != "auto":
         w = geometric_width
         if isinstance(w, bool) or not isinstance(w, (int, float)) or not w > 0:
-            raise InputError(f"geometric_width must be a positive width in m / rad (1e-3: 1 mm, 1 mrad) or None for "
-                             f"unbounded priors, got {geometric_width!r}")
+            raise InputError(f"geometric_width must be 'auto' (the default), a positive width in m / rad (1e-3: 1 mm, "
+                             f"1 mrad) or None for unbounded priors, got {geometric_width!r}")
         geometric_width = None if geometric_width == float("inf") else float(geometric_width)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise InputError(f"folds must be an integer ≥ 2, got {folds!r}")

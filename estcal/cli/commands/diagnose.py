@@ -86,12 +86,13 @@ def diagnose(
     geometric: str = typer.Option("sparse", "--geometric", help="Geometric parameters: sparse (every identifiable "
                                   "one under a relevance prior; the default) | full (all of them, unpenalised) | "
                                   "joint_offset (the offsets only)."),
-    geometric_width_mm: Optional[float] = typer.Option(None, "--geometric-width-mm", help="Bound the link "
-                                                       "frames' relevance priors: the widest prior the evidence search "
-                                                       "moves a link frame's parameter to, mm for a length and mrad "
-                                                       "for an angle (e.g. 1 for an arm whose nominal geometry is "
-                                                       "known to 1 mm / 1 mrad; joint offsets and the tool stay "
-                                                       "unbounded). Default: unbounded."),
+    geometric_width_mm: str = typer.Option("auto", "--geometric-width-mm", help="The link frames' relevance "
+                                            "priors: the widest prior the evidence search moves a link frame's "
+                                            "parameter to, mm for a length and mrad for an angle (e.g. 1 for an "
+                                            "arm whose nominal geometry is known to 1 mm / 1 mrad; joint offsets "
+                                            "and the tool stay unbounded), or inf (unbounded). Default auto: 1 "
+                                            "unless the unbounded model's cross-validated error is lower by more "
+                                            "than one standard error."),
     approach_from_order: bool = typer.Option(True, "--approach-from-order/--no-approach-from-order",
                                              help="Infer approach_<joint> columns (the side each joint moved "
                                                   "from into the posture) from the acquisition order — the t "
@@ -118,7 +119,7 @@ def diagnose(
 ) -> None:
     """How accurate the model is at new postures, which physical causes it names, what stays unexplained."""
     from estcal.base.errors import InputError
-    from estcal.workflows.diagnose import diagnose as run
+    from estcal.workflows.diagnose import diagnose as run, width_from_text
 
     if former is not None:
         raise InputError("this option belonged to the former diagnosis (forward selection, the prior model, the "
@@ -129,7 +130,7 @@ def diagnose(
               tip=tip, urdf_chain_masses=urdf_masses, folds=k_folds, report=report, seed=seed, geometric=geometric,
               approach_from_order=approach_from_order, posture_tol=posture_tol(posture_tol_mrad, posture_tol_mm),
               budget=budget, column_map=column_map, drop_flagged=drop_flagged, register_zeros=register_zeros,
-              geometric_width=None if geometric_width_mm is None else geometric_width_mm * 1e-3)
+              geometric_width=width_from_text(geometric_width_mm))
     typer.echo(str(res))
     if report is not None:  # written by the workflow
         typer.echo(f"report: {report}/index.html ({', '.join(res.report_files)})")
@@ -141,3 +142,4 @@ def diagnose(
 
         save(res, save_model, robot, root, tip)
         typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
+
