@@ -262,6 +262,22 @@ def _map_objective(terms, data, noise, theta, frames, sysm, hyper, evaluated=Non
     return float(bw @ bw / hyper[1] + np.sum(alpha[fin] * d[fin] ** 2))
 
 
+def _linear_objective(sysm, d, hyper) -> float:
+    """The MAP objective at the point ``sysm`` was linearised at (``d``: its penalised deviations from nominal),
+    from the system's own residual — what :func:`_map_objective` evaluates there, without a new evaluation."""
+    bw = sysm.tw - sysm.Xw[:, sysm.n_free:] @ d
+    fin = np.isfinite(hyper[0])
+    return float(bw @ bw / hyper[1] + np.sum(hyper[0][fin] * d[fin] ** 2))
+
+
+def _evaluate_or_none(terms, data, noise, theta, frames):
+    """:func:`_evaluate` with the Jacobian at a trial step, or None where the model cannot be evaluated there."""
+    try:
+        return _evaluate(terms.robot, data, noise, theta, frames, True, terms.session_zeros)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+        return None
+
+
 def linearise(terms, data, noise, theta, frames, psi=None, s2=None, evaluated=None) -> System:
     """The :class:`System` of ``terms`` (:class:`~estcal.discrepancy.terms.Terms`) on ``data`` at ``theta``, each
     session's rows at its own frame (``frames``: ``{session: (6 + k,) increment of the base and of its joint
@@ -425,11 +441,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             ev = None
             with np.errstate(all="ignore"):
                 if not full:  # the full step, with its Jacobian: the next linearisation is there when it is taken
-                    try:
-                        ev = _evaluate(terms.robot, data, noise, new, new_frames, True, terms.session_zeros)
-                    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-                        ev = None
-                    full.append(ev)
+                    full.append(ev := _evaluate_or_none(terms, data, noise, new, new_frames))
                 return _map_objective(terms, data, noise, new, new_frames, sysm, hyper, ev)
 
         new, new_frames = at(scale)
@@ -438,11 +450,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             obj = objective(new, new_frames)
             search = not np.isfinite(obj)  # a step into overflow (geometric="full", near-collinear): searched
         if search:
-            # the objective at θ from the system linearised there (its residual, not a new evaluation)
-            d0 = theta[ipen] - terms.nominal[ipen]
-            bw = sysm.tw - sysm.Xw[:, sysm.n_free:] @ d0
-            fin = np.isfinite(hyper[0])
-            base = float(bw @ bw / hyper[1] + np.sum(hyper[0][fin] * d0[fin] ** 2))
+            base = _linear_objective(sysm, theta[ipen] - terms.nominal[ipen], hyper)
             obj = objective(new, new_frames) if obj is None else obj
             for k in range(6):  # the step, then 1/2 … 1/32 of it
                 if obj <= base:
