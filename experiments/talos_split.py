@@ -51,6 +51,13 @@ def split(robot, data, seed):
     return data.subset(np.flatnonzero(m)), data.subset(np.flatnonzero(~m))
 
 
+def _width_text(choice, width) -> str:
+    if choice:
+        return (f"{'bounded' if choice['bounded'] else 'unbounded'} by the one-standard-error rule (CV "
+                f"{choice['cv_bounded_mm']:.2f} bounded, {choice['cv_unbounded_mm']:.2f} unbounded)")
+    return "unbounded" if width is None else f"within {width * 1e3:g} mm / mrad"
+
+
 def run(seeds, geometric_width="auto"):
     from estcal.workflows.diagnose import diagnose
 
@@ -63,11 +70,12 @@ def run(seeds, geometric_width="auto"):
         v = res.accuracy["validation"][0]
         r = {"seed": s, "n_train": T.n, "n_valid": V.n, "new_mm": v["rmse_mm"], "expected_mm": res.answer["expected_mm"],
              "predicted_at_mm": v["predicted_mm"], "coverage": v["coverage"], "named": [c.label for c in res.causes],
-             "cpu_s": time.process_time() - t0}
+             "cpu_s": time.process_time() - t0, "width_choice": res.model.get("geometric_width_choice")}
         rows.append(r)
         print(f"seed {s}: {T.n} training rows, {V.n} new-posture rows: {r['new_mm']:.2f} mm; expected "
               f"{r['expected_mm']:.2f}, at its postures {r['predicted_at_mm']:.2f}; coverage {r['coverage']:.2f}; "
-              f"named {r['named']}; {r['cpu_s']:.1f} s CPU", flush=True)
+              f"named {r['named']}; link frames {_width_text(r['width_choice'], geometric_width)}; "
+              f"{r['cpu_s']:.1f} s CPU", flush=True)
     return {"rows": rows}
 
 

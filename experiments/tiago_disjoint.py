@@ -23,7 +23,9 @@ Protocol (``../shared/data/tiago``, never copied):
   link frames' priors were bounded (``--geometric-width-mm 1``, an option, not the default), each run once with
   the bound (``--seeds confirmation7`` / ``confirmation8``) and with the default; a ninth, 180, 181, 182,
   declared before a cross-validated choice of that bound was tried, run once with it (it chose the default
-  everywhere; not adopted) and then with the default and the bound (``--seeds confirmation9``).
+  everywhere; not adopted) and then with the default and the bound (``--seeds confirmation9``); a tenth,
+  200, 201, 202, declared before the link frames' width was chosen by the one-standard-error rule (the
+  default since), run once with it (``--seeds confirmation10``; the former, unbounded default run on it too).
 
 Per halving: the RMSE at the new postures (the diagnosis's own validation figure), the prediction (the
 budget's expected error, and the prediction at the validation file's postures), their ratio, the 95 % region's
@@ -64,6 +66,8 @@ CONFIRMATION7 = (140, 141, 142)
 CONFIRMATION8 = (160, 161, 162)
 #: declared before the bound was chosen by cross-validation (tried, not adopted)
 CONFIRMATION9 = (180, 181, 182)
+#: declared before the link frames' width was chosen by the one-standard-error rule (``geometric_width="auto"``)
+CONFIRMATION10 = (200, 201, 202)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -149,7 +153,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
                     "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
-                    "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182) or a list")
+                    "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182), "
+                    "confirmation10 (200–202) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")
@@ -166,7 +171,7 @@ def main(argv=None) -> dict:
              "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
              "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6,
              "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
-             "confirmation9": CONFIRMATION9}.get(args.seeds)
+             "confirmation9": CONFIRMATION9, "confirmation10": CONFIRMATION10}.get(args.seeds)
     seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
     from estcal.workflows.diagnose import width_from_text
 
