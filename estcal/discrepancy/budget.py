@@ -40,7 +40,7 @@ from estcal.validation.groups import Fold
 
 from .prediction import (beyond_leverage, conformal_threshold, predicted_rmse_at, region_coverage, region_scores,
                          region_sigma, slope_upper, variance_model)
-from .relevance import cross_validate, cv_rmse_mm, held_out_errors, select_terms
+from .relevance import cross_validate, cv_rmse_mm, fold_mse, held_out_errors, select_terms
 
 __all__ = ["Budget", "error_budget", "budget_lines", "point_errors", "point_leverage", "predicted_at", "coverage_at",
            "reach_at"]
@@ -133,10 +133,9 @@ def _nested(terms, system, groups, folds, kind, k, rng, start, time_blocks=True)
 
 def _rmse_se(sq, cnt) -> tuple[float, float]:
     """Pooled RMSE (mm) and its standard error over folds (δ-method of the fold mean squared errors)."""
-    rm = float(np.sqrt(sq.sum() / max(cnt.sum(), 1)))
-    mse = sq / np.maximum(cnt, 1)
-    se = float(mse.std(ddof=1) / np.sqrt(len(mse)) / (2 * max(rm, 1e-300))) if len(mse) > 1 else float("nan")
-    return rm * 1e3, se * 1e3
+    mse, se_mse = fold_mse(sq, cnt)
+    rm = float(np.sqrt(mse))
+    return rm * 1e3, se_mse / (2 * max(rm, 1e-300)) * 1e3
 
 
 def _region(e, S) -> dict:

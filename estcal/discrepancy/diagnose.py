@@ -221,7 +221,7 @@ def diagnose(robot, data, validate=(), effects=None, k_folds: int = 5, noise=Non
 
 def _diagnose(robot, data, validate, effects, k_folds, noise, rng, robot_spec, geometric, session_time,
               approach_from_order, posture_tol, budget, time_blocks, ident_tol, regroup_tol,
-              register_zeros=True, geometric_width=None) -> DiagnosisResult:
+              register_zeros=True, geometric_width=WIDTH_AUTO) -> DiagnosisResult:
     from estcal.validation.groups import row_groups
 
     from .relevance import cv_rmse_mm, fit_relevance
@@ -297,7 +297,7 @@ def _width_and_terms(terms, data, nm, load, folds, k_folds, time_folds, choose: 
     naming in every outer fold, not this choice."""
     import dataclasses
 
-    from .relevance import select_terms
+    from .relevance import fold_mse, select_terms
     from .terms import GEOMETRIC_WIDTH
 
     bounded = dataclasses.replace(terms, geometric_width=GEOMETRIC_WIDTH) if choose else None
@@ -316,21 +316,15 @@ def _width_and_terms(terms, data, nm, load, folds, k_folds, time_folds, choose: 
         runs.append((t, first, sel, _load_sides(data)))
     if bounded is None:
         return (*runs[0][:3], None)
-    (mse_u, se_u), (mse_b, _) = (_cv_mse(r[2].cv) for r in runs)
+    (mse_u, se_u), (mse_b, _) = (fold_mse(r[2].cv["sq"], r[2].cv["n"]) for r in runs)
+    if not np.isfinite(se_u):
+        se_u = float("inf")  # one fold: no spread to judge the unbounded model's gain by; the bound is kept
     keep = runs[1] if mse_b <= mse_u + se_u else runs[0]
     _load_sides(data, keep[3])
     record = {"rule": "one standard error", "bound_si": GEOMETRIC_WIDTH, "bounded": keep is runs[1],
               "cv_bounded_mm": float(np.sqrt(mse_b) * 1e3), "cv_unbounded_mm": float(np.sqrt(mse_u) * 1e3),
               "cv_unbounded_plus_se_mm": float(np.sqrt(mse_u + se_u) * 1e3)}
     return (*keep[:3], record)
-
-
-def _cv_mse(cv: dict) -> tuple[float, float]:
-    """The CV mean squared point error (m²) of :func:`~estcal.discrepancy.relevance.cross_validate` and its
-    standard error over the folds (each fold's mean squared error; the spread of the K of them / √K)."""
-    per_fold = cv["sq"] / np.maximum(cv["n"], 1)
-    se = float(np.std(per_fold, ddof=1) / np.sqrt(len(per_fold))) if len(per_fold) > 1 else float("inf")
-    return float(cv["sq"].sum() / max(cv["n"].sum(), 1)), se
 
 
 def _check_folds(system, folds, k) -> None:

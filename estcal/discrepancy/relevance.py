@@ -53,11 +53,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estcal.estimate.sparse import SparseFit, prepare, sparse_bayes
+from estcal.estimate.sparse import Prepared, SparseFit, sparse_bayes
 from estcal.methods import Problem
 
 __all__ = ["LN_BF_NAMED", "System", "RelevanceFit", "linearise", "fit_relevance", "refit", "held_out_errors",
-           "cross_validate", "select_terms", "Selection"]
+           "fold_mse", "cross_validate", "select_terms", "Selection"]
 
 #: the decisive Bayes factor of a named cause: ln B ≥ 5 (2 ln B ≥ 10, Kass & Raftery's "very strong")
 LN_BF_NAMED = 5.0
@@ -110,7 +110,7 @@ class System:
     s2: float | None = None
     zeros: tuple = ()
     alpha_min: np.ndarray | None = None
-    #: sparse_bayes's row-only work (:func:`estcal.estimate.sparse.prepare`) by training rows, shared by refits
+    #: sparse_bayes's row-only work (:class:`estcal.estimate.sparse.Prepared`) by training rows, shared by refits
     prepared: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -345,7 +345,7 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
     if key not in system.prepared:
         Fw = system.Xw[rows, : system.n_free]
         keep = np.any(Fw != 0, axis=0)
-        system.prepared[key] = (prepare(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep]), keep)
+        system.prepared[key] = (Prepared(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep]), keep)
     pre, keep = system.prepared[key]
     if hyper is not None:
         fit = sparse_bayes(None, None, start=hyper[0], exclude=exclude, noise_var=hyper[1], max_iter=0,
@@ -587,6 +587,14 @@ def cross_validate(system: System, folds, include=None, start=None) -> dict:
 def cv_rmse_mm(cv: dict) -> float:
     """RMSE (mm) of the held-out point-error norms of :func:`cross_validate`."""
     return float(np.sqrt(cv["sq"].sum() / max(cv["n"].sum(), 1)) * 1e3)
+
+
+def fold_mse(sq, n) -> tuple[float, float]:
+    """The pooled mean squared error of per-fold squared sums ``sq`` over ``n`` points (m²), and the standard error
+    of the per-fold mean squared errors (their spread / √K; NaN with one fold)."""
+    per_fold = sq / np.maximum(n, 1)
+    se = float(per_fold.std(ddof=1) / np.sqrt(len(per_fold))) if len(per_fold) > 1 else float("nan")
+    return float(sq.sum() / max(n.sum(), 1)), se
 
 
 @dataclass

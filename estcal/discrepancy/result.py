@@ -274,9 +274,9 @@ def _width_text(mode: str, w, choice=None) -> str:
     text = "" if w is None else f", link frames' priors within {w * 1e3:g} mm / {w * 1e3:g} mrad"
     if choice:
         b = choice["bound_si"] * 1e3
-        text = (f"{text or ', link frames unbounded'} — by the one-standard-error rule: CV {choice['cv_bounded_mm']:.2f} "
-                f"mm within {b:g} mm / {b:g} mrad, {choice['cv_unbounded_mm']:.2f} unbounded (+1 SE: "
-                f"{choice['cv_unbounded_plus_se_mm']:.2f})")
+        text = (f"{text or ', link frames unbounded'} — by the one-standard-error rule: CV "
+                f"{choice['cv_bounded_mm']:.2f} mm within {b:g} mm / {b:g} mrad, {choice['cv_unbounded_mm']:.2f} "
+                f"unbounded (+1 SE: {choice['cv_unbounded_plus_se_mm']:.2f})")
     return text
 
 

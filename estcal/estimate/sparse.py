@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["SparseFit", "sparse_bayes", "log_evidence_ard", "shared_precision"]
+__all__ = ["SparseFit", "Prepared", "sparse_bayes", "log_evidence_ard", "shared_precision"]
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -271,7 +271,7 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         other's cancellations) is held at its plausible scale. It bounds the moves, not the start: a column
         ``start`` puts below it (a wider prior — the diagnosis starts link frames from a ridge fit's width) keeps
         that precision until a move within the bound, or its deletion, raises the evidence
-    prepared : :func:`prepare` of these ``Phi, y, F`` (then not read again): the column scaling, the projection
+    prepared : :class:`Prepared` of these ``Phi, y, F`` (then not read again): the column scaling, the projection
         off ``F`` and the Gram matrix, which depend on the rows only — a caller refitting one system with other
         columns excluded or other precisions (a cross-validation fold's candidates) computes them once
 
@@ -279,7 +279,7 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     -------
     :class:`SparseFit`
     """
-    pre = prepared if prepared is not None else prepare(Phi, y, F)
+    pre = prepared if prepared is not None else Prepared(Phi, y, F)
     Phi, y, F, N, M = pre.Phi, pre.y, pre.F, pre.N, pre.M
     nrm, nrm_s, Pn, Q, G, h, yt = pre.nrm, pre.nrm_s, pre.Pn, pre.Q, pre.G, pre.h, pre.yt
     usable = nrm > 0
@@ -316,7 +316,8 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
 
 
 class Prepared:
-    """What :func:`sparse_bayes` computes from its rows alone (:func:`prepare`)."""
+    """What :func:`sparse_bayes` computes from its rows alone (``prepared=``): column norms, the projection off
+    ``F``, the Gram matrix and ``Φᵀy`` of the projected unit-norm columns, and ``F⁺`` when asked."""
 
     def __init__(self, Phi, y, F):
         self.Phi = np.asarray(Phi, float)
@@ -343,12 +344,6 @@ class Prepared:
             Fp[cols] = np.linalg.solve(Rf, Qf.T) / fn[cols, None]
             self._Fp = Fp
         return self._Fp
-
-
-def prepare(Phi, y, F=None) -> Prepared:
-    """The row-only part of :func:`sparse_bayes` (``prepared=``): column norms, the projection off ``F``, the Gram
-    matrix and ``Φᵀy`` of the projected unit-norm columns."""
-    return Prepared(Phi, y, F)
 
 
 def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
