@@ -36,14 +36,13 @@ from estcal.io.prepare import derive_approach, with_effect_context
 from estcal.io.robotfile import load_robot, robot_to_dict
 from estcal.methods import NoiseModel
 
+from .relevance import _BASE
 from .result import Cause, DiagnosisResult
 from .terms import (WIDTH_AUTO, Candidate, build_terms, default_candidates, n_sessions as _n_sessions,
                     set_load_sides)
 from .zeros import moved_zeros
 
 __all__ = ["Candidate", "Cause", "DiagnosisResult", "diagnose", "default_candidates"]
-
-_BASE = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
 
 
 # ------------------------------------------------------------------ data preparation
@@ -154,7 +153,7 @@ def _train_rmse(final, data, frames, zeros=None) -> float:
     """The training RMSE (mm) of the point-error norms, every session's rows at its own measuring frame and joint
     zeros (``frames``: ``{session: (6 + k,) increment of the base and of the zeros ``zeros[session]``}``; the
     model's parameters are the first session's)."""
-    from .relevance import _BASE, _session_labels, session_theta
+    from .relevance import _session_labels, session_theta
 
     if not frames or not all(n in final.params.names for n in _BASE):
         return _scores(final, final.params.values, [data])[0]
