@@ -112,6 +112,12 @@ class JointEffect(Effect):
     def features(self, robot, readings, q, theta, context) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    @property
+    def param_joints(self) -> np.ndarray:
+        """(m,) the joint each parameter moves (parameter order is prefix-major): ``joint_correction``'s
+        derivative is nonzero in that joint's row only, which the chain uses instead of the dense array."""
+        return np.tile(self.joint_index, len(self.prefixes))
+
     def joint_correction(self, robot, readings, q, theta, context):
         N, n = q.shape
         m = len(self.param_names)

@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from estcal.kinematics.transforms import cross
+from estcal.kinematics.transforms import cross, cross_at
 
 from .base import Effect, JointEffect, register_effect
 
@@ -323,16 +323,12 @@ class ThermalExpansion(Effect):
         ``J``) and ``∂o/∂θ`` the unit columns of ``base_tx, base_ty, base_tz``. Used
         when the chain passes ``J``; otherwise the O(α ΔT) difference is neglected.
         """
-        w = J[:, 3:, :]  # (N, 3, P)
-        for k in range(points.shape[1]):
-            d = o - points[:, k]  # (N, 3)
-            # ω × d by components along axis 1 (np.cross's axis moves cost more than its products here)
-            dd = d[:, :, None]
-            wxd = np.stack([w[:, 1] * dd[:, 2] - w[:, 2] * dd[:, 1], w[:, 2] * dd[:, 0] - w[:, 0] * dd[:, 2],
-                            w[:, 0] * dd[:, 1] - w[:, 1] * dd[:, 0]], axis=1)  # (N, 3, P)
-            corr = J_points[:, k] + wxd
-            corr[:, [0, 1, 2], self._base_idx] -= 1.0
-            J_points[:, k] += s[:, None, None] * corr
+        # every point at once, in one (N, k, 3, P) buffer: ω × d, + v(x'), − ∂o/∂θ, × s
+        corr = cross_at(J[:, None, 3:, :], (o - points)[..., None], 2)
+        np.add(J_points, corr, out=corr)
+        corr[:, :, [0, 1, 2], self._base_idx] -= 1.0
+        np.multiply(s[:, None, None, None], corr, out=corr)
+        J_points += corr
 
 
 def across_axis_moments(robot, readings, theta=None, context=None):
@@ -414,10 +410,10 @@ class LinkTilt(Effect):
         3–5 of the pose Jacobian ``J``) — exact for every parameter the loads do not depend on (the other
         effects'); for the geometric ones the loads' own variation is second order and neglected.
         """
-        w = J[:, 3:, :].transpose(0, 2, 1)  # (N, P, 3)
-        for k in range(J_points.shape[1]):
-            v = J_points[:, k].transpose(0, 2, 1) - cross(w, d[:, k, None, :])  # (N, P, 3)
-            J_points[:, k] = (v + cross(phi[:, None, :], v)).transpose(0, 2, 1)
+        # every point at once on the (N, k, 3, P) columns as they are: v = v(x') − ω × d, then v + φ × v
+        v = cross_at(J[:, None, 3:, :], d[..., None], 2)
+        np.subtract(J_points, v, out=v)
+        np.add(v, cross_at(phi[:, None, :, None], v, 2), out=J_points)
 
 
 for _cls in (JointCompliance, Backlash, GearHarmonic, EncoderGain, ThermalExpansion, Drift, LinkTilt):

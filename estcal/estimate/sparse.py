@@ -131,6 +131,17 @@ class _State:
         self.alpha = np.full(M, np.inf)
         self.beta = 1.0
         self.logdet = 0.0  # log|Σ| of the last posterior
+        self._cols = (None, None, None)
+
+    def cols(self, A):
+        """``(G[:, A], G[A][:, A])`` — the active set changes at adds and deletes only, while the posterior, the
+        (s, q) and the residual of every step read these: gathered once per active set."""
+        key = A.tobytes()
+        if self._cols[0] != key:
+            GA = self.G[:, A]
+            # G[A][:, A] as the residual's product always read it (column-major: the same sums, to the bit)
+            self._cols = (key, GA, self.G[A][:, A])
+        return self._cols[1], self._cols[2]
 
     def posterior(self):
         """(active indices, Σ, μ) for the current precisions and noise (one Cholesky factor and its triangular
@@ -141,7 +152,7 @@ class _State:
         if A.size == 0:
             self.logdet = 0.0
             return A, np.zeros((0, 0)), np.zeros(0)
-        H = self.beta * self.G[A[:, None], A]  # (np.ix_'s set-up cost more than the gather here)
+        H = self.beta * self.cols(A)[1]
         H.flat[:: len(A) + 1] += self.alpha[A]
         L = _cholesky(H)
         Li, _ = dtrtri(L, lower=1)
@@ -154,7 +165,7 @@ class _State:
         """(s, q) of every column against the model without it (Tipping & Faul eqs. 23–24)."""
         b = self.beta
         if A.size:
-            GA = self.G[:, A]
+            GA = self.cols(A)[0]
             S = b * self.dG - b * b * np.sum((GA @ Sig) * GA, axis=1)
             Q = b * self.h - b * (GA @ mu)
         else:
@@ -170,7 +181,7 @@ class _State:
     def residual2(self, A, mu):
         if A.size == 0:
             return self.tt
-        return float(self.tt - 2.0 * mu @ self.h[A] + mu @ (self.G[A][:, A] @ mu))
+        return float(self.tt - 2.0 * mu @ self.h[A] + mu @ (self.cols(A)[1] @ mu))
 
     def update_noise(self, A, Sig, mu):
         gamma = 1.0 - self.alpha[A] * np.diag(Sig) if A.size else np.zeros(0)

@@ -170,12 +170,15 @@ def _add_joint_blocks(JT, JqT, blocks):
     """JT[:, idx] += JqT · dq/dθ_idx for each block; JT (r, P, N), JqT (r, n, N).
 
     Block kinds: 'eye' (D = joint index of each parameter), 'diag' (D (N, n): the
-    parameter of joint l scales column l, e.g. gains) and 'dense' (D (N, n, m))."""
+    parameter of joint l scales column l, e.g. gains), 'cols' (D = (joint of each parameter (m,),
+    its derivative (N, m)): one joint per parameter, an effect's) and 'dense' (D (N, n, m))."""
     for idx, D, kind in blocks or ():
         if kind == "eye":
             JT[:, idx] += JqT[:, D]
         elif kind == "diag":
             JT[:, idx] += JqT * D.T[None]
+        elif kind == "cols":
+            JT[:, idx] += JqT[:, D[0]] * D[1].T[None]
         else:
             JT[:, idx] += np.einsum("rln,nlm->rmn", JqT, np.broadcast_to(D, (JqT.shape[2],) + D.shape[1:]))
 
@@ -210,7 +213,9 @@ def _merge_blocks(per_walker, N):
     out = []
     for parts in zip(*per_walker):
         idx, D, kind = parts[0]
-        if kind != "eye":
+        if kind == "cols":
+            D = (D[0], np.concatenate([d[1] for _, d, _ in parts]))
+        elif kind != "eye":
             D = np.concatenate([np.broadcast_to(d, (N,) + d.shape[1:]) for _, d, _ in parts])
         out.append((idx, D, kind))
     return out
@@ -389,7 +394,11 @@ class SerialRobot:
                 d, dd = eff.joint_correction(self, r, q, theta, context or {})
                 q = q + d
                 if derivatives and dd is not None:
-                    blocks.append((np.asarray(eff.indices), dd, "dense"))
+                    jk = getattr(eff, "param_joints", None)
+                    if jk is not None:  # one joint per parameter: its column only (the dense product sums zeros)
+                        blocks.append((np.asarray(eff.indices), (jk, dd[:, jk, np.arange(len(jk))]), "cols"))
+                    else:
+                        blocks.append((np.asarray(eff.indices), dd, "dense"))
         return q, blocks
 
     # --------------------------------------------------------------- FK + J

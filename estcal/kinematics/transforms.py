@@ -66,6 +66,20 @@ def cross(a, b) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def cross_at(a, b, axis: int, out=None) -> np.ndarray:
+    """``a × b`` along ``axis`` (length 3; the other axes broadcast) into ``out`` (allocated when None): the
+    products of :func:`cross` in the same order, for arrays whose coordinates are not the last axis (the
+    Jacobians' (N, k, 3, P) point columns, corrected in place without a transposed copy)."""
+    if out is None:
+        out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    lead = (slice(None),) * axis
+    for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
+        o = out[lead + (i,)]
+        np.multiply(a[lead + (j,)], b[lead + (k,)], out=o)
+        np.subtract(o, a[lead + (k,)] * b[lead + (j,)], out=o)
+    return out
+
+
 def rot_axis(axis, angle):
     """Rotation about a unit ``axis`` (3,) by ``angle`` (any shape): Rodrigues' formula.
 
