@@ -64,6 +64,7 @@ LN_BF_NAMED = 5.0
 #: Gauss–Newton stops when no parameter moves by this fraction of its standard deviation (the Jacobian of the load
 #: terms neglects their loads' own dependence on the geometry — second order, but it slows the last steps)
 GN_TOL = 0.02
+_REFITS_KEPT = 256  # System.refits: the repeats of a diagnosis are within ~200 searches of each other
 #: the evidence fits stop when no single change gains more than this (nats): far below every decision's scale
 TOL = 1e-2
 #: each step of the naming search cross-validates at most this many candidates (in the order of their evidence)
@@ -112,6 +113,9 @@ class System:
     alpha_min: np.ndarray | None = None
     #: sparse_bayes's row-only work (:class:`estcal.estimate.sparse.Prepared`) by training rows, shared by refits
     prepared: dict = field(default_factory=dict, repr=False, compare=False)
+    #: the last searches (:func:`refit` without ``hyper``) by training rows, columns and start: the naming's steps
+    #: and the budget cross-validate the same model on the same folds again (a tenth of a diagnosis's searches)
+    refits: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def F(self):
@@ -347,6 +351,12 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
         keep = np.any(Fw != 0, axis=0)
         system.prepared[key] = (Prepared(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep]), keep)
     pre, keep = system.prepared[key]
+    if hyper is None:
+        memo = (key, None if exclude is None else exclude.tobytes(),
+                None if start is None else np.asarray(start, float).tobytes())
+        if memo in system.refits:
+            system.refits[memo] = fit = system.refits.pop(memo)  # the most recent last; never written to
+            return fit
     if hyper is not None:
         fit = sparse_bayes(None, None, start=hyper[0], exclude=exclude, noise_var=hyper[1], max_iter=0,
                            alpha_min=system.alpha_min, prepared=pre)
@@ -360,6 +370,10 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
     fit.free, fit.free_cov = free, free_cov
     fit.extra["free_kept"] = keep
     assert fit.mean.shape == (M,)
+    if hyper is None:
+        system.refits[memo] = fit
+        if len(system.refits) > _REFITS_KEPT:
+            del system.refits[next(iter(system.refits))]
     return fit
 
 
@@ -417,11 +431,12 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
     nf = len(terms.free)
     hyper, converged, n_gn = None, False, 0
 
-    def step(sysm, fit, search: bool = False):
+    def step(sysm, fit, search: bool = False, last: bool = False):
         """Move θ (and the session frames) by the fit's step; with ``search``, halve the step until the MAP
         objective decreases (a joint whose load changes sign with the parameters — backlash by the load's side —
         makes the residual step at that posture, and a full Gauss–Newton step can jump back and forth across it).
-        Returns whether the step was below ``GN_TOL`` of every standard deviation."""
+        ``last``: no linearisation follows (no Jacobian at the new point). Returns whether the step was below
+        ``GN_TOL`` of every standard deviation."""
         nonlocal theta
         pending.clear()
         d_free, d_pen = fit.free[:nf], terms.nominal[ipen] + fit.mean - theta[ipen]
@@ -440,7 +455,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
         def objective(new, new_frames):
             ev = None
             with np.errstate(all="ignore"):
-                if not full:  # the full step, with its Jacobian: the next linearisation is there when it is taken
+                if not full and not last:  # the full step with its Jacobian: the next linearisation when taken
                     full.append(ev := _evaluate_or_none(terms, data, noise, new, new_frames))
                 return _map_objective(terms, data, noise, new, new_frames, sysm, hyper, ev)
 
@@ -508,7 +523,7 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
             break
     sysm = lin()
     fit = refit(sysm, include=include, hyper=hyper)
-    step(sysm, fit)
+    step(sysm, fit, last=True)
     return RelevanceFit(theta, frames, fit, sysm, np.ones(len(ipen), bool) if include is None
                         else np.asarray(include, bool), n_gn, converged)
 

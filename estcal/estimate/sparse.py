@@ -345,7 +345,7 @@ class Prepared:
                              f"freedom")
         self.G = Pt.T @ Pt
         self.h = Pt.T @ self.yt
-        self._Fp = None
+        self._Fp = self._FFt = None
 
     def F_pinv(self):
         """``F⁺`` on the independent columns of ``F`` (the pivoted QR of :func:`_project`; the others get 0)."""
@@ -355,6 +355,13 @@ class Prepared:
             Fp[cols] = np.linalg.solve(Rf, Qf.T) / fn[cols, None]
             self._Fp = Fp
         return self._Fp
+
+    def F_gram(self):
+        """``F⁺ F⁺ᵀ`` (the free coefficients' covariance at unit noise, given the penalised ones)."""
+        if self._FFt is None:
+            Fp = self.F_pinv()
+            self._FFt = Fp @ Fp.T
+        return self._FFt
 
 
 def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
@@ -434,7 +441,7 @@ def _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged, pre) -> SparseFit
         Fp = pre.F_pinv()
         free = Fp @ (y - Pn[:, A] @ mu)
         P = Fp @ Pn[:, A]
-        free_cov = Fp @ Fp.T / st.beta + P @ Sig @ P.T
+        free_cov = pre.F_gram() / st.beta + P @ Sig @ P.T
         # what a prediction's covariance at other rows needs (prediction_cov: F⁺ and the training Φ)
         extra = {"F_pinv": Fp, "Phi": Pn, "Phi_scale": nrm_s}
     else:
