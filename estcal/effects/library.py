@@ -324,7 +324,7 @@ class ThermalExpansion(Effect):
         when the chain passes ``J``; otherwise the O(α ΔT) difference is neglected.
         """
         # every point at once, in one (N, k, 3, P) buffer: ω × d, + v(x'), − ∂o/∂θ, × s
-        corr = cross_at(J[:, None, 3:, :], (o - points)[..., None], 2)
+        corr = cross_at(np.ascontiguousarray(J[:, None, 3:, :]), (o - points)[..., None], 2)
         np.add(J_points, corr, out=corr)
         corr[:, :, [0, 1, 2], self._base_idx] -= 1.0
         np.multiply(s[:, None, None, None], corr, out=corr)
@@ -411,7 +411,7 @@ class LinkTilt(Effect):
         effects'); for the geometric ones the loads' own variation is second order and neglected.
         """
         # every point at once on the (N, k, 3, P) columns as they are: v = v(x') − ω × d, then v + φ × v
-        v = cross_at(J[:, None, 3:, :], d[..., None], 2)
+        v = cross_at(np.ascontiguousarray(J[:, None, 3:, :]), d[..., None], 2)
         np.subtract(J_points, v, out=v)
         np.add(v, cross_at(phi[:, None, :, None], v, 2), out=J_points)
 
