@@ -68,11 +68,12 @@ def run(seeds, geometric_width="auto"):
         t0 = time.process_time()
         res = diagnose(robot, T, validate=[V], geometric_width=geometric_width)
         v = res.accuracy["validation"][0]
-        r = {"seed": s, "n_train": T.n, "n_valid": V.n, "new_mm": v["rmse_mm"], "expected_mm": res.answer["expected_mm"],
+        r = {"seed": s, "n_train": T.n, "n_valid": V.n, "new_mm": v["rmse_mm"], "new_se_mm": v["rmse_se_mm"],
+             "expected_mm": res.answer["expected_mm"],
              "predicted_at_mm": v["predicted_mm"], "coverage": v["coverage"], "named": [c.label for c in res.causes],
              "cpu_s": time.process_time() - t0, "width_choice": res.model.get("geometric_width_choice")}
         rows.append(r)
-        print(f"seed {s}: {T.n} training rows, {V.n} new-posture rows: {r['new_mm']:.2f} mm; expected "
+        print(f"seed {s}: {T.n} training rows, {V.n} new-posture rows: {r['new_mm']:.2f} ± {r['new_se_mm']:.2f} mm; expected "
               f"{r['expected_mm']:.2f}, at its postures {r['predicted_at_mm']:.2f}; coverage {r['coverage']:.2f}; "
               f"named {r['named']}; link frames {_width_text(r['width_choice'], geometric_width)}; "
               f"{r['cpu_s']:.1f} s CPU", flush=True)

@@ -120,6 +120,39 @@ def test_joint_values_gain_offset_coupling():
     np.testing.assert_allclose(dq[:, :, gi], Cj[None] * (r @ Cm.T)[:, None, :], atol=1e-14)
 
 
+def test_joint_values_derivative_of_joint_effects_by_their_columns():
+    """Joint effects' dq/dθ enter by their one joint per parameter (JointEffect.param_joints, the 'cols' blocks):
+    the dense derivative of joint_values against central finite differences of q, on a PUMA 560 with a gear
+    harmonic (two parameters per joint), a compliance and an encoder gain on several joints at once, and the
+    many-θ path equal to single calls."""
+    from estcal.effects import make_effect
+
+    robot = puma560()
+    for name, joints, kw in (("gear_harmonic", ["j2", "j3"], {"orders": [1]}), ("joint_compliance", ["j2", "j3"], {}),
+                             ("encoder_gain", ["j1", "j5"], {})):
+        robot = robot.add_effect(make_effect(name, robot, joints=joints, **kw))
+    rng = np.random.default_rng(5)
+    theta = robot.params.values.copy()
+    eff = np.flatnonzero(np.array(robot.params.kinds) == "effect")
+    theta[eff] = rng.normal(0, 1e-3, eff.size)
+    r = robot.random_readings(4, rng)
+    q, dq = robot.joint_values(r, theta, derivatives=True)
+    fd = np.empty_like(dq)
+    h = 1e-6
+    for k in range(robot.n_params):
+        tp, tm = theta.copy(), theta.copy()
+        tp[k] += h
+        tm[k] -= h
+        fd[:, :, k] = (robot.joint_values(r, tp)[0] - robot.joint_values(r, tm)[0]) / (2 * h)
+    assert np.abs(dq[:, :, eff]).max() > 1e-2
+    # the effects' columns and the gains' and offsets' (the joint variable's own geometric parameter is the chain's)
+    cols = np.r_[eff, robot.gain_idx, robot.offset_idx]
+    np.testing.assert_allclose(dq[:, :, cols], fd[:, :, cols], atol=1e-7)
+    many = robot.kinematics(r, np.stack([theta, theta + 1e-4]))
+    for w, th in enumerate((theta, theta + 1e-4)):
+        np.testing.assert_allclose(many.J[w], robot.kinematics(r, th).J, atol=1e-12)
+
+
 def test_pose_residual_rows_exact_at_large_residual():
     """Location-method rows are the exact derivative of −e even far from the solution."""
     from estcal.io import dataset_from_arrays

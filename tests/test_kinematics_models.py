@@ -231,3 +231,21 @@ def test_gravity_moments_of_a_heavy_puma():
     robot = heavy_puma()
     rng = np.random.default_rng(2)
     _check_loads_link_by_link(robot, robot.random_readings(6, rng), {"payload": rng.uniform(0, 3, 6)})
+
+
+def test_cross_at_an_inner_axis_is_numpys_cross_bit_for_bit():
+    """transforms.cross_at (the Jacobian corrections' cross product along the coordinate axis of (N, k, 3, P)
+    columns, broadcast) against numpy's np.cross on moved axes — equal to the last bit, as the corrections were
+    before it (the diagnosis's figures are unchanged by it)."""
+    from estcal.kinematics.transforms import cross, cross_at
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 1, 3, 7))
+    b = rng.normal(size=(5, 4, 3, 1))
+    got = cross_at(a, b, 2)
+    ref = np.moveaxis(np.cross(np.moveaxis(a, 2, -1), np.moveaxis(b, 2, -1)), -1, 2)
+    assert got.shape == (5, 4, 3, 7)
+    np.testing.assert_allclose(got, ref, rtol=1e-15, atol=1e-15)
+    assert np.array_equal(got, np.moveaxis(cross(np.moveaxis(a, 2, -1), np.moveaxis(b, 2, -1)), -1, 2))
+    out = np.empty((5, 4, 3, 7))
+    assert cross_at(a, b, 2, out=out) is out and np.array_equal(out, got)

@@ -236,3 +236,27 @@ def test_inside_ranges_marks_rows_beyond_any_training_joint_range():
     train = np.array([[0.0, -1.0], [1.0, 1.0], [0.5, 0.0]])
     rows = np.array([[0.5, 0.5], [0.0, -1.0], [1.0001, 0.0], [0.5, -1.2], [-0.1, 2.0]])
     assert inside_ranges(train, rows).tolist() == [True, True, False, False, False]
+
+
+def test_rmse_standard_error_over_postures_matches_a_bootstrap_of_postures():
+    """rmse_se_mm (ratio estimator over postures, δ-method) against an independent computation: the spread of the
+    RMSE over bootstrap resamples of the postures, on errors with a shared part per posture (rows of one posture
+    are not independent: a row-level formula would be too small), and the row-level case within it."""
+    from estcal.validation import rmse_mm, rmse_se_mm
+
+    rng = np.random.default_rng(7)
+    G = 40
+    reps = rng.integers(1, 4, G)  # 1–3 rows per posture
+    groups = np.repeat(np.arange(G), reps)
+    shared = rng.normal(0, 2e-3, (G, 1))[groups]  # a posture's own error, m
+    errors = np.abs(shared + rng.normal(0, 0.3e-3, (len(groups), 2)))  # (M, k=2) point-error norms
+    se = rmse_se_mm(errors, groups)
+    boot = []
+    for _ in range(4000):
+        pick = rng.integers(0, G, G)
+        rows = np.concatenate([np.flatnonzero(groups == g) for g in pick])
+        boot.append(rmse_mm(errors[rows]))
+    assert se == pytest.approx(np.std(boot), rel=0.12)
+    # treating the rows as independent would understate it: the postures are the units
+    assert rmse_se_mm(errors, np.arange(len(groups))) < 0.9 * se
+    assert rmse_se_mm(errors[:1], [0]) is None  # one posture: no spread to judge by

@@ -560,7 +560,7 @@ def _validation(final, data, d, joint_types, budget, cov, load_sides=None, regis
     :func:`_training_load_sides`)."""
     from estcal.estimate import calibrate_lsq
     from estcal.methods import Problem
-    from estcal.validation import seen_postures
+    from estcal.validation import posture_groups, rmse_se_mm, seen_postures
 
     from .stages import measured_points
 
@@ -594,7 +594,8 @@ def _validation(final, data, d, joint_types, budget, cov, load_sides=None, regis
     new = ~seen if seen.any() and (~seen).any() else np.ones(d.n, bool)
     dn = d.subset(np.flatnonzero(new))
     err = pose_errors(final, theta, dn)[0]
-    out = {"path": str(d.where), "rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3), "n_new": int(new.sum()),
+    out = {"path": str(d.where), "rmse_mm": float(np.sqrt(np.mean(err ** 2)) * 1e3),
+           "rmse_se_mm": rmse_se_mm(err, posture_groups(dn.readings, joint_types)), "n_new": int(new.sum()),
            "n_seen": int(seen.sum()), "registered": reg_ok, "frame_moved": moved, "zeros_moved": zeros,
            "predicted_mm": None,
            "coverage": None, **_unseen_load_sides(final, dn, load_sides or {})}

@@ -91,7 +91,8 @@ class DiagnosisResult:
         at new postures (the budget's ``expected_mm``), 95 % of points below ``bound95_mm``
     causes : the named :class:`Cause` list
     accuracy : ``{"train_mm", "cv_mm", "validation": [one dict per file: path, rmse_mm (its new postures,
-        its frame registered on its seen ones), n_new, n_seen, registered, frame_moved, predicted_mm,
+        its frame registered on its seen ones), rmse_se_mm (its standard error over those postures,
+        :func:`estcal.validation.rmse_se_mm`), n_new, n_seen, registered, frame_moved, predicted_mm,
         coverage]}`` — one validation figure per file
     terms : what was considered, kept, tested (``tested``: every naming test), regrouped
     budget : the error budget (:class:`estcal.discrepancy.budget.Budget` as a dict) or None
@@ -281,7 +282,8 @@ def _width_text(mode: str, w, choice=None) -> str:
 
 
 def _validation_line(v: dict) -> str:
-    s = f"{v['path']}: {v['rmse_mm']:.2f} mm at its {v['n_new']} new-posture rows"
+    se = f" ± {v['rmse_se_mm']:.2f}" if v.get("rmse_se_mm") is not None else ""
+    s = f"{v['path']}: {v['rmse_mm']:.2f}{se} mm at its {v['n_new']} new-posture rows"
     if v.get("registered"):
         fm = v["frame_moved"]
         s += (f" (measuring frame registered on its {v['n_seen']} rows at seen postures: moved {fm['rotation_mrad']:.2f} "

@@ -8,8 +8,8 @@ the same posture measured in another session or twice in one file — is never i
 from .postures import (DEFAULT_TOL_M, DEFAULT_TOL_RAD, extrapolation_distance, grouped_folds, inside_ranges,
                        joint_tolerances, n_postures, posture_groups, seen_postures)
 from .repeatability import repeatability_floor
-from .splits import rmse_mm, seen_new_scores, validation_split
+from .splits import rmse_mm, rmse_se_mm, seen_new_scores, validation_split
 
 __all__ = ["DEFAULT_TOL_M", "DEFAULT_TOL_RAD", "extrapolation_distance", "grouped_folds", "inside_ranges",
            "joint_tolerances", "n_postures",
-           "posture_groups", "seen_postures", "repeatability_floor", "rmse_mm", "seen_new_scores", "validation_split"]
+           "posture_groups", "seen_postures", "repeatability_floor", "rmse_mm", "rmse_se_mm", "seen_new_scores", "validation_split"]

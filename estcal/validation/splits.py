@@ -8,13 +8,38 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rmse_mm", "seen_new_scores", "validation_split"]
+__all__ = ["rmse_mm", "rmse_se_mm", "seen_new_scores", "validation_split"]
 
 
 def rmse_mm(errors) -> float | None:
     """RMS (mm) of point-error norms (m), any shape; ``None`` when empty."""
     e = np.asarray(errors, float).reshape(-1)
     return float(np.sqrt(np.mean(e ** 2)) * 1e3) if e.size else None
+
+
+def rmse_se_mm(errors, groups) -> float | None:
+    """Standard error (mm) of :func:`rmse_mm` of ``errors`` (M, k) point-error norms (m) over the postures
+    ``groups`` (M,) they were measured at: the postures are the independent units (the rows of one posture share
+    its error), so the mean square is a ratio of per-posture sums ``S_g`` over per-posture counts ``n_g`` and its
+    variance the ratio estimator's, ``G/(G−1) Σ_g (S_g − MSE·n_g)² / (Σ_g n_g)²`` (Cochran 1977, *Sampling
+    Techniques*, §6.4, the clusters' ratio mean), carried to the root by the δ-method, ``se(RMSE) = se(MSE) /
+    (2 RMSE)``. ``None`` with fewer than two postures or a zero RMSE.
+
+    The sampling error of the figure itself: a validation of a few dozen postures scores the model to ±10–20 %
+    (``experiments/tiago_disjoint.md``), however exact the model's own prediction of it."""
+    E = np.asarray(errors, float)
+    E = E.reshape(len(E), -1)
+    g = np.unique(np.asarray(groups), return_inverse=True)[1].reshape(-1)
+    G = int(g.max()) + 1 if g.size else 0
+    if G < 2:
+        return None
+    S = np.bincount(g, weights=np.sum(E ** 2, axis=1), minlength=G)
+    n = np.bincount(g, minlength=G) * E.shape[1]
+    mse = S.sum() / n.sum()
+    if not mse > 0:
+        return None
+    var = G / (G - 1) * np.sum((S - mse * n) ** 2) / n.sum() ** 2
+    return float(np.sqrt(var) / (2.0 * np.sqrt(mse)) * 1e3)
 
 
 def seen_new_scores(errors, seen, inside=None) -> dict:
