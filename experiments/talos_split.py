@@ -55,6 +55,8 @@ def _width_text(choice, width) -> str:
     if choice:
         return (f"{'bounded' if choice['bounded'] else 'unbounded'} by the one-standard-error rule (CV "
                 f"{choice['cv_bounded_mm']:.2f} bounded, {choice['cv_unbounded_mm']:.2f} unbounded)")
+    if isinstance(width, str):  # auto with no choice made: no link frame under a prior
+        return "not bounded (no link frame under a prior)"
     return "unbounded" if width is None else f"within {width * 1e3:g} mm / mrad"
 
 
