@@ -384,3 +384,27 @@ def test_linear_cv_matches_nonlinear_refits(one_session, puma, keep_whitening):
     assert tot_lin == pytest.approx(tot_nl, rel=0.005)
     # the held-out error is the noise's (√3 σ per point) plus the model's, not a fit of the held-out rows
     assert np.all(lin > 0.5 * np.sqrt(3) * SIGMA) and np.all(lin < 3 * np.sqrt(3) * SIGMA)
+
+
+def test_a_repeated_search_is_the_first_ones_and_a_replaced_system_starts_afresh(one_session):
+    """refit keeps a system's last searches (System.refits): the same rows, columns and start give the fit it
+    made, equal to a fresh search on a fresh copy of the system; other columns or another start search again;
+    a system made by dataclasses.replace (other priors) does not inherit the kept searches."""
+    import dataclasses
+
+    _, _, _, fit, _ = one_session
+    sysm = fit.system
+    rows = np.arange(0, len(sysm.t), 2)
+    inc = np.ones(sysm.P.shape[1], bool)
+    inc[-1] = False
+    first = refit(sysm, rows, inc, fit.sparse.alpha)
+    assert refit(sysm, rows, inc, fit.sparse.alpha) is first
+    fresh = refit(dataclasses.replace(sysm), rows, inc, fit.sparse.alpha)
+    assert fresh is not first
+    for a, b in ((fresh.mean, first.mean), (fresh.alpha, first.alpha), (fresh.free, first.free),
+                 (fresh.cov, first.cov)):
+        assert np.array_equal(a, b)
+    assert refit(sysm, rows, None, fit.sparse.alpha) is not first
+    assert refit(sysm, rows, inc, None) is not first
+    wider = dataclasses.replace(sysm, alpha_min=np.zeros(sysm.P.shape[1]))
+    assert not wider.refits and not wider.prepared

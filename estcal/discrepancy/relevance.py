@@ -112,10 +112,12 @@ class System:
     zeros: tuple = ()
     alpha_min: np.ndarray | None = None
     #: sparse_bayes's row-only work (:class:`estcal.estimate.sparse.Prepared`) by training rows, shared by refits
-    prepared: dict = field(default_factory=dict, repr=False, compare=False)
+    prepared: dict = field(default_factory=dict, init=False, repr=False, compare=False)
     #: the last searches (:func:`refit` without ``hyper``) by training rows, columns and start: the naming's steps
-    #: and the budget cross-validate the same model on the same folds again (a tenth of a diagnosis's searches)
-    refits: dict = field(default_factory=dict, repr=False, compare=False)
+    #: and the budget cross-validate the same model on the same folds again (a tenth of a diagnosis's searches).
+    #: Both caches belong to this system's rows and priors: never passed on (``init=False``: a
+    #: ``dataclasses.replace`` with other priors starts empty)
+    refits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def F(self):
