@@ -24,6 +24,7 @@ sys.path.insert(0, str(REPO))
 
 from estcal.base.jsonio import write_json  # noqa: E402
 from estcal.kinematics.robots import shared_dir  # noqa: E402
+from tiago_disjoint import width_text  # noqa: E402  (this folder: the TIAGo study's words for the width)
 
 SEEDS = (0, 1, 2)
 N_TRAIN = 40
@@ -51,15 +52,6 @@ def split(robot, data, seed):
     return data.subset(np.flatnonzero(m)), data.subset(np.flatnonzero(~m))
 
 
-def _width_text(choice, width) -> str:
-    if choice:
-        return (f"{'bounded' if choice['bounded'] else 'unbounded'} by the one-standard-error rule (CV "
-                f"{choice['cv_bounded_mm']:.2f} bounded, {choice['cv_unbounded_mm']:.2f} unbounded)")
-    if isinstance(width, str):  # auto with no choice made: no link frame under a prior
-        return "not bounded (no link frame under a prior)"
-    return "unbounded" if width is None else f"within {width * 1e3:g} mm / mrad"
-
-
 def run(seeds, geometric_width="auto"):
     from estcal.workflows.diagnose import diagnose
 
@@ -77,7 +69,7 @@ def run(seeds, geometric_width="auto"):
         rows.append(r)
         print(f"seed {s}: {T.n} training rows, {V.n} new-posture rows: {r['new_mm']:.2f} ± {r['new_se_mm']:.2f} mm; expected "
               f"{r['expected_mm']:.2f}, at its postures {r['predicted_at_mm']:.2f}; coverage {r['coverage']:.2f}; "
-              f"named {r['named']}; link frames {_width_text(r['width_choice'], geometric_width)}; "
+              f"named {r['named']}; link frames {width_text(r['width_choice'], geometric_width)}; "
               f"{r['cpu_s']:.1f} s CPU", flush=True)
     return {"rows": rows}
 

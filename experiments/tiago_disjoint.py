@@ -110,7 +110,9 @@ def _zeros_text(zeros) -> str:
     return ", ".join(f"{j} {1e3 * x:+.1f} ± {1e3 * e:.1f}" for j, (x, e) in zeros.items()) or "none"
 
 
-def _width_text(choice, width) -> str:
+def width_text(choice, width) -> str:
+    """The link frames' prior width of one halving's model, for the log line (``talos_split.py`` prints it too):
+    the one-standard-error rule's choice and the CV errors it compared, or the width that was given."""
     if choice:
         return (f"{'bounded' if choice['bounded'] else 'unbounded'} (CV {choice['cv_bounded_mm']:.2f} bounded, "
                 f"{choice['cv_unbounded_mm']:.2f} + 1 SE {choice['cv_unbounded_plus_se_mm']:.2f} unbounded)")
@@ -145,7 +147,7 @@ def run(seeds, folds=5, register_zeros=True, geometric_width="auto"):
               f"expected {r['expected_mm']:.2f} (ratio {r['ratio_expected']:.2f}), at its postures "
               f"{r['predicted_at_mm']:.2f} (ratio {r['ratio_at']:.2f}); coverage {r['coverage']:.2f}; "
               f"named {r['named']}; zeros moved {_zeros_text(r['zeros_moved'])}; link frames "
-              f"{_width_text(r['width_choice'], geometric_width)}; {cpu:.1f} s CPU", flush=True)
+              f"{width_text(r['width_choice'], geometric_width)}; {cpu:.1f} s CPU", flush=True)
     new = np.array([r["new_mm"] for r in rows])
     print(f"mean at new postures {new.mean():.2f} mm (median {np.median(new):.2f}); within 30 %: expected "
           f"{sum(0.7 <= r['ratio_expected'] <= 1.3 for r in rows)}/{len(rows)}, at its postures "

@@ -353,16 +353,15 @@ def refit(system: System, train=None, include=None, start=None, hyper=None) -> S
         keep = np.any(Fw != 0, axis=0)
         system.prepared[key] = (Prepared(system.Xw[rows, system.n_free:], system.tw[rows], Fw[:, keep]), keep)
     pre, keep = system.prepared[key]
-    if hyper is None:
+    if hyper is not None:
+        fit = sparse_bayes(None, None, start=hyper[0], exclude=exclude, noise_var=hyper[1], max_iter=0,
+                           alpha_min=system.alpha_min, prepared=pre)
+    else:
         memo = (key, None if exclude is None else exclude.tobytes(),
                 None if start is None else np.asarray(start, float).tobytes())
         if memo in system.refits:
             system.refits[memo] = fit = system.refits.pop(memo)  # the most recent last; never written to
             return fit
-    if hyper is not None:
-        fit = sparse_bayes(None, None, start=hyper[0], exclude=exclude, noise_var=hyper[1], max_iter=0,
-                           alpha_min=system.alpha_min, prepared=pre)
-    else:
         fit = sparse_bayes(None, None, start=start, exclude=exclude, tol=TOL, alpha_min=system.alpha_min,
                            prepared=pre)
     free = np.zeros(system.n_free)
