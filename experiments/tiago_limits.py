@@ -1,5 +1,5 @@
 """What limits the TIAGo posture- and session-disjoint figure (``tiago_disjoint.py``) — two measurements on the
-development halvings (seeds 0–5, both directions), no choice of the model made on them.
+development halvings (seeds 0–5, both directions), no choice of the model made on them, and two on the sessions.
 
 1. **Where the error is.** Each halving's validation file is scored three ways by the same diagnosis (a validation
    file never decides anything): all its new-posture rows; only those whose every joint reading lies inside the
@@ -24,8 +24,17 @@ development halvings (seeds 0–5, both directions), no choice of the model made
    its residual at the shared postures in both sessions (does the same posture keep the same error?) and,
    at 11-26's other postures, what the three nearest 11-30 postures' residual predicts of it (is it a smooth
    function of the joint angles?).
+4. **What that residual is not a function of.** The same model's residual at every posture of both sessions, as the
+   small rigid motion (rotation, translation) of the marker body that best explains its four points' residual, is
+   screened against what the robot carries along its path — for every joint the move into the posture (signed and
+   its size), the direction of the move before it, the previous posture's reading — and against the marker
+   system's own jitter (``marker_std_mm``); and it is compared between postures near each other in the capture
+   volume (the marker body's position and orientation), in joint space, and at random. Chance is measured, not
+   assumed: the postures' residuals are permuted within each session (``--permutations``, seeded) and the same
+   largest correlation, the same mean agreement of neighbours, recomputed.
 
-``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31).
+``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31); ``--parts`` which
+parts to run (default all).
 """
 from __future__ import annotations
 
@@ -111,14 +120,27 @@ def simulated(robot, sessions, seeds, noise_seeds) -> dict:
     return out
 
 
-def between_sessions(robot, sessions) -> dict:
+def two_session_model(robot, sessions) -> dict:
+    """The default diagnosis of both sessions together: ``zeros`` (11-26's registered joint zeros), each session's
+    residual ``(n, 4, 3)`` (m) at its own frame and zeros and its points' derivatives in the joint readings
+    (:func:`_residual`)."""
+    from estcal.workflows.diagnose import diagnose
+
+    a, b = sessions["11-30"], sessions["11-26"]
+    both = diagnose(robot, [a, b], budget=False)
+    zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
+    (ra, ja), (rb, jb) = _residual(both, a, {}, True), _residual(both, b, zeros, True)
+    return {"zeros": zeros, "residual": {"11-30": ra, "11-26": rb}, "joint_columns": {"11-30": ja, "11-26": jb}}
+
+
+def between_sessions(robot, sessions, model) -> dict:
     """Part 3 of the module docstring: the hand's rotation between the sessions at their shared postures (mrad:
     its mean vector and the RMS of its change about that mean, in the measuring frame), the points' RMS
-    difference after the one registration (mm), and the two-session diagnosis's joint zeros of 11-26."""
+    difference after the one registration (mm), and the two-session diagnosis's joint zeros of 11-26
+    (``model``: :func:`two_session_model`)."""
     from scipy.spatial.transform import Rotation
 
     from estcal.validation import posture_groups
-    from estcal.workflows.diagnose import diagnose
 
     a, b = sessions["11-30"], sessions["11-26"]
     g = posture_groups(np.vstack([a.readings, b.readings]), robot.joint_types)
@@ -131,9 +153,8 @@ def between_sessions(robot, sessions) -> dict:
     pb = rot.apply((pb - cb).reshape(-1, 3)).reshape(pb.shape) + ca
     turn = np.array([Rotation.align_vectors(x - x.mean(0), y - y.mean(0))[0].as_rotvec()
                      for x, y in zip(pb, pa)]) * 1e3  # the hand of 11-26 onto 11-30's, per posture
-    both = diagnose(robot, [a, b], budget=False)
-    zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
-    ra, rb = _residual(both, a, {}), _residual(both, b, zeros)  # (n, 4, 3) m, each session at its frame and zeros
+    zeros = model["zeros"]
+    ra, rb = model["residual"]["11-30"], model["residual"]["11-26"]  # (n, 4, 3) m, each at its frame and zeros
     rms = lambda e: float(np.sqrt(np.mean(np.sum(e ** 2, axis=-1))) * 1e3)  # noqa: E731
     new = np.setdiff1d(np.arange(b.n), ib)
     # the three 11-30 postures nearest in joint space (readings standardised by 11-26's spread) predict 11-26's
@@ -163,9 +184,163 @@ def between_sessions(robot, sessions) -> dict:
     return out
 
 
-def _residual(res, data, zeros):
+def _rigid(resid, points) -> np.ndarray:
+    """(n, 6) the small rigid motion of each posture's marker body that best explains its points' residual
+    (least squares ``r_i ≈ t + ω × (x_i − c)``): rotation ω (mrad), translation t (mm), measuring frame."""
+    x = points - points.mean(axis=1, keepdims=True)
+    skew = np.zeros(x.shape + (3,))  # ω × x = −[x]× ω: the rotation's columns of the design
+    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = x[..., 2], -x[..., 1], x[..., 0]
+    skew -= np.swapaxes(skew, -1, -2)
+    design = np.concatenate([skew, np.broadcast_to(np.eye(3), x.shape + (3,))], axis=-1).reshape(len(x), -1, 6)
+    sol = np.stack([np.linalg.lstsq(A, r.ravel(), rcond=None)[0] for A, r in zip(design, resid)])
+    return sol * 1e3
+
+
+def _path_features(data) -> dict:
+    """What the robot carries along its path into each posture, per joint: the move into it (signed, and its
+    size), the direction of the move before, the previous posture's reading; and the marker system's jitter."""
+    q = data.readings
+    dq = np.diff(q, axis=0, prepend=q[:1])
+    feats = {}
+    for j, nm in enumerate(data.joint_names):
+        feats[f"{nm} move"] = dq[:, j]
+        feats[f"{nm} move size"] = np.abs(dq[:, j])
+        feats[f"{nm} move before"] = np.sign(np.r_[0.0, dq[:-1, j]])
+        feats[f"{nm} previous reading"] = np.r_[q[0, j], q[:-1, j]]
+    feats["marker jitter"] = np.asarray(data.columns["marker_std_mm"], float)
+    return feats
+
+
+def _standardise(x, groups):
+    """Columns centred and scaled within each session (the sessions' own offsets are not a feature)."""
+    x = np.array(x, float)
+    for g in np.unique(groups):
+        m = groups == g
+        x[m] -= x[m].mean(axis=0)
+    sd = np.sqrt((x ** 2).mean(axis=0))
+    return x / np.where(sd > 0, sd, 1.0)
+
+
+#: part 4's power: path errors of these sizes (mrad; mm for a prismatic joint) are added to find the least one found
+AMPLITUDES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+
+
+def _joint_screen(sessions, model, perms, grp) -> dict:
+    """The path features as a hysteresis would act: joint j's angle error ``c · f_ij`` for one feature of joint j
+    (standardised within each session), i.e. the regressor ``f_ij ∂x/∂q_j`` on all points of posture i; the share
+    of the squared residual its least-squares ``c`` explains, the largest over joints and features, against the
+    same largest share with the features permuted within each session (the residuals and columns stay paired).
+    The screen's power: the least of :data:`AMPLITUDES` × "the move before" (±1), added to each joint in turn,
+    that the same screen finds at p ≤ 0.05."""
+    labels = list(sessions)
+    feats = {lab: _path_features(sessions[lab]) for lab in labels}
+    pairs = [(j, n) for j in model["joint_columns"][labels[0]] for n in feats[labels[0]] if n.startswith(j + " ")]
+    R = np.concatenate([model["residual"][lab][1:].reshape(sessions[lab].n - 1, -1) for lab in labels])
+    raw = np.column_stack([np.concatenate([feats[lab][n][1:] for lab in labels]) for _, n in pairs])
+    F = _standardise(raw, grp)
+    J = np.stack([np.concatenate([model["joint_columns"][lab][j][1:].reshape(sessions[lab].n - 1, -1)
+                                  for lab in labels]) for j, _ in pairs], axis=-1)  # (rows, 12, pairs)
+    JJ = np.einsum("rcp,rcp->rp", J, J)
+
+    def screen(res):
+        JR, RR = np.einsum("rcp,rc->rp", J, res), float(np.sum(res ** 2))
+        share = [(np.sum(F[p] * JR, axis=0) ** 2 / np.sum(F[p] ** 2 * JJ, axis=0)) / RR for p in perms]
+        top = np.array([x.max() for x in share])
+        return top, int(np.argmax(share[0]))
+
+    top, best = screen(R)
+    found = {}  # the least of AMPLITUDES (mrad, or mm for a prismatic joint) the screen finds at p ≤ 0.05
+    for c, (j, n) in enumerate(pairs):
+        if n.endswith(" move before"):
+            found[j] = next((a for a in AMPLITUDES
+                             if _p_value(screen(R + a * 1e-3 * raw[:, c, None] * J[:, :, c])[0]) <= 0.05), None)
+    return {"pairs": len(pairs), "largest_share": float(top[0]), "feature": pairs[best][1],
+            "chance_median_share": float(np.median(top[1:])), "p_value": _p_value(top), "found_from": found}
+
+
+def _p_value(stat) -> float:
+    """Permutation p-value of ``stat[0]`` against ``stat[1:]``, counting the observed one (Phipson & Smyth 2010,
+    *Stat. Appl. Genet. Mol. Biol.* 9:39): never 0."""
+    return float((np.sum(stat[1:] >= stat[0]) + 1) / len(stat))
+
+
+def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
+    """Part 4 of the module docstring. Rows after each session's first (a move into them exists): the largest
+    squared correlation between a path feature and a component of the rigid residual, against the same largest
+    value with the residuals permuted within each session; the mean agreement ``r_i·r_j / mean |r|²`` of the
+    point residuals of the nearest 5 % of pairs of postures (capture volume, joint space), against permutation.
+    Pairs at one posture measured in both sessions are left out (they agree: part 3)."""
+    from scipy.spatial.transform import Rotation
+
+    names, Y, F, R, pos, rot, q, grp = [], [], [], [], [], [], [], []
+    for k, (label, d) in enumerate(sessions.items()):
+        r = model["residual"][label][1:]
+        pts = np.asarray(d.points)[1:]
+        feats = {n: v[1:] for n, v in _path_features(d).items()}
+        names = list(feats)
+        F.append(np.column_stack(list(feats.values())))
+        Y.append(_rigid(r, pts))
+        R.append(r.reshape(len(r), -1) * 1e3)
+        pos.append(pts.mean(axis=1))
+        rot.append(np.array([Rotation.align_vectors(p - p.mean(0), pts[0] - pts[0].mean(0))[0].as_matrix() for p in pts]))
+        q.append(d.readings[1:])
+        grp.append(np.full(len(r), k))
+    grp = np.concatenate(grp)
+    F, Y, R = _standardise(np.vstack(F), grp), _standardise(np.vstack(Y), grp), np.vstack(R)
+    for g in np.unique(grp):  # each session's mean residual is its frame's business
+        R[grp == g] -= R[grp == g].mean(axis=0)
+    rng = np.random.default_rng(seed)
+    perms = [np.arange(len(grp))] + [np.concatenate([rng.permutation(np.flatnonzero(grp == g)) for g in np.unique(grp)])
+                                     for _ in range(permutations)]
+    corr = lambda y: (F.T @ y / len(y)) ** 2  # noqa: E731
+    top = np.array([corr(Y[p]).max() for p in perms])
+    c0 = corr(Y)
+    best = np.unravel_index(np.argmax(c0), c0.shape)
+    comp = ["rx", "ry", "rz", "tx", "ty", "tz"]
+    out = {"rows": int(len(grp)), "features": len(names), "screen": {
+        "largest_r2": float(top[0]), "feature": names[best[0]], "component": comp[best[1]],
+        "chance_median_r2": float(np.median(top[1:])), "p_value": _p_value(top)}}
+    pos, q = np.vstack(pos), np.vstack(q)
+    rot = np.concatenate(rot)
+    iu = np.triu_indices(len(grp), 1)
+    q_sd = np.where(q.std(0) > 0, q.std(0), 1.0)
+    d_q = np.linalg.norm((q[:, None] - q[None]) / q_sd, axis=-1)[iu]
+    d_pos = np.linalg.norm(pos[:, None] - pos[None], axis=-1)[iu]
+    rel = np.einsum("iab,jac->ijbc", rot, rot)
+    d_rot = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1))[iu]
+    keep = d_q > 1e-2  # a posture measured in both sessions is part 3's business
+    near = {"capture volume": d_pos / np.median(d_pos) + d_rot / np.median(d_rot), "joint space": d_q}
+    scale = np.mean(np.sum(R ** 2, axis=1))
+    out["neighbours"] = {}
+    for label, dist in near.items():
+        pairs = np.argsort(np.where(keep, dist, np.inf))[: int(0.05 * keep.sum())]
+        i, j = iu[0][pairs], iu[1][pairs]
+        agree = np.array([np.mean(np.sum(R[p][i] * R[p][j], axis=1)) / scale for p in perms])
+        out["neighbours"][label] = {"pairs": int(len(pairs)), "agreement": float(agree[0]),
+                                    "chance_95": float(np.quantile(agree[1:], 0.95)),
+                                    "p_value": _p_value(agree)}
+    out["joint_screen"] = _joint_screen(sessions, model, perms, grp)
+    sc = out["screen"]
+    print(f"the two-session model's residual at {out['rows']} postures (each session's first left out): the best of "
+          f"{out['features']} path features ({sc['feature']}, {sc['component']}) explains r² = {sc['largest_r2']:.2f} "
+          f"of a component, chance's best {sc['chance_median_r2']:.2f} (median; p = {sc['p_value']:.3f})")
+    js = out["joint_screen"]
+    print(f"  as a joint's angle error proportional to one of its own path features: the best of {js['pairs']} "
+          f"({js['feature']}) explains {js['largest_share']:.3f} of the squared residual, chance's best "
+          f"{js['chance_median_share']:.3f} (median; p = {js['p_value']:.3f}); added, one is found from "
+          + ", ".join(f"{j} {a:g}" if a else f"{j} > {AMPLITUDES[-1]:g}" for j, a in js["found_from"].items())
+          + " mrad (mm for a prismatic joint)")
+    for label, v in out["neighbours"].items():
+        print(f"  the nearest 5 % of pairs in {label} ({v['pairs']}): agreement {v['agreement']:+.2f} of the mean "
+              f"squared residual (chance's 95 % point {v['chance_95']:+.2f}; p = {v['p_value']:.4f})")
+    return out
+
+
+def _residual(res, data, zeros, joint_columns: bool = False):
     """(n, k, 3) measured minus predicted points (m) of ``data`` with the diagnosis's model, its joint zeros moved by
-    ``zeros`` ({joint: [value (mrad or mm), std, unit]}) and its frame registered by one rigid motion."""
+    ``zeros`` ({joint: [value (mrad or mm), std, unit]}) and its frame registered by one rigid motion; with
+    ``joint_columns`` also ``{joint: (n, k, 3)}``, the points' derivative in its reading (m/rad or m/m),
+    turned by the same registration."""
     from scipy.spatial.transform import Rotation
 
     from estcal.discrepancy.zeros import zero_parameters
@@ -177,17 +352,27 @@ def _residual(res, data, zeros):
         theta[model.params.index(param[j])] += v[0] * 1e-3
     d = res.prepare(data)
     meas = np.asarray(data.points)
-    pred = model.kinematics(d.readings, theta, context=d.context, jacobian=False).points[:, : meas.shape[1]]
+    kin = model.kinematics(d.readings, theta, context=d.context, jacobian=joint_columns)
+    pred = kin.points[:, : meas.shape[1]]
     cp, cm = pred.reshape(-1, 3).mean(0), meas.reshape(-1, 3).mean(0)
     rot, _ = Rotation.align_vectors(meas.reshape(-1, 3) - cm, pred.reshape(-1, 3) - cp)
-    return meas - (rot.apply(pred.reshape(-1, 3) - cp).reshape(pred.shape) + cm)
+    resid = meas - (rot.apply(pred.reshape(-1, 3) - cp).reshape(pred.shape) + cm)
+    if not joint_columns:
+        return resid
+    cols = {j: rot.apply(kin.J_points[:, : meas.shape[1], :, model.params.index(n)].reshape(-1, 3)).reshape(pred.shape)
+            for j, n in param.items()}
+    return resid, cols
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--noise-seeds", default="11,21,31")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run")
+    ap.add_argument("--permutations", type=int, default=2000, help="part 4's permutations of the residuals")
+    ap.add_argument("--permutation-seed", type=int, default=4)
     args = ap.parse_args(argv)
+    parts = {int(x) for x in args.parts.split(",")}
     from estcal.base.blas import single_thread_blas
 
     warnings.filterwarnings("ignore")
@@ -197,14 +382,21 @@ def main(argv=None) -> dict:
     robot, sessions = td.load()
     t0 = time.process_time()
     with single_thread_blas():  # as the diagnosis runs anyway: the simulation's own arrays too
-        out = {"seeds": list(td.DEVELOPMENT), "where": where_the_error_is(robot, sessions, td.DEVELOPMENT)}
-        w = out["where"]
-        ins = [r["inside_mm"] for r in w if r["inside_mm"] is not None]
-        out["inside_mean_mm"], out["new_mean_mm"] = float(np.mean(ins)), float(np.mean([r["new_mm"] for r in w]))
-        print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges {out['inside_mean_mm']:.2f} "
-              f"mm (range {min(ins):.2f}–{max(ins):.2f})")
-        out["simulated"] = simulated(robot, sessions, td.DEVELOPMENT, [int(x) for x in args.noise_seeds.split(",")])
-        out["between_sessions"] = between_sessions(robot, sessions)
+        out = {"seeds": list(td.DEVELOPMENT)}
+        if 1 in parts:
+            out["where"] = w = where_the_error_is(robot, sessions, td.DEVELOPMENT)
+            ins = [r["inside_mm"] for r in w if r["inside_mm"] is not None]
+            out["inside_mean_mm"], out["new_mean_mm"] = float(np.mean(ins)), float(np.mean([r["new_mm"] for r in w]))
+            print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges "
+                  f"{out['inside_mean_mm']:.2f} mm (range {min(ins):.2f}–{max(ins):.2f})")
+        if 2 in parts:
+            out["simulated"] = simulated(robot, sessions, td.DEVELOPMENT, [int(x) for x in args.noise_seeds.split(",")])
+        if parts & {3, 4}:
+            model = two_session_model(robot, sessions)
+        if 3 in parts:
+            out["between_sessions"] = between_sessions(robot, sessions, model)
+        if 4 in parts:
+            out["not_a_function_of"] = not_a_function_of(sessions, model, args.permutations, args.permutation_seed)
     out["cpu_s"] = time.process_time() - t0
     if args.json:
         write_json(args.json, out, announce=True)

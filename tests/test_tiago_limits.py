@@ -1,0 +1,99 @@
+"""The formulas of ``experiments/tiago_limits.py``'s part 4 (what the residual is not a function of), on synthetic
+data against independent computations: no shared data needed."""
+import importlib.util
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tl():
+    spec = importlib.util.spec_from_file_location("tiago_limits", REPO / "experiments" / "tiago_limits.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_rigid_motion_of_a_body_against_scipys_alignment(tl):
+    """Each posture's small rigid motion from its points' residual equals the rotation and translation scipy's
+    Kabsch alignment finds between the body before and after (to second order in the angle)."""
+    rng = np.random.default_rng(0)
+    body = rng.normal(0, 0.08, (4, 3))
+    pts = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(5)])
+    w = rng.normal(0, 3e-3, (5, 3))  # rad
+    t = rng.normal(0, 1e-3, (5, 3))  # m
+    c = pts.mean(axis=1, keepdims=True)
+    moved = np.stack([Rotation.from_rotvec(w[i]).apply(pts[i] - c[i]) for i in range(5)]) + c + t[:, None]
+    got = tl._rigid(moved - pts, pts)
+    for i in range(5):
+        rot, _ = Rotation.align_vectors(moved[i] - moved[i].mean(0), pts[i] - c[i])
+        assert got[i, :3] == pytest.approx(rot.as_rotvec() * 1e3, abs=0.02)  # mrad; second order: ~(3 mrad)²
+        assert got[i, 3:] == pytest.approx((moved[i].mean(0) - c[i, 0]) * 1e3, abs=1e-9)  # mm, exact
+
+
+def _sessions(rng, n=(20, 30), joints=("j1", "j2", "j3")):
+    out = {}
+    for k, m in enumerate(n):
+        q = np.cumsum(rng.normal(0, 0.3, (m, len(joints))), axis=0)
+        cols = {j: rng.normal(0, 1e-3 * (i + 1), (m, 4, 3)) for i, j in enumerate(joints)}
+        out[f"s{k}"] = (SimpleNamespace(n=m, readings=q, joint_names=list(joints),
+                                        columns={"marker_std_mm": rng.uniform(0.05, 0.5, m)}), cols)
+    return out
+
+
+def _screen(tl, rng, sessions, residual, permutations=199):
+    model = {"residual": residual, "joint_columns": {k: v[1] for k, v in sessions.items()}}
+    data = {k: v[0] for k, v in sessions.items()}
+    grp = np.concatenate([np.full(d.n - 1, i) for i, d in enumerate(data.values())])
+    perms = [np.arange(len(grp))] + [np.concatenate([rng.permutation(np.flatnonzero(grp == g)) for g in range(2)])
+                                     for _ in range(permutations)]
+    return tl._joint_screen(data, model, perms, grp), data, grp
+
+
+def test_joint_screen_share_is_the_least_squares_fit_of_one_joint_error(tl):
+    """The screen's share for every (joint, feature) pair is 1 − ‖r − c x‖²/‖r‖² with c by numpy's least squares on
+    the regressor x_i = f_i ∂x/∂q_j (f standardised within each session), and the largest is reported."""
+    rng = np.random.default_rng(1)
+    sessions = _sessions(rng)
+    residual = {k: rng.normal(0, 1e-3, (v[0].n, 4, 3)) for k, v in sessions.items()}
+    out, data, grp = _screen(tl, rng, sessions, residual)
+    r = np.concatenate([residual[k][1:].ravel() for k in data])
+    best = 0.0
+    for j in ("j1", "j2", "j3"):
+        for name in ("move", "move size", "move before", "previous reading"):
+            f = np.concatenate([tl._path_features(d)[f"{j} {name}"][1:] for d in data.values()])
+            f = tl._standardise(f[:, None], grp)[:, 0]
+            x = np.concatenate([(f[grp == i][:, None, None] * sessions[k][1][j][1:]).ravel()
+                                for i, k in enumerate(data)])
+            c = np.linalg.lstsq(x[:, None], r, rcond=None)[0]
+            best = max(best, 1 - np.sum((r - x * c) ** 2) / np.sum(r ** 2))
+    assert out["pairs"] == 12
+    assert out["largest_share"] == pytest.approx(best, rel=1e-9)
+    assert out["p_value"] > 0.05  # noise: nothing found (this seed; the figure is a permutation p-value)
+
+
+def test_joint_screen_finds_a_path_error_it_is_given(tl):
+    """A joint error proportional to the direction of the move before (a hysteresis with a longer memory), added
+    to noise, is found: the right joint and feature, the least p-value the permutations allow; and the screen's
+    power finds an error of that size on that joint."""
+    rng = np.random.default_rng(2)
+    sessions = _sessions(rng)
+    residual = {}
+    for k, (d, cols) in sessions.items():
+        f = tl._path_features(d)["j2 move before"]
+        residual[k] = rng.normal(0, 2e-4, (d.n, 4, 3)) + 0.3 * f[:, None, None] * cols["j2"]
+    out, _, _ = _screen(tl, rng, sessions, residual)
+    assert out["feature"] == "j2 move before"
+    assert out["largest_share"] > 0.5
+    assert out["p_value"] == pytest.approx(1 / 200)
+    assert out["found_from"]["j2"] is not None
+
+
+def test_permutation_p_value_counts_the_observed_statistic(tl):
+    assert tl._p_value(np.array([5.0, 1.0, 2.0, 6.0])) == pytest.approx(2 / 4)
+    assert tl._p_value(np.array([9.0, 1.0, 2.0, 3.0])) == pytest.approx(1 / 4)
