@@ -177,12 +177,30 @@ def attainable_within(rows, tol: float = 0.3) -> float:
     return out
 
 
+#: the declared seed sets by name (the module docstring says when each was declared and what it decided)
+SEED_SETS = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
+             "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4, "confirmation5": CONFIRMATION5,
+             "confirmation6": CONFIRMATION6, "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
+             "confirmation9": CONFIRMATION9, "confirmation10": CONFIRMATION10}
+
+
+def seed_set(text: str) -> tuple:
+    """Seeds from ``--seeds``: a set's name, ``all`` (every declared set, in order), or a comma-separated list."""
+    if text == "all":
+        return tuple(s for v in SEED_SETS.values() for s in v)
+    try:
+        return SEED_SETS.get(text) or tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a seed set ({', '.join(SEED_SETS)}, all) nor a "
+                                         "comma-separated list of integers") from None
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", default="development", help="development (0–5), confirmation (20–22), confirmation2 "
+    ap.add_argument("--seeds", type=seed_set, default="development", help="development (0–5), confirmation (20–22), confirmation2 "
                     "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
                     "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182), "
-                    "confirmation10 (200–202) or a list")
+                    "confirmation10 (200–202), all (every set) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")
@@ -195,12 +213,7 @@ def main(argv=None) -> dict:
     if missing():
         print(missing())
         return {"skipped": True}
-    seeds = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirmation2": CONFIRMATION2,
-             "confirmation3": CONFIRMATION3, "confirmation4": CONFIRMATION4,
-             "confirmation5": CONFIRMATION5, "confirmation6": CONFIRMATION6,
-             "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
-             "confirmation9": CONFIRMATION9, "confirmation10": CONFIRMATION10}.get(args.seeds)
-    seeds = seeds or tuple(int(x) for x in args.seeds.split(","))
+    seeds = args.seeds
     from estcal.workflows.diagnose import width_from_text
 
     width = width_from_text(args.geometric_width_mm)

@@ -1,5 +1,6 @@
 """What limits the TIAGo posture- and session-disjoint figure (``tiago_disjoint.py``) — two measurements on the
-development halvings (seeds 0–5, both directions), no choice of the model made on them, and two on the sessions.
+development halvings (seeds 0–5, both directions; ``--seeds`` other sets), no choice of the model made on them,
+and two on the sessions.
 
 1. **Where the error is.** Each halving's validation file is scored three ways by the same diagnosis (a validation
    file never decides anything): all its new-posture rows; only those whose every joint reading lies inside the
@@ -95,8 +96,14 @@ def _f(x):
     return "—" if x is None else f"{x:.2f} mm"
 
 
-def simulated(robot, sessions, seeds, noise_seeds) -> dict:
-    """The halvings' mean on data simulated from the two-session model (module docstring, 2.)."""
+#: part 2's simulated noises: ``--noises`` names and the table's labels
+NOISES = {"rigid": "its rigid error per posture", "independent": "its residual, independent",
+          "repeatability": "repeatability", "0.1": "0.1 mm"}
+
+
+def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES)) -> dict:
+    """The halvings' mean on data simulated from the two-session model (module docstring, 2.), for the noise
+    ``kinds`` (the table's rows, in its order)."""
     from estcal.discrepancy.feedback import simulate_like
     from estcal.workflows.diagnose import diagnose
 
@@ -106,8 +113,8 @@ def simulated(robot, sessions, seeds, noise_seeds) -> dict:
     print(f"reference: the default diagnosis of both sessions — residual {resid_mm:.2f} mm per point; named "
           f"{', '.join(out['reference_named']) or 'nothing'}")
     iid = resid_mm * 1e-3 / np.sqrt(3.0)
-    for label, sigma in (("its rigid error per posture", None), ("its residual, independent", iid),
-                         ("repeatability", REPEATABILITY_MM * 1e-3 / np.sqrt(3.0)), ("0.1 mm", 1e-4)):
+    sigmas = {"rigid": None, "independent": iid, "repeatability": REPEATABILITY_MM * 1e-3 / np.sqrt(3.0), "0.1": 1e-4}
+    for label, sigma in ((NOISES[k], sigmas[k]) for k in kinds):
         for ns in noise_seeds:
             sims = {k: simulate_like(ref, sessions[k], seed=ns + i, noise=sigma)
                     for i, k in enumerate(("11-30", "11-26"))}
@@ -369,10 +376,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--noise-seeds", default="11,21,31")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run")
+    ap.add_argument("--seeds", type=td.seed_set, default="development", help="the halvings of parts 1 and 2: a set's name as "
+                    "tiago_disjoint.py's --seeds (development, confirmation…, all) or a list")
+    ap.add_argument("--noises", default="rigid,independent,repeatability,0.1", help="part 2's simulated noises")
     ap.add_argument("--permutations", type=int, default=2000, help="part 4's permutations of the residuals")
     ap.add_argument("--permutation-seed", type=int, default=4)
     args = ap.parse_args(argv)
-    parts = {int(x) for x in args.parts.split(",")}
+    parts = {int(x) for x in args.parts.split(",") if x.strip().isdigit()}
+    if not parts or parts - {1, 2, 3, 4} or set(args.noises.split(",")) - set(NOISES):
+        ap.error(f"--parts takes some of 1,2,3,4 and --noises some of {','.join(NOISES)}")
     from estcal.base.blas import single_thread_blas
 
     warnings.filterwarnings("ignore")
@@ -382,15 +394,17 @@ def main(argv=None) -> dict:
     robot, sessions = td.load()
     t0 = time.process_time()
     with single_thread_blas():  # as the diagnosis runs anyway: the simulation's own arrays too
-        out = {"seeds": list(td.DEVELOPMENT)}
+        seeds = args.seeds
+        out = {"seeds": list(seeds)}
         if 1 in parts:
-            out["where"] = w = where_the_error_is(robot, sessions, td.DEVELOPMENT)
+            out["where"] = w = where_the_error_is(robot, sessions, seeds)
             ins = [r["inside_mm"] for r in w if r["inside_mm"] is not None]
             out["inside_mean_mm"], out["new_mean_mm"] = float(np.mean(ins)), float(np.mean([r["new_mm"] for r in w]))
             print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges "
                   f"{out['inside_mean_mm']:.2f} mm (range {min(ins):.2f}–{max(ins):.2f})")
         if 2 in parts:
-            out["simulated"] = simulated(robot, sessions, td.DEVELOPMENT, [int(x) for x in args.noise_seeds.split(",")])
+            out["simulated"] = simulated(robot, sessions, seeds, [int(x) for x in args.noise_seeds.split(",")],
+                                         args.noises.split(","))
         if parts & {3, 4}:
             model = two_session_model(robot, sessions)
         if 3 in parts:
