@@ -15,6 +15,11 @@ and two on the sessions.
    rigid motion and arm_5's moved zero — the two-session diagnosis's floor; 0.96 with the rigid motion
    alone —, i.e. 0.44/√3 mm per coordinate), and 0.1 mm — and the same halvings are scored with the default
    diagnosis: the figure the protocol gives when the data hold nothing the model class cannot represent.
+   ``simulate_like`` draws both sessions at the first one's frame and joint zeros; two more noises start from
+   the model's prediction at each session's own frame and zeros (the measured points minus its residual, so
+   11-26's moved arm_5 zero is there to register): a Gaussian draw of the fitted rigid error per posture
+   (``rigid-sessions``), and each posture's real rigid residual given to another posture of its session
+   (``permuted``: the error's real sizes and shape, with no tie to the posture).
 
 3. **What moved between the sessions, without a model.** The 37 postures both sessions measured (the same
    joint readings within 0.4 mrad): one rigid motion (Kabsch, scipy's ``Rotation.align_vectors``) registers
@@ -96,34 +101,64 @@ def _f(x):
     return "—" if x is None else f"{x:.2f} mm"
 
 
-#: part 2's simulated noises: ``--noises`` names and the table's labels
+#: part 2's simulated noises: ``--noises`` names and the table's labels. The first four draw from
+#: ``simulate_like`` (both sessions at the first one's frame and joint zeros); the last two start from the
+#: two-session model's prediction at each session's own frame and zeros (11-26's moved arm_5 zero included)
 NOISES = {"rigid": "its rigid error per posture", "independent": "its residual, independent",
-          "repeatability": "repeatability", "0.1": "0.1 mm"}
+          "repeatability": "repeatability", "0.1": "0.1 mm",
+          "rigid-sessions": "its rigid error per posture, each session at its frame and zeros",
+          "permuted": "the real rigid error of another posture of the session, each at its frame and zeros"}
 
 
-def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES)) -> dict:
+def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=None) -> dict:
     """The halvings' mean on data simulated from the two-session model (module docstring, 2.), for the noise
-    ``kinds`` (the table's rows, in its order)."""
-    from estcal.discrepancy.feedback import simulate_like
+    ``kinds`` (the table's rows, in its order); ``model``: :func:`two_session_model` (computed if not given)."""
+    from estcal.discrepancy.feedback import load_fit, simulate_like
     from estcal.workflows.diagnose import diagnose
 
-    ref = diagnose(robot, [sessions["11-30"], sessions["11-26"]], budget=False)
+    model = model or two_session_model(robot, sessions)
+    ref = model["fit"]
     resid_mm = float(ref.model["residual"]["rmse_mm"])
     out = {"reference_named": [c.label for c in ref.causes], "reference_residual_mm": resid_mm, "runs": []}
     print(f"reference: the default diagnosis of both sessions — residual {resid_mm:.2f} mm per point; named "
           f"{', '.join(out['reference_named']) or 'nothing'}")
     iid = resid_mm * 1e-3 / np.sqrt(3.0)
     sigmas = {"rigid": None, "independent": iid, "repeatability": REPEATABILITY_MM * 1e-3 / np.sqrt(3.0), "0.1": 1e-4}
-    for label, sigma in ((NOISES[k], sigmas[k]) for k in kinds):
+    re_ = load_fit(ref)["random_effect"]
+    psi, within = np.asarray(re_["psi_si"], float), float(re_["sigma_mm"]) * 1e-3
+    for kind in kinds:
         for ns in noise_seeds:
-            sims = {k: simulate_like(ref, sessions[k], seed=ns + i, noise=sigma)
-                    for i, k in enumerate(("11-30", "11-26"))}
+            if kind in sigmas:
+                sims = {k: simulate_like(ref, sessions[k], seed=ns + i, noise=sigmas[kind])
+                        for i, k in enumerate(("11-30", "11-26"))}
+            else:
+                sims = {k: _rebuilt(sessions[k], model, k, kind, psi, within, ns + i)
+                        for i, k in enumerate(("11-30", "11-26"))}
             r = [diagnose(robot, T, validate=[V], budget=False).accuracy["validation"][0]["rmse_mm"]
                  for _, _, T, V in td.halvings(robot, sims, seeds)]
-            out["runs"].append({"noise": label, "sigma_m": sigma, "noise_seed": ns, "new_mm": r,
-                                "mean_mm": float(np.mean(r))})
-            print(f"simulated, noise {label}, draw {ns}: mean {np.mean(r):.2f} mm (trained on 11-30 "
+            out["runs"].append({"noise": NOISES[kind], "kind": kind, "sigma_m": sigmas.get(kind), "noise_seed": ns,
+                                "new_mm": r, "mean_mm": float(np.mean(r))})
+            print(f"simulated, noise {NOISES[kind]}, draw {ns}: mean {np.mean(r):.2f} mm (trained on 11-30 "
                   f"{np.mean(r[0::2]):.2f}, on 11-26 {np.mean(r[1::2]):.2f})", flush=True)
+    return out
+
+
+def _rebuilt(data, model, label, kind, psi, within, seed):
+    """``data`` with its points replaced by the two-session model's prediction at the session's own frame and
+    joint zeros (the measured points minus that model's residual), each posture's body moved rigidly by a
+    Gaussian draw of the fitted Ψ (``rigid-sessions``) or by the real rigid residual of another posture of the
+    session, centred and permuted (``permuted``), plus ``within`` (m) on every coordinate."""
+    rng = np.random.default_rng(seed)
+    meas = np.asarray(data.points)
+    pred = meas - model["residual"][label]
+    if kind == "rigid-sessions":
+        motion = rng.normal(0.0, 1.0, (data.n, 6)) * np.sqrt(np.r_[psi[3:], psi[:3]])  # (δφ, δt)
+    else:
+        real = _rigid(model["residual"][label], meas) * 1e-3
+        motion = (real - real.mean(axis=0))[rng.permutation(data.n)]
+    arm = pred - pred.mean(axis=1, keepdims=True)
+    out = data.subset(slice(None))
+    out.points = pred + motion[:, None, 3:] + np.cross(motion[:, None, :3], arm) + rng.normal(0, within, pred.shape)
     return out
 
 
@@ -137,7 +172,8 @@ def two_session_model(robot, sessions) -> dict:
     both = diagnose(robot, [a, b], budget=False)
     zeros = next(iter(both.model["session_frames"].values())).get("zeros", {})
     (ra, ja), (rb, jb) = _residual(both, a, {}, True), _residual(both, b, zeros, True)
-    return {"zeros": zeros, "residual": {"11-30": ra, "11-26": rb}, "joint_columns": {"11-30": ja, "11-26": jb}}
+    return {"fit": both, "zeros": zeros, "residual": {"11-30": ra, "11-26": rb},
+            "joint_columns": {"11-30": ja, "11-26": jb}}
 
 
 def between_sessions(robot, sessions, model) -> dict:
@@ -378,7 +414,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run")
     ap.add_argument("--seeds", type=td.seed_set, default="development", help="the halvings of parts 1 and 2: a set's name as "
                     "tiago_disjoint.py's --seeds (development, confirmation…, all) or a list")
-    ap.add_argument("--noises", default="rigid,independent,repeatability,0.1", help="part 2's simulated noises")
+    ap.add_argument("--noises", default="rigid,independent,repeatability,0.1,rigid-sessions,permuted",
+                    help="part 2's simulated noises")
     ap.add_argument("--permutations", type=int, default=2000, help="part 4's permutations of the residuals")
     ap.add_argument("--permutation-seed", type=int, default=4)
     args = ap.parse_args(argv)
@@ -402,11 +439,11 @@ def main(argv=None) -> dict:
             out["inside_mean_mm"], out["new_mean_mm"] = float(np.mean(ins)), float(np.mean([r["new_mm"] for r in w]))
             print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges "
                   f"{out['inside_mean_mm']:.2f} mm (range {min(ins):.2f}–{max(ins):.2f})")
+        if parts & {2, 3, 4}:
+            model = two_session_model(robot, sessions)
         if 2 in parts:
             out["simulated"] = simulated(robot, sessions, seeds, [int(x) for x in args.noise_seeds.split(",")],
-                                         args.noises.split(","))
-        if parts & {3, 4}:
-            model = two_session_model(robot, sessions)
+                                         args.noises.split(","), model)
         if 3 in parts:
             out["between_sessions"] = between_sessions(robot, sessions, model)
         if 4 in parts:

@@ -97,3 +97,36 @@ def test_joint_screen_finds_a_path_error_it_is_given(tl):
 def test_permutation_p_value_counts_the_observed_statistic(tl):
     assert tl._p_value(np.array([5.0, 1.0, 2.0, 6.0])) == pytest.approx(2 / 4)
     assert tl._p_value(np.array([9.0, 1.0, 2.0, 3.0])) == pytest.approx(1 / 4)
+
+
+class _Data(SimpleNamespace):
+    def subset(self, _):
+        return _Data(**vars(self))
+
+
+def test_rebuilt_sessions_move_each_body_by_a_real_rigid_residual_or_a_draw_of_psi(tl):
+    """``permuted``: each posture's points move off the model's prediction by the real rigid residual of a posture
+    of the same session (centred), as :func:`_rigid` reads it back, every one used once; ``rigid-sessions``: by
+    Gaussian draws whose translation and rotation spreads are Ψ's (translation first in Ψ, as the relevance
+    model's random effect)."""
+    rng = np.random.default_rng(3)
+    n = 400
+    body = rng.normal(0, 0.08, (4, 3))
+    meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+    real = np.c_[rng.normal(0, 5e-3, (n, 3)), rng.normal(0, 1e-3, (n, 3))]  # (ω rad, t m)
+    arm = meas - meas.mean(axis=1, keepdims=True)
+    resid = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+    data = _Data(n=n, points=meas)
+    model = {"residual": {"s": resid}}
+    out = tl._rebuilt(data, model, "s", "permuted", None, 0.0, seed=5)
+    pred = meas - resid
+    got = tl._rigid(out.points - pred, pred) * 1e-3
+    want = tl._rigid(resid, meas) * 1e-3
+    want -= want.mean(axis=0)
+    order = np.lexsort(got.T)
+    assert np.allclose(got[order], want[np.lexsort(want.T)], atol=1e-12)
+    assert not np.allclose(got, want)  # permuted, not in place
+    psi = np.array([1e-6, 4e-6, 9e-6, 1e-5, 4e-5, 9e-5])  # translation (m²), then rotation (rad²)
+    out = tl._rebuilt(data, model, "s", "rigid-sessions", psi, 0.0, seed=6)
+    drawn = tl._rigid(out.points - pred, pred) * 1e-3  # (ω, t)
+    assert drawn.std(axis=0) == pytest.approx(np.sqrt(np.r_[psi[3:], psi[:3]]), rel=0.15)
