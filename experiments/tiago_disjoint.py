@@ -197,8 +197,8 @@ def seed_set(text: str) -> tuple:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=seed_set, default="development", help="development (0–5), confirmation (20–22), confirmation2 "
-                    "(40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
+    ap.add_argument("--seeds", type=seed_set, default="development", help="development (0–5), confirmation "
+                    "(20–22), confirmation2 (40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
                     "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182), "
                     "confirmation10 (200–202), all (every set) or a list")
     ap.add_argument("--folds", type=int, default=5)

@@ -325,7 +325,8 @@ def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
         Y.append(_rigid(r, pts))
         R.append(r.reshape(len(r), -1) * 1e3)
         pos.append(pts.mean(axis=1))
-        rot.append(np.array([Rotation.align_vectors(p - p.mean(0), pts[0] - pts[0].mean(0))[0].as_matrix() for p in pts]))
+        rot.append(np.array([Rotation.align_vectors(p - p.mean(0), pts[0] - pts[0].mean(0))[0].as_matrix()
+                             for p in pts]))  # each body's orientation, relative to the session's first
         q.append(d.readings[1:])
         grp.append(np.full(len(r), k))
     grp = np.concatenate(grp)
@@ -412,8 +413,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--noise-seeds", default="11,21,31")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run")
-    ap.add_argument("--seeds", type=td.seed_set, default="development", help="the halvings of parts 1 and 2: a set's name as "
-                    "tiago_disjoint.py's --seeds (development, confirmation…, all) or a list")
+    ap.add_argument("--seeds", type=td.seed_set, default="development", help="the halvings of parts 1 and 2: a "
+                    "set's name as tiago_disjoint.py's --seeds (development, confirmation…, all) or a list")
     ap.add_argument("--noises", default="rigid,independent,repeatability,0.1,rigid-sessions,permuted",
                     help="part 2's simulated noises")
     ap.add_argument("--permutations", type=int, default=2000, help="part 4's permutations of the residuals")
