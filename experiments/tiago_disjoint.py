@@ -155,7 +155,22 @@ def run(seeds, folds=5, register_zeros=True, geometric_width="auto"):
     attainable = attainable_within(rows)
     print(f"a prediction equal to each halving's expected RMSE would be within 30 % on about {attainable:.1f} of "
           f"{len(rows)} (the validation figure's own sampling error over its postures)")
-    return {"rows": rows, "mean_new_mm": float(new.mean()), "attainable_within_30": attainable}
+    named = named_counts(rows)
+    print(f"named in how many of the {len(rows)} halvings: "
+          + "; ".join(f"{c} {n}" for c, n in named["causes"].items())
+          + f"; the most common list ({named['most_common_list_count']}): "
+          + (", ".join(named["most_common_list"]) or "nothing named"))
+    return {"rows": rows, "mean_new_mm": float(new.mean()), "attainable_within_30": attainable, "named": named}
+
+
+def named_counts(rows) -> dict:
+    """How often each cause is named over the halvings (most often first), and the most common whole list."""
+    from collections import Counter
+
+    causes = Counter(c for r in rows for c in set(r["named"]))
+    lists = Counter(tuple(sorted(set(r["named"]))) for r in rows)
+    top, k = lists.most_common(1)[0]
+    return {"causes": dict(causes.most_common()), "most_common_list": list(top), "most_common_list_count": k}
 
 
 def attainable_within(rows, tol: float = 0.3) -> float:
