@@ -230,11 +230,11 @@ def between_sessions(robot, sessions, model) -> dict:
 def _rigid(resid, points) -> np.ndarray:
     """(n, 6) the small rigid motion of each posture's marker body that best explains its points' residual
     (least squares ``r_i ≈ t + ω × (x_i − c)``): rotation ω (mrad), translation t (mm), measuring frame."""
+    from estcal.kinematics.transforms import skew
+
     x = points - points.mean(axis=1, keepdims=True)
-    skew = np.zeros(x.shape + (3,))  # ω × x = −[x]× ω: the rotation's columns of the design
-    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = x[..., 2], -x[..., 1], x[..., 0]
-    skew -= np.swapaxes(skew, -1, -2)
-    design = np.concatenate([skew, np.broadcast_to(np.eye(3), x.shape + (3,))], axis=-1).reshape(len(x), -1, 6)
+    # ω × x = −[x]× ω: the rotation's columns of the design, then the translation's
+    design = np.concatenate([-skew(x), np.broadcast_to(np.eye(3), x.shape + (3,))], axis=-1).reshape(len(x), -1, 6)
     sol = np.stack([np.linalg.lstsq(A, r.ravel(), rcond=None)[0] for A, r in zip(design, resid)])
     return sol * 1e3
 
@@ -268,15 +268,14 @@ def _standardise(x, groups):
 AMPLITUDES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
 
-def _joint_screen(sessions, model, perms, grp) -> dict:
-    """The path features as a hysteresis would act: joint j's angle error ``c · f_ij`` for one feature of joint j
-    (standardised within each session), i.e. the regressor ``f_ij ∂x/∂q_j`` on all points of posture i; the share
+def _joint_screen(sessions, model, feats, perms, grp) -> dict:
+    """The path features (``feats``: :func:`_path_features` of every session) as a hysteresis would act: joint j's
+    angle error ``c · f_ij`` for one feature of joint j (standardised within each session), i.e. the regressor ``f_ij ∂x/∂q_j`` on all points of posture i; the share
     of the squared residual its least-squares ``c`` explains, the largest over joints and features, against the
     same largest share with the features permuted within each session (the residuals and columns stay paired).
     The screen's power: the least of :data:`AMPLITUDES` × "the move before" (±1), added to each joint in turn,
     that the same screen finds at p ≤ 0.05."""
     labels = list(sessions)
-    feats = {lab: _path_features(sessions[lab]) for lab in labels}
     pairs = [(j, n) for j in model["joint_columns"][labels[0]] for n in feats[labels[0]] if n.startswith(j + " ")]
     R = np.concatenate([model["residual"][lab][1:].reshape(sessions[lab].n - 1, -1) for lab in labels])
     raw = np.column_stack([np.concatenate([feats[lab][n][1:] for lab in labels]) for _, n in pairs])
@@ -315,13 +314,13 @@ def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
     Pairs at one posture measured in both sessions are left out (they agree: part 3)."""
     from scipy.spatial.transform import Rotation
 
+    feats = {label: _path_features(d) for label, d in sessions.items()}
     names, Y, F, R, pos, rot, q, grp = [], [], [], [], [], [], [], []
     for k, (label, d) in enumerate(sessions.items()):
         r = model["residual"][label][1:]
         pts = np.asarray(d.points)[1:]
-        feats = {n: v[1:] for n, v in _path_features(d).items()}
-        names = list(feats)
-        F.append(np.column_stack(list(feats.values())))
+        names = list(feats[label])
+        F.append(np.column_stack([v[1:] for v in feats[label].values()]))
         Y.append(_rigid(r, pts))
         R.append(r.reshape(len(r), -1) * 1e3)
         pos.append(pts.mean(axis=1))
@@ -363,7 +362,7 @@ def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
         out["neighbours"][label] = {"pairs": int(len(pairs)), "agreement": float(agree[0]),
                                     "chance_95": float(np.quantile(agree[1:], 0.95)),
                                     "p_value": _p_value(agree)}
-    out["joint_screen"] = _joint_screen(sessions, model, perms, grp)
+    out["joint_screen"] = _joint_screen(sessions, model, feats, perms, grp)
     sc = out["screen"]
     print(f"the two-session model's residual at {out['rows']} postures (each session's first left out): the best of "
           f"{out['features']} path features ({sc['feature']}, {sc['component']}) explains r² = {sc['largest_r2']:.2f} "

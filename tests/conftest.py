@@ -1,4 +1,5 @@
-"""Shared fixtures: the location of ../shared and a skip helper for the TIAGo data."""
+"""Shared fixtures: the location of ../shared, skip helpers for the TIAGo and TALOS data, and a loader of the
+experiment scripts."""
 from __future__ import annotations
 
 import os
@@ -15,6 +16,16 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 TIAGO_DIR = SHARED / "data" / "tiago"
+
+
+def load_experiment(name: str):
+    """The module ``experiments/<name>.py`` (not a package: loaded from its file, run as an import)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "experiments" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_experiment
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -149,14 +150,10 @@ def test_link_frame_priors_are_bounded(tiago_dir, monkeypatch):
     its start width untouched (a nominal value grossly wrong). On a halving of 17 training postures (the study's
     seed 4, trained on 11-30) both kinds occur, and the bound lowers the error at the other session's new postures
     (measured 3.08 → 2.61 mm; unbounded, some priors grow beyond their start)."""
-    import importlib.util
-
     import estcal.discrepancy.relevance as rel
     from estcal.discrepancy import diagnose
 
-    spec = importlib.util.spec_from_file_location("tiago_disjoint", REPO / "experiments" / "tiago_disjoint.py")
-    td = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(td)
+    td = load_experiment("tiago_disjoint")
     robot, sessions = td.load()
     seed, train, T, V = td.halvings(robot, sessions, [4])[0]
     assert (seed, train, T.n) == (4, "11-30", 17)
@@ -200,13 +197,9 @@ def test_link_frame_width_by_the_one_standard_error_rule(tiago_dir):
     recorded CV errors are theirs, the rule is applied to them, and the kept model is the chosen one — its
     validation figure and named causes. On the study's seed-4 halving trained on 11-30 (17 postures) the bound is
     kept (measured CV 2.81 mm bounded against 3.61 unbounded, 4.31 with its standard error)."""
-    import importlib.util
-
     from estcal.discrepancy import diagnose
 
-    spec = importlib.util.spec_from_file_location("tiago_disjoint", REPO / "experiments" / "tiago_disjoint.py")
-    td = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(td)
+    td = load_experiment("tiago_disjoint")
     robot, sessions = td.load()
     _, _, T, V = td.halvings(robot, sessions, [4])[0]
     auto = diagnose(robot, T, validate=[V], budget=False)

@@ -2,32 +2,22 @@
 needed): ``experiments/tiago_disjoint.py``'s summaries of its halvings, and ``experiments/tiago_limits.py``'s
 part 2 (the rebuilt sessions) and part 4 (what the residual is not a function of)."""
 import argparse
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import load_experiment
 from scipy.spatial.transform import Rotation
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _experiment(name):
-    spec = importlib.util.spec_from_file_location(name, REPO / "experiments" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
 def td():
-    return _experiment("tiago_disjoint")
+    return load_experiment("tiago_disjoint")
 
 
 @pytest.fixture(scope="module")
 def tl():
-    return _experiment("tiago_limits")
+    return load_experiment("tiago_limits")
 
 
 def test_seed_sets_by_name_all_or_list_and_a_clear_error(td):
@@ -96,7 +86,8 @@ def _screen(tl, rng, sessions, residual, permutations=199):
     grp = np.concatenate([np.full(d.n - 1, i) for i, d in enumerate(data.values())])
     perms = [np.arange(len(grp))] + [np.concatenate([rng.permutation(np.flatnonzero(grp == g)) for g in range(2)])
                                      for _ in range(permutations)]
-    return tl._joint_screen(data, model, perms, grp), data, grp
+    feats = {k: tl._path_features(d) for k, d in data.items()}
+    return tl._joint_screen(data, model, feats, perms, grp), data, grp
 
 
 def test_joint_screen_share_is_the_least_squares_fit_of_one_joint_error(tl):

@@ -11,5 +11,5 @@ from .repeatability import repeatability_floor
 from .splits import rmse_mm, rmse_se_mm, seen_new_scores, validation_split
 
 __all__ = ["DEFAULT_TOL_M", "DEFAULT_TOL_RAD", "extrapolation_distance", "grouped_folds", "inside_ranges",
-           "joint_tolerances", "n_postures",
-           "posture_groups", "seen_postures", "repeatability_floor", "rmse_mm", "rmse_se_mm", "seen_new_scores", "validation_split"]
+           "joint_tolerances", "n_postures", "posture_groups", "seen_postures", "repeatability_floor", "rmse_mm",
+           "rmse_se_mm", "seen_new_scores", "validation_split"]

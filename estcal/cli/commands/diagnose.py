@@ -142,4 +142,3 @@ def diagnose(
 
         save(res, save_model, robot, root, tip)
         typer.echo(f"wrote {save_model} (load it with --robot {save_model})")
-
