@@ -18,12 +18,16 @@ SHARED = REPO.parent / "shared"
 TIAGO_DIR = SHARED / "data" / "tiago"
 
 
-def load_experiment(name: str):
-    """The module ``experiments/<name>.py`` (not a package: loaded from its file, run as an import)."""
+def load_experiment(name: str, folder: str = "experiments"):
+    """The module ``<folder>/<name>.py`` (experiments and benchmarks are not packages: loaded from the file, run
+    as an import). It is registered in ``sys.modules`` under ``name`` while it runs, as an import would be: a
+    dataclass of the script resolves its annotations through its module."""
     import importlib.util
+    import sys
 
-    spec = importlib.util.spec_from_file_location(name, REPO / "experiments" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, REPO / folder / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
 

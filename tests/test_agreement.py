@@ -2,19 +2,17 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_experiment
 from scipy import stats
 
 from estcal.estimate.factorgraph import calibrate_gtsam
 from estcal.estimate.kalman import calibrate_kalman
 from estcal.estimate.lsq import calibrate_lsq
 from estcal.estimate.testproblems import simulated_problem
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_coverage_of_95_percent_intervals_binomial():
@@ -56,13 +54,7 @@ def test_coverage_of_95_percent_intervals_binomial():
 
 
 def _run(script, *args):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(Path(script).stem, REPO / "experiments" / script)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod.main(list(args))
+    return load_experiment(Path(script).stem).main(list(args))
 
 
 def test_online_experiment_quick(tmp_path):

@@ -87,13 +87,9 @@ def test_fk_missing_joint_column(tmp_path):
 
 def test_benchmark_quick_smoke(tmp_path):
     """The kinematics benchmark runs and writes its documented keys (timing is not asserted)."""
-    import importlib.util
-    from pathlib import Path
+    from conftest import load_experiment
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_kinematics.py"
-    spec = importlib.util.spec_from_file_location("bench_kinematics", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_experiment("bench_kinematics", folder="benchmarks")
     out = tmp_path / "b.json"
     mod.main(["--quick", "--poses", "200", "--json", str(out)])
     r = json.loads(out.read_text())

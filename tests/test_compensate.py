@@ -278,14 +278,9 @@ def test_cli_errors_exit_2_and_no_covariance_column(cli_case, tmp_path):
 
 def test_experiment_quick_headline(tmp_path):
     """experiments/compensation.py (one repetition): held-out targets planned on the nominal model."""
-    import importlib.util
-    from pathlib import Path
+    from conftest import load_experiment
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "compensation.py"
-    spec = importlib.util.spec_from_file_location("exp_compensation", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    out = mod.main(["--quick", "--reps", "1", "--poses", "30", "--targets", "20", "--json", str(tmp_path / "c.json")])
+    out = load_experiment("compensation").main(["--quick", "--reps", "1", "--poses", "30", "--targets", "20", "--json", str(tmp_path / "c.json")])
     assert json.loads((tmp_path / "c.json").read_text())["results"] == out["results"]
     assert out["diagnosis"][0] and all(d["effect"] == "joint_compliance" for d in out["diagnosis"][0])
     r = out["results"]["file payload 2 kg"]

@@ -1,21 +1,15 @@
 """Smoke tests: every design experiment runs in --quick mode and writes its documented JSON keys."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-EXP = Path(__file__).resolve().parents[1] / "experiments"
+from conftest import load_experiment
 
 
 def _run(name, tmp_path, *extra):
-    spec = importlib.util.spec_from_file_location(name, EXP / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     out = tmp_path / f"{name}.json"
-    mod.main(["--quick", "--json", str(out), *extra])
+    load_experiment(name).main(["--quick", "--json", str(out), *extra])
     return json.loads(out.read_text())
 
 

@@ -142,17 +142,13 @@ def test_experiment_ik_baseline_is_the_shared_least_squares_fit(robot, model):
     """experiments/daney_left_hand.py batches its unconstrained IK baseline (Gauss–Newton on one leg,
     over 1000 pose sets at once, for speed); each set's solution is the shared estimator's
     (calibrate_gough with lm, leg 3 free) to 1e-6 of its standard deviation."""
-    import importlib.util
-    from pathlib import Path
+    from conftest import load_experiment
 
     from estcal.parallel.daney import generate_random_poses
     from estcal.parallel.data import GoughData
     from estcal.workflows.gough import calibrate_gough
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "daney_left_hand.py"
-    spec = importlib.util.spec_from_file_location("daney_left_hand", path)
-    exp = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(exp)
+    exp = load_experiment("daney_left_hand")
     rng = np.random.default_rng(3)
     S, N, k = 3, 12, exp.K
     T = generate_random_poses(robot, S * N, rng).reshape(S, N, 4, 4)
