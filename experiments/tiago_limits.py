@@ -19,7 +19,13 @@ and two on the sessions.
    the model's prediction at each session's own frame and zeros (the measured points minus its residual, so
    11-26's moved arm_5 zero is there to register): a Gaussian draw of the fitted rigid error per posture
    (``rigid-sessions``), and each posture's real rigid residual given to another posture of its session
-   (``permuted``: the error's real sizes and shape, with no tie to the posture).
+   (``permuted``: the error's real sizes and shape, with no tie to the posture); and, to tell the real error's
+   shape from its size and correlation, Gaussian draws of the covariance of those real rigid residuals in each
+   session (``gaussian``) and of its diagonal alone (``gaussian-diag``); and the real residuals permuted by one
+   permutation of the postures in both sessions (``permuted-shared``: the error still repeats between the
+   sessions at a shared posture, as on the robot, but is no longer tied to its posture). A fitted residual is
+   smaller than the error it stands for; ``permuted-inflated`` divides each component by the square root of the
+   share of its variance a refit keeps, measured by refitting the two sessions simulated with known errors.
 
 3. **What moved between the sessions, without a model.** The 37 postures both sessions measured (the same
    joint readings within 0.4 mrad): one rigid motion (Kabsch, scipy's ``Rotation.align_vectors``) registers
@@ -107,7 +113,12 @@ def _f(x):
 NOISES = {"rigid": "its rigid error per posture", "independent": "its residual, independent",
           "repeatability": "repeatability", "0.1": "0.1 mm",
           "rigid-sessions": "its rigid error per posture, each session at its frame and zeros",
-          "permuted": "the real rigid error of another posture of the session, each at its frame and zeros"}
+          "permuted": "the real rigid error of another posture of the session, each at its frame and zeros",
+          "gaussian": "Gaussian draws of the real rigid error's covariance in its session, each at its frame and zeros",
+          "gaussian-diag": "the same with its diagonal only (no correlation)",
+          "permuted-shared": "the real rigid error of another posture, the same permutation in both sessions",
+          "permuted-inflated": "the real rigid error of another posture, each component divided by the square root "
+                               "of the share of its variance a refit keeps"}
 
 
 def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=None) -> dict:
@@ -126,9 +137,27 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
     sigmas = {"rigid": None, "independent": iid, "repeatability": REPEATABILITY_MM * 1e-3 / np.sqrt(3.0), "0.1": 1e-4}
     re_ = load_fit(ref)["random_effect"]
     psi, within = np.asarray(re_["psi_si"], float), float(re_["sigma_mm"]) * 1e-3
+    out["real_rigid_shape"] = shape = {k: rigid_shape(_rigid(model["residual"][k], np.asarray(sessions[k].points)))
+                                       for k in ("11-30", "11-26")}
+    print("the real rigid residual per posture: " + "; ".join(
+        f"{k} components correlate by up to {v['max_abs_correlation']:.2f}, Mardia's kurtosis {v['mardia_kurtosis']:.1f} "
+        f"(a Gaussian's {v['gaussian_kurtosis']:.0f}, 95 % of samples of {v['n']} within "
+        f"{v['gaussian_range'][0]:.1f}–{v['gaussian_range'][1]:.1f})" for k, v in shape.items()))
+    if "permuted-inflated" in kinds:
+        out["residual_shrink"] = residual_shrink(robot, sessions, model)
+        shrink = np.asarray(out["residual_shrink"]["variance_kept"])
+        print("a refit on simulated errors keeps " + ", ".join(f"{100 * v:.0f} %" for v in shrink) + " of their variance "
+              "(rotation x, y, z, translation x, y, z): the residuals permuted below are divided by its square root")
     for kind in kinds:
         for ns in noise_seeds:
-            if kind in sigmas:
+            if kind == "permuted-inflated":
+                sims = {k: _rebuilt(sessions[k], model, k, "permuted", psi, within, ns + i, scale=1 / np.sqrt(shrink))
+                        for i, k in enumerate(("11-30", "11-26"))}
+            elif kind == "permuted-shared":
+                source = _shared_permutation(robot, sessions, ns)
+                sims = {k: _rebuilt(sessions[k], model, k, "permuted", psi, within, ns + i, source[k])
+                        for i, k in enumerate(("11-30", "11-26"))}
+            elif kind in sigmas:
                 sims = {k: simulate_like(ref, sessions[k], seed=ns + i, noise=sigmas[kind])
                         for i, k in enumerate(("11-30", "11-26"))}
             else:
@@ -143,11 +172,82 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
     return out
 
 
-def _rebuilt(data, model, label, kind, psi, within, seed):
+def rigid_shape(motion, draws: int = 2000, seed: int = 0) -> dict:
+    """The shape of per-posture rigid residuals ``motion`` (n, p): their largest correlation between components
+    and Mardia's multivariate kurtosis ``b₂ = mean((xᵢ − x̄)ᵀ S⁻¹ (xᵢ − x̄))²`` (S the covariance with divisor n;
+    Mardia 1970, Biometrika 57:519), which is p(p + 2) for a Gaussian and larger for heavier tails; beside it the
+    central 95 % of b₂ over ``draws`` Gaussian samples of the same size (seeded), since b₂ of a few tens of rows
+    scatters (and is biased low) about p(p + 2)."""
+    def b2(x):
+        c = x - x.mean(axis=-2, keepdims=True)
+        S = np.swapaxes(c, -1, -2) @ c / x.shape[-2]
+        d2 = np.einsum("...ij,...jk,...ik->...i", c, np.linalg.inv(S), c)
+        return np.mean(d2 ** 2, axis=-1)
+
+    n, p = motion.shape
+    c = motion - motion.mean(axis=0)
+    corr = np.corrcoef(c.T)
+    sims = b2(np.random.default_rng(seed).normal(size=(draws, n, p)))
+    return {"n": int(n), "max_abs_correlation": float(np.max(np.abs(corr - np.eye(p)))),
+            "mardia_kurtosis": float(b2(motion)), "gaussian_kurtosis": float(p * (p + 2)),
+            "gaussian_range": np.quantile(sims, [0.025, 0.975]).tolist()}
+
+
+def _shared_permutation(robot, sessions, seed) -> dict:
+    """Per session, the row whose real residual each row takes (``permuted-shared``): one permutation of the
+    postures, applied in both sessions — a posture both measured takes, in each, the residual of the same other
+    posture (so the sessions' errors at a shared posture still repeat), the postures of one session alone are
+    permuted among themselves."""
+    from estcal.validation import posture_groups
+
+    a, b = sessions["11-30"], sessions["11-26"]
+    g = posture_groups(np.vstack([a.readings, b.readings]), robot.joint_types)
+    ga, gb = g[: a.n], g[a.n:]
+    rng = np.random.default_rng(seed)
+    to = {}
+    for group in (np.intersect1d(ga, gb), np.setdiff1d(ga, gb), np.setdiff1d(gb, ga)):
+        to.update(zip(group.tolist(), rng.permutation(group).tolist()))
+    row = lambda lab: {p: i for i, p in enumerate(lab.tolist())}  # noqa: E731 (one row per posture)
+    ra, rb = row(ga), row(gb)
+    if len(ra) != a.n or len(rb) != b.n:
+        raise ValueError("permuted-shared needs one row per posture in each session")
+    return {"11-30": np.array([ra[to[p]] for p in ga.tolist()]), "11-26": np.array([rb[to[p]] for p in gb.tolist()])}
+
+
+def residual_shrink(robot, sessions, model, seeds=(1010, 1020, 1030, 1040, 1050, 1060)) -> dict:
+    """How much smaller a fitted residual is than the error it stands for: both sessions simulated from
+    ``model`` (:func:`two_session_model`) with Gaussian draws of its residuals' covariance (``gaussian``), the
+    two-session diagnosis refitted on them, and the variance of its rigid residual per posture divided by that of
+    the errors drawn, per component (rotation x, y, z, translation x, y, z), averaged over the ``seeds``. Reusing
+    real residuals as errors (``permuted``) understates their size by this share (the fit's own degrees of freedom,
+    Laird & Ware 1982's REML argument)."""
+    from estcal.discrepancy.feedback import load_fit
+
+    within = float(load_fit(model["fit"])["random_effect"]["sigma_mm"]) * 1e-3
+    ratios = []
+    for ns in seeds:
+        sims = {k: _rebuilt(sessions[k], model, k, "gaussian", None, within, ns + i) for i, k in enumerate(sessions)}
+        refit = two_session_model(robot, sims)
+        drawn, kept = [], []
+        for k, sim in sims.items():
+            pts = np.asarray(sim.points)
+            e = _rigid(pts - (np.asarray(sessions[k].points) - model["residual"][k]), pts)
+            r = _rigid(refit["residual"][k], pts)
+            drawn.append(e - e.mean(axis=0))
+            kept.append(r - r.mean(axis=0))
+        ratios.append(np.sum(np.vstack(kept) ** 2, axis=0) / np.sum(np.vstack(drawn) ** 2, axis=0))
+    R = np.array(ratios)
+    return {"variance_kept": R.mean(axis=0).tolist(), "per_seed": R.tolist(), "seeds": list(seeds)}
+
+
+def _rebuilt(data, model, label, kind, psi, within, seed, source=None, scale=1.0):
     """``data`` with its points replaced by the two-session model's prediction at the session's own frame and
     joint zeros (the measured points minus that model's residual), each posture's body moved rigidly by a
-    Gaussian draw of the fitted Ψ (``rigid-sessions``) or by the real rigid residual of another posture of the
-    session, centred and permuted (``permuted``), plus ``within`` (m) on every coordinate."""
+    Gaussian draw of the fitted Ψ (``rigid-sessions``), by the real rigid residual of another posture of the
+    session, centred and permuted (``permuted``; ``source``: the row each row takes it from, else a random
+    permutation; ``scale``: each component of the residual multiplied by it), or by a Gaussian draw of those
+    residuals' covariance in the session (``gaussian``; ``gaussian-diag``: its diagonal), plus ``within`` (m) on
+    every coordinate."""
     rng = np.random.default_rng(seed)
     meas = np.asarray(data.points)
     pred = meas - model["residual"][label]
@@ -155,7 +255,14 @@ def _rebuilt(data, model, label, kind, psi, within, seed):
         motion = rng.normal(0.0, 1.0, (data.n, 6)) * np.sqrt(np.r_[psi[3:], psi[:3]])  # (δφ, δt)
     else:
         real = _rigid(model["residual"][label], meas) * 1e-3
-        motion = (real - real.mean(axis=0))[rng.permutation(data.n)]
+        real = (real - real.mean(axis=0)) * scale
+        if kind == "permuted":
+            motion = real[rng.permutation(data.n) if source is None else source]
+        else:  # the real error's covariance (its size and correlation), a Gaussian shape
+            cov = real.T @ real / data.n
+            if kind == "gaussian-diag":
+                cov = np.diag(np.diag(cov))
+            motion = rng.multivariate_normal(np.zeros(6), cov, size=data.n, method="eigh")
     arm = pred - pred.mean(axis=1, keepdims=True)
     out = data.subset(slice(None))
     out.points = pred + motion[:, None, 3:] + np.cross(motion[:, None, :3], arm) + rng.normal(0, within, pred.shape)

@@ -165,3 +165,88 @@ def test_rebuilt_sessions_move_each_body_by_a_real_rigid_residual_or_a_draw_of_p
     out = tl._rebuilt(data, model, "s", "rigid-sessions", psi, 0.0, seed=6)
     drawn = tl._rigid(out.points - pred, pred) * 1e-3  # (ω, t)
     assert drawn.std(axis=0) == pytest.approx(np.sqrt(np.r_[psi[3:], psi[:3]]), rel=0.15)
+
+
+def test_gaussian_rebuilt_sessions_draw_the_real_residuals_covariance_or_its_diagonal(tl):
+    """``gaussian``: the drawn rigid motions have the real residuals' covariance, correlations included;
+    ``gaussian-diag``: the same variances and no correlation."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    body = rng.normal(0, 0.08, (4, 3))
+    meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+    mix = np.eye(6) + 0.6 * np.eye(6, k=3) + 0.6 * np.eye(6, k=-3)  # each rotation correlates with a translation
+    real = rng.normal(0, 1, (n, 6)) @ mix * np.r_[[5e-3] * 3, [1e-3] * 3]  # (ω rad, t m)
+    arm = meas - meas.mean(axis=1, keepdims=True)
+    resid = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+    data = _Data(n=n, points=meas)
+    model = {"residual": {"s": resid}}
+    pred = meas - resid
+    want = np.cov(real.T)
+    for kind, target in (("gaussian", want), ("gaussian-diag", np.diag(np.diag(want)))):
+        out = tl._rebuilt(data, model, "s", kind, None, 0.0, seed=7)
+        got = np.cov((tl._rigid(out.points - pred, pred) * 1e-3).T)
+        scale = np.sqrt(np.outer(np.diag(want), np.diag(want)))
+        assert np.abs(got - target).max() / scale.max() < 0.08, kind
+
+
+def test_rigid_shape_against_gaussian_and_heavy_tailed_samples(tl):
+    """Mardia's kurtosis is p(p + 2) = 48 for six Gaussian components (large sample), inside its Gaussian range for a
+    Gaussian sample of 60, and far above it for Student t (3 degrees of freedom) of the same size."""
+    rng = np.random.default_rng(8)
+    big = tl.rigid_shape(rng.normal(size=(20000, 6)), draws=10)
+    assert big["mardia_kurtosis"] == pytest.approx(48.0, rel=0.03) and big["gaussian_kurtosis"] == 48.0
+    g = tl.rigid_shape(rng.normal(size=(60, 6)) @ np.triu(np.ones((6, 6))))
+    lo, hi = g["gaussian_range"]
+    assert lo < g["mardia_kurtosis"] < hi and g["max_abs_correlation"] > 0.5
+    t = tl.rigid_shape(rng.standard_t(3, size=(60, 6)))
+    assert t["mardia_kurtosis"] > hi
+
+
+def test_shared_permutation_keeps_a_shared_posture_s_error_the_same_in_both_sessions(tl):
+    """``permuted-shared``: every row takes another row's residual, each row used once per session; a posture both
+    sessions measured takes, in both, the residual of one and the same posture; a posture of one session alone
+    takes that of another posture of that session alone."""
+    rng = np.random.default_rng(9)
+    postures = rng.uniform(-2, 2, (30, 4))
+    a_rows, b_rows = rng.permutation(20), rng.permutation(30)  # postures 0–19 in both, 20–29 in b only
+    a, b = _Data(n=20, readings=postures[a_rows]), _Data(n=30, readings=postures[b_rows])
+    robot = SimpleNamespace(joint_types=["revolute"] * 4)
+    src = tl._shared_permutation(robot, {"11-30": a, "11-26": b}, seed=1)
+    for s, rows in (("11-30", a_rows), ("11-26", b_rows)):
+        assert sorted(src[s]) == list(range(len(rows)))  # a permutation of the session's rows
+    taken_a = dict(zip(a_rows, a_rows[src["11-30"]]))  # posture → the posture whose residual it takes
+    taken_b = dict(zip(b_rows, b_rows[src["11-26"]]))
+    assert all(taken_a[p] == taken_b[p] for p in range(20))
+    assert all(taken_b[p] >= 20 for p in range(20, 30))
+    assert sum(taken_b[p] != p for p in range(30)) > 20  # moved, not in place
+
+
+def test_residual_shrink_is_the_share_of_each_component_s_variance_a_refit_keeps(tl, monkeypatch):
+    """A refit that keeps 0.9 of the rotation and 0.8 of the translation of every simulated error (standing in for the
+    two-session diagnosis) gives variance shares 0.81 and 0.64, whatever the draws."""
+    import estcal.discrepancy.feedback as feedback
+
+    rng = np.random.default_rng(10)
+    body = rng.normal(0, 0.08, (4, 3))
+    sessions, resid = {}, {}
+    for k, n in (("a", 150), ("b", 200)):
+        meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+        real = np.c_[rng.normal(0, 5e-3, (n, 3)), rng.normal(0, 1e-3, (n, 3))]
+        arm = meas - meas.mean(axis=1, keepdims=True)
+        resid[k] = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+        sessions[k] = _Data(n=n, points=meas)
+    model = {"residual": resid, "fit": None}
+    monkeypatch.setattr(feedback, "load_fit", lambda fit: {"random_effect": {"sigma_mm": 0.0}})
+
+    def refit(robot, sims):
+        out = {}
+        for k, sim in sims.items():
+            pred = np.asarray(sessions[k].points) - resid[k]
+            e = tl._rigid(np.asarray(sim.points) - pred, np.asarray(sim.points)) * 1e-3 * np.r_[[0.9] * 3, [0.8] * 3]
+            arm = sim.points - sim.points.mean(axis=1, keepdims=True)
+            out[k] = e[:, None, 3:] + np.cross(e[:, None, :3], arm)
+        return {"residual": out}
+
+    monkeypatch.setattr(tl, "two_session_model", refit)
+    got = tl.residual_shrink(None, sessions, model, seeds=(1, 2))
+    assert got["variance_kept"] == pytest.approx([0.81] * 3 + [0.64] * 3, rel=1e-6)
