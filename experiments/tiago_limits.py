@@ -43,7 +43,8 @@ and two on the sessions.
    system's own jitter (``marker_std_mm``); and it is compared between postures near each other in the capture
    volume (the marker body's position and orientation), in joint space, and at random. Chance is measured, not
    assumed: the postures' residuals are permuted within each session (``--permutations``, seeded) and the same
-   largest correlation, the same mean agreement of neighbours, recomputed.
+   largest correlation, the same mean agreement of neighbours, recomputed. Beside them, a drift of one joint
+   within each session (its column times the time), against the times permuted within the session.
 
 ``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31); ``--parts`` which
 parts to run (default all).
@@ -130,7 +131,8 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
     model = model or two_session_model(robot, sessions)
     ref = model["fit"]
     resid_mm = float(ref.model["residual"]["rmse_mm"])
-    out = {"reference_named": [c.label for c in ref.causes], "reference_residual_mm": resid_mm, "runs": []}
+    out = {"reference_named": [c.label for c in ref.causes], "reference_terms": _term_labels(ref),
+           "reference_residual_mm": resid_mm, "runs": []}
     print(f"reference: the default diagnosis of both sessions — residual {resid_mm:.2f} mm per point; named "
           f"{', '.join(out['reference_named']) or 'nothing'}")
     iid = resid_mm * 1e-3 / np.sqrt(3.0)
@@ -163,13 +165,40 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
             else:
                 sims = {k: _rebuilt(sessions[k], model, k, kind, psi, within, ns + i)
                         for i, k in enumerate(("11-30", "11-26"))}
-            r = [diagnose(robot, T, validate=[V], budget=False).accuracy["validation"][0]["rmse_mm"]
-                 for _, _, T, V in td.halvings(robot, sims, seeds)]
+            fits = [diagnose(robot, T, validate=[V], budget=False) for _, _, T, V in td.halvings(robot, sims, seeds)]
+            r = [f.accuracy["validation"][0]["rmse_mm"] for f in fits]
+            named = [[c.label for c in f.causes] for f in fits]
             out["runs"].append({"noise": NOISES[kind], "kind": kind, "sigma_m": sigmas.get(kind), "noise_seed": ns,
-                                "new_mm": r, "mean_mm": float(np.mean(r))})
+                                "new_mm": r, "mean_mm": float(np.mean(r)), "named": named,
+                                "causes": [[c.to_dict() for c in f.causes] for f in fits]})
             print(f"simulated, noise {NOISES[kind]}, draw {ns}: mean {np.mean(r):.2f} mm (trained on 11-30 "
-                  f"{np.mean(r[0::2]):.2f}, on 11-26 {np.mean(r[1::2]):.2f})", flush=True)
+                  f"{np.mean(r[0::2]):.2f}, on 11-26 {np.mean(r[1::2]):.2f}); "
+                  f"{_named_line(named, out['reference_named'], out['reference_terms'])}", flush=True)
     return out
+
+
+def _term_labels(fit) -> list[str]:
+    """The labels (as a named cause prints them) of every effect term ``fit``'s model holds, named or not."""
+    from types import SimpleNamespace
+
+    from estcal.discrepancy.feedback import load_fit
+    from estcal.discrepancy.result import Cause
+
+    return [Cause.label.fget(SimpleNamespace(effect=e["effect"], joints=e.get("joints") or [],
+                                             options=e.get("options") or {}))
+            for e in load_fit(fit)["model"]["effects"]]
+
+
+def _named_line(named, truth, terms) -> str:
+    """Over the halvings of one draw: how often each cause the simulation's truth names is named; in how many a
+    term the truth holds without naming it is named; in how many a cause it does not hold at all (the false
+    causes; the whole lists are in the JSON)."""
+    found = ", ".join(f"{t} {sum(t in x for x in named)}" for t in truth)
+    kept = sum(any(c in terms and c not in truth for c in x) for x in named)
+    false = [c for x in named for c in x if c not in terms]
+    return (f"of its {len(named)} halvings named: {found}; a term it holds unnamed in {kept}; a cause it does not "
+            f"hold in {sum(any(c not in terms for c in x) for x in named)}"
+            + (f" ({', '.join(sorted(set(false)))})" if false else ""))
 
 
 def rigid_shape(motion, draws: int = 2000, seed: int = 0) -> dict:
@@ -470,6 +499,7 @@ def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
                                     "chance_95": float(np.quantile(agree[1:], 0.95)),
                                     "p_value": _p_value(agree)}
     out["joint_screen"] = _joint_screen(sessions, model, feats, perms, grp)
+    out["drift_screen"] = _drift_screen(sessions, model, perms, grp)
     sc = out["screen"]
     print(f"the two-session model's residual at {out['rows']} postures (each session's first left out): the best of "
           f"{out['features']} path features ({sc['feature']}, {sc['component']}) explains r² = {sc['largest_r2']:.2f} "
@@ -483,6 +513,35 @@ def not_a_function_of(sessions, model, permutations: int, seed: int) -> dict:
     for label, v in out["neighbours"].items():
         print(f"  the nearest 5 % of pairs in {label} ({v['pairs']}): agreement {v['agreement']:+.2f} of the mean "
               f"squared residual (chance's 95 % point {v['chance_95']:+.2f}; p = {v['p_value']:.4f})")
+    print("  as a drift of one joint within its session (its column times the time): " + "; ".join(
+        f"{k} best {v['joint']} {100 * v['share']:.1f} % of the squared residual ({v['slope_mrad_per_s']:+.4f} mrad/s; "
+        f"p = {v['p_value']:.3f})" for k, v in out["drift_screen"].items()))
+    return out
+
+
+def _drift_screen(sessions, model, perms, grp) -> dict:
+    """A drift of one joint within a session, as the diagnosis's drift term acts: joint j's angle error ``c · t``
+    (``t`` the middle of the posture's averaging window, centred in the session), i.e. the regressor
+    ``t ∂x/∂q_j`` on all points of the posture. Per session: the share of its squared residual the
+    least-squares ``c`` explains, the largest over joints, and its p-value against the same largest share with
+    the times permuted within the session (``perms``, ``grp``: :func:`not_a_function_of`'s rows, each session's
+    first left out)."""
+    T = np.concatenate([((np.asarray(d.columns["t_start_robot"], float) + np.asarray(d.columns["t_end_robot"], float))
+                         / 2)[1:] for d in sessions.values()])
+    out = {}
+    for k, label in enumerate(sessions):
+        rows = np.flatnonzero(grp == k)
+        R = model["residual"][label][1:].reshape(len(rows), -1)
+        joints = list(model["joint_columns"][label])
+        J = np.stack([model["joint_columns"][label][j][1:].reshape(len(rows), -1) for j in joints])  # (joints, n, 12)
+        a, b = np.einsum("jnc,nc->jn", J, R), np.einsum("jnc,jnc->jn", J, J)
+        t = np.stack([T[p[rows]] for p in perms])  # (perms, n): the observed times first
+        t = t - t.mean(axis=1, keepdims=True)
+        share = (t @ a.T) ** 2 / (t ** 2 @ b.T) / float(np.sum(R ** 2))  # (perms, joints)
+        best = int(np.argmax(share[0]))
+        out[label] = {"joint": joints[best], "share": float(share[0, best]),
+                      "slope_mrad_per_s": float(t[0] @ a[best] / (t[0] ** 2 @ b[best]) * 1e3),
+                      "p_value": _p_value(share.max(axis=1))}
     return out
 
 

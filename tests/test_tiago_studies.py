@@ -250,3 +250,44 @@ def test_residual_shrink_is_the_share_of_each_component_s_variance_a_refit_keeps
     monkeypatch.setattr(tl, "two_session_model", refit)
     got = tl.residual_shrink(None, sessions, model, seeds=(1, 2))
     assert got["variance_kept"] == pytest.approx([0.81] * 3 + [0.64] * 3, rel=1e-6)
+
+
+def test_named_line_tells_the_truth_s_causes_its_unnamed_terms_and_false_causes(tl, monkeypatch):
+    import estcal.discrepancy.feedback as feedback
+
+    effects = [{"effect": "backlash", "joints": ["arm_6_joint"], "options": {"by": "approach"}},
+               {"effect": "joint_compliance", "joints": ["arm_6_joint"]},
+               {"effect": "link_tilt", "joints": ["arm_1_joint"]}]
+    monkeypatch.setattr(feedback, "load_fit", lambda fit: {"model": {"effects": effects}})
+    terms = tl._term_labels(None)
+    assert terms == ["backlash (by approach) of arm_6_joint", "joint compliance of arm_6_joint",
+                     "link tilt of arm_1_joint"]
+    truth = terms[:2]
+    named = [[terms[0]], [terms[0], terms[2]], ["drift of arm_3_joint", terms[1]], []]
+    line = tl._named_line(named, truth, terms)
+    assert line == ("of its 4 halvings named: backlash (by approach) of arm_6_joint 2, joint compliance of arm_6_joint 1; "
+                    "a term it holds unnamed in 1; a cause it does not hold in 1 (drift of arm_3_joint)")
+
+
+def test_drift_screen_recovers_a_joint_drift_it_is_given_and_not_one_it_is_not(tl):
+    """A residual holding ``c · t`` along joint b's column in session "s" (and noise): the screen picks b there, its
+    slope is the least-squares one (numpy's lstsq on the stacked points), p is small; in the other session, noise
+    alone, p is not."""
+    rng = np.random.default_rng(11)
+    sessions, model = {}, {"residual": {}, "joint_columns": {}}
+    for label, n, c in (("s", 60, 2e-5), ("u", 50, 0.0)):
+        t0 = np.sort(rng.uniform(0, 900, n))
+        sessions[label] = _Data(n=n, columns={"t_start_robot": t0, "t_end_robot": t0 + 4.0})
+        cols = {j: rng.normal(0, 0.3, (n, 4, 3)) for j in ("a", "b", "c")}
+        t = t0 + 2.0 - (t0[1:] + 2.0).mean()
+        model["residual"][label] = c * t[:, None, None] * cols["b"] + rng.normal(0, 1e-3, (n, 4, 3))
+        model["joint_columns"][label] = cols
+    grp = np.r_[np.zeros(59, int), np.ones(49, int)]
+    perms = [np.arange(108)] + [np.r_[rng.permutation(59), 59 + rng.permutation(49)] for _ in range(400)]
+    out = tl._drift_screen(sessions, model, perms, grp)
+    s = out["s"]
+    X = (model["joint_columns"]["s"]["b"][1:] * (sessions["s"].columns["t_start_robot"][1:] + 2.0
+                                                  - (sessions["s"].columns["t_start_robot"][1:] + 2.0).mean())[:, None, None])
+    want = np.linalg.lstsq(X.reshape(-1, 1), model["residual"]["s"][1:].ravel(), rcond=None)[0][0]
+    assert s["joint"] == "b" and s["slope_mrad_per_s"] == pytest.approx(want * 1e3, rel=1e-9)
+    assert s["p_value"] < 0.01 and out["u"]["p_value"] > 0.05
