@@ -45,6 +45,10 @@ and two on the sessions.
    assumed: the postures' residuals are permuted within each session (``--permutations``, seeded) and the same
    largest correlation, the same mean agreement of neighbours, recomputed. Beside them, a drift of one joint
    within each session (its column times the time), against the times permuted within the session.
+5. **What the diagnosis of both whole sessions names when the truth is known** (not in the default ``--parts``):
+   both sessions simulated as part 2's ``permuted-inflated`` (draw ``s``: seeds 2s and 2s + 1, ``--whole-seeds``,
+   default 400–423) and diagnosed together, as a user diagnoses all their data: how often each cause of the truth,
+   a term it holds unnamed, and a cause it does not hold are named.
 
 ``--json PATH`` writes every figure; ``--noise-seeds`` the simulation draws (default 11, 21, 31); ``--parts`` which
 parts to run (default all).
@@ -149,7 +153,9 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
         out["residual_shrink"] = residual_shrink(robot, sessions, model)
         shrink = np.asarray(out["residual_shrink"]["variance_kept"])
         print("a refit on simulated errors keeps " + ", ".join(f"{100 * v:.0f} %" for v in shrink) + " of their variance "
-              "(rotation x, y, z, translation x, y, z): the residuals permuted below are divided by its square root")
+              "(rotation x, y, z, translation x, y, z): the residuals permuted below are divided by its square root; "
+              "those refits of both sessions, " + _named_line(out["residual_shrink"]["named"], out["reference_named"],
+                                                              out["reference_terms"]).replace("halvings", "simulations"))
     for kind in kinds:
         for ns in noise_seeds:
             if kind == "permuted-inflated":
@@ -175,6 +181,25 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
                   f"{np.mean(r[0::2]):.2f}, on 11-26 {np.mean(r[1::2]):.2f}); "
                   f"{_named_line(named, out['reference_named'], out['reference_terms'])}", flush=True)
     return out
+
+
+def whole_sessions(robot, sessions, model, draws) -> dict:
+    """Part 5 of the module docstring: the causes the default diagnosis of both simulated sessions names, per draw."""
+    from estcal.discrepancy.feedback import load_fit
+    from estcal.workflows.diagnose import diagnose
+
+    ref = model["fit"]
+    truth, terms = [c.label for c in ref.causes], _term_labels(ref)
+    within = float(load_fit(ref)["random_effect"]["sigma_mm"]) * 1e-3
+    shrink = np.asarray(residual_shrink(robot, sessions, model)["variance_kept"])
+    named = []
+    for s in draws:
+        sims = [_rebuilt(sessions[k], model, k, "permuted", None, within, 2 * s + i, scale=1 / np.sqrt(shrink))
+                for i, k in enumerate(("11-30", "11-26"))]
+        named.append([c.label for c in diagnose(robot, sims, budget=False).causes])
+    line = _named_line(named, truth, terms).replace("halvings", "simulations")
+    print(f"both whole sessions simulated from the two-session model and diagnosed together, {line}")
+    return {"draws": list(draws), "named": named, "truth": truth, "terms": terms}
 
 
 def _term_labels(fit) -> list[str]:
@@ -247,16 +272,18 @@ def residual_shrink(robot, sessions, model, seeds=(1010, 1020, 1030, 1040, 1050,
     """How much smaller a fitted residual is than the error it stands for: both sessions simulated from
     ``model`` (:func:`two_session_model`) with Gaussian draws of its residuals' covariance (``gaussian``), the
     two-session diagnosis refitted on them, and the variance of its rigid residual per posture divided by that of
-    the errors drawn, per component (rotation x, y, z, translation x, y, z), averaged over the ``seeds``. Reusing
+    the errors drawn, per component (rotation x, y, z, translation x, y, z), averaged over the ``seeds`` (and the
+    causes each refit names, ``named``). Reusing
     real residuals as errors (``permuted``) understates their size by this share (the fit's own degrees of freedom,
     Laird & Ware 1982's REML argument)."""
     from estcal.discrepancy.feedback import load_fit
 
     within = float(load_fit(model["fit"])["random_effect"]["sigma_mm"]) * 1e-3
-    ratios = []
+    ratios, named = [], []
     for ns in seeds:
         sims = {k: _rebuilt(sessions[k], model, k, "gaussian", None, within, ns + i) for i, k in enumerate(sessions)}
         refit = two_session_model(robot, sims)
+        named.append([c.label for c in refit["fit"].causes])
         drawn, kept = [], []
         for k, sim in sims.items():
             pts = np.asarray(sim.points)
@@ -266,7 +293,7 @@ def residual_shrink(robot, sessions, model, seeds=(1010, 1020, 1030, 1040, 1050,
             kept.append(r - r.mean(axis=0))
         ratios.append(np.sum(np.vstack(kept) ** 2, axis=0) / np.sum(np.vstack(drawn) ** 2, axis=0))
     R = np.array(ratios)
-    return {"variance_kept": R.mean(axis=0).tolist(), "per_seed": R.tolist(), "seeds": list(seeds)}
+    return {"variance_kept": R.mean(axis=0).tolist(), "per_seed": R.tolist(), "seeds": list(seeds), "named": named}
 
 
 def _rebuilt(data, model, label, kind, psi, within, seed, source=None, scale=1.0):
@@ -577,7 +604,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--noise-seeds", default="11,21,31")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run")
+    ap.add_argument("--parts", default="1,2,3,4", help="which parts of the module docstring to run (1–5)")
+    ap.add_argument("--whole-seeds", default="400-423", help="part 5's draws: first-last")
     ap.add_argument("--seeds", type=td.seed_set, default="development", help="the halvings of parts 1 and 2: a "
                     "set's name as tiago_disjoint.py's --seeds (development, confirmation…, all) or a list")
     ap.add_argument("--noises", default="rigid,independent,repeatability,0.1,rigid-sessions,permuted",
@@ -586,8 +614,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--permutation-seed", type=int, default=4)
     args = ap.parse_args(argv)
     parts = {int(x) for x in args.parts.split(",") if x.strip().isdigit()}
-    if not parts or parts - {1, 2, 3, 4} or set(args.noises.split(",")) - set(NOISES):
-        ap.error(f"--parts takes some of 1,2,3,4 and --noises some of {','.join(NOISES)}")
+    if not parts or parts - {1, 2, 3, 4, 5} or set(args.noises.split(",")) - set(NOISES):
+        ap.error(f"--parts takes some of 1,2,3,4,5 and --noises some of {','.join(NOISES)}")
     from estcal.base.blas import single_thread_blas
 
     warnings.filterwarnings("ignore")
@@ -605,7 +633,7 @@ def main(argv=None) -> dict:
             out["inside_mean_mm"], out["new_mean_mm"] = float(np.mean(ins)), float(np.mean([r["new_mm"] for r in w]))
             print(f"mean at new postures {out['new_mean_mm']:.2f} mm; inside the training ranges "
                   f"{out['inside_mean_mm']:.2f} mm (range {min(ins):.2f}–{max(ins):.2f})")
-        if parts & {2, 3, 4}:
+        if parts & {2, 3, 4, 5}:
             model = two_session_model(robot, sessions)
         if 2 in parts:
             out["simulated"] = simulated(robot, sessions, seeds, [int(x) for x in args.noise_seeds.split(",")],
@@ -614,6 +642,9 @@ def main(argv=None) -> dict:
             out["between_sessions"] = between_sessions(robot, sessions, model)
         if 4 in parts:
             out["not_a_function_of"] = not_a_function_of(sessions, model, args.permutations, args.permutation_seed)
+        if 5 in parts:
+            first, last = (int(x) for x in args.whole_seeds.split("-"))
+            out["whole_sessions"] = whole_sessions(robot, sessions, model, range(first, last + 1))
     out["cpu_s"] = time.process_time() - t0
     if args.json:
         write_json(args.json, out, announce=True)

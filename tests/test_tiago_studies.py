@@ -245,11 +245,12 @@ def test_residual_shrink_is_the_share_of_each_component_s_variance_a_refit_keeps
             e = tl._rigid(np.asarray(sim.points) - pred, np.asarray(sim.points)) * 1e-3 * np.r_[[0.9] * 3, [0.8] * 3]
             arm = sim.points - sim.points.mean(axis=1, keepdims=True)
             out[k] = e[:, None, 3:] + np.cross(e[:, None, :3], arm)
-        return {"residual": out}
+        return {"residual": out, "fit": SimpleNamespace(causes=[SimpleNamespace(label="drift of j1")])}
 
     monkeypatch.setattr(tl, "two_session_model", refit)
     got = tl.residual_shrink(None, sessions, model, seeds=(1, 2))
     assert got["variance_kept"] == pytest.approx([0.81] * 3 + [0.64] * 3, rel=1e-6)
+    assert got["named"] == [["drift of j1"], ["drift of j1"]]
 
 
 def test_named_line_tells_the_truth_s_causes_its_unnamed_terms_and_false_causes(tl, monkeypatch):
