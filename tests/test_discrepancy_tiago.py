@@ -218,3 +218,33 @@ def test_link_frame_width_by_the_one_standard_error_rule(tiago_dir):
                                                                      rel=1e-9)
     assert auto.named == kept.named
     assert "by the one-standard-error rule: CV" in str(auto)
+
+
+def test_a_special_term_standing_in_for_a_kept_load_term_is_withdrawn(tiago_dir, monkeypatch):
+    """Both sessions simulated from the two-session model (experiments/tiago_limits.py, part 5's draw 402: a truth
+    with no drift): arm_6's drift is named when the forward search's model (the named causes) is all it is tested
+    against, and withdrawn once it is tested against the model it enters, which holds the load terms the evidence
+    keeps — the truth's causes stay named."""
+    import numpy as np
+    from conftest import load_experiment
+
+    import estcal.discrepancy.relevance as rel
+    from estcal.workflows.diagnose import diagnose
+
+    tl = load_experiment("tiago_limits")
+    td = load_experiment("tiago_disjoint")
+    robot, sessions = td.load()
+    model = tl.two_session_model(robot, sessions)
+    kept = np.array([0.9825920125908127, 0.9995890648948866, 0.9642245202042349, 0.891958568954229,
+                     0.91020344893569, 0.8904527152923878])  # residual_shrink's variance shares (tiago_limits)
+    within = 1e-4  # the two-session model's within-posture σ (0.1 mm)
+    sims = [tl._rebuilt(sessions[k], model, k, "permuted", None, within, 2 * 402 + i, scale=1 / np.sqrt(kept))
+            for i, k in enumerate(("11-30", "11-26"))]
+    res = diagnose(robot, sims, budget=False)
+    named = [c.label for c in res.causes]
+    assert "drift of arm_6_joint" not in named and "backlash (by approach) of arm_6_joint" in named
+    (rec,) = [r for r in res.terms["tested"] if r["term"] == "drift(arm_6_joint)"]
+    assert rec["reason"].startswith("withdrawn after naming: explained by the load terms"), rec
+    monkeypatch.setattr(rel, "_against_load", lambda terms, system, rows, folds, start, chain, load, named, records,
+                        tidx: (chain, named))
+    assert "drift of arm_6_joint" in [c.label for c in diagnose(robot, sims, budget=False).causes]

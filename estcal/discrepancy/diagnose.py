@@ -16,7 +16,8 @@ and what stays unexplained — one sparse Bayesian model that does both (docs/di
 3. **The causes** (:func:`estcal.discrepancy.relevance.select_terms`): a term is named when it survives, its
    Bayes factor is decisive (ln B ≥ 5), it survives in most cross-validation folds and it lowers the
    cross-validated error at new postures. Load terms (compliance, backlash, tilt) the evidence keeps stay in
-   the model named or not; special terms (harmonics, gains, drift, thermal) enter only when named.
+   the model named or not; special terms (harmonics, gains, drift, thermal) enter only when named, and only
+   if they pass the same tests again against the model with those load terms.
 4. **How accurate** (:func:`estcal.discrepancy.budget.error_budget`): the nested cross-validation of the whole
    procedure by posture (and session with several), beside a time-blocked one; the repeatability floor;
    every validation file scored at its new postures once its measuring frame is registered on its rows at
