@@ -292,3 +292,9 @@ def test_drift_screen_recovers_a_joint_drift_it_is_given_and_not_one_it_is_not(t
     want = np.linalg.lstsq(X.reshape(-1, 1), model["residual"]["s"][1:].ravel(), rcond=None)[0][0]
     assert s["joint"] == "b" and s["slope_mrad_per_s"] == pytest.approx(want * 1e3, rel=1e-9)
     assert s["p_value"] < 0.01 and out["u"]["p_value"] > 0.05
+
+
+def test_all_is_every_set_but_the_eleventh(td):
+    assert td.seed_set("confirmation11") == (220, 221, 222)
+    assert not set(td.seed_set("confirmation11")) & set(td.seed_set("all"))
+    assert set(td.seed_set("all")) | {220, 221, 222} == {s for v in td.SEED_SETS.values() for s in v}
