@@ -729,12 +729,7 @@ def _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, reco
         for i in named:
             if i == last:
                 continue
-            m = tidx == i
-            without = chain & ~m
-            f = refit(system, rows, without, start)
-            rec = _term_record(terms.terms[i], cur.log_evidence - f.log_evidence, cur.active[m].any())
-            if not rec["reason"]:
-                _fold_tests(rec, cur_cv, cross_validate(system, folds, without, start), m, len(folds))
+            rec, f = _retest(terms, system, rows, folds, start, i, chain, cur, cur_cv, tidx)
             if not rec["named"]:
                 fails.append((rec["ln_bf"], i, f, rec))
         if not fails:
@@ -765,12 +760,7 @@ def _against_load(terms, system, rows, folds, start, chain, load, named, records
         for i in named:
             if terms.terms[i].load:
                 continue
-            m = tidx == i
-            without = include & ~m
-            f = refit(system, rows, without, start)
-            rec = _term_record(terms.terms[i], cur.log_evidence - f.log_evidence, cur.active[m].any())
-            if not rec["reason"]:
-                _fold_tests(rec, cur_cv, cross_validate(system, folds, without, start), m, len(folds))
+            rec, _ = _retest(terms, system, rows, folds, start, i, include, cur, cur_cv, tidx)
             if not rec["named"]:
                 fails.append((rec["ln_bf"], i, rec))
         if not fails:
@@ -781,6 +771,18 @@ def _against_load(terms, system, rows, folds, start, chain, load, named, records
         records.append(rec)
         chain = chain & ~(tidx == i)
         named = [j for j in named if j != i]
+
+
+def _retest(terms, system, rows, folds, start, i, include, cur, cur_cv, tidx):
+    """The naming tests of term ``i`` against the model ``include`` without it (``cur``, ``cur_cv``: the fit and the
+    cross-validation of ``include``, which holds it): ``(its record, the fit without it)``."""
+    m = tidx == i
+    without = include & ~m
+    f = refit(system, rows, without, start)
+    rec = _term_record(terms.terms[i], cur.log_evidence - f.log_evidence, cur.active[m].any())
+    if not rec["reason"]:
+        _fold_tests(rec, cur_cv, cross_validate(system, folds, without, start), m, len(folds))
+    return rec, f
 
 
 def _last_records(records) -> list:
