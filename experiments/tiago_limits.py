@@ -129,7 +129,7 @@ NOISES = {"rigid": "its rigid error per posture", "independent": "its residual, 
 def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=None) -> dict:
     """The halvings' mean on data simulated from the two-session model (module docstring, 2.), for the noise
     ``kinds`` (the table's rows, in its order); ``model``: :func:`two_session_model` (computed if not given)."""
-    from estcal.discrepancy.feedback import load_fit, simulate_like
+    from estcal.discrepancy.feedback import simulate_like
     from estcal.workflows.diagnose import diagnose
 
     model = model or two_session_model(robot, sessions)
@@ -141,8 +141,7 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
           f"{', '.join(out['reference_named']) or 'nothing'}")
     iid = resid_mm * 1e-3 / np.sqrt(3.0)
     sigmas = {"rigid": None, "independent": iid, "repeatability": REPEATABILITY_MM * 1e-3 / np.sqrt(3.0), "0.1": 1e-4}
-    re_ = load_fit(ref)["random_effect"]
-    psi, within = np.asarray(re_["psi_si"], float), float(re_["sigma_mm"]) * 1e-3
+    psi, within = _random_effect(model)
     out["real_rigid_shape"] = shape = {k: rigid_shape(_rigid(model["residual"][k], np.asarray(sessions[k].points)))
                                        for k in ("11-30", "11-26")}
     print("the real rigid residual per posture: " + "; ".join(
@@ -150,7 +149,7 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
         f"(a Gaussian's {v['gaussian_kurtosis']:.0f}, 95 % of samples of {v['n']} within "
         f"{v['gaussian_range'][0]:.1f}–{v['gaussian_range'][1]:.1f})" for k, v in shape.items()))
     if "permuted-inflated" in kinds:
-        out["residual_shrink"] = residual_shrink(robot, sessions, model)
+        out["residual_shrink"] = _shrink_of(robot, sessions, model)
         shrink = np.asarray(out["residual_shrink"]["variance_kept"])
         print("a refit on simulated errors keeps " + ", ".join(f"{100 * v:.0f} %" for v in shrink) + " of their variance "
               "(rotation x, y, z, translation x, y, z): the residuals permuted below are divided by its square root; "
@@ -185,13 +184,12 @@ def simulated(robot, sessions, seeds, noise_seeds, kinds=tuple(NOISES), model=No
 
 def whole_sessions(robot, sessions, model, draws) -> dict:
     """Part 5 of the module docstring: the causes the default diagnosis of both simulated sessions names, per draw."""
-    from estcal.discrepancy.feedback import load_fit
     from estcal.workflows.diagnose import diagnose
 
     ref = model["fit"]
     truth, terms = [c.label for c in ref.causes], _term_labels(ref)
-    within = float(load_fit(ref)["random_effect"]["sigma_mm"]) * 1e-3
-    shrink = np.asarray(residual_shrink(robot, sessions, model)["variance_kept"])
+    _, within = _random_effect(model)
+    shrink = np.asarray(_shrink_of(robot, sessions, model)["variance_kept"])
     named = []
     for s in draws:
         sims = [_rebuilt(sessions[k], model, k, "permuted", None, within, 2 * s + i, scale=1 / np.sqrt(shrink))
@@ -276,9 +274,7 @@ def residual_shrink(robot, sessions, model, seeds=(1010, 1020, 1030, 1040, 1050,
     causes each refit names, ``named``). Reusing
     real residuals as errors (``permuted``) understates their size by this share (the fit's own degrees of freedom,
     Laird & Ware 1982's REML argument)."""
-    from estcal.discrepancy.feedback import load_fit
-
-    within = float(load_fit(model["fit"])["random_effect"]["sigma_mm"]) * 1e-3
+    _, within = _random_effect(model)
     ratios, named = [], []
     for ns in seeds:
         sims = {k: _rebuilt(sessions[k], model, k, "gaussian", None, within, ns + i) for i, k in enumerate(sessions)}
@@ -294,6 +290,22 @@ def residual_shrink(robot, sessions, model, seeds=(1010, 1020, 1030, 1040, 1050,
         ratios.append(np.sum(np.vstack(kept) ** 2, axis=0) / np.sum(np.vstack(drawn) ** 2, axis=0))
     R = np.array(ratios)
     return {"variance_kept": R.mean(axis=0).tolist(), "per_seed": R.tolist(), "seeds": list(seeds), "named": named}
+
+
+def _shrink_of(robot, sessions, model) -> dict:
+    """:func:`residual_shrink` of ``model`` (:func:`two_session_model`), measured once per model: parts 2 and 5 both
+    use it, and it costs six two-session diagnoses."""
+    if "shrink" not in model:
+        model["shrink"] = residual_shrink(robot, sessions, model)
+    return model["shrink"]
+
+
+def _random_effect(model) -> tuple:
+    """``(Ψ (6,) (m², rad²), within-posture σ (m))`` of the two-session model's random effect."""
+    from estcal.discrepancy.feedback import load_fit
+
+    re_ = load_fit(model["fit"])["random_effect"]
+    return np.asarray(re_["psi_si"], float), float(re_["sigma_mm"]) * 1e-3
 
 
 def _rebuilt(data, model, label, kind, psi, within, seed, source=None, scale=1.0):

@@ -225,9 +225,6 @@ def test_a_special_term_standing_in_for_a_kept_load_term_is_withdrawn(tiago_dir,
     with no drift): arm_6's drift is named when the forward search's model (the named causes) is all it is tested
     against, and withdrawn once it is tested against the model it enters, which holds the load terms the evidence
     keeps — the truth's causes stay named."""
-    import numpy as np
-    from conftest import load_experiment
-
     import estcal.discrepancy.relevance as rel
     from estcal.workflows.diagnose import diagnose
 
@@ -246,5 +243,5 @@ def test_a_special_term_standing_in_for_a_kept_load_term_is_withdrawn(tiago_dir,
     (rec,) = [r for r in res.terms["tested"] if r["term"] == "drift(arm_6_joint)"]
     assert rec["reason"].startswith("withdrawn after naming: explained by the load terms"), rec
     monkeypatch.setattr(rel, "_against_load", lambda terms, system, rows, folds, start, chain, load, named, records,
-                        tidx: (chain, named))
+                        tidx: (chain, named, None))
     assert "drift of arm_6_joint" in [c.label for c in diagnose(robot, sims, budget=False).causes]

@@ -57,8 +57,7 @@ def test_rigid_motion_of_a_body_against_scipys_alignment(tl):
     """Each posture's small rigid motion from its points' residual equals the rotation and translation scipy's
     Kabsch alignment finds between the body before and after (to second order in the angle)."""
     rng = np.random.default_rng(0)
-    body = rng.normal(0, 0.08, (4, 3))
-    pts = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(5)])
+    pts = _bodies(rng, rng.normal(0, 0.08, (4, 3)), 5)
     w = rng.normal(0, 3e-3, (5, 3))  # rad
     t = rng.normal(0, 1e-3, (5, 3))  # m
     c = pts.mean(axis=1, keepdims=True)
@@ -134,6 +133,18 @@ def test_permutation_p_value_counts_the_observed_statistic(tl):
     assert tl._p_value(np.array([9.0, 1.0, 2.0, 3.0])) == pytest.approx(1 / 4)
 
 
+def _bodies(rng, body, n):
+    """``n`` poses (n, 4, 3) of the rigid ``body`` (4, 3): random orientations, positions within about half a metre."""
+    return np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+
+
+def _moved(motion, pts):
+    """The points' displacement (n, 4, 3) under each body's small rigid motion ``motion`` (n, 6): (ω rad, t m) about
+    its centroid."""
+    arm = pts - pts.mean(axis=1, keepdims=True)
+    return motion[:, None, 3:] + np.cross(motion[:, None, :3], arm)
+
+
 class _Data(SimpleNamespace):
     def subset(self, _):
         return _Data(**vars(self))
@@ -146,11 +157,9 @@ def test_rebuilt_sessions_move_each_body_by_a_real_rigid_residual_or_a_draw_of_p
     model's random effect)."""
     rng = np.random.default_rng(3)
     n = 400
-    body = rng.normal(0, 0.08, (4, 3))
-    meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+    meas = _bodies(rng, rng.normal(0, 0.08, (4, 3)), n)
     real = np.c_[rng.normal(0, 5e-3, (n, 3)), rng.normal(0, 1e-3, (n, 3))]  # (ω rad, t m)
-    arm = meas - meas.mean(axis=1, keepdims=True)
-    resid = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+    resid = _moved(real, meas)
     data = _Data(n=n, points=meas)
     model = {"residual": {"s": resid}}
     out = tl._rebuilt(data, model, "s", "permuted", None, 0.0, seed=5)
@@ -172,12 +181,10 @@ def test_gaussian_rebuilt_sessions_draw_the_real_residuals_covariance_or_its_dia
     ``gaussian-diag``: the same variances and no correlation."""
     rng = np.random.default_rng(4)
     n = 3000
-    body = rng.normal(0, 0.08, (4, 3))
-    meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+    meas = _bodies(rng, rng.normal(0, 0.08, (4, 3)), n)
     mix = np.eye(6) + 0.6 * np.eye(6, k=3) + 0.6 * np.eye(6, k=-3)  # each rotation correlates with a translation
     real = rng.normal(0, 1, (n, 6)) @ mix * np.r_[[5e-3] * 3, [1e-3] * 3]  # (ω rad, t m)
-    arm = meas - meas.mean(axis=1, keepdims=True)
-    resid = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+    resid = _moved(real, meas)
     data = _Data(n=n, points=meas)
     model = {"residual": {"s": resid}}
     pred = meas - resid
@@ -230,21 +237,19 @@ def test_residual_shrink_is_the_share_of_each_component_s_variance_a_refit_keeps
     body = rng.normal(0, 0.08, (4, 3))
     sessions, resid = {}, {}
     for k, n in (("a", 150), ("b", 200)):
-        meas = np.stack([Rotation.random(random_state=i).apply(body) + rng.normal(0, 0.5, 3) for i in range(n)])
+        meas = _bodies(rng, body, n)
         real = np.c_[rng.normal(0, 5e-3, (n, 3)), rng.normal(0, 1e-3, (n, 3))]
-        arm = meas - meas.mean(axis=1, keepdims=True)
-        resid[k] = real[:, None, 3:] + np.cross(real[:, None, :3], arm)
+        resid[k] = _moved(real, meas)
         sessions[k] = _Data(n=n, points=meas)
     model = {"residual": resid, "fit": None}
-    monkeypatch.setattr(feedback, "load_fit", lambda fit: {"random_effect": {"sigma_mm": 0.0}})
+    monkeypatch.setattr(feedback, "load_fit", lambda fit: {"random_effect": {"sigma_mm": 0.0, "psi_si": [0.0] * 6}})
 
     def refit(robot, sims):
         out = {}
         for k, sim in sims.items():
             pred = np.asarray(sessions[k].points) - resid[k]
             e = tl._rigid(np.asarray(sim.points) - pred, np.asarray(sim.points)) * 1e-3 * np.r_[[0.9] * 3, [0.8] * 3]
-            arm = sim.points - sim.points.mean(axis=1, keepdims=True)
-            out[k] = e[:, None, 3:] + np.cross(e[:, None, :3], arm)
+            out[k] = _moved(e, np.asarray(sim.points))
         return {"residual": out, "fit": SimpleNamespace(causes=[SimpleNamespace(label="drift of j1")])}
 
     monkeypatch.setattr(tl, "two_session_model", refit)

@@ -700,8 +700,9 @@ def select_terms(terms, system: System, folds, rows=None, start=None, name_load:
         pool.remove(i)
     if len(named) > 1:
         chain, cur, named = _backward(terms, system, rows, folds, start, chain, cur, cur_cv, named, records, tidx)
+    final = None  # the cross-validation of the final model, when the last test has made it
     if name_load and any(not terms.terms[i].load for i in named):
-        chain, named = _against_load(terms, system, rows, folds, start, chain, load, named, records, tidx)
+        chain, named, final = _against_load(terms, system, rows, folds, start, chain, load, named, records, tidx)
     tested = {r["term"] for r in records}
     for i in pool:  # candidates never scored past the stopping point: their last Bayes factor
         if terms.terms[i].label not in tested:
@@ -711,7 +712,7 @@ def select_terms(terms, system: System, folds, rows=None, start=None, name_load:
     # (16 poses, where they raise the nested CV error 3.79 → 4.04 mm) or TALOS
     include = load | chain
     fit = refit(system, rows, include, start)
-    cv = cross_validate(system, folds, include, start) if final_cv else None
+    cv = (final if final is not None else cross_validate(system, folds, include, start)) if final_cv else None
     return Selection(include, _last_records(records), named, fit, cv)
 
 
@@ -751,7 +752,8 @@ def _against_load(terms, system, rows, folds, start, chain, load, named, records
     the geometry, the load terms the evidence keeps and the other named causes — the forward search scored it
     against the named causes alone, and a harmonic or a drift can stand in for a load term kept unnamed. Every
     naming test again (Bayes factor, most folds, CV lower by one standard error); the one failing with the lowest
-    Bayes factor leaves, the others are tested again. Returns ``(chain, named)``."""
+    Bayes factor leaves, the others are tested again. Returns ``(chain, named, the cross-validation of the model
+    with the load terms and the causes left)``."""
     while True:
         include = load | chain
         cur = refit(system, rows, include, start)
@@ -764,7 +766,7 @@ def _against_load(terms, system, rows, folds, start, chain, load, named, records
             if not rec["named"]:
                 fails.append((rec["ln_bf"], i, rec))
         if not fails:
-            return chain, named
+            return chain, named, cur_cv
         _, i, rec = min(fails, key=lambda x: x[0])
         rec.update(named=False, reason=f"withdrawn after naming: explained by the load terms the evidence keeps: "
                                        f"{rec['reason']}")
