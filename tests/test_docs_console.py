@@ -40,6 +40,12 @@ def test_trims_order_and_numbers():
     assert output_differs(["…", "[exit 3]", "tail 3"], real) == ""
     assert output_differs(["fleet — 7 robots (2 workers, 26.2 s)"], "fleet — 7 robots (2 workers, 9.4 s)\n") == ""
     assert output_differs(["fleet — 7 robots (2 workers, 26.2 s)"], "fleet — 6 robots (2 workers, 26.2 s)\n") != ""
+    # a UR kinematics file's hash (of its numbers to the last bit): its place, not its digits
+    assert output_differs(["wrote k.yaml (hash calib_estcal_31a1360cef278d23); 0.772 mrad"],
+                          "wrote k.yaml (hash calib_estcal_b9f41c3c51286c31); 0.772 mrad\n") == ""
+    assert output_differs(["wrote k.yaml (hash calib_estcal_31a1360cef278d23); 0.772 mrad"],
+                          "wrote k.yaml (hash calib_estcal_b9f41c3c51286c31); 0.781 mrad\n") != ""
+    assert output_differs(["hash: calib_estcal_31a1360cef278d23"], "hash: 31a1360cef278d23\n") != ""
 
 
 def test_blocks_exits_heredocs_and_no_run(tmp_path):

@@ -164,7 +164,9 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
                          "registered_rmse_mm": full.rmse_mm, "registered_rmse_mrad": full.rmse_mrad,
                          "tool_mm": 1e3 * float(np.linalg.norm(tool[c, :3, 3])),
                          "tool_mrad": 1e3 * float(np.linalg.norm(so3_log(tool[c, :3, :3])))})
-        rows.sort(key=lambda r: np.hypot(r["rmse_mm"], r["rmse_mrad"]))
+        # keys rounded to 1 nm / 1 nrad: tips one fixed rotation apart tie to the last bits, and the tie keeps
+        # the chain's order (the sort is stable) rather than the platform's rounding
+        rows.sort(key=lambda r: round(float(np.hypot(r["rmse_mm"], r["rmse_mrad"])), 6))
     else:
         reg = register_points(F["R"], F["p"], ds.points)
         # markers in every tip frame: C⁻¹ · m
@@ -173,7 +175,7 @@ def find_frames(urdf_path, data_path, column_map=None, points: int | None = None
         for c, (name, _) in enumerate(tips):
             rows.append({"tip": name, "rmse_mm": reg.rmse_mm, "rmse_mrad": None,
                          "marker_mm": 1e3 * float(np.mean(np.linalg.norm(m_tip[c], axis=-1)))})
-        rows.sort(key=lambda r: r["marker_mm"])
+        rows.sort(key=lambda r: round(r["marker_mm"], 6))
     for r in rows:
         out["candidates"].append({"root": top, **r, "roots": list(roots)})
     out["explained"] = _explained(ds, rows)
