@@ -518,9 +518,11 @@ def test_diagnosis_runs_one_blas_thread_whatever_the_caller_set(puma, monkeypatc
 
 def test_unpenalised_geometry_that_runs_away_is_refused_with_its_conditioning(talos_dir):
     """``geometric="full"`` on 40 TALOS postures measured by one point: the 30 geometric parameters without a
-    prior are nearly collinear and the Gauss–Newton steps overflow. The diagnosis refuses with the condition
-    number and the way out (the default sparse geometry), not numpy's "array must not contain infs or NaNs"; the
-    default on the same rows gives its answer."""
+    prior are nearly collinear (condition number 7e4 of their scaled columns) and the Gauss–Newton steps ran
+    away or not by rounding — an overflow, a ZeroDivisionError or an "expected error" of 4e5 mm from draws of
+    1e-12 m on the data. The diagnosis refuses before any step, with the condition number and the way out (the
+    default sparse geometry); the default on the same rows gives its answer (a well-conditioned full geometry
+    is fitted: tests/test_prediction.py)."""
     from pathlib import Path
 
     import numpy as np
@@ -537,8 +539,7 @@ def test_unpenalised_geometry_that_runs_away_is_refused_with_its_conditioning(ta
     train = data.subset(np.flatnonzero(np.isin(g, np.random.default_rng(1).permutation(np.unique(g))[:40])))
     with pytest.raises(NumericalRefusal, match=r"geometric='full'.*condition number \d\.\de\+0[4-9].*--geometric "
                                                r"sparse"):
-        # (without the approach terms: with them the same rows happen to converge)
-        diagnose_cmd(robot, train, geometric="full", budget=False, approach_from_order=False)
+        diagnose_cmd(robot, train, geometric="full", budget=False)
     res = diagnose_cmd(robot, train, budget=False)
     assert np.isfinite(res.answer["expected_mm"]) and res.answer["expected_mm"] < 2.0
 

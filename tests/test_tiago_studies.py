@@ -299,7 +299,11 @@ def test_drift_screen_recovers_a_joint_drift_it_is_given_and_not_one_it_is_not(t
     assert s["p_value"] < 0.01 and out["u"]["p_value"] > 0.05
 
 
-def test_all_is_every_set_but_the_eleventh(td):
-    assert td.seed_set("confirmation11") == (220, 221, 222)
-    assert not set(td.seed_set("confirmation11")) & set(td.seed_set("all"))
-    assert set(td.seed_set("all")) | {220, 221, 222} == {s for v in td.SEED_SETS.values() for s in v}
+def test_all_is_every_set_declared_before_the_eleventh(td):
+    later = {"confirmation11": (220, 221, 222), "confirmation12": (240, 241, 242), "confirmation13": (260, 261, 262)}
+    for name, seeds in later.items():
+        assert td.seed_set(name) == seeds
+        assert not set(seeds) & set(td.seed_set("all"))
+    assert len(td.seed_set("all")) == 36
+    assert set(td.seed_set("all")) | {s for v in later.values() for s in v} == {s for v in td.SEED_SETS.values()
+                                                                               for s in v}

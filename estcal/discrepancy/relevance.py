@@ -496,11 +496,13 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
 
     def lin():
         sysm = linearise(terms, data, noise, theta, frames, psi, s2, pending.pop() if pending else None)
-        if not (np.isfinite(sysm.Xw).all() and np.isfinite(sysm.tw).all()):
+        if _overflowed(sysm):
             raise _diverged(terms, first, n_gn)
         return sysm
 
     fresh = first = lin()  # the first round's system (and the start's)
+    if system0 is None:
+        _refuse_ill_conditioned_full(terms, first)
     if start is None and system0 is None and ridge_start:
         start = _geometric_start(terms, fresh, include)
     rnd = 0
@@ -535,6 +537,41 @@ def fit_relevance(terms, data, noise, include=None, start=None, max_gn: int = 20
                         else np.asarray(include, bool), n_gn, converged)
 
 
+def _overflowed(sysm: System) -> bool:
+    """Whether the whitened system holds a non-finite number, or finite ones whose squares overflow (the
+    evidence's sums of squares: a fit that ran away)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return not (np.isfinite(np.einsum("ij,ij->", sysm.Xw, sysm.Xw)) and np.isfinite(float(sysm.tw @ sysm.tw)))
+
+
+#: the largest condition number of the scaled unpenalised columns that ``geometric="full"`` fits: 1 / the
+#: identification's data-level tolerance 1e-4 (GECARO's rank growth, docs/identification.md)
+FULL_COND_MAX = 1e4
+
+
+def _full_conditioning(terms, first) -> tuple[float, str]:
+    """The condition number of the scaled unpenalised columns of the first linearisation (registration and, with
+    ``geometric="full"``, every geometric parameter), and the words that say what it means."""
+    F = first.X[:, : first.n_free] if first is not None else None
+    cond = float(np.linalg.cond(F / np.maximum(np.linalg.norm(F, axis=0), 1e-300))) if F is not None else np.nan
+    return cond, (f"With geometric='full' the {len(terms.geometric)} geometric parameters have no prior, and on these "
+                  f"data they are nearly collinear (condition number {cond:.1e} of their scaled columns): the default "
+                  f"geometric='sparse' (`--geometric sparse`) holds the directions the data do not determine near "
+                  f"their nominal values")
+
+
+def _refuse_ill_conditioned_full(terms, first) -> None:
+    """``geometric="full"`` on data that do not identify the geometry is refused before any step: the
+    Gauss–Newton steps of near-collinear unpenalised parameters run away or not by rounding (TALOS, 40 postures:
+    condition number 5e4–1e5, an overflow on one draw of 1e-12 m, an "expected error" of 4e5 mm on another)."""
+    from estcal.base.errors import NumericalRefusal
+
+    cond, words = _full_conditioning(terms, first)
+    if terms.geometric_mode == "full" and cond > FULL_COND_MAX:
+        raise NumericalRefusal(f"these data do not identify the geometry at the identification tolerance 1e-4 "
+                               f"(condition number above {FULL_COND_MAX:.0e}). {words}")
+
+
 def _diverged(terms, first, n_gn: int):
     """The refusal of a fit whose residuals overflowed (its Gauss–Newton steps left every plausible robot):
     names the model and, for the unpenalised geometry, the conditioning that let it run away."""
@@ -542,12 +579,7 @@ def _diverged(terms, first, n_gn: int):
 
     msg = f"the fit diverged after {n_gn} Gauss–Newton step(s): the residuals overflowed"
     if terms.geometric_mode == "full":
-        F = first.X[:, : first.n_free] if first is not None else None
-        cond = float(np.linalg.cond(F / np.maximum(np.linalg.norm(F, axis=0), 1e-300))) if F is not None else np.nan
-        msg += (f". With geometric='full' the {len(terms.geometric)} geometric parameters have no prior, and on these "
-                f"data they are nearly collinear (condition number {cond:.1e} of their scaled columns): the default "
-                f"geometric='sparse' (`--geometric sparse`) holds the directions the data do not determine near their "
-                f"nominal values")
+        msg += ". " + _full_conditioning(terms, first)[1]
     else:
         msg += "; check the data for a mislabelled joint or unit (estcal check) before a diagnosis"
     return NumericalRefusal(msg)

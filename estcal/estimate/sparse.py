@@ -121,6 +121,38 @@ def _project(F, *arrays):
     return tuple(a - Q @ (Q.T @ a) for a in arrays), r, (Q, R[:r, :r], piv[:r], nrm)
 
 
+#: a penalised column whose part orthogonal to ``F`` and to one penalised column before it is at most this
+#: fraction of its norm repeats that column on these rows (:func:`_repeats`)
+REPEAT_TOL = 1e-6
+
+
+def _repeats(G) -> np.ndarray:
+    """(M,) bool from the Gram matrix ``G`` of the unit-norm columns projected off ``F``: the columns that
+    repeat an earlier one — whose part orthogonal to it (and to ``F``) is at most :data:`REPEAT_TOL` of their
+    norm, ``1 − cos² ≤ tol²`` — or that ``F`` alone spans (their projection at most ``tol``: rounding).
+
+    Why: two columns one multiple of the other on the rows (a backlash by approach where every training
+    posture was approached from one side is ± the joint's offset) leave the evidence flat along
+    ``1/α_a + c²/α_b`` (it sees the columns only through ``Σ_j φ_j φ_jᵀ / α_j``: Tipping 2001, eq. 33), so
+    which of them takes the weight is decided by rounding — the same fit on these rows, and at rows where the
+    columns differ (the other approach) predictions millimetres apart from a 1e-12 m change of the data. Such
+    a column is never searched (:func:`sparse_bayes`): it keeps the precision its warm start gives it — in a
+    cross-validation fold, the one the rows that told the columns apart gave it, so the split is the prior's
+    (``w_b / w_a = c·α_a / α_b``) — or stays out, and the first of the pair (the geometry comes before the
+    effects) takes the weight: the column order and the start decide, not the rounding.
+
+    Only pairs: ``k`` columns confined to a ``d``-dimensional subspace leave the evidence flat only when
+    ``k > d(d+1)/2`` (the covariance they add has that many degrees of freedom), so a column merely in the span
+    of several others — every column, once the rows are fewer than the columns — is still a candidate."""
+    d = np.diag(G).copy()
+    rounding = d <= REPEAT_TOL ** 2
+    s = np.sqrt(np.where(rounding, 1.0, d))
+    C = G / np.outer(s, s)
+    same = 1.0 - C * C <= REPEAT_TOL ** 2
+    same &= ~rounding[:, None] & ~rounding[None, :]
+    return rounding | np.triu(same, 1).any(axis=0)
+
+
 class _State:
     """The sequential search's state on the projected, unit-norm system (Gram form)."""
 
@@ -274,7 +306,9 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     max_iter : most sequential steps (default 20·M + 50)
     noise_var : a fixed noise variance σ² (None: estimated with the precisions)
     start : (M,) precisions to start from (a previous fit's ``alpha``: the warm start of a refit on other
-        rows or at a new linearisation point); None: from the single best column
+        rows or at a new linearisation point); None: from the single best column. A column that repeats an
+        earlier one on these rows (:func:`_repeats`) is never searched: it keeps its start's precision (the
+        one rows that told them apart gave it) or, without one, stays out
     exclude : (M,) bool — columns held out of the model (α = ∞ throughout; for Bayes factors of a term)
     alpha_min : (M,) least precision of every column the search moves to (its widest prior, 1/α_min = the
         largest plausible square deviation; None: unbounded). ℓ(α) is unimodal, so the bounded optimum is the
@@ -298,15 +332,17 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         usable &= ~np.asarray(exclude, bool)
     n = pre.n
     st = _State(G, h, float(yt @ yt), n)
-    # a column whose part orthogonal to the unpenalised ones is below 1e-6 of its norm regroups into them: never
-    # a candidate (a sliver of rounding would otherwise get a prior as wide as it wants)
-    usable &= np.diag(G) > 1e-12
+    # a column that repeats an earlier one (_repeats) is never searched: held at its start's precision (the
+    # precision the rows that did tell them apart gave it), or out
+    held = usable & pre.repeats & (np.diag(G) > REPEAT_TOL ** 2)  # (not a column of rounding: F spans it alone)
+    usable &= ~pre.repeats
     fixed = noise_var is not None
     st.beta = 1.0 / noise_var if fixed else 1.0 / max(0.1 * float(yt @ yt) / max(n, 1), 1e-300)
     amin = np.zeros(M) if alpha_min is None else np.broadcast_to(np.asarray(alpha_min, float), (M,)) / nrm_s ** 2
     if start is not None:
         a0 = np.asarray(start, float) / nrm_s ** 2  # precisions in the unit-norm coordinates (w_n = ‖φ‖ w)
-        st.alpha = np.where(usable & np.isfinite(a0), a0, np.inf)
+        st.alpha = np.where((usable | held) & np.isfinite(a0), a0, np.inf)
+    held &= np.isfinite(st.alpha)
     if not np.isfinite(st.alpha).any() and usable.any():
         score = np.where(usable, h * h / np.maximum(np.diag(G), 1e-300), -np.inf)
         j = int(np.argmax(score))
@@ -314,13 +350,13 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
         st.alpha[j] = max(S * S / (Qj * Qj - S) if Qj * Qj > S else S, amin[j])  # a weak start: re-estimated or deleted
     max_iter = 20 * M + 50 if max_iter is None else int(max_iter)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        st, A, Sig, mu, it, converged = _search(st, usable, amin, tol, max_iter, fixed, start is not None, M)
+        st, A, Sig, mu, it, converged = _search(st, usable, held, amin, tol, max_iter, fixed, start is not None, M)
         fit = _result(st, A, Sig, mu, nrm_s, Pn, y, F, Q, it, converged, pre)
         # what adding each column alone would gain (the held-out ones included): ℓ at its optimal precision — the
         # log Bayes factor of that column against this model with every other precision held (a cheap screen)
         s, q = st.sq(A, Sig, mu)
         theta = q * q - s
-        out = np.isinf(st.alpha) & (st.dG > 1e-12)
+        out = np.isinf(st.alpha) & ~pre.repeats
         best = np.where(theta > 0, np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
         fit.extra["add_gain"] = np.where(out & (theta > 0), _ell(best, s, q), 0.0)
     return fit
@@ -345,6 +381,7 @@ class Prepared:
                              f"freedom")
         self.G = Pt.T @ Pt
         self.h = Pt.T @ self.yt
+        self.repeats = _repeats(self.G)
         self._Fp = self._FFt = None
 
     def F_pinv(self):
@@ -364,7 +401,7 @@ class Prepared:
         return self._FFt
 
 
-def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
+def _search(st, usable, held, amin, tol, max_iter, fixed, warm, M):
     """The sequential search (module docstring) from the state's precisions; returns
     ``(state, A, Σ, μ, steps, converged)``."""
     converged, it = False, 0
@@ -374,6 +411,7 @@ def _search(st, usable, amin, tol, max_iter, fixed, warm, M):
         s, q = st.sq(A, Sig, mu)
         theta = q * q - s
         new_alpha = np.where(usable & (theta > 0), np.maximum(s * s / np.where(theta > 0, theta, 1.0), amin), np.inf)
+        new_alpha[held] = st.alpha[held]
         gain = _ell(new_alpha, s, q) - _ell(st.alpha, s, q)
         gain = np.where(np.isfinite(gain), gain, -np.inf)
         j = int(np.argmax(gain)) if M else 0
