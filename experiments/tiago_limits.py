@@ -202,14 +202,10 @@ def whole_sessions(robot, sessions, model, draws) -> dict:
 
 def _term_labels(fit) -> list[str]:
     """The labels (as a named cause prints them) of every effect term ``fit``'s model holds, named or not."""
-    from types import SimpleNamespace
-
     from estcal.discrepancy.feedback import load_fit
-    from estcal.discrepancy.result import Cause
+    from estcal.discrepancy.result import cause_label
 
-    return [Cause.label.fget(SimpleNamespace(effect=e["effect"], joints=e.get("joints") or [],
-                                             options=e.get("options") or {}))
-            for e in load_fit(fit)["model"]["effects"]]
+    return [cause_label(e["effect"], e.get("joints") or [], e.get("options")) for e in load_fit(fit)["model"]["effects"]]
 
 
 def _named_line(named, truth, terms) -> str:

@@ -583,3 +583,17 @@ def test_a_cause_named_first_and_explained_by_later_ones_is_withdrawn(puma, seed
     assert [r["effect"] for r in withdrawn] == ["link_tilt"], withdrawn
     assert "joint_compliance(j2)" in withdrawn[0]["reason"] and "joint_compliance(j3)" in withdrawn[0]["reason"]
     _recovered(res, truth)
+
+
+def test_cause_labels_read_as_the_answer_prints_them():
+    """The words of a cause — the answer's, the studies' counts of terms named or not — for the options that
+    change them: the side a backlash is taken by (not "auto"), a harmonic's orders, the whole arm."""
+    from estcal.discrepancy.result import Cause, cause_label
+
+    assert cause_label("backlash", ["arm_6_joint"], {"by": "approach"}) == "backlash (by approach) of arm_6_joint"
+    assert cause_label("backlash", ["j2"], {"by": "auto"}) == "backlash of j2"
+    assert cause_label("gear_harmonic", ["j5"], {"orders": [1, 3]}) == "gear harmonic (order 1, 3) of j5"
+    assert cause_label("thermal_expansion", []) == "thermal expansion of the arm"
+    c = Cause(effect="joint_compliance", joints=["j3"], options={}, parameters={}, ln_bf=0.0, folds=0, k_folds=0,
+              cv_with_mm=0.0, cv_without_mm=0.0, explained_fraction=0.0)
+    assert c.label == "joint compliance of j3"

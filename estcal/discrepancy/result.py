@@ -15,7 +15,7 @@ import numpy as np
 from estcal.base.atomic import refuse_input
 from estcal.base.jsonio import write_json
 
-__all__ = ["Cause", "DiagnosisResult", "plain"]
+__all__ = ["Cause", "DiagnosisResult", "cause_label", "plain"]
 
 
 def plain(v):
@@ -29,6 +29,17 @@ def plain(v):
     if isinstance(v, np.ndarray):
         return v.tolist()
     return v
+
+
+def cause_label(effect: str, joints=(), options=None) -> str:
+    """The words a named cause prints for ``effect`` on ``joints`` with ``options`` ("backlash (by approach)
+    of arm_6_joint"): for a term of the model whether it is named or not."""
+    options = options or {}
+    j = ", ".join(joints) if joints else "the arm"
+    order, by = options.get("orders"), options.get("by")
+    name = effect.replace("_", " ") + (f" (order {', '.join(map(str, order))})" if order else "") + \
+        (f" (by {by})" if by and by != "auto" else "")
+    return f"{name} of {j}"
 
 
 @dataclass
@@ -64,11 +75,7 @@ class Cause:
 
     @property
     def label(self) -> str:
-        j = ", ".join(self.joints) if self.joints else "the arm"
-        order, by = self.options.get("orders"), self.options.get("by")
-        name = self.effect.replace("_", " ") + (f" (order {', '.join(map(str, order))})" if order else "") + \
-            (f" (by {by})" if by and by != "auto" else "")
-        return f"{name} of {j}"
+        return cause_label(self.effect, self.joints, self.options)
 
     def to_dict(self) -> dict:
         return plain({"effect": self.effect, "joints": list(self.joints), "options": self.options,
