@@ -133,7 +133,7 @@ def _repeats(G) -> np.ndarray:
 
     Why: two columns one multiple of the other on the rows (a backlash by approach where every training
     posture was approached from one side is ± the joint's offset) leave the evidence flat along
-    ``1/α_a + c²/α_b`` (it sees the columns only through ``Σ_j φ_j φ_jᵀ / α_j``: Tipping 2001, eq. 33), so
+    ``1/α_a + c²/α_b`` (it sees the columns only through the covariance ``σ²I + Σ_j φ_j φ_jᵀ / α_j``), so
     which of them takes the weight is decided by rounding — the same fit on these rows, and at rows where the
     columns differ (the other approach) predictions millimetres apart from a 1e-12 m change of the data. Such
     a column is never searched (:func:`sparse_bayes`): it keeps the precision its warm start gives it — in a
@@ -141,9 +141,10 @@ def _repeats(G) -> np.ndarray:
     (``w_b / w_a = c·α_a / α_b``) — or stays out, and the first of the pair (the geometry comes before the
     effects) takes the weight: the column order and the start decide, not the rounding.
 
-    Only pairs: ``k`` columns confined to a ``d``-dimensional subspace leave the evidence flat only when
-    ``k > d(d+1)/2`` (the covariance they add has that many degrees of freedom), so a column merely in the span
-    of several others — every column, once the rows are fewer than the columns — is still a candidate."""
+    Only pairs: ``k`` columns in general position within a ``d``-dimensional subspace leave the evidence flat
+    only when ``k > d(d+1)/2`` (their rank-one terms ``φ_j φ_jᵀ`` are then linearly dependent among the
+    symmetric ``d × d`` matrices), so a column merely in the span of several others — every column, once the
+    rows are fewer than the columns — is still a candidate."""
     d = np.diag(G).copy()
     rounding = d <= REPEAT_TOL ** 2
     s = np.sqrt(np.where(rounding, 1.0, d))
