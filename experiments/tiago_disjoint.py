@@ -84,6 +84,9 @@ CONFIRMATION13 = (260, 261, 262)
 #: declared before a range-blocked test of named harmonics and encoder gains was scored; run once with it (it
 #: changed nothing on these halvings), then with the default (the same figures); the test was not adopted
 CONFIRMATION14 = (280, 281, 282)
+#: declared before a gear harmonic of order n became a candidate only over half its period (the default since);
+#: run once with it
+CONFIRMATION15 = (300, 301, 302)
 FILES = {"11-30": "qualisys_2021-11-30_static_postures.csv", "11-26": "qualisys_2021-11-26_static_postures.csv"}
 
 
@@ -214,9 +217,11 @@ SEED_SETS = {"development": DEVELOPMENT, "confirmation": CONFIRMATION, "confirma
              "confirmation6": CONFIRMATION6, "confirmation7": CONFIRMATION7, "confirmation8": CONFIRMATION8,
              "confirmation9": CONFIRMATION9, "confirmation10": CONFIRMATION10, "confirmation11": CONFIRMATION11,
              "confirmation12": CONFIRMATION12, "confirmation13": CONFIRMATION13,
-             "confirmation14": CONFIRMATION14}
-#: the sets ``--seeds all`` runs: every set declared before the eleventh (module docstring)
-ALL = tuple(k for k in SEED_SETS if k not in ("confirmation11", "confirmation12", "confirmation13", "confirmation14"))
+             "confirmation14": CONFIRMATION14, "confirmation15": CONFIRMATION15}
+#: the sets declared from the eleventh on, each run once with the version it was declared for; ``--seeds all``
+#: runs every other set (module docstring)
+LATER = ("confirmation11", "confirmation12", "confirmation13", "confirmation14", "confirmation15")
+ALL = tuple(k for k in SEED_SETS if k not in LATER)
 
 
 def seed_set(text: str) -> tuple:
@@ -236,8 +241,8 @@ def main(argv=None) -> dict:
                     "(20–22), confirmation2 (40–42), confirmation3 (60–62), confirmation4 (80–82), confirmation5 (100–102), confirmation6 "
                     "(120–122), confirmation7 (140–142), confirmation8 (160–162), confirmation9 (180–182), "
                     "confirmation10 (200–202), confirmation11 (220–222), confirmation12 (240–242), confirmation13 "
-                    "(260–262), confirmation14 (280–282), all (the 72 halvings of the sets declared before the "
-                    "eleventh) or a list")
+                    "(260–262), confirmation14 (280–282), confirmation15 (300–302), all (the 72 halvings of the sets "
+                    "declared before the eleventh) or a list")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--frame-only", action="store_true", help="register the validation file's measuring frame only "
                     "(the protocol before the sixth confirmation set: no moved joint zero)")

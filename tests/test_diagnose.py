@@ -241,6 +241,26 @@ def test_candidates_of_every_kind_and_families(puma):
     assert "encoder_gain(j1,j2,j3,j4,j5,j6)" in fam
 
 
+def test_a_harmonic_is_offered_where_the_range_covers_half_its_period(puma):
+    """A gear harmonic of order n on a joint is a candidate only when the data's range of that joint spans at
+    least half its period, π/n: each joint's range set here (0.5, 1.2, 2.0 and 3.5 rad on j1–j4), the orders
+    offered are those with n·range ≥ π (none, 3, 2–3, 1–3)."""
+    from estcal.simulate import simulate
+
+    sim0 = simulate(puma, n_poses=40, measure="points", seed=0)
+    d = sim0.dataset
+    spans = {"j1": 0.5, "j2": 1.2, "j3": 2.0, "j4": 3.5}
+    rng = np.random.default_rng(0)
+    for i, (j, span) in enumerate(spans.items()):
+        q = rng.uniform(-0.5, 0.5, d.n) * span
+        q[:2] = -span / 2, span / 2  # the range exactly
+        d.readings[:, i] = q
+    cands = default_candidates(sim0.nominal_robot, d, effects=["gear_harmonic"])
+    offered = {j: sorted(c.options["orders"][0] for c in cands if c.joints == [j]) for j in spans}
+    assert offered == {j: [n for n in (1, 2, 3) if n * span >= np.pi] for j, span in spans.items()}
+    assert offered == {"j1": [], "j2": [3], "j3": [2, 3], "j4": [1, 2, 3]}
+
+
 def test_report_folder_and_plots(puma, tmp_path):
     from estcal.report.diagnose import diagnose_report
 

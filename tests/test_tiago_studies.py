@@ -301,7 +301,7 @@ def test_drift_screen_recovers_a_joint_drift_it_is_given_and_not_one_it_is_not(t
 
 def test_all_is_every_set_declared_before_the_eleventh(td):
     later = {"confirmation11": (220, 221, 222), "confirmation12": (240, 241, 242), "confirmation13": (260, 261, 262),
-             "confirmation14": (280, 281, 282)}
+             "confirmation14": (280, 281, 282), "confirmation15": (300, 301, 302)}
     for name, seeds in later.items():
         assert td.seed_set(name) == seeds
         assert not set(seeds) & set(td.seed_set("all"))
