@@ -259,6 +259,13 @@ def test_a_harmonic_is_offered_where_the_range_covers_half_its_period(puma):
     offered = {j: sorted(c.options["orders"][0] for c in cands if c.joints == [j]) for j in spans}
     assert offered == {j: [n for n in (1, 2, 3) if n * span >= np.pi] for j, span in spans.items()}
     assert offered == {"j1": [], "j2": [3], "j3": [2, 3], "j4": [1, 2, 3]}
+    # the phase is the reading times the gear ratio: j1 geared 100:1 spans 50 rad of phase
+    import copy
+
+    geared = copy.deepcopy(sim0.nominal_robot)  # (the fixture's robot stays as it is)
+    geared.meta["gear_ratio"] = {"j1": 100.0}
+    cands = default_candidates(geared, d, effects=["gear_harmonic"])
+    assert sorted(c.options["orders"][0] for c in cands if c.joints == ["j1"]) == [1, 2, 3]
 
 
 def test_report_folder_and_plots(puma, tmp_path):

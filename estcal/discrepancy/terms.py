@@ -165,8 +165,10 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
             elif name == "gear_harmonic" and robot.joint_types[ji] == "revolute":
                 # over less than half its period a harmonic of order n is a quadratic in the angle that trades
                 # with the offset and the geometry, its continuation beyond the range unknown (TIAGo, 18
-                # postures over 0.49 rad of arm_3: a 20 mrad third-order harmonic named, 6.25 mm at new postures)
-                span = float(np.ptp(data.readings[:, ji]))
+                # postures over 0.49 rad of arm_3: a 20 mrad third-order harmonic named, 6.25 mm at new postures).
+                # The phase is the reading times the joint's gear ratio (docs/effects.md)
+                rho = float((robot.meta.get("gear_ratio") or {}).get(j, 1.0))
+                span = float(np.ptp(data.readings[:, ji])) * abs(rho)
                 ok = [o for o in ok if span * o["orders"][0] >= np.pi]
             for o in ok:
                 try:
