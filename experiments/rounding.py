@@ -68,7 +68,7 @@ def cases(seeds, talos: bool):
         robot, sessions = tiago_disjoint.load()
         out += [(f"TIAGo seed {s} train {tr}", robot, T, V)
                 for s, tr, T, V in tiago_disjoint.halvings(robot, sessions, seeds)]
-    if talos and (talos_split.shared_dir() / "data" / "talos").is_dir():
+    if talos and not talos_split.missing():
         robot, data = talos_split.load()
         out += [(f"TALOS seed {s}", robot, *talos_split.split(robot, data, s)) for s in talos_split.SEEDS]
     return out

@@ -30,6 +30,11 @@ SEEDS = (0, 1, 2)
 N_TRAIN = 40
 
 
+def missing() -> str | None:
+    """Why the study cannot run here (the shared TALOS data are absent), else None."""
+    return None if (shared_dir() / "data" / "talos").is_dir() else f"shared data not found at {shared_dir() / 'data'}"
+
+
 def load():
     from estcal.io import load_dataset
     from estcal.io.prepare import derive_approach
@@ -107,8 +112,8 @@ def main(argv=None) -> dict:
                     "level forced) on the same splits instead of the diagnosis")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
-    if not (shared_dir() / "data" / "talos").is_dir():
-        print(f"shared data not found at {shared_dir() / 'data'}")
+    if missing():
+        print(missing())
         return {"skipped": True}
     from estcal.workflows.diagnose import width_from_text
 

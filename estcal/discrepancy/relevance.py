@@ -566,8 +566,10 @@ def _refuse_ill_conditioned_full(terms, first) -> None:
     condition number 5e4–1e5, an overflow on one draw of 1e-12 m, an "expected error" of 4e5 mm on another)."""
     from estcal.base.errors import NumericalRefusal
 
+    if terms.geometric_mode != "full":
+        return
     cond, words = _full_conditioning(terms, first)
-    if terms.geometric_mode == "full" and cond > FULL_COND_MAX:
+    if cond > FULL_COND_MAX:
         raise NumericalRefusal(f"these data do not identify the geometry at the identification tolerance 1e-4 "
                                f"(condition number above {FULL_COND_MAX:.0e}). {words}")
 

@@ -162,18 +162,17 @@ def default_candidates(robot, data, effects: Sequence[str] | None = None, harmon
                     ok = [o for o in ok if o.get("by") != "approach"]
             elif name == "link_tilt" and np.abs(m_across[:, ji]).max() <= 1e-9 * max(float(m_across.max()), 1e-300):
                 continue  # no moment across this axis (no mass beyond it, or no gravity)
-            elif name == "gear_harmonic" and robot.joint_types[ji] == "revolute":
-                # over less than half its period a harmonic of order n is a quadratic in the angle that trades
-                # with the offset and the geometry, its continuation beyond the range unknown (TIAGo, 18
-                # postures over 0.49 rad of arm_3: a 20 mrad third-order harmonic named, 6.25 mm at new postures).
-                # The phase is the reading times the joint's gear ratio (docs/effects.md)
-                rho = float((robot.meta.get("gear_ratio") or {}).get(j, 1.0))
-                span = float(np.ptp(data.readings[:, ji])) * abs(rho)
-                ok = [o for o in ok if span * o["orders"][0] >= np.pi]
             for o in ok:
                 try:
-                    Candidate(name, [j], o).make(robot)
+                    eff = Candidate(name, [j], o).make(robot)
                 except (ValueError, TypeError):
+                    continue
+                if name == "gear_harmonic" and robot.joint_types[ji] == "revolute" and (
+                        np.ptp(data.readings[:, ji]) * abs(eff.gear_ratio[j]) * o["orders"][0] < np.pi):
+                    # over less than half its period (of the phase: the reading times the gear ratio) a harmonic
+                    # of order n is a quadratic in the angle that trades with the offset and the geometry, its
+                    # continuation beyond the range unknown (TIAGo, 18 postures over 0.49 rad of arm_3: a 20 mrad
+                    # third-order harmonic named, 6.25 mm at new postures)
                     continue
                 per_joint.append(Candidate(name, [j], o))
         if per_joint:

@@ -126,10 +126,11 @@ def _project(F, *arrays):
 REPEAT_TOL = 1e-6
 
 
-def _repeats(G) -> np.ndarray:
-    """(M,) bool from the Gram matrix ``G`` of the unit-norm columns projected off ``F``: the columns that
-    repeat an earlier one — whose part orthogonal to it (and to ``F``) is at most :data:`REPEAT_TOL` of their
-    norm, ``1 − cos² ≤ tol²`` — or that ``F`` alone spans (their projection at most ``tol``: rounding).
+def _repeats(G) -> tuple[np.ndarray, np.ndarray]:
+    """``(repeats, rounding)``, (M,) bool each, from the Gram matrix ``G`` of the unit-norm columns projected off
+    ``F``: the columns that repeat an earlier one — whose part orthogonal to it (and to ``F``) is at most
+    :data:`REPEAT_TOL` of their norm, ``1 − cos² ≤ tol²`` — or that ``F`` alone spans (``rounding``: their
+    projection at most ``tol``).
 
     Why: two columns one multiple of the other on the rows (a backlash by approach where every training
     posture was approached from one side is ± the joint's offset) leave the evidence flat along
@@ -151,7 +152,7 @@ def _repeats(G) -> np.ndarray:
     C = G / np.outer(s, s)
     same = 1.0 - C * C <= REPEAT_TOL ** 2
     same &= ~rounding[:, None] & ~rounding[None, :]
-    return rounding | np.triu(same, 1).any(axis=0)
+    return rounding | np.triu(same, 1).any(axis=0), rounding
 
 
 class _State:
@@ -335,7 +336,7 @@ def sparse_bayes(Phi, y, F=None, *, tol: float = 1e-6, max_iter: int | None = No
     st = _State(G, h, float(yt @ yt), n)
     # a column that repeats an earlier one (_repeats) is never searched: held at its start's precision (the
     # precision the rows that did tell them apart gave it), or out
-    held = usable & pre.repeats & (np.diag(G) > REPEAT_TOL ** 2)  # (not a column of rounding: F spans it alone)
+    held = usable & pre.repeats & ~pre.rounding  # (a column of rounding, F spans it alone, stays out)
     usable &= ~pre.repeats
     fixed = noise_var is not None
     st.beta = 1.0 / noise_var if fixed else 1.0 / max(0.1 * float(yt @ yt) / max(n, 1), 1e-300)
@@ -382,7 +383,7 @@ class Prepared:
                              f"freedom")
         self.G = Pt.T @ Pt
         self.h = Pt.T @ self.yt
-        self.repeats = _repeats(self.G)
+        self.repeats, self.rounding = _repeats(self.G)
         self._Fp = self._FFt = None
 
     def F_pinv(self):
